@@ -1,0 +1,560 @@
+"""Configuration: one TOML file per airframe, read once into frozen dataclasses.
+
+Every value is validated here, so that the rest of the code can trust it. An error names
+the file, the key and what is allowed, e.g.::
+
+    configs/my_plane.toml: [airframe] mass_kg: must be a number > 0, got -3
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0")
+"""Regressors a coefficient may have, in kernel order (see model.equations)."""
+
+REGRESSOR_SUFFIX: dict[str, str] = {"1": "0", "alpha": "a", "qhat": "q", "elevator": "de", "V/V0": "V"}
+"""Naming rule: CL with regressor alpha is "CLa", Cm with elevator is "Cmde", and so on."""
+
+AXES: tuple[str, ...] = ("CD", "CL", "Cm")
+STATE_NAMES: tuple[str, ...] = ("V", "alpha", "theta", "q")
+OBS_NAMES: tuple[str, ...] = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")
+
+PropulsionKind = Literal["propeller", "measured"]
+WarmStartKind = Literal["equation-error", "filter"]
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing or not allowed; the message says where and why."""
+
+
+@dataclass(frozen=True)
+class Airframe:
+    """Rigid-body and air-data constants of the aircraft (longitudinal plane)."""
+
+    name: str
+    mass_kg: float
+    wing_area_m2: float
+    mean_chord_m: float
+    inertia_yy_kgm2: float
+    air_density_kgpm3: float
+    gravity_mps2: float
+    trim_airspeed_mps: float
+    """V0 [m/s]: reference speed of qhat = q*cbar/(2*V0) and of the V/V0 regressor."""
+    thrust_inclination_rad: float
+    """sigma_T [rad]: thrust line angle to the body x axis."""
+    thrust_moment_arm_m: float
+    """l_x*sin(sigma_T) + l_z*cos(sigma_T) [m]: pitching moment per newton of thrust."""
+
+
+@dataclass(frozen=True)
+class Propulsion:
+    """Thrust model: Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2), or measured Fe."""
+
+    model: PropulsionKind
+    prop_area_m2: float = 0.0
+    prop_coefficient: float = 0.0
+    motor_constant_mps: float = 0.0
+
+
+@dataclass(frozen=True)
+class CoefficientStructure:
+    """Which regressors each of CD, CL, Cm has; one estimated parameter per pair."""
+
+    CD: tuple[str, ...]
+    CL: tuple[str, ...]
+    Cm: tuple[str, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Parameter names in state order, e.g. ("CD0", "CDa", ..., "Cmde")."""
+        return tuple(axis + REGRESSOR_SUFFIX[r] for axis, r in self.pairs)
+
+    @property
+    def pairs(self) -> tuple[tuple[str, str], ...]:
+        return tuple((axis, r) for axis in AXES for r in getattr(self, axis))
+
+
+@dataclass(frozen=True)
+class Manoeuvre:
+    """Elevator excitation around trim: 3-2-1-1 multisteps and pulses (spec model.md)."""
+
+    duration_s: float = 60.0
+    multistep_starts_s: tuple[float, ...] = (2.0, 6.0)
+    multistep_unit_s: float = 0.2
+    multistep_amplitude_deg: float = 3.0
+    pulse_starts_s: tuple[float, ...] = (12.0, 30.0)
+    pulse_durations_s: tuple[float, ...] = (2.0, 2.0)
+    pulse_amplitudes_deg: tuple[float, ...] = (-3.0, 3.0)
+
+
+@dataclass(frozen=True)
+class Turbulence:
+    """Dryden longitudinal gusts (MIL-F-8785C form); intensity 0 turns it off."""
+
+    sigma_u_mps: float = 0.0
+    sigma_w_mps: float = 0.0
+    length_u_m: float = 200.0
+    length_w_m: float = 50.0
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """Measurement errors of the simulated aircraft, per observation channel (OBS_NAMES)."""
+
+    noise_sigma: tuple[float, ...]
+    """White noise 1 sigma in SI units [m/s, rad, rad, rad/s, rad/s^2, m/s^2, m/s^2]."""
+    bias: tuple[float, ...] = (0.0,) * 7
+    quantum: tuple[float, ...] = (0.0,) * 7
+    """Quantisation step per channel in SI units; 0 for none."""
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """Truth simulator settings."""
+
+    sample_rate_hz: float = 50.0
+    integration_step_s: float = 0.002
+    seed: int = 1
+    manoeuvre: Manoeuvre = field(default_factory=Manoeuvre)
+    sensors: Sensors = field(
+        default_factory=lambda: Sensors(
+            noise_sigma=(
+                0.3,
+                math.radians(0.3),
+                math.radians(0.2),
+                math.radians(0.1),
+                0.05,
+                0.2,
+                0.2,
+            )
+        )
+    )
+    turbulence: Turbulence = field(default_factory=Turbulence)
+
+
+@dataclass(frozen=True)
+class FilterTuning:
+    """Filter settings: initial belief, noise models and iteration control."""
+
+    initial_coefficients: tuple[float, ...]
+    """Initial estimate of each coefficient (default 0, as in the paper)."""
+    initial_state_sigma: tuple[float, ...]
+    """1 sigma of the initial V [m/s], alpha [rad], theta [rad], q [rad/s]."""
+    initial_coefficient_sigma: tuple[float, ...]
+    state_process_noise: tuple[float, ...]
+    """Continuous-time spectral density of the state noise, per state [unit^2/s]."""
+    coefficient_process_noise: tuple[float, ...]
+    """Final (steady) spectral density of the coefficient random walk [1/s]."""
+    coefficient_process_noise_initial: tuple[float, ...]
+    """Spectral density at t = 0; decays to the final value with time constant below."""
+    coefficient_noise_decay_s: float
+    measurement_sigma: tuple[float, ...]
+    """1 sigma per observation channel, SI units, order OBS_NAMES."""
+    iterations: int
+    """IEKF measurement-update iterations (1 = EKF; the paper uses 7)."""
+    iteration_tolerance: float
+    """Early stop when the largest state change of an iteration, in prior sigmas, is below."""
+    max_step_s: float
+    """Longest Runge-Kutta step of the prediction [s]."""
+    restart_times_s: tuple[float, ...]
+    """Times after the first frame [s] at which both filters re-run all frames so far from
+    the start, with their original P0 but the estimate so far as the initial mean (a new
+    linearisation point; every measurement is still used once). Empty: never."""
+    warm_start: WarmStartKind
+    """Initial mean at the first restart: "equation-error" (least squares on the frames
+    so far) or "filter" (the filter's own estimate)."""
+    innovation_gate: float
+    """Channels whose normalised innovation exceeds this many sigma are rejected; 0 = off."""
+
+
+@dataclass(frozen=True)
+class AircraftConfig:
+    """Everything one airframe needs: physics, structure, truth (if simulated), tuning."""
+
+    source: str
+    airframe: Airframe
+    propulsion: Propulsion
+    structure: CoefficientStructure
+    truth: tuple[float, ...] | None
+    """True coefficients (simulation) or accepted reference values, in structure order."""
+    truth_label: str
+    simulation: Simulation
+    filter: FilterTuning
+    raw: Mapping[str, Any]
+    """The parsed TOML, kept to write into results exactly as used."""
+
+    @property
+    def coefficient_names(self) -> tuple[str, ...]:
+        return self.structure.names
+
+    def with_truth(self, truth: tuple[float, ...]) -> AircraftConfig:
+        """The same aircraft with other true coefficients (for off-nominal simulations)."""
+        from dataclasses import replace
+
+        if len(truth) != len(self.coefficient_names):
+            raise ConfigError(f"{self.source}: truth needs {len(self.coefficient_names)} values")
+        return replace(self, truth=tuple(float(v) for v in truth))
+
+
+# --------------------------------------------------------------------------- reading
+
+
+class _Section:
+    """A TOML table with the file name and table path, for precise error messages."""
+
+    def __init__(self, source: str, path: str, data: Mapping[str, Any]) -> None:
+        self.source = source
+        self.path = path
+        self.data = data
+        self.used: set[str] = set()
+
+    def where(self, key: str) -> str:
+        return f"{self.source}: [{self.path}] {key}" if self.path else f"{self.source}: {key}"
+
+    def fail(self, key: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.where(key)}: {message}")
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def sub(self, key: str, required: bool = False) -> _Section:
+        self.used.add(key)
+        value = self.data.get(key)
+        if value is None:
+            if required:
+                raise self.fail(key, "missing table")
+            value = {}
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"must be a table, got {value!r}")
+        path = f"{self.path}.{key}" if self.path else key
+        return _Section(self.source, path, value)
+
+    def number(
+        self,
+        key: str,
+        default: float | None = None,
+        *,
+        positive: bool = False,
+        nonnegative: bool = False,
+    ) -> float:
+        self.used.add(key)
+        if key not in self.data:
+            if default is None:
+                raise self.fail(key, "missing; add it (a number)")
+            return default
+        value = self.data[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.fail(key, f"must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.fail(key, f"must be finite, got {value!r}")
+        if positive and value <= 0:
+            raise self.fail(key, f"must be a number > 0, got {value!r}")
+        if nonnegative and value < 0:
+            raise self.fail(key, f"must be a number >= 0, got {value!r}")
+        return value
+
+    def integer(self, key: str, default: int, *, minimum: int = 0) -> int:
+        self.used.add(key)
+        value = self.data.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, f"must be a whole number, got {value!r}")
+        if value < minimum:
+            raise self.fail(key, f"must be >= {minimum}, got {value!r}")
+        return value
+
+    def string(self, key: str, default: str | None = None, allowed: tuple[str, ...] = ()) -> str:
+        self.used.add(key)
+        if key not in self.data:
+            if default is None:
+                raise self.fail(key, "missing; add it (a string)")
+            return default
+        value = self.data[key]
+        if not isinstance(value, str):
+            raise self.fail(key, f"must be a string, got {value!r}")
+        if allowed and value not in allowed:
+            raise self.fail(key, f"must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
+        return value
+
+    def numbers(
+        self, key: str, default: tuple[float, ...] | None = None, *, length: int | None = None,
+        nonnegative: bool = False,
+    ) -> tuple[float, ...]:
+        self.used.add(key)
+        if key not in self.data:
+            if default is None:
+                raise self.fail(key, "missing; add it (a list of numbers)")
+            return default
+        value = self.data[key]
+        if not isinstance(value, list) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value
+        ):
+            raise self.fail(key, f"must be a list of numbers, got {value!r}")
+        out = tuple(float(v) for v in value)
+        if length is not None and len(out) != length:
+            raise self.fail(key, f"must have {length} values, got {len(out)}")
+        if not all(math.isfinite(v) for v in out):
+            raise self.fail(key, "values must be finite")
+        if nonnegative and any(v < 0 for v in out):
+            raise self.fail(key, f"values must be >= 0, got {list(out)}")
+        return out
+
+    def strings(self, key: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+        self.used.add(key)
+        if key not in self.data:
+            raise self.fail(key, f"missing; add a list drawn from {list(allowed)}")
+        value = self.data[key]
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise self.fail(key, f"must be a list of strings, got {value!r}")
+        for v in value:
+            if v not in allowed:
+                raise self.fail(key, f"unknown regressor {v!r}; allowed: {list(allowed)}")
+        if len(set(value)) != len(value):
+            raise self.fail(key, f"lists a regressor twice: {value!r}")
+        return tuple(value)
+
+    def per_name(
+        self, names: tuple[str, ...], default: float | None, *, nonnegative: bool = False,
+        positive: bool = False,
+    ) -> tuple[float, ...]:
+        """One number per name; a key "default" supplies the missing ones."""
+        fallback = self.number("default", default, nonnegative=nonnegative, positive=positive) \
+            if (self.has("default") or default is not None) else None
+        out = []
+        for name in names:
+            if name in self.data:
+                out.append(self.number(name, nonnegative=nonnegative, positive=positive))
+            elif fallback is not None:
+                out.append(fallback)
+            else:
+                raise self.fail(name, "missing; give a value for it or a 'default'")
+        return tuple(out)
+
+    def check_unknown(self, also_allowed: tuple[str, ...] = ()) -> None:
+        unknown = sorted(set(self.data) - self.used - set(also_allowed))
+        if unknown:
+            known = sorted(self.used | set(also_allowed))
+            raise self.fail(unknown[0], f"unknown key; known keys here: {known}")
+
+
+def load_config(path: str | Path) -> AircraftConfig:
+    """Read and validate an aircraft TOML file."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{source}: cannot read: {exc.strerror}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    return parse_config(data, source)
+
+
+def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftConfig:
+    """Validate a parsed TOML mapping (see configs/noc_uav.toml for every key)."""
+    top = _Section(source, "", data)
+    airframe = _parse_airframe(top.sub("airframe", required=True))
+    propulsion = _parse_propulsion(top.sub("propulsion", required=True))
+    structure = _parse_structure(top.sub("coefficients", required=True))
+    names = structure.names
+
+    truth: tuple[float, ...] | None = None
+    truth_label = "truth"
+    if top.has("truth"):
+        t = top.sub("truth")
+        truth_label = t.string("label", "truth")
+        truth = tuple(t.number(n) for n in names)
+        t.check_unknown()
+
+    simulation = _parse_simulation(top.sub("simulation"))
+    tuning = _parse_filter(top.sub("filter"), names)
+    top.check_unknown()
+    return AircraftConfig(
+        source=source,
+        airframe=airframe,
+        propulsion=propulsion,
+        structure=structure,
+        truth=truth,
+        truth_label=truth_label,
+        simulation=simulation,
+        filter=tuning,
+        raw=dict(data),
+    )
+
+
+def _parse_airframe(s: _Section) -> Airframe:
+    airframe = Airframe(
+        name=s.string("name", "aircraft"),
+        mass_kg=s.number("mass_kg", positive=True),
+        wing_area_m2=s.number("wing_area_m2", positive=True),
+        mean_chord_m=s.number("mean_chord_m", positive=True),
+        inertia_yy_kgm2=s.number("inertia_yy_kgm2", positive=True),
+        air_density_kgpm3=s.number("air_density_kgpm3", positive=True),
+        gravity_mps2=s.number("gravity_mps2", 9.80665, positive=True),
+        trim_airspeed_mps=s.number("trim_airspeed_mps", positive=True),
+        thrust_inclination_rad=s.number("thrust_inclination_rad", 0.0),
+        thrust_moment_arm_m=s.number("thrust_moment_arm_m", 0.0),
+    )
+    s.check_unknown()
+    return airframe
+
+
+def _parse_propulsion(s: _Section) -> Propulsion:
+    kind = s.string("model", allowed=("propeller", "measured"))
+    if kind == "propeller":
+        prop = Propulsion(
+            model="propeller",
+            prop_area_m2=s.number("prop_area_m2", positive=True),
+            prop_coefficient=s.number("prop_coefficient", positive=True),
+            motor_constant_mps=s.number("motor_constant_mps", positive=True),
+        )
+    else:
+        prop = Propulsion(model="measured")
+    s.check_unknown()
+    return prop
+
+
+def _parse_structure(s: _Section) -> CoefficientStructure:
+    structure = CoefficientStructure(
+        CD=s.strings("CD", REGRESSORS), CL=s.strings("CL", REGRESSORS), Cm=s.strings("Cm", REGRESSORS)
+    )
+    s.check_unknown()
+    if not structure.names:
+        raise s.fail("CD", "no coefficient to estimate; list at least one regressor")
+    return structure
+
+
+def _parse_simulation(s: _Section) -> Simulation:
+    defaults = Simulation()
+    m = s.sub("manoeuvre")
+    dm = defaults.manoeuvre
+    pulse_starts = m.numbers("pulse_starts_s", dm.pulse_starts_s, nonnegative=True)
+    manoeuvre = Manoeuvre(
+        duration_s=m.number("duration_s", dm.duration_s, positive=True),
+        multistep_starts_s=m.numbers("multistep_starts_s", dm.multistep_starts_s, nonnegative=True),
+        multistep_unit_s=m.number("multistep_unit_s", dm.multistep_unit_s, positive=True),
+        multistep_amplitude_deg=m.number("multistep_amplitude_deg", dm.multistep_amplitude_deg),
+        pulse_starts_s=pulse_starts,
+        pulse_durations_s=m.numbers(
+            "pulse_durations_s", dm.pulse_durations_s, length=len(pulse_starts), nonnegative=True
+        ),
+        pulse_amplitudes_deg=m.numbers(
+            "pulse_amplitudes_deg", dm.pulse_amplitudes_deg, length=len(pulse_starts)
+        ),
+    )
+    m.check_unknown()
+
+    se = s.sub("sensors")
+    ds = defaults.sensors
+    sensors = Sensors(
+        noise_sigma=_channels(se.sub("noise_sigma"), ds.noise_sigma, nonnegative=True),
+        bias=_channels(se.sub("bias"), ds.bias),
+        quantum=_channels(se.sub("quantum"), ds.quantum, nonnegative=True),
+    )
+    se.check_unknown()
+
+    tu = s.sub("turbulence")
+    preset = tu.string("preset", "none", allowed=("none", "light", "moderate", "custom"))
+    # MIL-F-8785C low altitude: sigma_w = 0.1*W20, W20 = 15 kt (light) or 30 kt (moderate).
+    w20 = {"none": 0.0, "light": 7.72, "moderate": 15.43, "custom": 0.0}[preset]
+    sigma_w = 0.1 * w20
+    turbulence = Turbulence(
+        sigma_w_mps=tu.number("sigma_w_mps", sigma_w, nonnegative=True),
+        sigma_u_mps=tu.number("sigma_u_mps", sigma_w * 1.5, nonnegative=True),
+        length_u_m=tu.number("length_u_m", 200.0, positive=True),
+        length_w_m=tu.number("length_w_m", 50.0, positive=True),
+    )
+    tu.check_unknown()
+
+    sim = Simulation(
+        sample_rate_hz=s.number("sample_rate_hz", defaults.sample_rate_hz, positive=True),
+        integration_step_s=s.number("integration_step_s", defaults.integration_step_s, positive=True),
+        seed=s.integer("seed", defaults.seed),
+        manoeuvre=manoeuvre,
+        sensors=sensors,
+        turbulence=turbulence,
+    )
+    s.check_unknown()
+    return sim
+
+
+def _channels(
+    s: _Section, default: tuple[float, ...], *, nonnegative: bool = False
+) -> tuple[float, ...]:
+    """Per-observation-channel values; angles may be given in degrees with a _deg key."""
+    out = list(default)
+    for i, name in enumerate(OBS_NAMES):
+        if s.has(name):
+            out[i] = s.number(name, nonnegative=nonnegative)
+        elif s.has(name + "_deg"):
+            out[i] = math.radians(s.number(name + "_deg", nonnegative=nonnegative))
+    s.check_unknown()
+    return tuple(out)
+
+
+def _parse_filter(s: _Section, names: tuple[str, ...]) -> FilterTuning:
+    p = len(names)
+    init = s.sub("initial_coefficients")
+    initial = init.per_name(names, 0.0)
+    init.check_unknown(("default",))
+
+    isig = s.sub("initial_sigma")
+    state_sigma = tuple(
+        isig.number(n, d, positive=True)
+        for n, d in zip(STATE_NAMES, (1.0, 0.02, 0.02, 0.02), strict=True)
+    )
+    coeff_sigma_sec = isig.sub("coefficients")
+    coeff_sigma = coeff_sigma_sec.per_name(names, 10.0, positive=True)
+    coeff_sigma_sec.check_unknown(("default",))
+    isig.check_unknown()
+
+    qn = s.sub("process_noise")
+    state_q = tuple(
+        qn.number(n, d, nonnegative=True)
+        for n, d in zip(STATE_NAMES, (0.05, 1e-4, 1e-6, 1e-3), strict=True)
+    )
+    cq = qn.sub("coefficients")
+    coeff_q = cq.per_name(names, 1e-8, nonnegative=True)
+    cq.check_unknown(("default",))
+    cq0 = qn.sub("coefficients_initial")
+    coeff_q0 = cq0.per_name(names, None, nonnegative=True) if cq0.data else coeff_q
+    cq0.check_unknown(("default",))
+    decay = qn.number("coefficient_decay_s", 5.0, positive=True)
+    qn.check_unknown()
+
+    ms = s.sub("measurement_sigma")
+    meas = _channels(ms, Simulation().sensors.noise_sigma, nonnegative=True)
+    if any(v <= 0 for v in meas):
+        bad = OBS_NAMES[[v <= 0 for v in meas].index(True)]
+        raise ms.fail(bad, "must be > 0 (a channel with no noise makes the update singular)")
+
+    restarts = s.numbers("restart_times_s", (), nonnegative=True)
+    if list(restarts) != sorted(set(restarts)):
+        raise s.fail("restart_times_s", f"must be strictly increasing, got {list(restarts)}")
+    warm = s.string("warm_start", "equation-error", allowed=("equation-error", "filter"))
+    tuning = FilterTuning(
+        initial_coefficients=initial,
+        initial_state_sigma=state_sigma,
+        initial_coefficient_sigma=coeff_sigma,
+        state_process_noise=state_q,
+        coefficient_process_noise=coeff_q,
+        coefficient_process_noise_initial=coeff_q0,
+        coefficient_noise_decay_s=decay,
+        measurement_sigma=meas,
+        iterations=s.integer("iterations", 7, minimum=1),
+        iteration_tolerance=s.number("iteration_tolerance", 0.0, nonnegative=True),
+        max_step_s=s.number("max_step_s", 0.02, positive=True),
+        restart_times_s=restarts,
+        warm_start="filter" if warm == "filter" else "equation-error",
+        innovation_gate=s.number("innovation_gate", 0.0, nonnegative=True),
+    )
+    s.check_unknown()
+    assert len(tuning.initial_coefficients) == p
+    return tuning

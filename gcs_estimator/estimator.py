@@ -1,0 +1,342 @@
+"""Online estimation of one aircraft: EKF and IEKF side by side over synchronised frames.
+
+A frame is (vehicle time [s], inputs [de rad, throttle or thrust N], observations [7],
+NaN where a channel is missing). Each filter predicts from the previous frame's time with
+the previous inputs held, then updates with the frame's observations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.filters import hybrid
+from gcs_estimator.filters.hybrid import Belief
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.aircraft import Model, build_model
+from gcs_estimator.model.equations import FloatArray
+
+Backend = Literal["fast", "reference"]
+FilterKind = Literal["EKF", "IEKF"]
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """What one filter step reports."""
+
+    x: FloatArray
+    sigma: FloatArray
+    nis: float
+    n_used: int
+    iterations: int
+    innovation: FloatArray
+    """y - h(x-) per channel, NaN where the channel was not used [7]."""
+    innovation_sigma: FloatArray
+    """sqrt(diag(S)) per channel, NaN where not used [7]."""
+
+
+@dataclass
+class FilterRunner:
+    """One filter (EKF or IEKF) over the frames of one vehicle."""
+
+    kind: FilterKind
+    model: Model
+    config: AircraftConfig
+    backend: Backend = "fast"
+    iterations: int = field(init=False)
+    belief: Belief | None = field(default=None, init=False)
+    t_last: float = field(default=math.nan, init=False)
+    u_last: FloatArray = field(default_factory=lambda: np.zeros(2), init=False)
+    t_start: float = field(default=math.nan, init=False)
+    beta0: FloatArray = field(init=False)
+    """Initial coefficient mean; a restart moves it, P0 stays as configured."""
+
+    def __post_init__(self) -> None:
+        tuning = self.config.filter
+        self.beta0 = np.array(tuning.initial_coefficients, float)
+        self.iterations = 1 if self.kind == "EKF" else tuning.iterations
+        self.R = np.diag(np.square(tuning.measurement_sigma))
+        self.q_state = np.array(tuning.state_process_noise)
+        self.q_coef_final = np.array(tuning.coefficient_process_noise)
+        self.q_coef_initial = np.array(tuning.coefficient_process_noise_initial)
+
+    def initial_belief(self, y: FloatArray) -> Belief:
+        """States from the first measurement where present, coefficients from the config."""
+        tuning = self.config.filter
+        state = np.array([self.model.k[eq.V0], 0.0, 0.0, 0.0])
+        measured = np.isfinite(y[: eq.N_STATE])
+        state[measured] = y[: eq.N_STATE][measured]
+        x = np.concatenate([state, self.beta0])
+        sigma = np.concatenate(
+            [np.array(tuning.initial_state_sigma), np.array(tuning.initial_coefficient_sigma)]
+        )
+        return Belief(x, np.diag(sigma**2))
+
+    def process_noise(self, t: float) -> FloatArray:
+        """Q at time t: coefficient noise decays from its initial to its final density."""
+        decay = math.exp(-(t - self.t_start) / self.config.filter.coefficient_noise_decay_s)
+        q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
+        return np.diag(np.concatenate([self.q_state, q_coef]))
+
+    def reset(self, beta0: FloatArray | None = None) -> None:
+        """Forget the belief; start again from beta0 (default: the configured start)."""
+        self.beta0 = (
+            np.array(self.config.filter.initial_coefficients, float)
+            if beta0 is None
+            else np.array(beta0, float)
+        )
+        self.belief = None
+        self.t_last = math.nan
+        self.t_start = math.nan
+
+    def step(self, t: float, u: FloatArray, y: FloatArray) -> StepOutput:
+        """Predict to time t [s] and update with observations y (NaN = missing)."""
+        tuning = self.config.filter
+        if self.belief is None:
+            self.belief = self.initial_belief(y)
+            self.t_last = t
+            self.t_start = t
+            self.u_last = np.array(u, float)
+        dt = t - self.t_last
+        Q = self.process_noise(self.t_last)
+        if self.backend == "fast":
+            from gcs_estimator.filters import fast
+
+            x, P, e, s_diag, nis, n_used, iters = fast.step(
+                self.belief.x, self.belief.P, self.u_last, dt, np.asarray(u, float),
+                np.asarray(y, float), Q, self.R, self.iterations, tuning.iteration_tolerance,
+                tuning.max_step_s, tuning.innovation_gate, self.model,
+            )
+            self.belief = Belief(x, P)
+        else:
+            u_prev = self.u_last
+            model = self.model
+            prior = hybrid.propagate(
+                lambda x: model.f(x, u_prev), self.belief, Q, dt, tuning.max_step_s
+            )
+            u_now = np.asarray(u, float)
+            post, info = hybrid.iekf_update(
+                lambda x: model.h(x, u_now), prior, np.asarray(y, float), self.R,
+                iterations=self.iterations, tolerance=tuning.iteration_tolerance,
+                gate=tuning.innovation_gate,
+            )
+            self.belief = post
+            e = np.full(eq.N_OBS, np.nan)
+            s_diag = np.full(eq.N_OBS, np.nan)
+            e[info.used] = info.innovation
+            s_diag[info.used] = np.sqrt(np.diag(info.S))
+            nis, n_used, iters = info.nis, int(info.used.sum()), info.iterations
+        self.t_last = t
+        self.u_last = np.array(u, float)
+        return StepOutput(
+            x=self.belief.x.copy(),
+            sigma=np.sqrt(np.diag(self.belief.P)),
+            nis=float(nis),
+            n_used=int(n_used),
+            iterations=int(iters),
+            innovation=e,
+            innovation_sigma=s_diag,
+        )
+
+
+@dataclass
+class History:
+    """Time histories of one filter: arrays grow by blocks, read with .arrays()."""
+
+    n: int
+    t: list[float] = field(default_factory=list)
+    x: list[FloatArray] = field(default_factory=list)
+    sigma: list[FloatArray] = field(default_factory=list)
+    nis: list[float] = field(default_factory=list)
+    n_used: list[int] = field(default_factory=list)
+    innovation: list[FloatArray] = field(default_factory=list)
+    innovation_sigma: list[FloatArray] = field(default_factory=list)
+
+    def append(self, t: float, out: StepOutput) -> None:
+        self.t.append(t)
+        self.x.append(out.x)
+        self.sigma.append(out.sigma)
+        self.nis.append(out.nis)
+        self.n_used.append(out.n_used)
+        self.innovation.append(out.innovation)
+        self.innovation_sigma.append(out.innovation_sigma)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass(frozen=True)
+class Track:
+    """Frozen arrays of one filter's run: t [N], x [N x n], sigma [N x n], nis [N], ..."""
+
+    t: FloatArray
+    x: FloatArray
+    sigma: FloatArray
+    nis: FloatArray
+    n_used: FloatArray
+    innovation: FloatArray
+    innovation_sigma: FloatArray
+
+    @staticmethod
+    def of(h: History) -> Track:
+        n = h.n
+        return Track(
+            t=np.array(h.t, float),
+            x=np.array(h.x, float).reshape(-1, n),
+            sigma=np.array(h.sigma, float).reshape(-1, n),
+            nis=np.array(h.nis, float),
+            n_used=np.array(h.n_used, float),
+            innovation=np.array(h.innovation, float).reshape(-1, eq.N_OBS),
+            innovation_sigma=np.array(h.innovation_sigma, float).reshape(-1, eq.N_OBS),
+        )
+
+
+@dataclass
+class Estimator:
+    """EKF and IEKF side by side for one vehicle; the place that owns the filter loop."""
+
+    config: AircraftConfig
+    backend: Backend = "fast"
+    keep_history: bool = True
+    model: Model = field(init=False)
+    filters: dict[FilterKind, FilterRunner] = field(init=False)
+    histories: dict[FilterKind, History] = field(init=False)
+    frames: int = field(default=0, init=False)
+    restarts_done: int = field(default=0, init=False)
+    warm_start: FloatArray | None = field(default=None, init=False)
+    """Equation-error coefficients of the first restart, when that is the warm start."""
+    _buffer: list[tuple[float, FloatArray, FloatArray]] = field(default_factory=list, init=False)
+    _t0: float = field(default=math.nan, init=False)
+
+    def __post_init__(self) -> None:
+        self.model = build_model(self.config)
+        self.filters = {
+            kind: FilterRunner(kind, self.model, self.config, self.backend)
+            for kind in ("EKF", "IEKF")
+        }
+        self.histories = {kind: History(self.model.n) for kind in self.filters}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.model.names
+
+    @property
+    def restarts_pending(self) -> bool:
+        return self.restarts_done < len(self.config.filter.restart_times_s)
+
+    def step(self, t: float, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+        """Advance both filters to vehicle time t [s] with inputs u and observations y.
+
+        At each configured restart time both filters re-run the buffered frames from the
+        start; the outputs returned are then those of the re-run's last frame.
+        """
+        if self.frames == 0:
+            self._t0 = t
+        if self.restarts_pending:
+            self._buffer.append((t, np.array(u, float), np.array(y, float)))
+        outs = self._advance(t, u, y)
+        self.frames += 1
+        if self.restarts_pending and t - self._t0 >= self.config.filter.restart_times_s[
+            self.restarts_done
+        ]:
+            outs = self._restart()
+        return outs
+
+    def _advance(self, t: float, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+        outs: dict[FilterKind, StepOutput] = {}
+        for kind, runner in self.filters.items():
+            out = runner.step(t, u, y)
+            outs[kind] = out
+            if self.keep_history:
+                self.histories[kind].append(t, out)
+        return outs
+
+    def _restart(self) -> dict[FilterKind, StepOutput]:
+        """Re-run the buffered frames from a new linearisation point (see FilterTuning)."""
+        tuning = self.config.filter
+        if self.restarts_done == 0 and tuning.warm_start == "equation-error":
+            from gcs_estimator.warmstart import equation_error
+
+            t_b = np.array([f[0] for f in self._buffer])
+            u_b = np.array([f[1] for f in self._buffer])
+            y_b = np.array([f[2] for f in self._buffer])
+            ws = equation_error(
+                self.model, t_b, u_b, y_b,
+                np.array(tuning.initial_coefficients), np.array(tuning.initial_coefficient_sigma),
+            )
+            self.warm_start = ws.beta
+            starts = {kind: ws.beta for kind in self.filters}
+        else:
+            starts = {
+                kind: runner.belief.x[eq.N_STATE :].copy()
+                for kind, runner in self.filters.items()
+                if runner.belief is not None
+            }
+        for kind, runner in self.filters.items():
+            runner.reset(starts.get(kind))
+            if self.keep_history:
+                self.histories[kind] = History(self.model.n)
+        outs: dict[FilterKind, StepOutput] = {}
+        for t, u, y in self._buffer:
+            outs = self._advance(t, u, y)
+        self.restarts_done += 1
+        if not self.restarts_pending:
+            self._buffer = []
+        return outs
+
+    def run(self, t_s: FloatArray, inputs: FloatArray, measurements: FloatArray) -> None:
+        """Process a whole recording: frames in time order."""
+        for i in range(len(t_s)):
+            self.step(float(t_s[i]), inputs[i], measurements[i])
+
+    def tracks(self) -> dict[FilterKind, Track]:
+        return {kind: Track.of(h) for kind, h in self.histories.items()}
+
+    def current(self) -> dict[FilterKind, tuple[FloatArray, FloatArray]]:
+        """Current coefficient estimates and sigmas per filter (empty before data)."""
+        out: dict[FilterKind, tuple[FloatArray, FloatArray]] = {}
+        for kind, runner in self.filters.items():
+            if runner.belief is not None:
+                b = runner.belief
+                out[kind] = (
+                    b.x[eq.N_STATE :].copy(),
+                    np.sqrt(np.diag(b.P))[eq.N_STATE :],
+                )
+        return out
+
+
+def convergence_time(
+    t: FloatArray, values: FloatArray, target: float, band: float = 0.05
+) -> float:
+    """First time after which `values` stay within `band` (relative) of `target` [s].
+
+    NaN if the last value is outside the band. Relative to |target|, so a target of 0
+    never converges in this sense.
+    """
+    if len(values) == 0 or target == 0.0:
+        return math.nan
+    outside = np.abs(values - target) > band * abs(target)
+    if outside[-1]:
+        return math.nan
+    idx = np.flatnonzero(outside)
+    if len(idx) == 0:
+        return float(t[0])
+    return float(t[idx[-1] + 1])
+
+
+def chi2_band(dof: float, runs: int, p: float = 0.95) -> tuple[float, float]:
+    """Two-sided band for the mean of `runs` chi-square(dof) draws (per-run mean)."""
+    from scipy.stats import chi2
+
+    lo = chi2.ppf((1 - p) / 2, dof * runs) / runs
+    hi = chi2.ppf(1 - (1 - p) / 2, dof * runs) / runs
+    return float(lo), float(hi)
+
+
+def index_of(names: Sequence[str], wanted: Sequence[str]) -> list[int]:
+    return [list(names).index(w) for w in wanted if w in names]

@@ -1,0 +1,196 @@
+"""Compiled filter step for the aircraft model: the same maths as filters.hybrid, fused.
+
+One call predicts (classical Runge-Kutta of x and P) and runs the (iterated) measurement
+update, exploiting the structure of the augmented model: the coefficient rows of F are
+zero, so F P costs 4 x n x n instead of n^3. tests/filters/test_fast.py checks it against
+the numpy reference path step by step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.equations import N_OBS, N_STATE, FloatArray, IntArray, dynamics, observe
+
+PSD_JITTER = 1e-12  # same meaning as filters.hybrid.PSD_JITTER
+
+
+@njit(cache=True)
+def _pdot(F: FloatArray, P: FloatArray, Q: FloatArray) -> FloatArray:  # pragma: no cover
+    n = P.shape[0]
+    FP = F[:N_STATE] @ P  # rows >= N_STATE of F are zero: coefficients have no dynamics
+    out = Q.copy()
+    for i in range(N_STATE):
+        for j in range(n):
+            out[i, j] += FP[i, j]
+            out[j, i] += FP[i, j]
+    return out
+
+
+@njit(cache=True)
+def _propagate(
+    x: FloatArray, P: FloatArray, u: FloatArray, Q: FloatArray, dt: float, max_step: float,
+    k: FloatArray, axis: IntArray, regressor: IntArray,
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    if dt <= 0.0:
+        return x.copy(), P.copy()
+    steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
+    h = dt / steps
+    for _ in range(steps):
+        f1, F1 = dynamics(x, u, k, axis, regressor)
+        P1 = _pdot(F1, P, Q)
+        x2 = x + 0.5 * h * f1
+        f2, F2 = dynamics(x2, u, k, axis, regressor)
+        P2 = _pdot(F2, P + 0.5 * h * P1, Q)
+        x3 = x + 0.5 * h * f2
+        f3, F3 = dynamics(x3, u, k, axis, regressor)
+        P3 = _pdot(F3, P + 0.5 * h * P2, Q)
+        x4 = x + h * f3
+        f4, F4 = dynamics(x4, u, k, axis, regressor)
+        P4 = _pdot(F4, P + h * P3, Q)
+        x = x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4)
+        P = P + h / 6.0 * (P1 + 2.0 * P2 + 2.0 * P3 + P4)
+    return x, 0.5 * (P + P.T)
+
+
+@njit(cache=True)
+def _psd_solve(S: FloatArray, B: FloatArray) -> FloatArray:  # pragma: no cover
+    m = S.shape[0]
+    scale = 1.0
+    for i in range(m):
+        scale = max(scale, abs(S[i, i]))
+    L = np.linalg.cholesky(S + PSD_JITTER * scale * np.eye(m))
+    # Forward then back substitution: S^-1 B = L^-T L^-1 B.
+    Z = np.empty_like(B)
+    for c in range(B.shape[1]):
+        for i in range(m):
+            acc = B[i, c]
+            for j in range(i):
+                acc -= L[i, j] * Z[j, c]
+            Z[i, c] = acc / L[i, i]
+        for i in range(m - 1, -1, -1):
+            acc = Z[i, c]
+            for j in range(i + 1, m):
+                acc -= L[j, i] * Z[j, c]
+            Z[i, c] = acc / L[i, i]
+    return Z
+
+
+@njit(cache=True)
+def _step(
+    x: FloatArray, P: FloatArray, u_prev: FloatArray, dt: float, u: FloatArray, y: FloatArray,
+    Q: FloatArray, R: FloatArray, iterations: int, tolerance: float, max_step: float,
+    gate: float, k: FloatArray, axis: IntArray, regressor: IntArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:  # pragma: no cover
+    n = x.shape[0]
+    xp, Pp = _propagate(x, P, u_prev, Q, dt, max_step, k, axis, regressor)
+    e_out = np.full(N_OBS, np.nan)
+    s_out = np.full(N_OBS, np.nan)
+
+    hx, H = observe(xp, u, k, axis, regressor)
+    HP = H @ Pp
+    idx = np.empty(N_OBS, dtype=np.int64)
+    m = 0
+    for i in range(N_OBS):
+        if math.isfinite(y[i]):
+            s_ii = 0.0
+            for j in range(n):
+                s_ii += HP[i, j] * H[i, j]
+            s_ii += R[i, i]
+            e_i = y[i] - hx[i]
+            if gate > 0.0 and abs(e_i) > gate * math.sqrt(s_ii):
+                continue
+            idx[m] = i
+            m += 1
+    if m == 0:
+        return xp, Pp, e_out, s_out, 0.0, 0, 0
+    idx = idx[:m]
+    yu = np.empty(m)
+    Ru = np.empty((m, m))
+    for a in range(m):
+        yu[a] = y[idx[a]]
+        for b in range(m):
+            Ru[a, b] = R[idx[a], idx[b]]
+    Hu = H[idx]
+    hu = hx[idx]
+    # Innovation statistics at the prior (NIS).
+    S = Hu @ Pp @ Hu.T + Ru
+    e = yu - hu
+    Se = _psd_solve(S, e.reshape(m, 1))
+    nis = 0.0
+    for a in range(m):
+        nis += e[a] * Se[a, 0]
+        e_out[idx[a]] = e[a]
+        s_out[idx[a]] = math.sqrt(S[a, a])
+
+    sigma = np.sqrt(np.diag(Pp))
+    x_i = xp.copy()
+    K = np.zeros((n, m))
+    done = 0
+    for it in range(iterations):
+        if it > 0:
+            hx_i, H_i = observe(x_i, u, k, axis, regressor)
+            Hu = H_i[idx]
+            hu = hx_i[idx]
+        HuP = Hu @ Pp
+        S_i = HuP @ Hu.T + Ru
+        K = _psd_solve(S_i, HuP).T
+        r = yu - hu - Hu @ (xp - x_i)
+        x_next = xp + K @ r
+        done = it + 1
+        biggest = 0.0
+        for j in range(n):
+            biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
+        x_i = x_next
+        if tolerance > 0.0 and biggest < tolerance:
+            break
+    I_KH = np.eye(n) - K @ Hu
+    P_post = I_KH @ Pp @ I_KH.T + K @ Ru @ K.T
+    return x_i, 0.5 * (P_post + P_post.T), e_out, s_out, nis, m, done
+
+
+def step(
+    x: FloatArray, P: FloatArray, u_prev: FloatArray, dt: float, u: FloatArray, y: FloatArray,
+    Q: FloatArray, R: FloatArray, iterations: int, tolerance: float, max_step: float,
+    gate: float, model: Model,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:
+    """Predict over dt [s] with inputs u_prev held, then update with y (NaN = missing).
+
+    Returns x+, P+, innovation [7] and its sigma [7] (NaN for unused channels), NIS,
+    channels used, iterations run. Same contract as hybrid.propagate + hybrid.iekf_update.
+    """
+    out: tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int] = _step(
+        x, P, u_prev, float(dt), u, y, Q, R, int(iterations), float(tolerance),
+        float(max_step), float(gate), model.k, model.axis, model.regressor,
+    )
+    return out
+
+
+@njit(cache=True)
+def _dynamics(
+    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    return dynamics(x, u, k, axis, regressor)
+
+
+@njit(cache=True)
+def _observe(
+    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    return observe(x, u, k, axis, regressor)
+
+
+def model_f(model: Model, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Compiled model.f: dynamics and Jacobian (same equations, for the simulator)."""
+    out: tuple[FloatArray, FloatArray] = _dynamics(x, u, model.k, model.axis, model.regressor)
+    return out
+
+
+def model_h(model: Model, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Compiled model.h: observations and Jacobian."""
+    out: tuple[FloatArray, FloatArray] = _observe(x, u, model.k, model.axis, model.regressor)
+    return out

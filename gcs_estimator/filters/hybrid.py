@@ -1,0 +1,182 @@
+"""Hybrid (continuous-discrete) extended and iterated extended Kalman filters.
+
+Reference path: plain numpy, textbook symbols, any model given as callables. The
+compiled path (filters.fast) fuses the same steps for the aircraft model and is tested
+against this one.
+
+Source: Meng, Liu and Veres (2010), sections III-IV; spec/model.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from numpy.typing import NDArray
+
+from gcs_estimator.model.equations import FloatArray
+
+BoolArray = NDArray[np.bool_]
+
+Dynamics = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
+"""x -> (f(x), F = df/dx), inputs already bound."""
+Observation = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
+"""x -> (h(x), H = dh/dx), inputs already bound."""
+
+PSD_JITTER = 1e-12
+"""Relative diagonal added before a Cholesky factorisation, so that a covariance that is
+positive definite only up to rounding still factors."""
+
+
+class Belief(NamedTuple):
+    """Gaussian belief N(x, P)."""
+
+    x: FloatArray
+    P: FloatArray
+
+
+class UpdateInfo(NamedTuple):
+    """Diagnostics of one measurement update.
+
+    innovation e = y - h(x-) over the channels used, S = H P- H^T + R, NIS = e^T S^-1 e,
+    used: boolean mask of the channels used, iterations: measurement-update iterations run.
+    """
+
+    innovation: FloatArray
+    S: FloatArray
+    nis: float
+    used: BoolArray
+    iterations: int
+
+
+def symmetrize(P: FloatArray) -> FloatArray:
+    return 0.5 * (P + P.T)
+
+
+def psd_solve(S: FloatArray, B: FloatArray) -> FloatArray:
+    """S^-1 B for symmetric positive definite S, by Cholesky with a tiny diagonal."""
+    jitter = PSD_JITTER * float(np.max(np.abs(np.diag(S)), initial=1.0))
+    return np.asarray(cho_solve(cho_factor(S + jitter * np.eye(S.shape[0])), B))
+
+
+def propagate(
+    f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: float
+) -> Belief:
+    """Integrate x' = f(x), P' = F P + P F^T + Q over dt by classical Runge-Kutta.
+
+    Steps no longer than max_step [s]; uneven measurement intervals are fine. Q is the
+    continuous-time process noise spectral density (L = I).
+    """
+    if dt <= 0.0:
+        return belief
+    steps = max(1, int(np.ceil(dt / max_step - 1e-9)))
+    h = dt / steps
+    x, P = belief.x, belief.P
+
+    def deriv(x: FloatArray, P: FloatArray) -> tuple[FloatArray, FloatArray]:
+        fx, F = f(x)
+        FP = F @ P
+        return fx, FP + FP.T + Q
+
+    for _ in range(steps):
+        k1x, k1P = deriv(x, P)
+        k2x, k2P = deriv(x + 0.5 * h * k1x, P + 0.5 * h * k1P)
+        k3x, k3P = deriv(x + 0.5 * h * k2x, P + 0.5 * h * k2P)
+        k4x, k4P = deriv(x + h * k3x, P + h * k3P)
+        x = x + h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
+        P = P + h / 6.0 * (k1P + 2.0 * k2P + 2.0 * k3P + k4P)
+    return Belief(x, symmetrize(P))
+
+
+def _select(
+    y: FloatArray, R: FloatArray, hx: FloatArray, H: FloatArray, used: BoolArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    return y[used], R[np.ix_(used, used)], hx[used], H[used]
+
+
+def available(y: FloatArray) -> BoolArray:
+    """Channels present in a measurement vector (missing channels are NaN)."""
+    return np.asarray(np.isfinite(y))
+
+
+def gate_channels(
+    e: FloatArray, S: FloatArray, used: BoolArray, gate: float
+) -> BoolArray:
+    """Drop channels whose innovation exceeds `gate` standard deviations (0 = keep all)."""
+    if gate <= 0.0:
+        return used
+    keep = used.copy()
+    idx = np.flatnonzero(used)
+    z = np.abs(e) / np.sqrt(np.diag(S))
+    keep[idx[z > gate]] = False
+    return keep
+
+
+def ekf_update(
+    h: Observation, belief: Belief, y: FloatArray, R: FloatArray, gate: float = 0.0
+) -> tuple[Belief, UpdateInfo]:
+    """EKF measurement update on the channels of y that are not NaN (Joseph form).
+
+        K = P H^T (H P H^T + R)^-1,  x+ = x + K (y - h(x)),
+        P+ = (I - K H) P (I - K H)^T + K R K^T
+    """
+    return iekf_update(h, belief, y, R, iterations=1, gate=gate)
+
+
+def iekf_update(
+    h: Observation,
+    belief: Belief,
+    y: FloatArray,
+    R: FloatArray,
+    iterations: int = 7,
+    tolerance: float = 0.0,
+    gate: float = 0.0,
+) -> tuple[Belief, UpdateInfo]:
+    """Iterated EKF measurement update (paper eq. 5-7), prior covariance held fixed.
+
+        x_{i+1} = x- + K_i [y - h(x_i) - H_i (x- - x_i)],
+        K_i = P- H_i^T (H_i P- H_i^T + R)^-1,  x_0 = x-.
+
+    Runs `iterations` updates (1 is the EKF); stops early when no state moves by more
+    than `tolerance` prior standard deviations. The covariance is formed once, in Joseph
+    form, from the last K and H. Each measurement is used once: the prior is never
+    replaced by an iterate (unlike implementations that feed the posterior back).
+    """
+    x_prior, P = belief
+    used = available(y)
+    n = x_prior.size
+    hx, H = h(x_prior)
+    e_all = y - hx
+    S_all = H @ P @ H.T + R
+    used = gate_channels(e_all[used], S_all[np.ix_(used, used)], used, gate)
+    if not used.any():
+        empty = np.zeros(0)
+        return belief, UpdateInfo(empty, np.zeros((0, 0)), 0.0, used, 0)
+    e = e_all[used]
+    S = S_all[np.ix_(used, used)]
+    nis = float(e @ psd_solve(S, e))
+
+    yu, Ru = y[used], R[np.ix_(used, used)]
+    sigma = np.sqrt(np.diag(P))
+    x_i = x_prior
+    Hu = H[used]
+    hu = hx[used]
+    done = 0
+    for it in range(iterations):
+        if it > 0:
+            hx_i, H_i = h(x_i)
+            hu, Hu = hx_i[used], H_i[used]
+        S_i = Hu @ P @ Hu.T + Ru
+        K = psd_solve(S_i, Hu @ P).T
+        x_next = x_prior + K @ (yu - hu - Hu @ (x_prior - x_i))
+        done = it + 1
+        step = np.max(np.abs(x_next - x_i) / sigma)
+        x_i = x_next
+        if tolerance > 0.0 and step < tolerance:
+            break
+    I_KH = np.eye(n) - K @ Hu
+    P_post = I_KH @ P @ I_KH.T + K @ Ru @ K.T
+    return Belief(x_i, symmetrize(P_post)), UpdateInfo(e, S, nis, used, done)

@@ -1,0 +1,121 @@
+"""Recorded flight data files: the HFB-320 ASCII record and a documented CSV layout.
+
+CSV layout (header row required, SI units, one row per sample, empty cell = missing):
+
+    time_s, airspeed_mps, alpha_rad, theta_rad, q_radps, qdot_radps2, ax_mps2, az_mps2,
+    elevator_rad, and one of throttle (0..1) or thrust_n
+
+Column order is free; extra columns are ignored.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gcs_estimator.model.equations import FloatArray
+
+CSV_OBSERVATIONS: tuple[str, ...] = (
+    "airspeed_mps", "alpha_rad", "theta_rad", "q_radps", "qdot_radps2", "ax_mps2", "az_mps2",
+)
+CSV_REQUIRED: tuple[str, ...] = ("time_s", *CSV_OBSERVATIONS, "elevator_rad")
+
+
+class FlightDataError(ValueError):
+    """A data file cannot be read as flight data; the message names the file and line."""
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Samples of one flight: t_s [N], inputs [N x 2] (elevator rad, throttle or thrust N),
+    measurements [N x 7] (V, alpha, theta, q, qdot, a_x, a_z; NaN = missing)."""
+
+    t_s: FloatArray
+    inputs: FloatArray
+    measurements: FloatArray
+    power: str
+    """"throttle" or "thrust": what the second input column holds."""
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+# HFB-320 columns (1-based in the README): T, DELV, PDYN, THRUST, TASCG, ALFCG, THE, Q,
+# QDOT, AXCG, AZCG, ...
+_HFB_COLUMNS = {"t": 0, "de": 1, "thrust": 3, "obs": (4, 5, 6, 7, 8, 9, 10)}
+
+
+def load_hfb320(path: str | Path) -> Recording:
+    """Read the HFB-320 flight-test record (Jategaonkar test case 4, hfb320_1_10.asc)."""
+    try:
+        data = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise FlightDataError(f"{path}: not an HFB-320 ASCII record: {exc}") from exc
+    if data.shape[1] < 11:
+        raise FlightDataError(f"{path}: expected at least 11 columns, found {data.shape[1]}")
+    return Recording(
+        t_s=data[:, _HFB_COLUMNS["t"]].copy(),
+        inputs=np.column_stack([data[:, _HFB_COLUMNS["de"]], data[:, _HFB_COLUMNS["thrust"]]]),
+        measurements=data[:, list(_HFB_COLUMNS["obs"])].copy(),
+        power="thrust",
+    )
+
+
+def load_csv(path: str | Path) -> Recording:
+    """Read flight data in the documented CSV layout (module docstring)."""
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            header = reader.fieldnames or []
+            missing = [c for c in CSV_REQUIRED if c not in header]
+            if missing:
+                raise FlightDataError(f"{path}: missing column(s) {missing}; need {CSV_REQUIRED}")
+            if "thrust_n" in header:
+                power = "thrust"
+            elif "throttle" in header:
+                power = "throttle"
+            else:
+                raise FlightDataError(f"{path}: needs a 'throttle' or a 'thrust_n' column")
+            power_col = "thrust_n" if power == "thrust" else "throttle"
+            rows: list[list[float]] = []
+            for line, row in enumerate(reader, start=2):
+                try:
+                    rows.append(
+                        [_cell(row[c]) for c in (*CSV_REQUIRED, power_col)]
+                    )
+                except ValueError as exc:
+                    raise FlightDataError(f"{path}:{line}: {exc}") from exc
+    except OSError as exc:
+        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+    if not rows:
+        raise FlightDataError(f"{path}: no data rows")
+    arr = np.array(rows, float)
+    if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
+        raise FlightDataError(f"{path}: time_s must be present and strictly increasing")
+    return Recording(
+        t_s=arr[:, 0], inputs=arr[:, [8, 9]], measurements=arr[:, 1:8], power=power
+    )
+
+
+def _cell(text: str | None) -> float:
+    if text is None or text.strip() == "":
+        return math.nan
+    return float(text)
+
+
+def write_csv(path: str | Path, rec: Recording) -> None:
+    """Write a recording in the documented CSV layout."""
+    power_col = "thrust_n" if rec.power == "thrust" else "throttle"
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow([*CSV_REQUIRED, power_col])
+        for i in range(len(rec)):
+            w.writerow(
+                [repr(float(rec.t_s[i]))]
+                + ["" if not math.isfinite(v) else repr(float(v)) for v in rec.measurements[i]]
+                + [repr(float(rec.inputs[i, 0])), repr(float(rec.inputs[i, 1]))]
+            )

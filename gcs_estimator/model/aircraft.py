@@ -1,0 +1,106 @@
+"""The configured aircraft as arrays the equations and kernels take, plus trimming."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from gcs_estimator.config import AXES, REGRESSORS, AircraftConfig
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.equations import FloatArray, IntArray
+
+
+@dataclass(frozen=True)
+class Model:
+    """Packed airframe constants and coefficient structure of one aircraft."""
+
+    k: FloatArray
+    axis: IntArray
+    regressor: IntArray
+    names: tuple[str, ...]
+
+    @property
+    def n_coefficients(self) -> int:
+        return len(self.names)
+
+    @property
+    def n(self) -> int:
+        """Augmented state dimension, 4 + number of coefficients."""
+        return eq.N_STATE + len(self.names)
+
+    def f(self, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return eq.dynamics(x, u, self.k, self.axis, self.regressor)
+
+    def h(self, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return eq.observe(x, u, self.k, self.axis, self.regressor)
+
+    def augment(self, state: FloatArray, beta: FloatArray) -> FloatArray:
+        return np.concatenate([np.asarray(state, float), np.asarray(beta, float)])
+
+
+def build_model(config: AircraftConfig) -> Model:
+    """Pack an aircraft configuration for the equations."""
+    a = config.airframe
+    p = config.propulsion
+    k = np.zeros(eq.N_CONST)
+    k[eq.MASS] = a.mass_kg
+    k[eq.AREA] = a.wing_area_m2
+    k[eq.CHORD] = a.mean_chord_m
+    k[eq.IYY] = a.inertia_yy_kgm2
+    k[eq.RHO] = a.air_density_kgpm3
+    k[eq.GRAV] = a.gravity_mps2
+    k[eq.V0] = a.trim_airspeed_mps
+    k[eq.SIGMA_T] = a.thrust_inclination_rad
+    k[eq.ARM] = a.thrust_moment_arm_m
+    if p.model == "propeller":
+        k[eq.PROP_KIND] = eq.PROP_PROPELLER
+        k[eq.PROP_AREA] = p.prop_area_m2
+        k[eq.PROP_COEF] = p.prop_coefficient
+        k[eq.MOTOR_K] = p.motor_constant_mps
+    else:
+        k[eq.PROP_KIND] = eq.PROP_MEASURED
+    pairs = config.structure.pairs
+    axis = np.array([AXES.index(ax) for ax, _ in pairs], dtype=np.int64)
+    regressor = np.array([REGRESSORS.index(r) for _, r in pairs], dtype=np.int64)
+    return Model(k=k, axis=axis, regressor=regressor, names=config.structure.names)
+
+
+@dataclass(frozen=True)
+class Trim:
+    """Steady level flight: state [V, alpha, theta, q] and inputs [de, throttle_or_thrust]."""
+
+    state: FloatArray
+    inputs: FloatArray
+    residual: float
+    """Largest |state derivative| left at the solution [SI]."""
+
+
+def trim(model: Model, beta: FloatArray, airspeed_mps: float | None = None) -> Trim:
+    """Trim for level flight (theta = alpha, q = 0) at the given airspeed.
+
+    Solves Vdot = alphadot = qdot = 0 for alpha, elevator and throttle (or thrust).
+    """
+    V = float(model.k[eq.V0]) if airspeed_mps is None else airspeed_mps
+    propeller = model.k[eq.PROP_KIND] == eq.PROP_PROPELLER
+
+    def residual(z: FloatArray) -> FloatArray:
+        alpha, de, power = z
+        x = model.augment(np.array([V, alpha, alpha, 0.0]), beta)
+        fx, _ = model.f(x, np.array([de, power]))
+        # Scale so that each equation weighs alike: m/s^2, rad/s, rad/s^2.
+        return np.array([fx[0], fx[1] * V, fx[3]])
+
+    weight = model.k[eq.MASS] * model.k[eq.GRAV]
+    guess = np.array([0.05, 0.0, 0.3 if propeller else 0.1 * weight])
+    lower = np.array([-0.5, -0.6, 0.0 if propeller else -math.inf])
+    upper = np.array([0.5, 0.6, 1.0 if propeller else math.inf])
+    sol = least_squares(residual, guess, bounds=(lower, upper), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    alpha, de, power = sol.x
+    return Trim(
+        state=np.array([V, alpha, alpha, 0.0]),
+        inputs=np.array([de, power]),
+        residual=float(np.max(np.abs(residual(sol.x)))),
+    )

@@ -1,0 +1,214 @@
+"""Longitudinal aircraft model: dynamics, observations and their analytic Jacobians.
+
+Source: Meng, Liu and Veres (2010), eq. 11-14, as corrected in spec/model.md.
+
+Augmented state x_a = [V, alpha, theta, q, beta_1 .. beta_p]: airspeed [m/s], angle of
+attack [rad], pitch angle [rad], pitch rate [rad/s], then the aerodynamic coefficients.
+Input u = [de, throttle_or_thrust]: elevator [rad] (positive trailing edge down), and
+throttle [0..1] for the propeller model or thrust [N] when thrust is measured.
+
+The functions take the airframe as a packed float array ``k`` (indices below) and the
+coefficient structure as two int arrays: ``axis[i]`` (0 = CD, 1 = CL, 2 = Cm) and
+``regressor[i]`` (0 = 1, 1 = alpha, 2 = qhat, 3 = elevator, 4 = V/V0) of parameter i.
+They are written with scalar arithmetic and loops only, so that the very same source runs
+as plain Python (the reference path) and compiles with numba (the fast path).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+from numba.extending import register_jitable
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+# Packed airframe constants (see pack_constants in model.aircraft).
+MASS, AREA, CHORD, IYY, RHO, GRAV, V0, SIGMA_T, ARM = 0, 1, 2, 3, 4, 5, 6, 7, 8
+PROP_KIND, PROP_AREA, PROP_COEF, MOTOR_K = 9, 10, 11, 12
+N_CONST = 13
+PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
+
+N_STATE = 4
+N_OBS = 7
+AXIS_D, AXIS_L, AXIS_M = 0, 1, 2
+REG_ONE, REG_ALPHA, REG_QHAT, REG_ELEV, REG_SPEED = 0, 1, 2, 3, 4
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def jitable(fn: _F) -> _F:
+    """Mark a function as callable from numba-compiled code; from Python it is unchanged."""
+    out: _F = register_jitable(fn)
+    return out
+
+
+@jitable
+def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
+    """Thrust Fe [N] and dFe/dV [N s/m].
+
+    Propeller model (spec model.md): Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2).
+    Measured thrust: Fe = u1.
+    """
+    if k[PROP_KIND] == PROP_PROPELLER:
+        c = 0.5 * k[RHO] * k[PROP_AREA] * k[PROP_COEF]
+        vm = k[MOTOR_K] * u1
+        return c * (vm * vm - V * V), -2.0 * c * V
+    return u1, 0.0
+
+
+@jitable
+def aero_coefficients(
+    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """Coefficients C = [CD, CL, Cm] and their Jacobian dC/dx_a (3 x n).
+
+    C_axis = sum_i beta_i * r_regressor(i) with r = [1, alpha, q*cbar/(2*V0), de, V/V0]
+    (paper eq. 12, generalised to a configured structure).
+    """
+    n = x.shape[0]
+    V = x[0]
+    alpha = x[1]
+    q = x[3]
+    qhat_per_q = k[CHORD] / (2.0 * k[V0])
+    r = np.empty(5)
+    r[REG_ONE] = 1.0
+    r[REG_ALPHA] = alpha
+    r[REG_QHAT] = q * qhat_per_q
+    r[REG_ELEV] = u[0]
+    r[REG_SPEED] = V / k[V0]
+    C = np.zeros(3)
+    dC = np.zeros((3, n))
+    for i in range(n - N_STATE):
+        a = axis[i]
+        j = regressor[i]
+        b = x[N_STATE + i]
+        C[a] += b * r[j]
+        dC[a, N_STATE + i] = r[j]
+        if j == REG_ALPHA:
+            dC[a, 1] += b
+        elif j == REG_QHAT:
+            dC[a, 3] += b * qhat_per_q
+        elif j == REG_SPEED:
+            dC[a, 0] += b / k[V0]
+    return C, dC
+
+
+@jitable
+def dynamics(
+    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """State derivative f(x_a, u) and its Jacobian F = df/dx_a (paper eq. 11, corrected).
+
+        Vdot     = -(qbar*S/m)*CD + g*sin(alpha - theta) + (Fe/m)*cos(alpha + sigma_T)
+        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
+                   - (Fe/(m*V))*sin(alpha + sigma_T)
+        thetadot = q
+        qdot     = (qbar*S*cbar/Iy)*Cm + Fe*arm/Iy
+        betadot  = 0
+
+    Returns f [n] and F [n x n], n = 4 + number of coefficients.
+    """
+    n = x.shape[0]
+    V = x[0]
+    alpha = x[1]
+    theta = x[2]
+    q = x[3]
+    m = k[MASS]
+    A = k[AREA] / m
+    g = k[GRAV]
+    rho = k[RHO]
+    C, dC = aero_coefficients(x, u, k, axis, regressor)
+    Fe, dFe = thrust(V, u[1], k)
+    qbar = 0.5 * rho * V * V
+    sat = math.sin(alpha - theta)
+    cat = math.cos(alpha - theta)
+    sas = math.sin(alpha + k[SIGMA_T])
+    cas = math.cos(alpha + k[SIGMA_T])
+    mcoef = k[AREA] * k[CHORD] / k[IYY]
+
+    f = np.zeros(n)
+    F = np.zeros((n, n))
+    f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
+    f[1] = -0.5 * rho * V * A * C[1] + q + g / V * cat - Fe / (m * V) * sas
+    f[2] = q
+    f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
+
+    for j in range(n):
+        F[0, j] = -qbar * A * dC[0, j]
+        F[1, j] = -0.5 * rho * V * A * dC[1, j]
+        F[3, j] = qbar * mcoef * dC[2, j]
+    # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
+    F[0, 0] += -rho * V * A * C[0] + dFe / m * cas
+    F[0, 1] += g * cat - Fe / m * sas
+    F[0, 2] += -g * cat
+    F[1, 0] += (
+        -0.5 * rho * A * C[1]
+        - g / (V * V) * cat
+        - (dFe / (m * V) - Fe / (m * V * V)) * sas
+    )
+    F[1, 1] += -g / V * sat - Fe / (m * V) * cas
+    F[1, 2] += g / V * sat
+    F[1, 3] += 1.0
+    F[2, 3] = 1.0
+    F[3, 0] += rho * V * mcoef * C[2] + dFe * k[ARM] / k[IYY]
+    return f, F
+
+
+@jitable
+def observe(
+    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """Observations h(x_a, u) and H = dh/dx_a (paper eq. 13-14, C_Z corrected).
+
+        y = [V, alpha, theta, q, qdot, a_x, a_z]
+        a_x = (qbar*S/m)*C_X + (Fe/m)*cos(sigma_T),  C_X =  CL*sin(alpha) - CD*cos(alpha)
+        a_z = (qbar*S/m)*C_Z - (Fe/m)*sin(sigma_T),  C_Z = -CL*cos(alpha) - CD*sin(alpha)
+
+    a_x, a_z are body-axis specific forces [m/s^2]; qdot [rad/s^2] as in dynamics().
+    Returns h [7] and H [7 x n].
+    """
+    n = x.shape[0]
+    V = x[0]
+    alpha = x[1]
+    m = k[MASS]
+    A = k[AREA] / m
+    rho = k[RHO]
+    C, dC = aero_coefficients(x, u, k, axis, regressor)
+    Fe, dFe = thrust(V, u[1], k)
+    qbar = 0.5 * rho * V * V
+    sa = math.sin(alpha)
+    ca = math.cos(alpha)
+    mcoef = k[AREA] * k[CHORD] / k[IYY]
+    CX = C[1] * sa - C[0] * ca
+    CZ = -C[1] * ca - C[0] * sa
+
+    h = np.zeros(N_OBS)
+    H = np.zeros((N_OBS, n))
+    h[0] = V
+    h[1] = alpha
+    h[2] = x[2]
+    h[3] = x[3]
+    h[4] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
+    h[5] = qbar * A * CX + Fe / m * math.cos(k[SIGMA_T])
+    h[6] = qbar * A * CZ - Fe / m * math.sin(k[SIGMA_T])
+
+    H[0, 0] = 1.0
+    H[1, 1] = 1.0
+    H[2, 2] = 1.0
+    H[3, 3] = 1.0
+    for j in range(n):
+        H[4, j] = qbar * mcoef * dC[2, j]
+        H[5, j] = qbar * A * (dC[1, j] * sa - dC[0, j] * ca)
+        H[6, j] = qbar * A * (-dC[1, j] * ca - dC[0, j] * sa)
+    H[4, 0] += rho * V * mcoef * C[2] + dFe * k[ARM] / k[IYY]
+    H[5, 0] += rho * V * A * CX + dFe / m * math.cos(k[SIGMA_T])
+    H[6, 0] += rho * V * A * CZ - dFe / m * math.sin(k[SIGMA_T])
+    # d(C_X)/d(alpha) and d(C_Z)/d(alpha) through sin and cos of alpha itself.
+    H[5, 1] += qbar * A * (C[1] * ca + C[0] * sa)
+    H[6, 1] += qbar * A * (C[1] * sa - C[0] * ca)
+    return h, H

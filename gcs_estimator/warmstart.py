@@ -1,0 +1,103 @@
+"""Equation-error warm start: linear least squares of the coefficients on measured data.
+
+The observation equations are linear in the coefficients once the states are measured
+(spec model.md, eq. 13-14):
+
+    Cm = (qdot - Fe*arm/Iy) / (qbar*S*cbar/Iy)
+    C_X = (a_x - Fe*cos(sigma_T)/m) / (qbar*S/m),  C_Z = (a_z + Fe*sin(sigma_T)/m) / (qbar*S/m)
+    CL = C_X*sin(alpha) - C_Z*cos(alpha),  CD = -C_X*cos(alpha) - C_Z*sin(alpha)
+
+and each of CD, CL, Cm is a sum of coefficients times regressors. Solving that gives a
+linearisation point for the filters with no initial guess at all. Its estimates are biased
+when alpha is noisy (errors in variables), so they serve only as a starting point: the
+filters re-run the data from the start with their original, wide initial covariance.
+Where qdot is not measured it is differentiated from q.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.equations import FloatArray
+
+
+class WarmStart(NamedTuple):
+    """Least-squares coefficients, their formal sigma, and the samples used per axis."""
+
+    beta: FloatArray
+    sigma: FloatArray
+    samples: tuple[int, int, int]
+
+
+def _qdot_from_q(t: FloatArray, q: FloatArray) -> FloatArray:
+    """Central-difference pitch acceleration [rad/s^2] from pitch rate samples."""
+    out = np.full_like(q, np.nan)
+    if len(q) >= 3:
+        out[1:-1] = (q[2:] - q[:-2]) / (t[2:] - t[:-2])
+    return out
+
+
+def equation_error(
+    model: Model,
+    t_s: FloatArray,
+    inputs: FloatArray,
+    measurements: FloatArray,
+    prior_mean: FloatArray,
+    prior_sigma: FloatArray,
+) -> WarmStart:
+    """Regularised least squares of the coefficients on the given frames.
+
+    The prior N(prior_mean, prior_sigma^2) keeps coefficients that the data do not yet
+    excite at their prior values instead of letting the solve go singular.
+    """
+    k = model.k
+    y = measurements
+    V = y[:, 0]
+    alpha = y[:, 1]
+    q = y[:, 3]
+    qdot = y[:, 4].copy()
+    if not np.isfinite(qdot).any():
+        qdot = _qdot_from_q(t_s, q)
+    de = inputs[:, 0]
+    Fe = np.array([eq.thrust(float(v), float(p), k)[0] for v, p in zip(V, inputs[:, 1], strict=True)])
+    m = k[eq.MASS]
+    qbar = 0.5 * k[eq.RHO] * V**2
+    force = qbar * k[eq.AREA] / m
+    Cm = (qdot - Fe * k[eq.ARM] / k[eq.IYY]) / (qbar * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY])
+    CX = (y[:, 5] - Fe * math.cos(k[eq.SIGMA_T]) / m) / force
+    CZ = (y[:, 6] + Fe * math.sin(k[eq.SIGMA_T]) / m) / force
+    CL = CX * np.sin(alpha) - CZ * np.cos(alpha)
+    CD = -CX * np.cos(alpha) - CZ * np.sin(alpha)
+    regressors = np.column_stack(
+        [np.ones_like(V), alpha, q * k[eq.CHORD] / (2 * k[eq.V0]), de, V / k[eq.V0]]
+    )
+
+    beta = np.array(prior_mean, float)
+    sigma = np.array(prior_sigma, float)
+    counts = [0, 0, 0]
+    for a, target in enumerate((CD, CL, Cm)):
+        idx = np.flatnonzero(model.axis == a)
+        if len(idx) == 0:
+            continue
+        X = regressors[:, model.regressor[idx]]
+        ok = np.isfinite(target) & np.all(np.isfinite(X), axis=1)
+        if ok.sum() < len(idx) + 2:
+            continue
+        X, z = X[ok], target[ok]
+        counts[a] = int(ok.sum())
+        b0 = prior_mean[idx]
+        info0 = np.diag(1.0 / prior_sigma[idx] ** 2)
+        # Residual variance first from the unregularised fit, then the weighted solve.
+        b_ls, *_ = np.linalg.lstsq(X, z, rcond=None)
+        resid = z - X @ b_ls
+        s2 = max(float(resid @ resid) / max(len(z) - len(idx), 1), 1e-12)
+        A = X.T @ X / s2 + info0
+        b = np.linalg.solve(A, X.T @ z / s2 + info0 @ b0)
+        beta[idx] = b
+        sigma[idx] = np.sqrt(np.diag(np.linalg.inv(A)))
+    return WarmStart(beta, sigma, (counts[0], counts[1], counts[2]))

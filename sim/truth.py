@@ -1,0 +1,220 @@
+"""Truth simulator: trims the aircraft, flies the manoeuvre, and makes sensor data.
+
+It integrates the same equations the filter uses (gcs_estimator.model.equations) with the
+true coefficients, plus what the filter does not model: Dryden turbulence, sensor noise,
+constant biases and quantisation. Everything random comes from one seeded generator.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
+
+from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
+from numba import njit
+
+from gcs_estimator.model.aircraft import Trim, build_model, trim
+from gcs_estimator.model.equations import (
+    N_OBS,
+    N_STATE,
+    FloatArray,
+    IntArray,
+    dynamics,
+    observe,
+)
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A simulated flight sampled at the sensor rate.
+
+    t_s [N] vehicle time [s]; inputs [N x 2] elevator [rad] and throttle [0..1] (or
+    thrust [N]); measurements [N x 7] V [m/s], alpha [rad], theta [rad], q [rad/s],
+    qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4] the true air-relative V, alpha,
+    theta, q; truth [p] the true coefficients.
+    """
+
+    t_s: FloatArray
+    inputs: FloatArray
+    measurements: FloatArray
+    states: FloatArray
+    truth: FloatArray
+    trim: Trim
+    clean: FloatArray
+    """Noise-free observations [N x 7] (for tests of the measurement model)."""
+
+
+def elevator_offset_rad(manoeuvre: Manoeuvre, t_s: float) -> float:
+    """Elevator deflection from trim at time t [rad]: 3-2-1-1 multisteps, then pulses.
+
+    A 3-2-1-1 multistep is +A for 3 units, -A for 2, +A for 1, -A for 1.
+    """
+    a = math.radians(manoeuvre.multistep_amplitude_deg)
+    unit = manoeuvre.multistep_unit_s
+    for start in manoeuvre.multistep_starts_s:
+        tau = (t_s - start) / unit
+        # The small offset puts a sample that falls on a switching time after the switch.
+        tau += 1e-9
+        if 0.0 <= tau < 3.0:
+            return a
+        if 3.0 <= tau < 5.0:
+            return -a
+        if 5.0 <= tau < 6.0:
+            return a
+        if 6.0 <= tau < 7.0:
+            return -a
+    for start, length, amp in zip(
+        manoeuvre.pulse_starts_s,
+        manoeuvre.pulse_durations_s,
+        manoeuvre.pulse_amplitudes_deg,
+        strict=True,
+    ):
+        if start <= t_s + 1e-9 < start + length:
+            return math.radians(amp)
+    return 0.0
+
+
+class _GustModel:
+    """Dryden gusts u_g (first order) and w_g (second order), unit-variance shaped.
+
+    Shaping filters from MIL-F-8785C with frozen airspeed V; the output gain is set from
+    the stationary covariance so that the gust standard deviations are exactly sigma.
+    """
+
+    def __init__(self, turb: Turbulence, airspeed: float, rng: np.random.Generator) -> None:
+        Tu = turb.length_u_m / airspeed
+        Tw = turb.length_w_m / airspeed
+        self.A = np.array([[-1.0 / Tu, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0 / Tw**2, -2.0 / Tw]])
+        B = np.eye(3)[:, [0, 2]]
+        self.B = B
+        Pss = solve_continuous_lyapunov(self.A, -B @ B.T)
+        cu = np.array([1.0, 0.0, 0.0])
+        cw = np.array([0.0, 1.0, math.sqrt(3.0) * Tw])
+        self.C = np.vstack(
+            [
+                turb.sigma_u_mps * cu / math.sqrt(cu @ Pss @ cu),
+                turb.sigma_w_mps * cw / math.sqrt(cw @ Pss @ cw),
+            ]
+        )
+        self.active = turb.sigma_u_mps > 0.0 or turb.sigma_w_mps > 0.0
+        self.z = rng.multivariate_normal(np.zeros(3), Pss) if self.active else np.zeros(3)
+        self.rng = rng
+
+    def step(self, dt: float) -> None:
+        if self.active:
+            noise = self.rng.standard_normal(2) * math.sqrt(dt)
+            self.z = self.z + self.A @ self.z * dt + self.B @ noise
+
+    def gust(self) -> FloatArray:
+        """[u_g, w_g] in m/s."""
+        return np.asarray(self.C @ self.z)
+
+
+def simulate(
+    config: AircraftConfig,
+    seed: int | None = None,
+    truth: FloatArray | None = None,
+) -> Flight:
+    """Fly the configured manoeuvre with the true coefficients and sample the sensors.
+
+    The air-relative state (V + u_g, alpha + w_g/V: small-gust approximation) drives the
+    aerodynamics and is what the air-data sensors see.
+    """
+    if truth is None:
+        if config.truth is None:
+            raise ValueError(f"{config.source}: [truth] is needed to simulate this aircraft")
+        truth = np.array(config.truth)
+    sim = config.simulation
+    rng = np.random.default_rng(sim.seed if seed is None else seed)
+    model = build_model(config)
+    trimmed = trim(model, truth)
+    gusts = _GustModel(sim.turbulence, float(trimmed.state[0]), rng)
+
+    dt = sim.integration_step_s
+    per_sample = max(1, round(1.0 / (sim.sample_rate_hz * dt)))
+    dt = 1.0 / (sim.sample_rate_hz * per_sample)
+    n_samples = int(math.floor(sim.manoeuvre.duration_s * sim.sample_rate_hz + 1e-9)) + 1
+
+    x0 = model.augment(trimmed.state, truth)
+    sensors = sim.sensors
+    noise_sigma = np.array(sensors.noise_sigma)
+    bias = np.array(sensors.bias)
+    quantum = np.array(sensors.quantum)
+
+    n_steps = (n_samples - 1) * per_sample
+    t_samples = np.arange(n_samples) / sim.sample_rate_hz
+    # Inputs are piecewise constant; evaluating them mid-step makes a switch on a step
+    # boundary act from that step on, and at a sample time from that sample on.
+    t_mid = (np.arange(n_steps) + 0.5) * dt
+    de0, power0 = trimmed.inputs
+    u_steps = np.column_stack(
+        [de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_mid]),
+         np.full(n_steps, power0)]
+    )
+    u_samples = np.column_stack(
+        [de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_samples]),
+         np.full(n_samples, power0)]
+    )
+    gust = np.empty((n_steps + 1, 2))
+    for i in range(n_steps + 1):
+        gust[i] = gusts.gust()
+        gusts.step(dt)
+
+    air_states, clean = _integrate(
+        x0, u_steps, u_samples, gust, dt, per_sample, model.k, model.axis, model.regressor
+    )
+    y = clean + bias + noise_sigma * rng.standard_normal(clean.shape)
+    q_nz = quantum > 0
+    y[:, q_nz] = np.round(y[:, q_nz] / quantum[q_nz]) * quantum[q_nz]
+    t_out, u_out, y_out, x_out, clean_out = t_samples, u_samples, y, air_states, clean
+    return Flight(
+        t_s=t_out,
+        inputs=u_out,
+        measurements=y_out,
+        states=x_out,
+        truth=np.asarray(truth, float),
+        trim=trimmed,
+        clean=clean_out,
+    )
+
+
+@njit(cache=True)
+def _air(x: FloatArray, g: FloatArray) -> FloatArray:  # pragma: no cover
+    xa = x.copy()
+    xa[0] = x[0] + g[0]
+    xa[1] = x[1] + g[1] / x[0]
+    return xa
+
+
+@njit(cache=True)
+def _integrate(
+    x0: FloatArray, u_steps: FloatArray, u_samples: FloatArray, gust: FloatArray, dt: float,
+    per_sample: int, k: FloatArray, axis: IntArray, regressor: IntArray,
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    """Classical Runge-Kutta with the gust held over each step; samples air-relative
+    states and noise-free observations every per_sample steps."""
+    n_samples = u_samples.shape[0]
+    states = np.empty((n_samples, N_STATE))
+    clean = np.empty((n_samples, N_OBS))
+    x = x0.copy()
+    step = 0
+    for i in range(n_samples):
+        xa = _air(x, gust[step])
+        states[i] = xa[:N_STATE]
+        h, _ = observe(xa, u_samples[i], k, axis, regressor)
+        clean[i] = h
+        if i == n_samples - 1:
+            break
+        for _ in range(per_sample):
+            u = u_steps[step]
+            g = gust[step]
+            k1, _ = dynamics(_air(x, g), u, k, axis, regressor)
+            k2, _ = dynamics(_air(x + 0.5 * dt * k1, g), u, k, axis, regressor)
+            k3, _ = dynamics(_air(x + 0.5 * dt * k2, g), u, k, axis, regressor)
+            k4, _ = dynamics(_air(x + dt * k3, g), u, k, axis, regressor)
+            x = x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            step += 1
+    return states, clean
