@@ -18,7 +18,13 @@ from typing import Any, Literal
 REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0")
 """Regressors a coefficient may have, in kernel order (see model.equations)."""
 
-REGRESSOR_SUFFIX: dict[str, str] = {"1": "0", "alpha": "a", "qhat": "q", "elevator": "de", "V/V0": "V"}
+REGRESSOR_SUFFIX: dict[str, str] = {
+    "1": "0",
+    "alpha": "a",
+    "qhat": "q",
+    "elevator": "de",
+    "V/V0": "V",
+}
 """Naming rule: CL with regressor alpha is "CLa", Cm with elevator is "Cmde", and so on."""
 
 AXES: tuple[str, ...] = ("CD", "CL", "Cm")
@@ -166,6 +172,9 @@ class FilterTuning:
     """Times after the first frame [s] at which both filters re-run all frames so far from
     the start, with their original P0 but the estimate so far as the initial mean (a new
     linearisation point; every measurement is still used once). Empty: never."""
+    restart_sigma_inflation: float
+    """At a restart the coefficient prior sigma is this times the sigma of the estimate
+    restarted from (capped at the initial sigma)."""
     warm_start: WarmStartKind
     """Initial mean at the first restart: "equation-error" (least squares on the frames
     so far) or "filter" (the filter's own estimate)."""
@@ -279,11 +288,17 @@ class _Section:
         if not isinstance(value, str):
             raise self.fail(key, f"must be a string, got {value!r}")
         if allowed and value not in allowed:
-            raise self.fail(key, f"must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
+            raise self.fail(
+                key, f"must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}"
+            )
         return value
 
     def numbers(
-        self, key: str, default: tuple[float, ...] | None = None, *, length: int | None = None,
+        self,
+        key: str,
+        default: tuple[float, ...] | None = None,
+        *,
+        length: int | None = None,
         nonnegative: bool = False,
     ) -> tuple[float, ...]:
         self.used.add(key)
@@ -320,12 +335,19 @@ class _Section:
         return tuple(value)
 
     def per_name(
-        self, names: tuple[str, ...], default: float | None, *, nonnegative: bool = False,
+        self,
+        names: tuple[str, ...],
+        default: float | None,
+        *,
+        nonnegative: bool = False,
         positive: bool = False,
     ) -> tuple[float, ...]:
         """One number per name; a key "default" supplies the missing ones."""
-        fallback = self.number("default", default, nonnegative=nonnegative, positive=positive) \
-            if (self.has("default") or default is not None) else None
+        fallback = (
+            self.number("default", default, nonnegative=nonnegative, positive=positive)
+            if (self.has("default") or default is not None)
+            else None
+        )
         out = []
         for name in names:
             if name in self.data:
@@ -423,7 +445,9 @@ def _parse_propulsion(s: _Section) -> Propulsion:
 
 def _parse_structure(s: _Section) -> CoefficientStructure:
     structure = CoefficientStructure(
-        CD=s.strings("CD", REGRESSORS), CL=s.strings("CL", REGRESSORS), Cm=s.strings("Cm", REGRESSORS)
+        CD=s.strings("CD", REGRESSORS),
+        CL=s.strings("CL", REGRESSORS),
+        Cm=s.strings("Cm", REGRESSORS),
     )
     s.check_unknown()
     if not structure.names:
@@ -475,7 +499,9 @@ def _parse_simulation(s: _Section) -> Simulation:
 
     sim = Simulation(
         sample_rate_hz=s.number("sample_rate_hz", defaults.sample_rate_hz, positive=True),
-        integration_step_s=s.number("integration_step_s", defaults.integration_step_s, positive=True),
+        integration_step_s=s.number(
+            "integration_step_s", defaults.integration_step_s, positive=True
+        ),
         seed=s.integer("seed", defaults.seed),
         manoeuvre=manoeuvre,
         sensors=sensors,
@@ -553,8 +579,47 @@ def _parse_filter(s: _Section, names: tuple[str, ...]) -> FilterTuning:
         max_step_s=s.number("max_step_s", 0.02, positive=True),
         restart_times_s=restarts,
         warm_start="filter" if warm == "filter" else "equation-error",
+        restart_sigma_inflation=s.number("restart_sigma_inflation", 10.0, positive=True),
         innovation_gate=s.number("innovation_gate", 0.0, nonnegative=True),
     )
     s.check_unknown()
     assert len(tuning.initial_coefficients) == p
     return tuning
+
+
+def apply_overrides(data: Mapping[str, Any], overrides: list[str], source: str) -> dict[str, Any]:
+    """Apply command-line overrides "table.key=value" (value in TOML syntax) to parsed TOML.
+
+    Example: ``filter.iterations=3``, ``filter.restart_times_s=[4.0]``,
+    ``simulation.turbulence.preset="light"`` (a bare word is taken as a string).
+    """
+    out: dict[str, Any] = _deep_copy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. filter.iterations=3")
+        key, text = item.split("=", 1)
+        parts = key.strip().split(".")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        node = out
+        for part in parts[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                raise ConfigError(f"{source}: --set {key}: {part!r} is not a table")
+            node = nxt
+        node[parts[-1]] = value
+    return out
+
+
+def _deep_copy(data: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: _deep_copy(v) if isinstance(v, Mapping) else v for k, v in data.items()}
+
+
+def load_config_with(path: str | Path, overrides: list[str] | None = None) -> AircraftConfig:
+    """load_config plus command-line overrides (see apply_overrides)."""
+    if not overrides:
+        return load_config(path)
+    base = load_config(path)
+    return parse_config(apply_overrides(base.raw, overrides, str(path)), str(path))

@@ -54,11 +54,20 @@ class FilterRunner:
     u_last: FloatArray = field(default_factory=lambda: np.zeros(2), init=False)
     t_start: float = field(default=math.nan, init=False)
     beta0: FloatArray = field(init=False)
-    """Initial coefficient mean; a restart moves it, P0 stays as configured."""
+    """Initial coefficient mean; a restart moves it."""
+    sigma0: FloatArray = field(init=False)
+    """Initial coefficient sigma; a restart may narrow it to a data-derived prior."""
+    failed_updates: int = field(default=0, init=False)
+    """Updates skipped because an innovation covariance was not positive definite."""
+    divergences: int = field(default=0, init=False)
+    """Times the belief went non-finite and the filter was restarted from scratch."""
+    covariance_repairs: int = field(default=0, init=False)
+    """Times P lost positive definiteness to rounding and was repaired (eigenvalue floor)."""
 
     def __post_init__(self) -> None:
         tuning = self.config.filter
         self.beta0 = np.array(tuning.initial_coefficients, float)
+        self.sigma0 = np.array(tuning.initial_coefficient_sigma, float)
         self.iterations = 1 if self.kind == "EKF" else tuning.iterations
         self.R = np.diag(np.square(tuning.measurement_sigma))
         self.q_state = np.array(tuning.state_process_noise)
@@ -72,9 +81,7 @@ class FilterRunner:
         measured = np.isfinite(y[: eq.N_STATE])
         state[measured] = y[: eq.N_STATE][measured]
         x = np.concatenate([state, self.beta0])
-        sigma = np.concatenate(
-            [np.array(tuning.initial_state_sigma), np.array(tuning.initial_coefficient_sigma)]
-        )
+        sigma = np.concatenate([np.array(tuning.initial_state_sigma), self.sigma0])
         return Belief(x, np.diag(sigma**2))
 
     def process_noise(self, t: float) -> FloatArray:
@@ -83,12 +90,12 @@ class FilterRunner:
         q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
         return np.diag(np.concatenate([self.q_state, q_coef]))
 
-    def reset(self, beta0: FloatArray | None = None) -> None:
-        """Forget the belief; start again from beta0 (default: the configured start)."""
-        self.beta0 = (
-            np.array(self.config.filter.initial_coefficients, float)
-            if beta0 is None
-            else np.array(beta0, float)
+    def reset(self, beta0: FloatArray | None = None, sigma0: FloatArray | None = None) -> None:
+        """Forget the belief; start again from N(beta0, sigma0^2) (default: configured)."""
+        tuning = self.config.filter
+        self.beta0 = np.array(tuning.initial_coefficients if beta0 is None else beta0, float)
+        self.sigma0 = np.array(
+            tuning.initial_coefficient_sigma if sigma0 is None else sigma0, float
         )
         self.belief = None
         self.t_last = math.nan
@@ -108,10 +115,23 @@ class FilterRunner:
             from gcs_estimator.filters import fast
 
             x, P, e, s_diag, nis, n_used, iters = fast.step(
-                self.belief.x, self.belief.P, self.u_last, dt, np.asarray(u, float),
-                np.asarray(y, float), Q, self.R, self.iterations, tuning.iteration_tolerance,
-                tuning.max_step_s, tuning.innovation_gate, self.model,
+                self.belief.x,
+                self.belief.P,
+                self.u_last,
+                dt,
+                np.asarray(u, float),
+                np.asarray(y, float),
+                Q,
+                self.R,
+                self.iterations,
+                tuning.iteration_tolerance,
+                tuning.max_step_s,
+                tuning.innovation_gate,
+                self.model,
             )
+            if n_used < 0:
+                self.failed_updates += 1
+                n_used = 0
             self.belief = Belief(x, P)
         else:
             u_prev = self.u_last
@@ -120,17 +140,37 @@ class FilterRunner:
                 lambda x: model.f(x, u_prev), self.belief, Q, dt, tuning.max_step_s
             )
             u_now = np.asarray(u, float)
-            post, info = hybrid.iekf_update(
-                lambda x: model.h(x, u_now), prior, np.asarray(y, float), self.R,
-                iterations=self.iterations, tolerance=tuning.iteration_tolerance,
-                gate=tuning.innovation_gate,
-            )
-            self.belief = post
             e = np.full(eq.N_OBS, np.nan)
             s_diag = np.full(eq.N_OBS, np.nan)
-            e[info.used] = info.innovation
-            s_diag[info.used] = np.sqrt(np.diag(info.S))
-            nis, n_used, iters = info.nis, int(info.used.sum()), info.iterations
+            try:
+                post, info = hybrid.iekf_update(
+                    lambda x: model.h(x, u_now),
+                    prior,
+                    np.asarray(y, float),
+                    self.R,
+                    iterations=self.iterations,
+                    tolerance=tuning.iteration_tolerance,
+                    gate=tuning.innovation_gate,
+                )
+            except np.linalg.LinAlgError:
+                self.failed_updates += 1
+                self.belief = prior
+                nis, n_used, iters = math.nan, 0, 0
+            else:
+                self.belief = post
+                e[info.used] = info.innovation
+                s_diag[info.used] = np.sqrt(np.diag(info.S))
+                nis, n_used, iters = info.nis, int(info.used.sum()), info.iterations
+        if np.any(np.diag(self.belief.P) <= 0.0) and np.all(np.isfinite(self.belief.P)):
+            self.covariance_repairs += 1
+            self.belief = Belief(self.belief.x, repair_covariance(self.belief.P))
+        if not (np.all(np.isfinite(self.belief.x)) and np.all(np.isfinite(self.belief.P))):
+            # Diverged (e.g. garbage input that passed every check): start again from the
+            # configured prior at this frame rather than stop estimating.
+            self.divergences += 1
+            self.reset()
+            self.belief = self.initial_belief(np.asarray(y, float))
+            self.t_start = t
         self.t_last = t
         self.u_last = np.array(u, float)
         return StepOutput(
@@ -142,6 +182,18 @@ class FilterRunner:
             innovation=e,
             innovation_sigma=s_diag,
         )
+
+
+def repair_covariance(P: FloatArray, rel_floor: float = 1e-12) -> FloatArray:
+    """Nearest symmetric matrix with eigenvalues >= rel_floor * largest eigenvalue.
+
+    Rounding in an update with a very wide prior (a zero start with sigma 100) can leave
+    P with a negative variance; the estimator repairs it and counts it rather than stop.
+    """
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    w = np.maximum(w, rel_floor * max(float(w.max()), 1e-300))
+    out: FloatArray = (V * w) @ V.T
+    return 0.5 * (out + out.T)
 
 
 @dataclass
@@ -165,6 +217,19 @@ class History:
         self.n_used.append(out.n_used)
         self.innovation.append(out.innovation)
         self.innovation_sigma.append(out.innovation_sigma)
+
+    def replace_last(self, t: float, out: StepOutput) -> None:
+        for seq in (
+            self.t,
+            self.x,
+            self.sigma,
+            self.nis,
+            self.n_used,
+            self.innovation,
+            self.innovation_sigma,
+        ):
+            seq.pop()
+        self.append(t, out)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -241,9 +306,10 @@ class Estimator:
             self._buffer.append((t, np.array(u, float), np.array(y, float)))
         outs = self._advance(t, u, y)
         self.frames += 1
-        if self.restarts_pending and t - self._t0 >= self.config.filter.restart_times_s[
-            self.restarts_done
-        ]:
+        if (
+            self.restarts_pending
+            and t - self._t0 >= self.config.filter.restart_times_s[self.restarts_done]
+        ):
             outs = self._restart()
         return outs
 
@@ -266,24 +332,41 @@ class Estimator:
             u_b = np.array([f[1] for f in self._buffer])
             y_b = np.array([f[2] for f in self._buffer])
             ws = equation_error(
-                self.model, t_b, u_b, y_b,
-                np.array(tuning.initial_coefficients), np.array(tuning.initial_coefficient_sigma),
+                self.model,
+                t_b,
+                u_b,
+                y_b,
+                np.array(tuning.initial_coefficients),
+                np.array(tuning.initial_coefficient_sigma),
             )
             self.warm_start = ws.beta
-            starts = {kind: ws.beta for kind in self.filters}
+            starts = {kind: (ws.beta, ws.sigma) for kind in self.filters}
         else:
             starts = {
-                kind: runner.belief.x[eq.N_STATE :].copy()
+                kind: (
+                    runner.belief.x[eq.N_STATE :].copy(),
+                    np.sqrt(np.diag(runner.belief.P))[eq.N_STATE :],
+                )
                 for kind, runner in self.filters.items()
                 if runner.belief is not None
             }
+        p0 = np.array(tuning.initial_coefficient_sigma)
         for kind, runner in self.filters.items():
-            runner.reset(starts.get(kind))
-            if self.keep_history:
-                self.histories[kind] = History(self.model.n)
+            if kind in starts:
+                beta, sigma = starts[kind]
+                # A data-derived prior, widened so that reusing the early data in it
+                # weighs little next to the data themselves; never wider than P0.
+                runner.reset(beta, np.minimum(p0, tuning.restart_sigma_inflation * sigma))
+            else:
+                runner.reset()
+        # The history keeps what was known live at each time: the re-run replaces only
+        # the output of the current frame.
         outs: dict[FilterKind, StepOutput] = {}
         for t, u, y in self._buffer:
-            outs = self._advance(t, u, y)
+            outs = {kind: runner.step(t, u, y) for kind, runner in self.filters.items()}
+        if self.keep_history:
+            for kind, out in outs.items():
+                self.histories[kind].replace_last(self._buffer[-1][0], out)
         self.restarts_done += 1
         if not self.restarts_pending:
             self._buffer = []
@@ -310,9 +393,7 @@ class Estimator:
         return out
 
 
-def convergence_time(
-    t: FloatArray, values: FloatArray, target: float, band: float = 0.05
-) -> float:
+def convergence_time(t: FloatArray, values: FloatArray, target: float, band: float = 0.05) -> float:
     """First time after which `values` stay within `band` (relative) of `target` [s].
 
     NaN if the last value is outside the band. Relative to |target|, so a target of 0

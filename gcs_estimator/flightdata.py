@@ -20,7 +20,13 @@ import numpy as np
 from gcs_estimator.model.equations import FloatArray
 
 CSV_OBSERVATIONS: tuple[str, ...] = (
-    "airspeed_mps", "alpha_rad", "theta_rad", "q_radps", "qdot_radps2", "ax_mps2", "az_mps2",
+    "airspeed_mps",
+    "alpha_rad",
+    "theta_rad",
+    "q_radps",
+    "qdot_radps2",
+    "ax_mps2",
+    "az_mps2",
 )
 CSV_REQUIRED: tuple[str, ...] = ("time_s", *CSV_OBSERVATIONS, "elevator_rad")
 
@@ -46,7 +52,8 @@ class Recording:
 
 # HFB-320 columns (1-based in the README): T, DELV, PDYN, THRUST, TASCG, ALFCG, THE, Q,
 # QDOT, AXCG, AZCG, ...
-_HFB_COLUMNS = {"t": 0, "de": 1, "thrust": 3, "obs": (4, 5, 6, 7, 8, 9, 10)}
+_HFB_TIME, _HFB_ELEVATOR, _HFB_THRUST = 0, 1, 3
+_HFB_OBSERVATIONS = [4, 5, 6, 7, 8, 9, 10]
 
 
 def load_hfb320(path: str | Path) -> Recording:
@@ -58,9 +65,9 @@ def load_hfb320(path: str | Path) -> Recording:
     if data.shape[1] < 11:
         raise FlightDataError(f"{path}: expected at least 11 columns, found {data.shape[1]}")
     return Recording(
-        t_s=data[:, _HFB_COLUMNS["t"]].copy(),
-        inputs=np.column_stack([data[:, _HFB_COLUMNS["de"]], data[:, _HFB_COLUMNS["thrust"]]]),
-        measurements=data[:, list(_HFB_COLUMNS["obs"])].copy(),
+        t_s=data[:, _HFB_TIME].copy(),
+        inputs=np.column_stack([data[:, _HFB_ELEVATOR], data[:, _HFB_THRUST]]),
+        measurements=data[:, _HFB_OBSERVATIONS].copy(),
         power="thrust",
     )
 
@@ -84,9 +91,7 @@ def load_csv(path: str | Path) -> Recording:
             rows: list[list[float]] = []
             for line, row in enumerate(reader, start=2):
                 try:
-                    rows.append(
-                        [_cell(row[c]) for c in (*CSV_REQUIRED, power_col)]
-                    )
+                    rows.append([_cell(row[c]) for c in (*CSV_REQUIRED, power_col)])
                 except ValueError as exc:
                     raise FlightDataError(f"{path}:{line}: {exc}") from exc
     except OSError as exc:
@@ -96,9 +101,7 @@ def load_csv(path: str | Path) -> Recording:
     arr = np.array(rows, float)
     if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
         raise FlightDataError(f"{path}: time_s must be present and strictly increasing")
-    return Recording(
-        t_s=arr[:, 0], inputs=arr[:, [8, 9]], measurements=arr[:, 1:8], power=power
-    )
+    return Recording(t_s=arr[:, 0], inputs=arr[:, [8, 9]], measurements=arr[:, 1:8], power=power)
 
 
 def _cell(text: str | None) -> float:

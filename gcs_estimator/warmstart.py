@@ -64,7 +64,9 @@ def equation_error(
     if not np.isfinite(qdot).any():
         qdot = _qdot_from_q(t_s, q)
     de = inputs[:, 0]
-    Fe = np.array([eq.thrust(float(v), float(p), k)[0] for v, p in zip(V, inputs[:, 1], strict=True)])
+    Fe = np.array(
+        [eq.thrust(float(v), float(p), k)[0] for v, p in zip(V, inputs[:, 1], strict=True)]
+    )
     m = k[eq.MASS]
     qbar = 0.5 * k[eq.RHO] * V**2
     force = qbar * k[eq.AREA] / m

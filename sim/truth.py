@@ -11,11 +11,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.linalg import solve_continuous_lyapunov
 
 from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
-from numba import njit
-
 from gcs_estimator.model.aircraft import Trim, build_model, trim
 from gcs_estimator.model.equations import (
     N_OBS,
@@ -151,12 +150,16 @@ def simulate(
     t_mid = (np.arange(n_steps) + 0.5) * dt
     de0, power0 = trimmed.inputs
     u_steps = np.column_stack(
-        [de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_mid]),
-         np.full(n_steps, power0)]
+        [
+            de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_mid]),
+            np.full(n_steps, power0),
+        ]
     )
     u_samples = np.column_stack(
-        [de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_samples]),
-         np.full(n_samples, power0)]
+        [
+            de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_samples]),
+            np.full(n_samples, power0),
+        ]
     )
     gust = np.empty((n_steps + 1, 2))
     for i in range(n_steps + 1):
@@ -191,8 +194,15 @@ def _air(x: FloatArray, g: FloatArray) -> FloatArray:  # pragma: no cover
 
 @njit(cache=True)
 def _integrate(
-    x0: FloatArray, u_steps: FloatArray, u_samples: FloatArray, gust: FloatArray, dt: float,
-    per_sample: int, k: FloatArray, axis: IntArray, regressor: IntArray,
+    x0: FloatArray,
+    u_steps: FloatArray,
+    u_samples: FloatArray,
+    gust: FloatArray,
+    dt: float,
+    per_sample: int,
+    k: FloatArray,
+    axis: IntArray,
+    regressor: IntArray,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     """Classical Runge-Kutta with the gust held over each step; samples air-relative
     states and noise-free observations every per_sample steps."""

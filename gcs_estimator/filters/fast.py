@@ -33,8 +33,15 @@ def _pdot(F: FloatArray, P: FloatArray, Q: FloatArray) -> FloatArray:  # pragma:
 
 @njit(cache=True)
 def _propagate(
-    x: FloatArray, P: FloatArray, u: FloatArray, Q: FloatArray, dt: float, max_step: float,
-    k: FloatArray, axis: IntArray, regressor: IntArray,
+    x: FloatArray,
+    P: FloatArray,
+    u: FloatArray,
+    Q: FloatArray,
+    dt: float,
+    max_step: float,
+    k: FloatArray,
+    axis: IntArray,
+    regressor: IntArray,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     if dt <= 0.0:
         return x.copy(), P.copy()
@@ -58,33 +65,59 @@ def _propagate(
 
 
 @njit(cache=True)
-def _psd_solve(S: FloatArray, B: FloatArray) -> FloatArray:  # pragma: no cover
+def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
+    """S^-1 B by Cholesky with a tiny diagonal; (garbage, False) if S is not PD."""
     m = S.shape[0]
     scale = 1.0
     for i in range(m):
         scale = max(scale, abs(S[i, i]))
-    L = np.linalg.cholesky(S + PSD_JITTER * scale * np.eye(m))
+    jitter = PSD_JITTER * scale
+    L = np.zeros((m, m))
+    for i in range(m):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for c in range(j):
+                acc -= L[i, c] * L[j, c]
+            if i == j:
+                acc += jitter
+                if not acc > 0.0:  # also catches NaN
+                    return B.copy(), False
+                L[i, i] = math.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
     # Forward then back substitution: S^-1 B = L^-T L^-1 B.
     Z = np.empty_like(B)
-    for c in range(B.shape[1]):
+    for col in range(B.shape[1]):
         for i in range(m):
-            acc = B[i, c]
+            acc = B[i, col]
             for j in range(i):
-                acc -= L[i, j] * Z[j, c]
-            Z[i, c] = acc / L[i, i]
+                acc -= L[i, j] * Z[j, col]
+            Z[i, col] = acc / L[i, i]
         for i in range(m - 1, -1, -1):
-            acc = Z[i, c]
+            acc = Z[i, col]
             for j in range(i + 1, m):
-                acc -= L[j, i] * Z[j, c]
-            Z[i, c] = acc / L[i, i]
-    return Z
+                acc -= L[j, i] * Z[j, col]
+            Z[i, col] = acc / L[i, i]
+    return Z, True
 
 
 @njit(cache=True)
 def _step(
-    x: FloatArray, P: FloatArray, u_prev: FloatArray, dt: float, u: FloatArray, y: FloatArray,
-    Q: FloatArray, R: FloatArray, iterations: int, tolerance: float, max_step: float,
-    gate: float, k: FloatArray, axis: IntArray, regressor: IntArray,
+    x: FloatArray,
+    P: FloatArray,
+    u_prev: FloatArray,
+    dt: float,
+    u: FloatArray,
+    y: FloatArray,
+    Q: FloatArray,
+    R: FloatArray,
+    iterations: int,
+    tolerance: float,
+    max_step: float,
+    gate: float,
+    k: FloatArray,
+    axis: IntArray,
+    regressor: IntArray,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:  # pragma: no cover
     n = x.shape[0]
     xp, Pp = _propagate(x, P, u_prev, Q, dt, max_step, k, axis, regressor)
@@ -115,12 +148,14 @@ def _step(
         yu[a] = y[idx[a]]
         for b in range(m):
             Ru[a, b] = R[idx[a], idx[b]]
-    Hu = H[idx]
+    Hu = np.ascontiguousarray(H[idx])
     hu = hx[idx]
     # Innovation statistics at the prior (NIS).
     S = Hu @ Pp @ Hu.T + Ru
     e = yu - hu
-    Se = _psd_solve(S, e.reshape(m, 1))
+    Se, ok = _psd_solve(S, e.reshape(m, 1))
+    if not ok:
+        return xp, Pp, e_out, s_out, math.nan, -1, 0
     nis = 0.0
     for a in range(m):
         nis += e[a] * Se[a, 0]
@@ -134,11 +169,14 @@ def _step(
     for it in range(iterations):
         if it > 0:
             hx_i, H_i = observe(x_i, u, k, axis, regressor)
-            Hu = H_i[idx]
+            Hu = np.ascontiguousarray(H_i[idx])
             hu = hx_i[idx]
         HuP = Hu @ Pp
         S_i = HuP @ Hu.T + Ru
-        K = _psd_solve(S_i, HuP).T
+        Kt, ok = _psd_solve(S_i, HuP)
+        if not ok:
+            return xp, Pp, e_out, s_out, math.nan, -1, 0
+        K = np.ascontiguousarray(Kt.T)
         r = yu - hu - Hu @ (xp - x_i)
         x_next = xp + K @ r
         done = it + 1
@@ -149,23 +187,48 @@ def _step(
         if tolerance > 0.0 and biggest < tolerance:
             break
     I_KH = np.eye(n) - K @ Hu
-    P_post = I_KH @ Pp @ I_KH.T + K @ Ru @ K.T
+    P_post = I_KH @ Pp @ np.ascontiguousarray(I_KH.T) + K @ Ru @ np.ascontiguousarray(K.T)
     return x_i, 0.5 * (P_post + P_post.T), e_out, s_out, nis, m, done
 
 
 def step(
-    x: FloatArray, P: FloatArray, u_prev: FloatArray, dt: float, u: FloatArray, y: FloatArray,
-    Q: FloatArray, R: FloatArray, iterations: int, tolerance: float, max_step: float,
-    gate: float, model: Model,
+    x: FloatArray,
+    P: FloatArray,
+    u_prev: FloatArray,
+    dt: float,
+    u: FloatArray,
+    y: FloatArray,
+    Q: FloatArray,
+    R: FloatArray,
+    iterations: int,
+    tolerance: float,
+    max_step: float,
+    gate: float,
+    model: Model,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:
     """Predict over dt [s] with inputs u_prev held, then update with y (NaN = missing).
 
     Returns x+, P+, innovation [7] and its sigma [7] (NaN for unused channels), NIS,
-    channels used, iterations run. Same contract as hybrid.propagate + hybrid.iekf_update.
+    channels used, iterations run. Same contract as hybrid.propagate + hybrid.iekf_update,
+    except that it never raises: if an innovation covariance is not positive definite the
+    update is skipped and channels used is -1 (the caller counts and reports it).
     """
     out: tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int] = _step(
-        x, P, u_prev, float(dt), u, y, Q, R, int(iterations), float(tolerance),
-        float(max_step), float(gate), model.k, model.axis, model.regressor,
+        x,
+        P,
+        u_prev,
+        float(dt),
+        u,
+        y,
+        Q,
+        R,
+        int(iterations),
+        float(tolerance),
+        float(max_step),
+        float(gate),
+        model.k,
+        model.axis,
+        model.regressor,
     )
     return out
 

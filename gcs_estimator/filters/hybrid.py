@@ -13,9 +13,8 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
-
 from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
 
 from gcs_estimator.model.equations import FloatArray
 
@@ -62,9 +61,7 @@ def psd_solve(S: FloatArray, B: FloatArray) -> FloatArray:
     return np.asarray(cho_solve(cho_factor(S + jitter * np.eye(S.shape[0])), B))
 
 
-def propagate(
-    f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: float
-) -> Belief:
+def propagate(f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: float) -> Belief:
     """Integrate x' = f(x), P' = F P + P F^T + Q over dt by classical Runge-Kutta.
 
     Steps no longer than max_step [s]; uneven measurement intervals are fine. Q is the
@@ -102,9 +99,7 @@ def available(y: FloatArray) -> BoolArray:
     return np.asarray(np.isfinite(y))
 
 
-def gate_channels(
-    e: FloatArray, S: FloatArray, used: BoolArray, gate: float
-) -> BoolArray:
+def gate_channels(e: FloatArray, S: FloatArray, used: BoolArray, gate: float) -> BoolArray:
     """Drop channels whose innovation exceeds `gate` standard deviations (0 = keep all)."""
     if gate <= 0.0:
         return used
@@ -120,8 +115,8 @@ def ekf_update(
 ) -> tuple[Belief, UpdateInfo]:
     """EKF measurement update on the channels of y that are not NaN (Joseph form).
 
-        K = P H^T (H P H^T + R)^-1,  x+ = x + K (y - h(x)),
-        P+ = (I - K H) P (I - K H)^T + K R K^T
+    K = P H^T (H P H^T + R)^-1,  x+ = x + K (y - h(x)),
+    P+ = (I - K H) P (I - K H)^T + K R K^T
     """
     return iekf_update(h, belief, y, R, iterations=1, gate=gate)
 

@@ -146,11 +146,7 @@ def dynamics(
     F[0, 0] += -rho * V * A * C[0] + dFe / m * cas
     F[0, 1] += g * cat - Fe / m * sas
     F[0, 2] += -g * cat
-    F[1, 0] += (
-        -0.5 * rho * A * C[1]
-        - g / (V * V) * cat
-        - (dFe / (m * V) - Fe / (m * V * V)) * sas
-    )
+    F[1, 0] += -0.5 * rho * A * C[1] - g / (V * V) * cat - (dFe / (m * V) - Fe / (m * V * V)) * sas
     F[1, 1] += -g / V * sat - Fe / (m * V) * cas
     F[1, 2] += g / V * sat
     F[1, 3] += 1.0

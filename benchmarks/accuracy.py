@@ -1,0 +1,193 @@
+"""Monte Carlo accuracy, consistency and convergence of EKF and IEKF on the NOC simulation.
+
+Every coefficient starts at zero (the paper's start). Prints one table per scenario:
+median and worst absolute error, share within 3 sigma, mean NEES and NIS against their
+95 % chi-square bands, and convergence times, EKF and IEKF side by side.
+
+    python benchmarks/accuracy.py --seeds 20
+    python benchmarks/accuracy.py --seeds 20 --turbulence light
+    python benchmarks/accuracy.py --seeds 20 --perturb 0.3     # truth off the paper by 30 %
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.estimator import Estimator, FilterKind
+from gcs_estimator.metrics import FilterSummary, summarise
+from sim.truth import simulate
+
+KINDS: tuple[FilterKind, ...] = ("EKF", "IEKF")
+WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
+"""The coefficients the issue's accuracy targets apply to."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    seed: int
+    summaries: dict[FilterKind, FilterSummary]
+    truth: tuple[float, ...]
+    restarts: tuple[float, ...]
+    duration: float
+
+
+def _num(v: float | None) -> float:
+    return math.nan if v is None else v
+
+
+def _truth_for(config: AircraftConfig, seed: int, perturb: float) -> tuple[float, ...]:
+    assert config.truth is not None
+    if perturb <= 0:
+        return config.truth
+    rng = np.random.default_rng(10_000 + seed)
+    factors = 1.0 + perturb * rng.choice([-1.0, 1.0], size=len(config.truth)) * rng.uniform(
+        0.5, 1.0, size=len(config.truth)
+    )
+    return tuple(float(v) for v in np.array(config.truth) * factors)
+
+
+def run_one(args: tuple[str, list[str], int, float]) -> RunResult:
+    path, overrides, seed, perturb = args
+    config = load_config_with(path, overrides)
+    truth = _truth_for(config, seed, perturb)
+    config = config.with_truth(truth)
+    flight = simulate(config, seed=seed)
+    est = Estimator(config)
+    est.run(flight.t_s, flight.inputs, flight.measurements)
+    return RunResult(
+        seed,
+        dict(summarise(est, flight.truth)),
+        truth,
+        config.filter.restart_times_s,
+        float(flight.t_s[-1] - flight.t_s[0]),
+    )
+
+
+def report(results: list[RunResult], title: str) -> None:
+    names = [c.name for c in results[0].summaries["EKF"].coefficients]
+    runs = len(results)
+    print(f"\n## {title}: {runs} seeds\n")
+    header = (
+        "| coefficient | "
+        + " | ".join(
+            f"{k} med err % | {k} worst err % | {k} within 3σ | {k} conv. to truth s (med/worst)"
+            for k in ("EKF", "IEKF")
+        )
+        + " |"
+    )
+    print(header)
+    print("|" + "---|" * (1 + 8))
+    for i, name in enumerate(names):
+        cells = [name]
+        for kind in KINDS:
+            errs = np.array(
+                [abs(_num(r.summaries[kind].coefficients[i].error_pct)) for r in results]
+            )
+            zs = np.array([abs(_num(r.summaries[kind].coefficients[i].z)) for r in results])
+            conv = np.array(
+                [_num(r.summaries[kind].coefficients[i].converged_truth_s) for r in results]
+            )
+            conv_txt = (
+                f"{np.median(conv):.1f} / {np.max(conv):.1f}"
+                if np.all(np.isfinite(conv))
+                else f"{np.nanmedian(conv):.1f} / never"
+                if np.any(np.isfinite(conv))
+                else "never"
+            )
+            cells += [
+                f"{np.median(errs):.2f}",
+                f"{np.max(errs):.2f}",
+                f"{np.mean(zs <= 3.0) * 100:.0f} %",
+                conv_txt,
+            ]
+        print("| " + " | ".join(cells) + " |")
+
+    print()
+    p = len(names)
+    for kind in KINDS:
+        zs = np.array([[abs(_num(c.z)) for c in r.summaries[kind].coefficients] for r in results])
+        share = float(np.mean(zs <= 3.0))
+        nees = np.array([_num(r.summaries[kind].nees) for r in results])
+        lo, hi = chi2.ppf(0.025, p * runs) / runs, chi2.ppf(0.975, p * runs) / runs
+        nis = np.array([r.summaries[kind].mean_nis for r in results])
+        nis_all = np.array([r.summaries[kind].mean_nis_all for r in results])
+        dof = float(np.mean([r.summaries[kind].mean_channels for r in results]))
+        restarts = results[0].restarts
+        steps = int(
+            np.mean([r.summaries[kind].steps for r in results])
+            * (1 - (restarts[-1] if restarts else 0) / results[0].duration)
+        )
+        nlo = chi2.ppf(0.025, dof * steps * runs) / (steps * runs)
+        nhi = chi2.ppf(0.975, dof * steps * runs) / (steps * runs)
+        well = [names.index(n) for n in WELL_EXCITED if n in names]
+        errs = np.array(
+            [
+                [abs(_num(r.summaries[kind].coefficients[i].error_pct)) for i in well]
+                for r in results
+            ]
+        )
+        conv = np.array(
+            [
+                [_num(r.summaries[kind].coefficients[i].converged_truth_s) for i in well]
+                for r in results
+            ]
+        )
+        conv_worst = np.where(np.isnan(conv), np.inf, conv).max(axis=1)
+        print(
+            f"{kind}: within 3σ {share * 100:.1f} % of (coefficient, seed) pairs | "
+            f"mean NEES {np.mean(nees):.2f} (95 % band {lo:.2f}-{hi:.2f}, dof {p}) | "
+            f"mean NIS after the last restart {np.mean(nis):.3f} (95 % band {nlo:.3f}-{nhi:.3f},"
+            f" dof {dof:.2f}; over the whole flight {np.mean(nis_all):.2f}) | "
+            f"well-excited: median |err| {np.median(errs):.2f} %, worst {np.max(errs):.2f} % | "
+            f"all 7 within 5 % of truth by: median {np.median(conv_worst):.1f} s, "
+            f"worst {np.max(conv_worst):.1f} s"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--config", default="configs/noc_uav.toml")
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--turbulence", choices=("none", "light", "moderate"), default="none")
+    ap.add_argument(
+        "--perturb",
+        type=float,
+        default=0.0,
+        help="scale each true coefficient by 1 +- U(0.5, 1)*PERTURB (seeded)",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. filter.iterations=3",
+    )
+    ap.add_argument("--jobs", type=int, default=2)
+    args = ap.parse_args(argv)
+
+    overrides = [*args.set, f'simulation.turbulence.preset="{args.turbulence}"']
+    jobs = [
+        (args.config, overrides, s, args.perturb)
+        for s in range(args.first_seed, args.first_seed + args.seeds)
+    ]
+    start = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        results = list(pool.map(run_one, jobs))
+    title = f"NOC, turbulence {args.turbulence}, truth perturbation {args.perturb:g}"
+    report(results, title)
+    print(f"\n({time.perf_counter() - start:.1f} s wall, {args.jobs} processes)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,189 @@
+"""Results people can use: the paper's Table I as Markdown, JSON, and CSV time histories."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcs_estimator.config import OBS_NAMES, STATE_NAMES, AircraftConfig
+from gcs_estimator.estimator import Estimator, FilterKind
+from gcs_estimator.metrics import FilterSummary, summarise
+from gcs_estimator.model.equations import FloatArray
+
+
+def _fmt(v: float | None, digits: int = 4) -> str:
+    if v is None or not math.isfinite(v):
+        return "-"
+    return f"{v:.{digits}g}" if abs(v) < 1e-3 and v != 0 else f"{v:.{digits}f}"
+
+
+def _time(v: float | None) -> str:
+    return "never" if v is None or not math.isfinite(v) else f"{v:.1f}"
+
+
+def markdown_table(
+    summaries: Mapping[FilterKind, FilterSummary], truth_label: str = "truth"
+) -> str:
+    """Table I layout: one row per coefficient, estimate and sigma per filter, plus the
+    true (or reference) value, error in percent and in sigmas when it is known."""
+    kinds: list[FilterKind] = [k for k in ("EKF", "IEKF") if k in summaries]
+    if not kinds:
+        return "(no estimates yet)\n"
+    first = summaries[kinds[0]]
+    has_truth = any(c.truth is not None for c in first.coefficients)
+    head = ["coefficient"] + ([truth_label] if has_truth else [])
+    for k in kinds:
+        head += [f"{k} estimate", f"{k} σ"]
+        if has_truth:
+            head += [f"{k} error %", f"{k} error/σ"]
+        head += [f"{k} settled by s"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, c0 in enumerate(first.coefficients):
+        row = [c0.name] + ([_fmt(c0.truth)] if has_truth else [])
+        for k in kinds:
+            c = summaries[k].coefficients[i]
+            row += [_fmt(c.estimate), f"{c.sigma:.2g}"]
+            if has_truth:
+                row += [
+                    "-" if c.error_pct is None else f"{c.error_pct:+.2f}",
+                    "-" if c.z is None else f"{c.z:+.1f}",
+                ]
+            row += [_time(c.converged_final_s)]
+        lines.append("| " + " | ".join(row) + " |")
+    notes = []
+    for k in kinds:
+        s = summaries[k]
+        note = (
+            f"{k}: {s.steps} updates, mean NIS {s.mean_nis:.2f} over {s.mean_channels:.1f} channels"
+        )
+        if s.nees is not None:
+            note += f", coefficient NEES {s.nees:.1f} (dof {len(s.coefficients)})"
+        notes.append(note)
+    lines.append("")
+    lines.append(
+        "σ: one standard deviation from the filter covariance. Settled by: time after which "
+        "the estimate stays within 5 % of its final value."
+    )
+    lines += [f"- {n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+def results_dict(
+    estimator: Estimator,
+    truth: FloatArray | None,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Everything a script needs: estimates, sigmas, convergence, NIS, config used."""
+    summaries = summarise(estimator, truth)
+    config = estimator.config
+    out: dict[str, Any] = {
+        "aircraft": config.airframe.name,
+        "config_source": config.source,
+        "truth_label": config.truth_label if truth is not None else None,
+        "coefficients": list(estimator.names),
+        "filters": {},
+        "diagnostics": {
+            "frames": estimator.frames,
+            "restarts_done": estimator.restarts_done,
+            "warm_start": None if estimator.warm_start is None else estimator.warm_start.tolist(),
+            "failed_updates": {k: r.failed_updates for k, r in estimator.filters.items()},
+            "divergences": {k: r.divergences for k, r in estimator.filters.items()},
+            "covariance_repairs": {k: r.covariance_repairs for k, r in estimator.filters.items()},
+        },
+        "config": _jsonable(config.raw),
+    }
+    for kind, s in summaries.items():
+        out["filters"][kind] = {
+            "mean_nis": _num(s.mean_nis),
+            "mean_nis_whole_flight": _num(s.mean_nis_all),
+            "mean_channels": _num(s.mean_channels),
+            "nees": _num(s.nees),
+            "updates": s.steps,
+            "estimates": {
+                c.name: {
+                    "estimate": c.estimate,
+                    "sigma": c.sigma,
+                    "truth": c.truth,
+                    "error_pct": _num(c.error_pct),
+                    "error_sigmas": _num(c.z),
+                    "settled_s": _num(c.converged_final_s),
+                    "within_5pct_of_truth_s": _num(c.converged_truth_s),
+                }
+                for c in s.coefficients
+            },
+        }
+    if extra:
+        out.update(extra)
+    return out
+
+
+def _num(v: float | None) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _jsonable(data: Any) -> Any:
+    if isinstance(data, Mapping):
+        return {str(k): _jsonable(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [_jsonable(v) for v in data]
+    if hasattr(data, "isoformat"):
+        return data.isoformat()
+    return data
+
+
+def write_history_csv(path: Path, estimator: Estimator, measurements: FloatArray | None) -> None:
+    """Time histories per filter: estimates and sigmas of every state and coefficient,
+    NIS, and (when given, one row per frame) the measurements."""
+    tracks = estimator.tracks()
+    names = list(STATE_NAMES) + list(estimator.names)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        header = ["filter", "t_s"] + names + [f"sigma_{n}" for n in names] + ["nis", "channels"]
+        if measurements is not None:
+            header += [f"meas_{n}" for n in OBS_NAMES]
+        w.writerow(header)
+        for kind, tr in tracks.items():
+            for i in range(len(tr.t)):
+                row = [kind, repr(float(tr.t[i]))]
+                row += [repr(float(v)) for v in tr.x[i]]
+                row += [repr(float(v)) for v in tr.sigma[i]]
+                row += [repr(float(tr.nis[i])), str(int(tr.n_used[i]))]
+                if measurements is not None and i < len(measurements):
+                    row += ["" if not np.isfinite(v) else repr(float(v)) for v in measurements[i]]
+                w.writerow(row)
+
+
+def write_results(
+    out_dir: Path,
+    estimator: Estimator,
+    truth: FloatArray | None,
+    measurements: FloatArray | None = None,
+    extra: Mapping[str, Any] | None = None,
+    stem: str = "results",
+) -> dict[str, Path]:
+    """Write results.json, results.md and history.csv into out_dir; return their paths."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = results_dict(estimator, truth, extra)
+    paths = {
+        "json": out_dir / f"{stem}.json",
+        "markdown": out_dir / f"{stem}.md",
+        "csv": out_dir / f"{stem}_history.csv",
+    }
+    paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    summaries = summarise(estimator, truth)
+    title = f"# {estimator.config.airframe.name}: estimated aerodynamic coefficients\n\n"
+    paths["markdown"].write_text(
+        title + markdown_table(summaries, estimator.config.truth_label), encoding="utf-8"
+    )
+    write_history_csv(paths["csv"], estimator, measurements)
+    return paths
+
+
+def config_truth(config: AircraftConfig) -> FloatArray | None:
+    return None if config.truth is None else np.array(config.truth, float)

@@ -1,0 +1,30 @@
+"""Shared fixtures: the project's configs and the shared HFB-320 record."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gcs_estimator.config import AircraftConfig, load_config
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+HFB320_DATA = ROOT.parent / "shared" / "data" / "hfb320" / "hfb320_1_10.asc"
+
+
+@pytest.fixture(scope="session")
+def noc_config() -> AircraftConfig:
+    return load_config(CONFIGS / "noc_uav.toml")
+
+
+@pytest.fixture(scope="session")
+def hfb_config() -> AircraftConfig:
+    return load_config(CONFIGS / "hfb320.toml")
+
+
+@pytest.fixture(scope="session")
+def hfb_data_path() -> Path:
+    if not HFB320_DATA.exists():
+        pytest.fail(f"HFB-320 record missing at {HFB320_DATA}: shared/ must sit beside the repo")
+    return HFB320_DATA

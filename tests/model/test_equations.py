@@ -1,0 +1,94 @@
+"""Analytic Jacobians of the model against numerical derivatives (both airframes)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.aircraft import Model, build_model
+from gcs_estimator.model.equations import FloatArray
+
+# Central differences with step 1e-6 relative: truncation ~1e-12, rounding ~1e-10 of the
+# function's scale. Entries are compared relative to the Jacobian's largest entry per row.
+JACOBIAN_RTOL = 1e-6
+
+
+def numerical_jacobian(
+    f: Callable[[FloatArray], tuple[FloatArray, FloatArray]], x: FloatArray
+) -> FloatArray:
+    f0 = f(x)[0]
+    J = np.zeros((f0.size, x.size))
+    for j in range(x.size):
+        h = 1e-6 * max(1.0, abs(x[j]))
+        xp, xm = x.copy(), x.copy()
+        xp[j] += h
+        xm[j] -= h
+        J[:, j] = (f(xp)[0] - f(xm)[0]) / (2 * h)
+    return J
+
+
+def assert_jacobian_close(analytic: FloatArray, numeric: FloatArray) -> None:
+    assert np.all(np.isfinite(analytic)), "Jacobian has NaN or inf"
+    scale = np.maximum(np.max(np.abs(numeric), axis=1, keepdims=True), 1e-6)
+    err = np.abs(analytic - numeric) / scale
+    assert float(err.max()) < JACOBIAN_RTOL, f"worst relative error {err.max():.2e}"
+
+
+@st.composite
+def states(draw: st.DrawFn, model: Model) -> tuple[FloatArray, FloatArray]:
+    """Random augmented states and inputs, alpha up to 1 mrad from +-90 deg (near-singular
+    trigonometry) and airspeed down to 30 % of trim (large 1/V terms)."""
+    V0 = float(model.k[eq.V0])
+    V = draw(st.floats(0.3 * V0, 2.0 * V0))
+    alpha = draw(st.floats(-math.pi / 2 + 1e-3, math.pi / 2 - 1e-3))
+    theta = draw(st.floats(-1.5, 1.5))
+    q = draw(st.floats(-3.0, 3.0))
+    beta = np.array([draw(st.floats(-100.0, 100.0)) for _ in range(model.n_coefficients)])
+    de = draw(st.floats(-0.5, 0.5))
+    propeller = model.k[eq.PROP_KIND] == eq.PROP_PROPELLER
+    power = draw(st.floats(0.0, 1.0)) if propeller else draw(st.floats(0.0, 5e4))
+    return model.augment(np.array([V, alpha, theta, q]), beta), np.array([de, power])
+
+
+@pytest.mark.parametrize("which", ["noc", "hfb"])
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_jacobians_match_numerical(
+    which: str, data: st.DataObject, noc_config: AircraftConfig, hfb_config: AircraftConfig
+) -> None:
+    model = build_model(noc_config if which == "noc" else hfb_config)
+    x, u = data.draw(states(model))
+    _, F = model.f(x, u)
+    assert_jacobian_close(F, numerical_jacobian(lambda z: model.f(z, u), x))
+    _, H = model.h(x, u)
+    assert_jacobian_close(H, numerical_jacobian(lambda z: model.h(z, u), x))
+
+
+def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:
+    model = build_model(noc_config)
+    x = model.augment(np.array([24.0, 0.05, 0.05, 0.1]), np.array(noc_config.truth))
+    f, F = model.f(x, np.array([0.0, 0.3]))
+    assert np.all(f[4:] == 0.0)
+    assert np.all(F[4:] == 0.0)
+
+
+def test_level_flight_specific_force_is_minus_g(noc_config: AircraftConfig) -> None:
+    """At trim the accelerometer reads about (0, -g) in body axes (a_z close to -g)."""
+    from gcs_estimator.model.aircraft import trim
+
+    model = build_model(noc_config)
+    beta = np.array(noc_config.truth)
+    t = trim(model, beta)
+    h, _ = model.h(model.augment(t.state, beta), t.inputs)
+    g = noc_config.airframe.gravity_mps2
+    alpha = t.state[1]
+    # Body-axis gravity reaction in level flight: (g sin(theta), -g cos(theta)), theta = alpha.
+    assert h[5] == pytest.approx(g * math.sin(alpha), abs=1e-9)
+    assert h[6] == pytest.approx(-g * math.cos(alpha), abs=1e-9)

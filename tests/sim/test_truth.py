@@ -1,0 +1,99 @@
+"""The truth simulator: trim point, manoeuvre, sensor statistics, turbulence, seeding."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
+from sim.truth import elevator_offset_rad, simulate
+
+
+def test_trim_matches_the_spec(noc_config: AircraftConfig) -> None:
+    """spec/model.md: V = 24 m/s, alpha = 2.97 deg, elevator 0.42 deg, throttle 0.316,
+    thrust 7.7 N (quoted to the digits given there)."""
+    flight = simulate(noc_config, seed=1)
+    trim = flight.trim
+    assert trim.residual < 1e-9
+    assert trim.state[0] == pytest.approx(24.0)
+    assert math.degrees(trim.state[1]) == pytest.approx(2.97, abs=0.005)
+    assert math.degrees(trim.inputs[0]) == pytest.approx(0.42, abs=0.005)
+    assert trim.inputs[1] == pytest.approx(0.316, abs=0.0005)
+    rho, s_prop = 1.225, 0.2027
+    thrust = 0.5 * rho * s_prop * ((80 * trim.inputs[1]) ** 2 - 24.0**2)
+    assert thrust == pytest.approx(7.7, abs=0.05)
+
+
+def test_stays_trimmed_before_the_manoeuvre(noc_config: AircraftConfig) -> None:
+    flight = simulate(noc_config, seed=1)
+    before = flight.t_s < 2.0
+    assert np.ptp(flight.states[before], axis=0).max() < 1e-9
+
+
+def test_multistep_and_pulses() -> None:
+    m = Manoeuvre()
+    a = math.radians(3.0)
+    expect = {
+        1.9: 0.0,
+        2.0: a,
+        2.59: a,
+        2.6: -a,
+        2.99: -a,
+        3.0: a,
+        3.2: -a,
+        3.4: 0.0,
+        6.1: a,
+        12.5: -a,
+        14.1: 0.0,
+        31.0: a,
+        33.0: 0.0,
+    }
+    for t, v in expect.items():
+        assert elevator_offset_rad(m, t) == pytest.approx(v), t
+
+
+def test_sensor_noise_has_the_configured_sigma(noc_config: AircraftConfig) -> None:
+    flight = simulate(noc_config, seed=3)
+    err = flight.measurements - flight.clean
+    sigma = np.array(noc_config.simulation.sensors.noise_sigma)
+    # 3001 samples: the sample sigma is within ~2.6 % of the true one at 3 standard errors.
+    np.testing.assert_allclose(err.std(axis=0), sigma, rtol=0.04)
+    # Zero mean: within 4 standard errors per channel.
+    assert np.all(np.abs(err.mean(axis=0)) < 4 * sigma / math.sqrt(len(err)))
+
+
+def test_bias_and_quantisation(noc_config: AircraftConfig) -> None:
+    sensors = replace(
+        noc_config.simulation.sensors,
+        noise_sigma=(0.0,) * 7,
+        bias=(0.0, math.radians(1.0), 0.0, 0.01, 0.0, 0.0, 0.5),
+        quantum=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    )
+    config = replace(noc_config, simulation=replace(noc_config.simulation, sensors=sensors))
+    flight = simulate(config, seed=1)
+    np.testing.assert_allclose(flight.measurements[:, 1] - flight.clean[:, 1], math.radians(1.0))
+    np.testing.assert_allclose(flight.measurements[:, 6] - flight.clean[:, 6], 0.5)
+    v = flight.measurements[:, 0]
+    np.testing.assert_allclose(v / 0.1, np.round(v / 0.1), atol=1e-9)
+
+
+def test_turbulence_moves_the_aircraft_with_the_set_intensity(noc_config: AircraftConfig) -> None:
+    turb = Turbulence(sigma_u_mps=1.0, sigma_w_mps=0.8, length_u_m=200.0, length_w_m=50.0)
+    config = replace(noc_config, simulation=replace(noc_config.simulation, turbulence=turb))
+    calm = simulate(noc_config, seed=5)
+    rough = simulate(config, seed=5)
+    before = calm.t_s < 2.0  # trimmed: any motion here is the gusts
+    assert np.ptp(calm.states[before, 1]) < 1e-9
+    # Alpha seen by the vane carries w_g/V: tenths of a degree to degrees at 0.8 m/s.
+    assert 0.2 < math.degrees(np.std(rough.states[before, 1])) < 5.0
+
+
+def test_seeded_and_reproducible(noc_config: AircraftConfig) -> None:
+    a = simulate(noc_config, seed=11)
+    b = simulate(noc_config, seed=11)
+    c = simulate(noc_config, seed=12)
+    np.testing.assert_array_equal(a.measurements, b.measurements)
+    assert not np.array_equal(a.measurements, c.measurements)
