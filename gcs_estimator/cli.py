@@ -7,6 +7,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,6 +96,144 @@ def cmd_offline(args: argparse.Namespace) -> int:
     return _run_recording(config, rec, config_truth(config), args, f"offline {path.name}")
 
 
+def _finish_station(station: Any, args: argparse.Namespace, elapsed: float) -> int:
+    """Results per vehicle: table on stdout, JSON/Markdown/CSV in --out."""
+    from gcs_estimator.report import write_results
+
+    station.finish()
+    if not station.vehicles:
+        print("no vehicle data received", file=sys.stderr)
+    link = station.link_stats()
+    for v in station.vehicles.values():
+        est = v.estimator
+        truth = config_truth(station.config)
+        print(f"\nvehicle {v.system_id}: {est.frames} frames in {elapsed:.2f} s\n")
+        print(markdown_table(summarise(est, truth), station.config.truth_label))
+        paths = write_results(
+            Path(args.out),
+            est,
+            truth,
+            None,
+            extra={"link": link, "system_id": v.system_id},
+            stem=f"results_sys{v.system_id}",
+        )
+        print("results: " + ", ".join(str(p) for p in paths.values()))
+    print("link: " + ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles"))
+    return 0
+
+
+def cmd_listen(args: argparse.Namespace) -> int:
+    from gcs_estimator.station import Station, Stop, listen, open_udp
+
+    config = load_config_with(args.config, args.set)
+    host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
+    if not port.isdigit():
+        raise ConfigError(f"endpoint {args.endpoint!r}: expected udpin:HOST:PORT")
+    record = (
+        Path(args.record)
+        if args.record
+        else Path(args.out) / (time.strftime("live_%Y%m%d_%H%M%S") + ".tlog")
+    )
+    station = Station(config, backend=args.backend, record=record)
+    sock = open_udp(host or "0.0.0.0", int(port))
+    stop = Stop()
+    stop.install()
+    print(
+        f"listening on udp {host or '0.0.0.0'}:{port}, recording to {record} (Ctrl-C to stop)",
+        file=sys.stderr,
+    )
+    start = time.time()
+    try:
+        listen(station, sock, stop, idle_exit_s=args.idle_exit, max_seconds=args.duration)
+    finally:
+        sock.close()
+    return _finish_station(station, args, time.time() - start)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from gcs_estimator.station import Station, Stop, replay
+    from gcs_estimator.telemetry.mavlink import TlogError, TlogStats, read_tlog
+
+    config = load_config_with(args.config, args.set)
+    station = Station(config, backend=args.backend)
+    stop = Stop()
+    stop.install()
+    start = time.time()
+    for path in args.tlogs:
+        stats = TlogStats()
+        try:
+            records = list(read_tlog(path, stats))
+        except TlogError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"error: {path}: cannot read: {exc.strerror}", file=sys.stderr)
+            return 2
+        if stats.junk_bytes:
+            print(f"note: {path}: {stats.junk_bytes} garbage bytes skipped", file=sys.stderr)
+        if stats.truncated_tail:
+            print(
+                f"note: {path}: truncated at the end; the last partial record is ignored",
+                file=sys.stderr,
+            )
+        replay(
+            station,
+            records,
+            total=len(records),
+            speed=args.speed,
+            stop=stop,
+            progress_out=sys.stderr if sys.stderr.isatty() or args.progress else None,
+        )
+    elapsed = time.time() - start
+    return _finish_station(station, args, elapsed)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The simulated UAV and the ground station as two processes talking UDP."""
+    import subprocess
+
+    from gcs_estimator.station import Station, Stop, listen, open_udp
+
+    config = load_config_with(args.config, args.set)
+    sock = open_udp("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    record = Path(args.out) / "demo.tlog"
+    station = Station(config, backend=args.backend, record=record)
+    cmd = [
+        sys.executable,
+        "-m",
+        "sim.cli",
+        "--config",
+        args.config,
+        "--target",
+        f"127.0.0.1:{port}",
+        "--speed",
+        str(args.speed),
+    ]
+    for item in args.set:
+        cmd += ["--set", item]
+    if args.seed is not None:
+        cmd += ["--seed", str(args.seed)]
+    print(
+        f"demo: simulated NOC UAV -> udp 127.0.0.1:{port} -> ground station "
+        f"({config.simulation.manoeuvre.duration_s:.0f} s flight at {args.speed:g}x; "
+        f"recording {record})",
+        file=sys.stderr,
+    )
+    vehicle = subprocess.Popen(cmd)
+    stop = Stop()
+    stop.install()
+    start = time.time()
+    try:
+        listen(station, sock, stop, idle_exit_s=1.5)
+    finally:
+        sock.close()
+        if vehicle.poll() is None:
+            vehicle.terminate()
+        vehicle.wait(timeout=10)
+    return _finish_station(station, args, time.time() - start)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="gcs-estimator",
@@ -109,11 +248,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
-        "demo", help="the main job: the simulated NOC UAV through both filters, with the table"
+        "demo", help="the main job: simulated UAV -> MAVLink over UDP -> both filters -> table"
     )
     _common(p)
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
-    p.set_defaults(func=cmd_simulate)
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="flight speed, multiple of real time (0 = as fast as possible)",
+    )
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("listen", help="estimate live from MAVLink telemetry on UDP")
+    _common(p)
+    p.add_argument(
+        "endpoint",
+        nargs="?",
+        default="udpin:0.0.0.0:14550",
+        help="udpin:HOST:PORT to bind (default: %(default)s)",
+    )
+    p.add_argument(
+        "--record",
+        default=None,
+        help=".tlog to record every packet to (default: OUT/live_<time>.tlog)",
+    )
+    p.add_argument(
+        "--idle-exit",
+        type=float,
+        default=None,
+        help="stop after this many seconds without data (once data came)",
+    )
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.set_defaults(func=cmd_listen)
+
+    p = sub.add_parser("replay", help="estimate from recorded .tlog files")
+    _common(p)
+    p.add_argument("tlogs", nargs="+", help=".tlog files, in order")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=0.0,
+        help="0 = as fast as possible (default), else a multiple of real time",
+    )
+    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")
     _common(p, "configs/hfb320.toml")
@@ -134,3 +313,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def entrypoint() -> None:
     sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()

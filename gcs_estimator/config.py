@@ -182,6 +182,41 @@ class FilterTuning:
     """Channels whose normalised innovation exceeds this many sigma are rejected; 0 = off."""
 
 
+STREAMED_MESSAGES: tuple[str, ...] = (
+    "HIGHRES_IMU",
+    "ATTITUDE",
+    "AOA_SSA",
+    "VFR_HUD",
+    "SERVO_OUTPUT_RAW",
+    "NAMED_VALUE_FLOAT",
+)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """How the aircraft's signals map onto MAVLink, and the rates to ask for."""
+
+    elevator_servo: int = 2
+    elevator_pwm_center_us: float = 1500.0
+    elevator_us_per_rad: float = 500.0 / math.radians(30.0)
+    """PWM microseconds per radian of elevator (positive: trailing edge down)."""
+    throttle_servo: int = 3
+    """SERVO_OUTPUT_RAW channel of the throttle; 0 when thrust comes as a named value."""
+    throttle_pwm_min_us: float = 1000.0
+    throttle_pwm_max_us: float = 2000.0
+    qdot_name: str = "QDOT"
+    thrust_name: str = "THRUST"
+    rates_hz: tuple[tuple[str, float], ...] = tuple((m, 50.0) for m in STREAMED_MESSAGES)
+    """Stream rate per message, asked of the vehicle with SET_MESSAGE_INTERVAL."""
+    frame_window_s: float = 0.005
+    """Samples whose vehicle times lie this close belong to the same frame."""
+    max_wait_s: float = 0.2
+    """A partial frame is processed at the latest this long (receive time) after it opened."""
+
+    def rate(self, message: str) -> float:
+        return dict(self.rates_hz).get(message, 0.0)
+
+
 @dataclass(frozen=True)
 class AircraftConfig:
     """Everything one airframe needs: physics, structure, truth (if simulated), tuning."""
@@ -195,6 +230,7 @@ class AircraftConfig:
     truth_label: str
     simulation: Simulation
     filter: FilterTuning
+    link: LinkConfig
     raw: Mapping[str, Any]
     """The parsed TOML, kept to write into results exactly as used."""
 
@@ -397,6 +433,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftC
 
     simulation = _parse_simulation(top.sub("simulation"))
     tuning = _parse_filter(top.sub("filter"), names)
+    link = _parse_link(top.sub("link"), propulsion)
     top.check_unknown()
     return AircraftConfig(
         source=source,
@@ -407,8 +444,44 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftC
         truth_label=truth_label,
         simulation=simulation,
         filter=tuning,
+        link=link,
         raw=dict(data),
     )
+
+
+def _parse_link(s: _Section, propulsion: Propulsion) -> LinkConfig:
+    d = LinkConfig()
+    rates = s.sub("rates_hz")
+    rate_values = tuple(
+        (m, rates.number(m, dict(d.rates_hz)[m], nonnegative=True)) for m in STREAMED_MESSAGES
+    )
+    rates.check_unknown()
+    link = LinkConfig(
+        elevator_servo=s.integer("elevator_servo", d.elevator_servo, minimum=1),
+        elevator_pwm_center_us=s.number("elevator_pwm_center_us", d.elevator_pwm_center_us),
+        elevator_us_per_rad=s.number("elevator_us_per_rad", d.elevator_us_per_rad),
+        throttle_servo=s.integer(
+            "throttle_servo", 0 if propulsion.model == "measured" else d.throttle_servo
+        ),
+        throttle_pwm_min_us=s.number("throttle_pwm_min_us", d.throttle_pwm_min_us),
+        throttle_pwm_max_us=s.number("throttle_pwm_max_us", d.throttle_pwm_max_us),
+        qdot_name=s.string("qdot_name", d.qdot_name),
+        thrust_name=s.string("thrust_name", d.thrust_name),
+        rates_hz=rate_values,
+        frame_window_s=s.number("frame_window_s", d.frame_window_s, positive=True),
+        max_wait_s=s.number("max_wait_s", d.max_wait_s, positive=True),
+    )
+    if link.elevator_us_per_rad == 0:
+        raise s.fail("elevator_us_per_rad", "must not be 0")
+    if link.throttle_servo > 16 or link.elevator_servo > 16:
+        raise s.fail("throttle_servo", "SERVO_OUTPUT_RAW has channels 1..16")
+    if link.throttle_servo and link.throttle_pwm_max_us <= link.throttle_pwm_min_us:
+        raise s.fail("throttle_pwm_max_us", "must be greater than throttle_pwm_min_us")
+    for key in (link.qdot_name, link.thrust_name):
+        if not 0 < len(key) <= 10:
+            raise s.fail("qdot_name", f"NAMED_VALUE_FLOAT names are 1..10 characters, got {key!r}")
+    s.check_unknown()
+    return link
 
 
 def _parse_airframe(s: _Section) -> Airframe:

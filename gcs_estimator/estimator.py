@@ -101,6 +101,23 @@ class FilterRunner:
         self.t_last = math.nan
         self.t_start = math.nan
 
+    def rebase(self, t: float, y: FloatArray) -> None:
+        """New time base (the vehicle clock reset): keep what is known of the coefficients,
+        take the states afresh from the measurements with their initial uncertainty."""
+        if self.belief is None:
+            return
+        fresh = self.initial_belief(y)
+        x = self.belief.x.copy()
+        P = self.belief.P.copy()
+        n4 = eq.N_STATE
+        x[:n4] = fresh.x[:n4]
+        P[:n4, :] = 0.0
+        P[:, :n4] = 0.0
+        P[:n4, :n4] = fresh.P[:n4, :n4]
+        self.belief = Belief(x, P)
+        self.t_last = t
+        self.u_last = np.full(2, np.nan)
+
     def step(self, t: float, u: FloatArray, y: FloatArray) -> StepOutput:
         """Predict to time t [s] and update with observations y (NaN = missing)."""
         tuning = self.config.filter
@@ -108,6 +125,8 @@ class FilterRunner:
             self.belief = self.initial_belief(y)
             self.t_last = t
             self.t_start = t
+            self.u_last = np.array(u, float)
+        if not np.all(np.isfinite(self.u_last)):
             self.u_last = np.array(u, float)
         dt = t - self.t_last
         Q = self.process_noise(self.t_last)
@@ -312,6 +331,15 @@ class Estimator:
         ):
             outs = self._restart()
         return outs
+
+    def rebase(self, t: float, y: FloatArray) -> None:
+        """The vehicle clock restarted: continue the coefficient estimates on a new time
+        base. Restarts still pending are dropped (their frames span two time bases)."""
+        for runner in self.filters.values():
+            runner.rebase(t, y)
+        if self.restarts_pending:
+            self.restarts_done = len(self.config.filter.restart_times_s)
+            self._buffer = []
 
     def _advance(self, t: float, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
         outs: dict[FilterKind, StepOutput] = {}

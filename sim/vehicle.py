@@ -1,0 +1,211 @@
+"""The simulated UAV as a MAVLink 2 vehicle on UDP (ardupilotmega dialect).
+
+Streams a flight (simulated, or played back from a data file) at the vehicle clock:
+HEARTBEAT and SYSTEM_TIME at 1 Hz; HIGHRES_IMU, ATTITUDE, AOA_SSA, VFR_HUD,
+SERVO_OUTPUT_RAW and NAMED_VALUE_FLOAT (QDOT, and THRUST where thrust is measured) at
+the configured rates. Answers a ground station's HEARTBEAT and SET_MESSAGE_INTERVAL
+(with COMMAND_ACK) and keeps streaming when the ground station goes away.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import socket
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
+from gcs_estimator.flightdata import Recording
+
+BOOT_OFFSET_S = 5.0
+"""The vehicle has been up this long when the recording starts [s]."""
+
+
+@dataclass
+class VehicleStats:
+    sent: int = 0
+    gcs_heartbeats: int = 0
+    rate_changes: int = 0
+
+
+@dataclass
+class SimulatedVehicle:
+    """One vehicle: a recording to stream, a link mapping and a UDP target."""
+
+    recording: Recording
+    link: LinkConfig
+    target: tuple[str, int]
+    system_id: int = 1
+    speed: float = 1.0
+    """Multiple of real time; 0 = as fast as possible."""
+    tlog: Path | None = None
+    stats: VehicleStats = field(default_factory=VehicleStats)
+    rates: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.rates = {m: self.link.rate(m) for m in STREAMED_MESSAGES}
+        self.mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
+        self.mav.robust_parsing = True
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1" if self.target[0].startswith("127.") else "0.0.0.0", 0))
+        self.sock.setblocking(False)
+        self._tlog_fh = open(self.tlog, "wb") if self.tlog else None  # noqa: SIM115
+
+    def _send(self, msg: Any) -> None:
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256  # pack() does not advance it; send() would
+        # Nobody listening (ICMP unreachable) is no reason to stop flying.
+        with contextlib.suppress(OSError):
+            self.sock.sendto(buf, self.target)
+        self.stats.sent += 1
+        if self._tlog_fh is not None:
+            self._tlog_fh.write(struct.pack(">Q", int(time.time() * 1e6)) + buf)
+
+    def _serve(self) -> None:
+        """Answer what the ground station sent."""
+        while True:
+            try:
+                data, _ = self.sock.recvfrom(65535)
+            except (BlockingIOError, ConnectionRefusedError, OSError):
+                return
+            for msg in self.mav.parse_buffer(data) or []:
+                kind = msg.get_type()
+                if kind == "HEARTBEAT":
+                    self.stats.gcs_heartbeats += 1
+                elif kind == "COMMAND_LONG" and msg.command == dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+                    name = next(
+                        (
+                            n
+                            for n in STREAMED_MESSAGES
+                            if getattr(dialect, f"MAVLINK_MSG_ID_{n}") == int(msg.param1)
+                        ),
+                        None,
+                    )
+                    ok = name is not None
+                    if name is not None:
+                        interval = msg.param2
+                        self.rates[name] = (
+                            0.0
+                            if interval < 0
+                            else (1e6 / interval if interval > 0 else self.link.rate(name))
+                        )
+                        self.stats.rate_changes += 1
+                    result = dialect.MAV_RESULT_ACCEPTED if ok else dialect.MAV_RESULT_DENIED
+                    self._send(self.mav.command_ack_encode(msg.command, result))
+
+    def run(self, stop_after_s: float | None = None) -> VehicleStats:
+        """Stream the whole recording (or until stop_after_s of vehicle time)."""
+        rec = self.recording
+        link = self.link
+        start_wall = time.time()
+        t_first = float(rec.t_s[0])
+        next_due = {m: t_first for m in STREAMED_MESSAGES}
+        next_hb = t_first
+        for i in range(len(rec)):
+            t_rel = float(rec.t_s[i]) - t_first
+            if stop_after_s is not None and t_rel > stop_after_s:
+                break
+            if self.speed > 0:
+                delay = t_rel / self.speed - (time.time() - start_wall)
+                if delay > 0:
+                    time.sleep(delay)
+            self._serve()
+            t = float(rec.t_s[i])
+            tv = t - t_first + BOOT_OFFSET_S
+            us, ms = int(round(tv * 1e6)), int(round(tv * 1e3))
+            if t >= next_hb - 1e-9:
+                next_hb += 1.0
+                self._send(
+                    self.mav.heartbeat_encode(
+                        dialect.MAV_TYPE_FIXED_WING,
+                        dialect.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                        dialect.MAV_MODE_FLAG_AUTO_ENABLED,
+                        0,
+                        dialect.MAV_STATE_ACTIVE,
+                    )
+                )
+                self._send(self.mav.system_time_encode(int(time.time() * 1e6), ms))
+            y = rec.measurements[i]
+            de, power = float(rec.inputs[i, 0]), float(rec.inputs[i, 1])
+            due = set()
+            for m in STREAMED_MESSAGES:
+                r = self.rates[m]
+                if r > 0 and t >= next_due[m] - 1e-6:
+                    due.add(m)
+                    next_due[m] += 1.0 / r
+                    if next_due[m] < t:  # rate above the sample rate: once per sample
+                        next_due[m] = t + 1.0 / r
+            # Inputs first, then observations: a frame is complete when its last
+            # observation arrives.
+            if "SERVO_OUTPUT_RAW" in due:
+                pwm = [0] * 16
+                pwm[link.elevator_servo - 1] = _pwm(
+                    link.elevator_pwm_center_us + de * link.elevator_us_per_rad
+                )
+                if link.throttle_servo:
+                    pwm[link.throttle_servo - 1] = _pwm(
+                        link.throttle_pwm_min_us
+                        + power * (link.throttle_pwm_max_us - link.throttle_pwm_min_us)
+                    )
+                self._send(self.mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *pwm))
+            if "NAMED_VALUE_FLOAT" in due:
+                if not link.throttle_servo:
+                    self._send(
+                        self.mav.named_value_float_encode(ms, link.thrust_name.encode(), power)
+                    )
+                if math.isfinite(y[4]):
+                    self._send(
+                        self.mav.named_value_float_encode(ms, link.qdot_name.encode(), float(y[4]))
+                    )
+            if "AOA_SSA" in due:
+                self._send(self.mav.aoa_ssa_encode(us, math.degrees(float(y[1])), 0.0))
+            if "ATTITUDE" in due:
+                self._send(
+                    self.mav.attitude_encode(ms, 0.0, float(y[2]), 0.0, 0.0, float(y[3]), 0.0)
+                )
+            if "HIGHRES_IMU" in due:
+                self._send(
+                    self.mav.highres_imu_encode(
+                        us,
+                        float(y[5]),
+                        0.0,
+                        float(y[6]),
+                        0.0,
+                        float(y[3]),
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0b11111,
+                    )
+                )
+            if "VFR_HUD" in due:
+                thr_pct = int(round(100 * power)) if link.throttle_servo else 0
+                self._send(
+                    self.mav.vfr_hud_encode(
+                        float(y[0]), float(y[0]), 0, max(0, min(100, thr_pct)), 100.0, 0.0
+                    )
+                )
+        self._serve()
+        self.close()
+        return self.stats
+
+    def close(self) -> None:
+        if self._tlog_fh is not None:
+            self._tlog_fh.close()
+            self._tlog_fh = None
+        self.sock.close()
+
+
+def _pwm(us: float) -> int:
+    return max(0, min(65535, int(round(us))))

@@ -1,0 +1,275 @@
+"""The link end to end on loopback: real vehicle process, real UDP, real .tlog files."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcs_estimator.cli import main as gcs_main
+from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.estimator import Estimator
+from gcs_estimator.flightdata import Recording, load_hfb320
+from gcs_estimator.station import Station, Stop, listen, open_udp, replay
+from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
+from sim.vehicle import SimulatedVehicle
+
+ROOT = Path(__file__).resolve().parents[2]
+SHORT = ["simulation.manoeuvre.duration_s=12"]
+
+
+def fly_to_station(
+    config: AircraftConfig, recs: list[Recording], speed: float, record: Path | None
+) -> Station:
+    """Vehicles in threads of this process (real sockets) -> a listening station."""
+    import threading
+
+    station = Station(config, record=record)
+    sock = open_udp("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    vehicles = [
+        SimulatedVehicle(r, config.link, ("127.0.0.1", port), system_id=i + 1, speed=speed)
+        for i, r in enumerate(recs)
+    ]
+    threads = [threading.Thread(target=v.run) for v in vehicles]
+    for t in threads:
+        t.start()
+    listen(station, sock, Stop(), idle_exit_s=1.0, status_out=None, max_seconds=120)
+    for t in threads:
+        t.join()
+    sock.close()
+    station.finish()
+    return station
+
+
+def final(station: Station, sysid: int = 1) -> dict[str, np.ndarray]:
+    return {k: v[0] for k, v in station.vehicles[sysid].estimator.current().items()}
+
+
+def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) -> None:
+    """Separate vehicle process -> UDP -> station; the recorded tlog replays to the same
+    final estimates; the vehicle answered the station's heartbeat and rate requests."""
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    station = Station(config, record=tmp_path / "live.tlog")
+    sock = open_udp("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sim.cli",
+            "--config",
+            str(ROOT / "configs/noc_uav.toml"),
+            "--set",
+            SHORT[0],
+            "--target",
+            f"127.0.0.1:{port}",
+            "--speed",
+            "4",
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    listen(station, sock, Stop(), idle_exit_s=1.5, status_out=None, max_seconds=120)
+    sock.close()
+    _, err = proc.communicate(timeout=30)
+    station.finish()
+    assert proc.returncode == 0
+    assert "GCS heartbeats" in err and " 0 GCS heartbeats" not in err
+    assert " 0 rate changes" not in err
+    v = station.vehicles[1]
+    assert v.frames == 601  # 12 s at 50 Hz, every frame
+    assert station.health.lost == 0 and station.health.corrupt == 0
+    assert 0 in v.acked  # COMMAND_ACK MAV_RESULT_ACCEPTED for SET_MESSAGE_INTERVAL
+    live = final(station)
+
+    again = Station(config)
+    replay(again, read_tlog(tmp_path / "live.tlog"))
+    again.finish()
+    for kind, beta in final(again).items():
+        np.testing.assert_array_equal(beta, live[kind])
+
+
+def test_link_reaches_the_offline_estimate(tmp_path: Path, noc_config: AircraftConfig) -> None:
+    """The link quantises the elevator to 1 us of PWM (0.06 deg, 1/50 of the multistep)
+    and sends float32 fields: the estimates move by a fraction of their sigma, no more."""
+    from sim.truth import simulate
+
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=9)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    station = fly_to_station(config, [rec], speed=0.0, record=None)
+    offline = Estimator(config)
+    offline.run(fl.t_s, fl.inputs, fl.measurements)
+    for kind, (beta, sigma) in offline.current().items():
+        assert np.all(np.abs(final(station)[kind] - beta) < 0.5 * sigma), kind
+
+
+def test_hfb320_playback_through_the_link(tmp_path: Path, hfb_data_path: Path) -> None:
+    config = load_config_with(ROOT / "configs/hfb320.toml")
+    rec = load_hfb320(hfb_data_path)
+    station = fly_to_station(config, [rec], speed=0.0, record=None)
+    assert station.vehicles[1].frames == len(rec)
+    offline = Estimator(config)
+    offline.run(rec.t_s, rec.inputs, rec.measurements)
+    for kind, (beta, sigma) in offline.current().items():
+        # float32 fields and 1 us elevator PWM: differences a fraction of the sigmas.
+        assert np.all(np.abs(final(station)[kind] - beta) < 0.5 * sigma), kind
+
+
+def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
+    from sim.truth import simulate
+
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    other = config.with_truth(tuple(np.array(config.truth or ()) * 1.2))
+    recs = []
+    for c, seed in ((config, 1), (other, 2)):
+        fl = simulate(c, seed=seed)
+        recs.append(Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"))
+    station = fly_to_station(config, recs, speed=0.0, record=None)
+    assert sorted(station.vehicles) == [1, 2]
+    assert all(v.frames == 601 for v in station.vehicles.values())
+    cla = config.coefficient_names.index("Cma")
+    a, b = final(station, 1)["IEKF"][cla], final(station, 2)["IEKF"][cla]
+    assert b / a == pytest.approx(1.2, rel=0.03)  # each vehicle its own estimate
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def recorded_flight(tmp_path: Path) -> tuple[AircraftConfig, list[tuple[int, bytes]]]:
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    from sim.truth import simulate
+
+    fl = simulate(config, seed=3)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    v = SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=tmp_path / "v.tlog")
+    v.run()
+    return config, [(r.t_recv_us, r.packet) for r in read_tlog(tmp_path / "v.tlog")]
+
+
+def run_records(config: AircraftConfig, records: list[tuple[int, bytes]]) -> Station:
+    station = Station(config)
+    t0 = records[0][0]
+    for i, (_, pkt) in enumerate(records):
+        # Receive times 2 ms apart: deterministic and well inside max_wait.
+        station.handle_packet(pkt, (t0 + 2000 * i) * 1e-6)
+    station.finish()
+    return station
+
+
+def test_bad_packets_are_counted_and_skipped(tmp_path: Path) -> None:
+    config, recs = recorded_flight(tmp_path)
+    clean = run_records(config, recs)
+    n_frames = clean.vehicles[1].frames
+
+    bad: list[tuple[int, bytes]] = []
+    for i, (t, pkt) in enumerate(recs):
+        if i == 100:
+            corrupt = bytearray(pkt)
+            corrupt[-1] ^= 0xFF  # CRC fails
+            bad.append((t, bytes(corrupt)))
+            continue
+        if i == 200:
+            bad.append((t, pkt[:-3]))  # truncated packet
+            continue
+        bad.append((t, pkt))
+        if i == 300:
+            bad.append((t, pkt))  # duplicated
+    station = run_records(config, bad)
+    h = station.health
+    assert h.corrupt == 2 and h.duplicates == 1 and h.lost == 2
+    assert station.vehicles[1].frames == n_frames  # partial frames, nothing stalls
+    assert np.all(np.isfinite(final(station)["IEKF"]))
+
+
+def test_nan_absurd_values_reorder_clock_reset_unknown_and_second_vehicle(
+    tmp_path: Path,
+) -> None:
+    from pymavlink.dialects.v20 import ardupilotmega as d
+
+    config, recs = recorded_flight(tmp_path)
+    mav = d.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.seq = 0
+    nan_pkt = mav.vfr_hud_encode(math.nan, 0, 0, 0, 0, 0).pack(mav)
+    absurd = mav.aoa_ssa_encode(1, 500.0, 0).pack(mav)  # 500 deg angle of attack
+    other = d.MAVLink(None, srcSystem=7, srcComponent=1)
+    hb7 = other.heartbeat_encode(1, 3, 0, 0, 4).pack(other)
+    unknown = bytearray(mav.aoa_ssa_encode(1, 2.0, 0).pack(mav))
+    unknown[7:10] = (60000).to_bytes(3, "little")  # a message id no dialect has
+
+    seq = list(recs)
+    seq.insert(50, (seq[50][0], nan_pkt))
+    seq.insert(60, (seq[60][0], absurd))
+    seq.insert(70, (seq[70][0], hb7))
+    seq.insert(80, (seq[80][0], bytes(unknown)))
+    seq[400], seq[401] = seq[401], seq[400]  # reordered
+    # The vehicle reboots: the rest of the flight again, with its clock from the start.
+    seq += recs[: len(recs) // 2]
+    station = run_records(config, seq)
+    v = station.vehicles[1]
+    assert station.decode_stats.invalid_values == 2
+    assert 7 in station.vehicles  # second vehicle known, estimated separately
+    assert v.sync.stats.clock_resets == 1
+    assert station.health.out_of_order >= 1
+    assert station.health.corrupt + station.unknown_messages >= 1
+    beta = final(station)["IEKF"]
+    assert np.all(np.isfinite(beta))
+    # The estimates known before the reboot are kept (not reset to zero).
+    assert abs(beta[config.coefficient_names.index("Cma")]) > 1.0
+
+
+def test_truncated_and_garbage_tlogs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _config, recs = recorded_flight(tmp_path)
+    path = tmp_path / "flight.tlog"
+    w = TlogWriter(path)
+    for i, (t, pkt) in enumerate(recs):
+        w.write(t, pkt)
+        if i == 500:
+            w._fh.write(b"\x00garbage\x11" * 5)  # junk between records
+    w.close()
+    data = path.read_bytes()
+    (tmp_path / "cut.tlog").write_bytes(data[: len(data) - 7])
+    out = tmp_path / "res"
+    assert gcs_main(["replay", str(tmp_path / "cut.tlog"), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "garbage bytes skipped" in err and "truncated at the end" in err
+    res = json.loads((out / "results_sys1.json").read_text())
+    assert res["link"]["received"] >= len(recs) - 2
+
+    (tmp_path / "notes.txt").write_text("this is not a tlog\n" * 500)
+    assert gcs_main(["replay", str(tmp_path / "notes.txt"), "--out", str(out)]) == 2
+    assert "not a tlog" in capsys.readouterr().err
+
+
+def test_sigterm_stops_cleanly_with_results(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gcs_estimator.cli",
+            "listen",
+            "udpin:127.0.0.1:0",
+            "--out",
+            str(tmp_path),
+            "--record",
+            str(tmp_path / "x.tlog"),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(4.0)
+    proc.terminate()
+    _out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "no vehicle data received" in err
+    assert (tmp_path / "x.tlog").exists()
