@@ -73,6 +73,7 @@ class FilterRunner:
         self.q_state = np.array(tuning.state_process_noise)
         self.q_coef_final = np.array(tuning.coefficient_process_noise)
         self.q_coef_initial = np.array(tuning.coefficient_process_noise_initial)
+        self._q_settled: FloatArray | None = None
 
     def initial_belief(self, y: FloatArray) -> Belief:
         """States from the first measurement where present, coefficients from the config."""
@@ -87,6 +88,11 @@ class FilterRunner:
     def process_noise(self, t: float) -> FloatArray:
         """Q at time t: coefficient noise decays from its initial to its final density."""
         decay = math.exp(-(t - self.t_start) / self.config.filter.coefficient_noise_decay_s)
+        if decay < 1e-12 or np.array_equal(self.q_coef_initial, self.q_coef_final):
+            # Settled: the same matrix every step, built once.
+            if self._q_settled is None:
+                self._q_settled = np.diag(np.concatenate([self.q_state, self.q_coef_final]))
+            return self._q_settled
         q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
         return np.diag(np.concatenate([self.q_state, q_coef]))
 
@@ -180,10 +186,16 @@ class FilterRunner:
                 e[info.used] = info.innovation
                 s_diag[info.used] = np.sqrt(np.diag(info.S))
                 nis, n_used, iters = info.nis, int(info.used.sum()), info.iterations
-        if np.any(np.diag(self.belief.P) <= 0.0) and np.all(np.isfinite(self.belief.P)):
+        variances = np.diag(self.belief.P)
+        healthy = variances.min() > 0.0 and math.isfinite(
+            float(self.belief.x.sum()) + float(self.belief.P.sum())
+        )  # one cheap test on the hot path; NaN fails every comparison
+        if not healthy and variances.min() <= 0.0 and np.isfinite(self.belief.P).all():
             self.covariance_repairs += 1
             self.belief = Belief(self.belief.x, repair_covariance(self.belief.P))
-        if not (np.all(np.isfinite(self.belief.x)) and np.all(np.isfinite(self.belief.P))):
+        if not healthy and not (
+            np.isfinite(self.belief.x).all() and np.isfinite(self.belief.P).all()
+        ):
             # Diverged (e.g. garbage input that passed every check): start again from the
             # configured prior at this frame rather than stop estimating.
             self.divergences += 1
@@ -193,7 +205,7 @@ class FilterRunner:
         self.t_last = t
         self.u_last = np.array(u, float)
         return StepOutput(
-            x=self.belief.x.copy(),
+            x=self.belief.x,  # a fresh array every step: the filter never mutates it
             sigma=np.sqrt(np.diag(self.belief.P)),
             nis=float(nis),
             n_used=int(n_used),
