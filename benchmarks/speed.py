@@ -39,8 +39,21 @@ def rate(config_path: str, kind: str, backend: str, frames: int, bare: bool) -> 
         tun = config.filter
         t0 = time.perf_counter()
         for i in idx:
-            x, P, *_ = fast.step(x, P, fl.inputs[i - 1], 0.02, fl.inputs[i], fl.measurements[i],
-                                 Q, R, runner.iterations, 0.0, tun.max_step_s, 0.0, model)
+            x, P, *_ = fast.step(
+                x,
+                P,
+                fl.inputs[i - 1],
+                0.02,
+                fl.inputs[i],
+                fl.measurements[i],
+                Q,
+                R,
+                runner.iterations,
+                0.0,
+                tun.max_step_s,
+                0.0,
+                model,
+            )
         return n / (time.perf_counter() - t0)
     t0 = time.perf_counter()
     for i in idx:
@@ -50,8 +63,10 @@ def rate(config_path: str, kind: str, backend: str, frames: int, bare: bool) -> 
 
 def main() -> int:
     cfg = "configs/noc_uav.toml"
-    print("| filter | compiled kernel steps/s | compiled via runner steps/s | "
-          "numpy reference steps/s | kernel / reference |")
+    print(
+        "| filter | compiled kernel steps/s | compiled via runner steps/s | "
+        "numpy reference steps/s | kernel / reference |"
+    )
     print("|---|---|---|---|---|")
     for kind in ("EKF", "IEKF"):
         kernel = np.median([rate(cfg, kind, "fast", 2500, True) for _ in range(3)])

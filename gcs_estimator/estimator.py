@@ -8,7 +8,6 @@ the previous inputs held, then updates with the frame's observations.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -431,33 +430,3 @@ class Estimator:
                     np.sqrt(np.diag(b.P))[eq.N_STATE :],
                 )
         return out
-
-
-def convergence_time(t: FloatArray, values: FloatArray, target: float, band: float = 0.05) -> float:
-    """First time after which `values` stay within `band` (relative) of `target` [s].
-
-    NaN if the last value is outside the band. Relative to |target|, so a target of 0
-    never converges in this sense.
-    """
-    if len(values) == 0 or target == 0.0:
-        return math.nan
-    outside = np.abs(values - target) > band * abs(target)
-    if outside[-1]:
-        return math.nan
-    idx = np.flatnonzero(outside)
-    if len(idx) == 0:
-        return float(t[0])
-    return float(t[idx[-1] + 1])
-
-
-def chi2_band(dof: float, runs: int, p: float = 0.95) -> tuple[float, float]:
-    """Two-sided band for the mean of `runs` chi-square(dof) draws (per-run mean)."""
-    from scipy.stats import chi2
-
-    lo = chi2.ppf((1 - p) / 2, dof * runs) / runs
-    hi = chi2.ppf(1 - (1 - p) / 2, dof * runs) / runs
-    return float(lo), float(hi)
-
-
-def index_of(names: Sequence[str], wanted: Sequence[str]) -> list[int]:
-    return [list(names).index(w) for w in wanted if w in names]

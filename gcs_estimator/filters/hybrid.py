@@ -88,12 +88,6 @@ def propagate(f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: f
     return Belief(x, symmetrize(P))
 
 
-def _select(
-    y: FloatArray, R: FloatArray, hx: FloatArray, H: FloatArray, used: BoolArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    return y[used], R[np.ix_(used, used)], hx[used], H[used]
-
-
 def available(y: FloatArray) -> BoolArray:
     """Channels present in a measurement vector (missing channels are NaN)."""
     return np.asarray(np.isfinite(y))
