@@ -6,16 +6,33 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gcs_estimator.config import AircraftConfig, ConfigError, load_config_with
+from gcs_estimator.config import (
+    VIEW_OUTPUTS,
+    AircraftConfig,
+    ConfigError,
+    load_config_with,
+    load_reference,
+)
 from gcs_estimator.estimator import Estimator
 from gcs_estimator.flightdata import FlightDataError, Recording, load_csv, load_hfb320
 from gcs_estimator.metrics import summarise
-from gcs_estimator.report import config_truth, markdown_table, write_results
+from gcs_estimator.report import (
+    config_truth,
+    final_table,
+    live_table,
+    markdown_table,
+    write_results,
+)
+from gcs_estimator.view.live import LinkSource, RerunView, TableSource, open_view, resolve_outputs
+
+if TYPE_CHECKING:
+    from gcs_estimator.station import Station
 
 DEFAULT_CONFIG = "configs/noc_uav.toml"
 
@@ -36,6 +53,75 @@ def _common(p: argparse.ArgumentParser, config_default: str = DEFAULT_CONFIG) ->
         default="fast",
         help="compiled filter kernels or the plain numpy reference path",
     )
+    p.add_argument(
+        "--reference",
+        default=None,
+        metavar="TOML",
+        help="reference coefficient values to show and compare against (a [truth] table, "
+        "e.g. a textbook's); replaces the config's [truth]",
+    )
+    v = p.add_argument_group("live view (Rerun)")
+    v.add_argument(
+        "--view",
+        default=None,
+        metavar="OUTPUTS",
+        help="comma-separated: save (an .rrd), serve (viewers join at any time), spawn (a "
+        "local viewer), connect (a running viewer), off, auto (spawn+save with a display, "
+        "else save). Default: [view] outputs of the config, normally auto",
+    )
+    v.add_argument("--rrd", default=None, help="the .rrd to save (default: OUT/<session>.rrd)")
+    v.add_argument(
+        "--serve-port", type=int, default=None, help="port of the served view (default 9877)"
+    )
+    v.add_argument(
+        "--connect",
+        default=None,
+        metavar="URL",
+        help="stream to the viewer at this URL (implies connect), e.g. "
+        "rerun+http://127.0.0.1:9876/proxy",
+    )
+
+
+def _config(args: argparse.Namespace) -> AircraftConfig:
+    """The config with --set overrides, --reference values and view options applied."""
+    config = load_config_with(args.config, args.set)
+    view = config.view
+    outputs = list(view.outputs)
+    if args.view is not None:
+        outputs = [o.strip() for o in args.view.split(",") if o.strip()]
+        for o in outputs:
+            if o not in VIEW_OUTPUTS:
+                raise ConfigError(f"--view: unknown output {o!r}; allowed: {list(VIEW_OUTPUTS)}")
+    if args.connect is not None:
+        outputs = [o for o in outputs if o != "off"] + ["connect"]
+        view = replace(view, connect_url=args.connect)
+    if args.rrd is not None:
+        view = replace(view, rrd_path=str(args.rrd))
+    if args.serve_port is not None:
+        view = replace(view, serve_port=args.serve_port)
+    config = replace(config, view=replace(view, outputs=tuple(dict.fromkeys(outputs))))
+    if args.reference is not None:
+        values, label = load_reference(args.reference, config.coefficient_names)
+        config = config.with_truth(values, label)
+    return config
+
+
+def _open_view(
+    config: AircraftConfig,
+    args: argparse.Namespace,
+    session: str,
+    table_source: TableSource,
+    link_source: LinkSource | None = None,
+) -> RerunView | None:
+    choice = resolve_outputs(config, config.view.outputs, Path(args.out) / f"{session}.rrd")
+    return open_view(
+        config,
+        choice,
+        config_truth(config),
+        config.truth_label,
+        link_source=link_source,
+        table_source=table_source,
+    )
 
 
 def _run_recording(
@@ -44,13 +130,19 @@ def _run_recording(
     truth: np.ndarray | None,
     args: argparse.Namespace,
     label: str,
+    session: str,
 ) -> int:
     est = Estimator(config, backend=args.backend)
+    view = _open_view(config, args, session, lambda sid: live_table(est))
     start = time.perf_counter()
     n = len(rec)
     next_report = 0.0
+    t0 = float(rec.t_s[0]) if n else 0.0
     for i in range(n):
-        est.step(float(rec.t_s[i]), rec.inputs[i], rec.measurements[i])
+        t = float(rec.t_s[i])
+        outs = est.step(t, rec.inputs[i], rec.measurements[i])
+        if view is not None:
+            view.step(1, t - t0, t, rec.inputs[i], rec.measurements[i], outs)
         frac = (i + 1) / n
         if frac >= next_report and sys.stderr.isatty():
             print(f"\r{label}: {frac * 100:5.1f} % of {n} frames", end="", file=sys.stderr)
@@ -58,13 +150,15 @@ def _run_recording(
     elapsed = time.perf_counter() - start
     if sys.stderr.isatty():
         print(file=sys.stderr)
+    if view is not None:
+        view.close({1: final_table(est)})
     summaries = summarise(est, truth)
     print(
         f"\n{config.airframe.name}: {label}, {n} frames in {elapsed:.2f} s "
         f"({n / max(elapsed, 1e-9):,.0f} frames/s, both filters)\n"
     )
     print(markdown_table(summaries, config.truth_label))
-    paths = write_results(Path(args.out), est, truth, rec.measurements)
+    paths = write_results(Path(args.out), est, truth)
     print("results: " + ", ".join(str(p) for p in paths.values()))
     return 0
 
@@ -72,19 +166,19 @@ def _run_recording(
 def cmd_simulate(args: argparse.Namespace) -> int:
     from sim.truth import simulate
 
-    config = load_config_with(args.config, args.set)
+    config = _config(args)
     if config.truth is None:
         raise ConfigError(f"{config.source}: [truth] is needed to simulate this aircraft")
-    flight = simulate(config, seed=args.seed)
+    seed = args.seed if args.seed is not None else config.simulation.seed
+    flight = simulate(config, seed=seed)
     rec = Recording(flight.t_s, flight.inputs, flight.measurements, "throttle")
-    label = (
-        f"simulated flight, seed {args.seed if args.seed is not None else config.simulation.seed}"
+    return _run_recording(
+        config, rec, flight.truth, args, f"simulated flight, seed {seed}", f"simulate_seed{seed}"
     )
-    return _run_recording(config, rec, flight.truth, args, label)
 
 
 def cmd_offline(args: argparse.Namespace) -> int:
-    config = load_config_with(args.config, args.set)
+    config = _config(args)
     path = Path(args.data)
     rec = load_csv(path) if path.suffix.lower() == ".csv" else load_hfb320(path)
     want = "thrust" if config.propulsion.model == "measured" else "throttle"
@@ -93,14 +187,33 @@ def cmd_offline(args: argparse.Namespace) -> int:
             f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
             f"in the data, but {path} has {rec.power}"
         )
-    return _run_recording(config, rec, config_truth(config), args, f"offline {path.name}")
+    return _run_recording(
+        config, rec, config_truth(config), args, f"offline {path.name}", f"offline_{path.stem}"
+    )
 
 
-def _finish_station(station: Any, args: argparse.Namespace, elapsed: float) -> int:
+def _station(
+    config: AircraftConfig, args: argparse.Namespace, session: str, record: Path | None = None
+) -> Station:
+    """The ground station with its live view (if any) attached."""
+    from gcs_estimator.station import Station
+
+    station = Station(config, backend=args.backend, record=record)
+    station.view = _open_view(
+        config,
+        args,
+        session,
+        lambda sid: live_table(station.vehicles[sid].estimator),
+        station.link_now,
+    )
+    return station
+
+
+def _finish_station(station: Station, args: argparse.Namespace, elapsed: float) -> int:
     """Results per vehicle: table on stdout, JSON/Markdown/CSV in --out."""
-    from gcs_estimator.report import write_results
-
     station.finish()
+    if station.view is not None:
+        station.view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
     if not station.vehicles:
         print("no vehicle data received", file=sys.stderr)
     link = station.link_stats()
@@ -113,7 +226,6 @@ def _finish_station(station: Any, args: argparse.Namespace, elapsed: float) -> i
             Path(args.out),
             est,
             truth,
-            None,
             extra={"link": link, "system_id": v.system_id},
             stem=f"results_sys{v.system_id}",
         )
@@ -123,9 +235,9 @@ def _finish_station(station: Any, args: argparse.Namespace, elapsed: float) -> i
 
 
 def cmd_listen(args: argparse.Namespace) -> int:
-    from gcs_estimator.station import Station, Stop, listen, open_udp
+    from gcs_estimator.station import Stop, listen, open_udp
 
-    config = load_config_with(args.config, args.set)
+    config = _config(args)
     host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
     if not port.isdigit():
         raise ConfigError(f"endpoint {args.endpoint!r}: expected udpin:HOST:PORT")
@@ -134,7 +246,7 @@ def cmd_listen(args: argparse.Namespace) -> int:
         if args.record
         else Path(args.out) / (time.strftime("live_%Y%m%d_%H%M%S") + ".tlog")
     )
-    station = Station(config, backend=args.backend, record=record)
+    station = _station(config, args, record.stem, record)
     sock = open_udp(host or "0.0.0.0", int(port))
     stop = Stop()
     stop.install()
@@ -151,11 +263,11 @@ def cmd_listen(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from gcs_estimator.station import Station, Stop, replay
+    from gcs_estimator.station import Stop, replay
     from gcs_estimator.telemetry.mavlink import TlogError, TlogStats, read_tlog
 
-    config = load_config_with(args.config, args.set)
-    station = Station(config, backend=args.backend)
+    config = _config(args)
+    station = _station(config, args, Path(args.tlogs[0]).stem)
     stop = Stop()
     stop.install()
     start = time.time()
@@ -192,13 +304,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """The simulated UAV and the ground station as two processes talking UDP."""
     import subprocess
 
-    from gcs_estimator.station import Station, Stop, listen, open_udp
+    from gcs_estimator.station import Stop, listen, open_udp
 
-    config = load_config_with(args.config, args.set)
+    config = _config(args)
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     record = Path(args.out) / "demo.tlog"
-    station = Station(config, backend=args.backend, record=record)
+    station = _station(config, args, "demo", record)
     cmd = [
         sys.executable,
         "-m",

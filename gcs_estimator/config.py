@@ -217,6 +217,42 @@ class LinkConfig:
         return dict(self.rates_hz).get(message, 0.0)
 
 
+VIEW_OUTPUTS: tuple[str, ...] = ("auto", "save", "serve", "spawn", "connect", "off")
+"""Where the live Rerun view goes; see ViewConfig."""
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """The live Rerun view: where it goes and how much of it is kept.
+
+    outputs: "save" (an .rrd file), "serve" (host a gRPC server that viewers join at any
+    time and receive the history so far), "spawn" (start a local viewer), "connect" (stream
+    to a viewer already running at connect_url), "off", or "auto": spawn and save where a
+    display exists, else save (and say how to open the file).
+    """
+
+    outputs: tuple[str, ...] = ("auto",)
+    rrd_path: str = ""
+    """The .rrd to save to; empty: a name from the session in the results directory."""
+    serve_bind: str = "127.0.0.1"
+    """Address the gRPC server binds; "0.0.0.0" lets viewers on other machines join."""
+    serve_port: int = 9877
+    server_memory_limit: str = "1GiB"
+    """History the server keeps for late viewers; the oldest goes first (never static data)."""
+    connect_url: str = "rerun+http://127.0.0.1:9876/proxy"
+    viewer_port: int = 9876
+    """Port of the viewer that "spawn" starts."""
+    display_rate_hz: float = 25.0
+    """Display-only series (states, inputs, innovations, NIS) are decimated to this rate;
+    coefficient estimates and their bands are always logged at every frame."""
+    flush_interval_s: float = 1.0
+    """Wall-clock seconds between batches sent to the view."""
+    results_interval_s: float = 5.0
+    """Wall-clock seconds between updates of the live results table."""
+    shutdown_timeout_s: float = 3.0
+    """At exit, how long a viewer connection may take to drain before it is cut."""
+
+
 @dataclass(frozen=True)
 class AircraftConfig:
     """Everything one airframe needs: physics, structure, truth (if simulated), tuning."""
@@ -231,6 +267,7 @@ class AircraftConfig:
     simulation: Simulation
     filter: FilterTuning
     link: LinkConfig
+    view: ViewConfig
     raw: Mapping[str, Any]
     """The parsed TOML, kept to write into results exactly as used."""
 
@@ -238,13 +275,17 @@ class AircraftConfig:
     def coefficient_names(self) -> tuple[str, ...]:
         return self.structure.names
 
-    def with_truth(self, truth: tuple[float, ...]) -> AircraftConfig:
-        """The same aircraft with other true coefficients (for off-nominal simulations)."""
+    def with_truth(self, truth: tuple[float, ...], label: str | None = None) -> AircraftConfig:
+        """The same aircraft with other true (or reference) coefficients."""
         from dataclasses import replace
 
         if len(truth) != len(self.coefficient_names):
             raise ConfigError(f"{self.source}: truth needs {len(self.coefficient_names)} values")
-        return replace(self, truth=tuple(float(v) for v in truth))
+        return replace(
+            self,
+            truth=tuple(float(v) for v in truth),
+            truth_label=self.truth_label if label is None else label,
+        )
 
 
 # --------------------------------------------------------------------------- reading
@@ -356,7 +397,9 @@ class _Section:
             raise self.fail(key, f"values must be >= 0, got {list(out)}")
         return out
 
-    def strings(self, key: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+    def strings(
+        self, key: str, allowed: tuple[str, ...], what: str = "regressor"
+    ) -> tuple[str, ...]:
         self.used.add(key)
         if key not in self.data:
             raise self.fail(key, f"missing; add a list drawn from {list(allowed)}")
@@ -365,9 +408,9 @@ class _Section:
             raise self.fail(key, f"must be a list of strings, got {value!r}")
         for v in value:
             if v not in allowed:
-                raise self.fail(key, f"unknown regressor {v!r}; allowed: {list(allowed)}")
+                raise self.fail(key, f"unknown {what} {v!r}; allowed: {list(allowed)}")
         if len(set(value)) != len(value):
-            raise self.fail(key, f"lists a regressor twice: {value!r}")
+            raise self.fail(key, f"lists a {what} twice: {value!r}")
         return tuple(value)
 
     def per_name(
@@ -401,18 +444,36 @@ class _Section:
             raise self.fail(unknown[0], f"unknown key; known keys here: {known}")
 
 
-def load_config(path: str | Path) -> AircraftConfig:
-    """Read and validate an aircraft TOML file."""
+def _read_toml(path: str | Path) -> dict[str, Any]:
     source = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{source}: cannot read: {exc.strerror}") from exc
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
-    return parse_config(data, source)
+
+
+def load_reference(path: str | Path, names: tuple[str, ...]) -> tuple[tuple[float, ...], str]:
+    """Reference coefficient values (a textbook, a wind tunnel) from a TOML file: a
+    [truth] table like the aircraft config's, or the same keys at the top level. Returns
+    (values in structure order, label)."""
+    data = _read_toml(path)
+    top = _Section(str(path), "", data)
+    table = top.sub("truth") if top.has("truth") else top
+    label = table.string("label", "reference")
+    values = tuple(table.number(n) for n in names)
+    table.check_unknown()
+    if table is not top:
+        top.check_unknown()
+    return values, label
+
+
+def load_config(path: str | Path) -> AircraftConfig:
+    """Read and validate an aircraft TOML file."""
+    return parse_config(_read_toml(path), str(path))
 
 
 def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftConfig:
@@ -434,6 +495,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftC
     simulation = _parse_simulation(top.sub("simulation"))
     tuning = _parse_filter(top.sub("filter"), names)
     link = _parse_link(top.sub("link"), propulsion)
+    view = _parse_view(top.sub("view"))
     top.check_unknown()
     return AircraftConfig(
         source=source,
@@ -445,6 +507,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftC
         simulation=simulation,
         filter=tuning,
         link=link,
+        view=view,
         raw=dict(data),
     )
 
@@ -482,6 +545,35 @@ def _parse_link(s: _Section, propulsion: Propulsion) -> LinkConfig:
             raise s.fail("qdot_name", f"NAMED_VALUE_FLOAT names are 1..10 characters, got {key!r}")
     s.check_unknown()
     return link
+
+
+def _parse_view(s: _Section) -> ViewConfig:
+    d = ViewConfig()
+    outputs = d.outputs
+    if s.has("outputs"):
+        outputs = s.strings("outputs", VIEW_OUTPUTS, what="output")
+    view = ViewConfig(
+        outputs=outputs,
+        rrd_path=s.string("rrd_path", d.rrd_path),
+        serve_bind=s.string("serve_bind", d.serve_bind),
+        serve_port=s.integer("serve_port", d.serve_port, minimum=0),
+        server_memory_limit=s.string("server_memory_limit", d.server_memory_limit),
+        connect_url=s.string("connect_url", d.connect_url),
+        viewer_port=s.integer("viewer_port", d.viewer_port, minimum=1),
+        display_rate_hz=s.number("display_rate_hz", d.display_rate_hz, positive=True),
+        flush_interval_s=s.number("flush_interval_s", d.flush_interval_s, positive=True),
+        results_interval_s=s.number("results_interval_s", d.results_interval_s, positive=True),
+        shutdown_timeout_s=s.number("shutdown_timeout_s", d.shutdown_timeout_s, positive=True),
+    )
+    if view.serve_port > 65535 or view.viewer_port > 65535:
+        raise s.fail("serve_port", "ports are 1..65535 (0: any free port)")
+    if not view.connect_url.startswith(("rerun://", "rerun+http://", "rerun+https://")):
+        raise s.fail(
+            "connect_url",
+            f"must look like rerun+http://HOST:PORT/proxy, got {view.connect_url!r}",
+        )
+    s.check_unknown()
+    return view
 
 
 def _parse_airframe(s: _Section) -> Airframe:

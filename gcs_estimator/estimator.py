@@ -238,9 +238,15 @@ class History:
     n_used: list[int] = field(default_factory=list)
     innovation: list[FloatArray] = field(default_factory=list)
     innovation_sigma: list[FloatArray] = field(default_factory=list)
+    u: list[FloatArray] = field(default_factory=list)
+    """The frame's inputs [2]."""
+    y: list[FloatArray] = field(default_factory=list)
+    """The frame's observations [7], NaN where missing."""
 
-    def append(self, t: float, out: StepOutput) -> None:
+    def append(self, t: float, out: StepOutput, u: FloatArray, y: FloatArray) -> None:
         self.t.append(t)
+        self.u.append(u)
+        self.y.append(y)
         self.x.append(out.x)
         self.sigma.append(out.sigma)
         self.nis.append(out.nis)
@@ -248,9 +254,13 @@ class History:
         self.innovation.append(out.innovation)
         self.innovation_sigma.append(out.innovation_sigma)
 
-    def replace_last(self, t: float, out: StepOutput) -> None:
+    def replace_last(self, out: StepOutput) -> None:
+        """The frame's output changed (a restart re-ran up to it): same frame, new output."""
+        t, u, y = self.t[-1], self.u[-1], self.y[-1]
         for seq in (
             self.t,
+            self.u,
+            self.y,
             self.x,
             self.sigma,
             self.nis,
@@ -259,7 +269,7 @@ class History:
             self.innovation_sigma,
         ):
             seq.pop()
-        self.append(t, out)
+        self.append(t, out, u, y)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -276,6 +286,10 @@ class Track:
     n_used: FloatArray
     innovation: FloatArray
     innovation_sigma: FloatArray
+    u: FloatArray
+    """Inputs per frame [N x 2]."""
+    y: FloatArray
+    """Observations per frame [N x 7], NaN where missing."""
 
     @staticmethod
     def of(h: History) -> Track:
@@ -288,6 +302,8 @@ class Track:
             n_used=np.array(h.n_used, float),
             innovation=np.array(h.innovation, float).reshape(-1, eq.N_OBS),
             innovation_sigma=np.array(h.innovation_sigma, float).reshape(-1, eq.N_OBS),
+            u=np.array(h.u, float).reshape(-1, 2),
+            y=np.array(h.y, float).reshape(-1, eq.N_OBS),
         )
 
 
@@ -332,8 +348,10 @@ class Estimator:
         """
         if self.frames == 0:
             self._t0 = t
+        u = np.array(u, float)
+        y = np.array(y, float)
         if self.restarts_pending:
-            self._buffer.append((t, np.array(u, float), np.array(y, float)))
+            self._buffer.append((t, u, y))
         outs = self._advance(t, u, y)
         self.frames += 1
         if (
@@ -358,7 +376,7 @@ class Estimator:
             out = runner.step(t, u, y)
             outs[kind] = out
             if self.keep_history:
-                self.histories[kind].append(t, out)
+                self.histories[kind].append(t, out, u, y)
         return outs
 
     def _restart(self) -> dict[FilterKind, StepOutput]:
@@ -405,7 +423,7 @@ class Estimator:
             outs = {kind: runner.step(t, u, y) for kind, runner in self.filters.items()}
         if self.keep_history:
             for kind, out in outs.items():
-                self.histories[kind].replace_last(self._buffer[-1][0], out)
+                self.histories[kind].replace_last(out)
         self.restarts_done += 1
         if not self.restarts_pending:
             self._buffer = []

@@ -74,6 +74,35 @@ def markdown_table(
     return "\n".join(lines) + "\n"
 
 
+def live_table(estimator: Estimator) -> str:
+    """The current estimates as a Markdown table (cheap: no history is read)."""
+    current = estimator.current()
+    if not current:
+        return "(waiting for data)\n"
+    truth = estimator.config.truth
+    kinds = [k for k in ("EKF", "IEKF") if k in current]
+    head = ["coefficient"] + ([estimator.config.truth_label] if truth else [])
+    for k in kinds:
+        head += [f"{k} estimate", f"{k} ±2σ"] + ([f"{k} error %"] if truth else [])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, name in enumerate(estimator.names):
+        row = [name] + ([_fmt(truth[i])] if truth else [])
+        for k in kinds:
+            x, s = current[k]
+            row += [_fmt(float(x[i])), f"{2 * s[i]:.2g}"]
+            if truth:
+                err = 100 * (x[i] - truth[i]) / abs(truth[i]) if truth[i] else math.nan
+                row.append("-" if not math.isfinite(err) else f"{err:+.2f}")
+        lines.append("| " + " | ".join(row) + " |")
+    return f"{estimator.frames} frames\n\n" + "\n".join(lines) + "\n"
+
+
+def final_table(estimator: Estimator) -> str:
+    """The finished run's Table I (with convergence times), as in results.md."""
+    truth = config_truth(estimator.config)
+    return markdown_table(summarise(estimator, truth), estimator.config.truth_label)
+
+
 def results_dict(
     estimator: Estimator,
     truth: FloatArray | None,
@@ -137,25 +166,33 @@ def _jsonable(data: Any) -> Any:
     return data
 
 
-def write_history_csv(path: Path, estimator: Estimator, measurements: FloatArray | None) -> None:
-    """Time histories per filter: estimates and sigmas of every state and coefficient,
-    NIS, and (when given, one row per frame) the measurements."""
+def write_history_csv(path: Path, estimator: Estimator) -> None:
+    """Time histories, one row per filter and frame: estimates and sigmas of every state
+    and coefficient, NIS, channels used, and the frame's inputs and measurements."""
     tracks = estimator.tracks()
     names = list(STATE_NAMES) + list(estimator.names)
+    power = "thrust_n" if estimator.config.propulsion.model == "measured" else "throttle"
+
+    def cell(v: float) -> str:
+        return repr(float(v)) if np.isfinite(v) else ""
+
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        header = ["filter", "t_s"] + names + [f"sigma_{n}" for n in names] + ["nis", "channels"]
-        if measurements is not None:
-            header += [f"meas_{n}" for n in OBS_NAMES]
-        w.writerow(header)
+        w.writerow(
+            ["filter", "t_s"]
+            + names
+            + [f"sigma_{n}" for n in names]
+            + ["nis", "channels", "in_elevator_rad", f"in_{power}"]
+            + [f"meas_{n}" for n in OBS_NAMES]
+        )
         for kind, tr in tracks.items():
             for i in range(len(tr.t)):
                 row = [kind, repr(float(tr.t[i]))]
                 row += [repr(float(v)) for v in tr.x[i]]
                 row += [repr(float(v)) for v in tr.sigma[i]]
-                row += [repr(float(tr.nis[i])), str(int(tr.n_used[i]))]
-                if measurements is not None and i < len(measurements):
-                    row += ["" if not np.isfinite(v) else repr(float(v)) for v in measurements[i]]
+                row += [cell(tr.nis[i]), str(int(tr.n_used[i]))]
+                row += [cell(v) for v in tr.u[i]]
+                row += [cell(v) for v in tr.y[i]]
                 w.writerow(row)
 
 
@@ -163,7 +200,6 @@ def write_results(
     out_dir: Path,
     estimator: Estimator,
     truth: FloatArray | None,
-    measurements: FloatArray | None = None,
     extra: Mapping[str, Any] | None = None,
     stem: str = "results",
 ) -> dict[str, Path]:
@@ -176,12 +212,12 @@ def write_results(
         "csv": out_dir / f"{stem}_history.csv",
     }
     paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    summaries = summarise(estimator, truth)
     title = f"# {estimator.config.airframe.name}: estimated aerodynamic coefficients\n\n"
+    summaries = summarise(estimator, truth)
     paths["markdown"].write_text(
         title + markdown_table(summaries, estimator.config.truth_label), encoding="utf-8"
     )
-    write_history_csv(paths["csv"], estimator, measurements)
+    write_history_csv(paths["csv"], estimator)
     return paths
 
 

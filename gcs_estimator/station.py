@@ -26,6 +26,7 @@ from gcs_estimator.estimator import Estimator
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.decode import DecodeStats, decode_message
 from gcs_estimator.telemetry.sync import Frame, LinkHealth, Synchronizer
+from gcs_estimator.view.live import RerunView
 
 RCVBUF_BYTES = 8 * 1024 * 1024
 """Listener socket buffer: the ~212 KB default drops packets at high rates."""
@@ -42,7 +43,6 @@ class Vehicle:
     acked: set[int] = field(default_factory=set)
     last_rate_request: float = -math.inf
     frames: int = 0
-    measurements: list[Any] = field(default_factory=list)
 
 
 FrameHook = Callable[[Vehicle, Frame], None]
@@ -68,6 +68,11 @@ class Station:
         self.vehicles: dict[int, Vehicle] = {}
         self.recorder = mavlink.TlogWriter(record) if record else None
         self.on_frame = on_frame
+        self.view: RerunView | None = None
+        """The live view, when one is open; gets every frame's outputs."""
+        self.t0_recv = math.nan
+        """Receive time of the session's first packet: zero of the view's time line."""
+        self.t_last_recv = math.nan
         self.log = log
         self._reported: set[str] = set()
         self.unknown_messages = 0
@@ -115,6 +120,9 @@ class Station:
         """Record, decode and process one packet received at t_recv_s [s since epoch]."""
         if self.recorder is not None:
             self.recorder.write(int(round(t_recv_s * 1e6)), packet)
+        if math.isnan(self.t0_recv):
+            self.t0_recv = t_recv_s
+        self.t_last_recv = t_recv_s
         self.poll(t_recv_s)
         msg = self.decoder.decode(packet)
         if msg is None:
@@ -168,8 +176,17 @@ class Station:
                 "states re-initialised",
             )
             v.estimator.rebase(frame.t_vehicle_s, frame.y)
-        v.estimator.step(frame.t_vehicle_s, frame.inputs, frame.y)
+        outs = v.estimator.step(frame.t_vehicle_s, frame.inputs, frame.y)
         v.frames += 1
+        if self.view is not None:
+            self.view.step(
+                v.system_id,
+                frame.t_recv_s - self.t0_recv,
+                frame.t_vehicle_s,
+                frame.inputs,
+                frame.y,
+                outs,
+            )
         if v.sync.stats.late_samples:
             self.report_once("late", "sample(s) older than the last frame: counted, dropped")
         if self.on_frame is not None:
@@ -203,6 +220,10 @@ class Station:
                 est = " ".join(f"{n} {cur[0][names.index(n)]:+.3g}" for n in show)
             parts.append(f"[sys {v.system_id}: {v.frames} frames {est}]")
         return " | ".join(parts)
+
+    def link_now(self) -> tuple[float, dict[str, int]]:
+        """(session time of the newest packet [s], link counters), for the live view."""
+        return self.t_last_recv - self.t0_recv, self.health.as_dict()
 
     def link_stats(self) -> dict[str, Any]:
         out: dict[str, Any] = dict(self.health.as_dict())
@@ -328,6 +349,8 @@ def listen(
                     station.handle_packet(pkt, t, addr)
         now = time.time()
         station.poll(now)
+        if station.view is not None:
+            station.view.tick()
         if now - last_gcs >= 1.0:
             last_gcs = now
             _gcs_messages(station, codec, now, send)

@@ -28,3 +28,11 @@ def hfb_data_path() -> Path:
     if not HFB320_DATA.exists():
         pytest.fail(f"HFB-320 record missing at {HFB320_DATA}: shared/ must sit beside the repo")
     return HFB320_DATA
+
+
+@pytest.fixture(autouse=True)
+def no_viewer_windows(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The view's "auto" never opens a viewer window from a test run, display or not
+    (it saves an .rrd into the test's output directory instead)."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

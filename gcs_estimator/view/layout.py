@@ -1,0 +1,207 @@
+"""What the Rerun view shows, where (entity paths), and how the viewer lays it out.
+
+Entity paths (documented in the README; tests read them back):
+
+    /vehicle/{id}/coefficients/{drag|lift|moment}/{name}
+        Scalars [EKF, EKF - 2σ, EKF + 2σ, IEKF, IEKF - 2σ, IEKF + 2σ (, truth)]
+        every frame (never decimated)
+    /vehicle/{id}/states/{V|alpha|theta|q}
+        Scalars [measured, EKF, IEKF]; V in m/s, angles in deg, q in deg/s
+    /vehicle/{id}/inputs/elevator          Scalars [elevator deg]
+    /vehicle/{id}/inputs/{throttle|thrust} Scalars [throttle 0..1 or thrust N]
+    /vehicle/{id}/diagnostics/nis          Scalars [EKF, IEKF, 95 % low, 95 % high]
+    /vehicle/{id}/diagnostics/innovations/{EKF|IEKF}
+        Scalars, one per observation channel: innovation / its predicted sigma
+        (NaN where the channel was missing), with ±2 guide lines
+    /vehicle/{id}/results                  TextDocument (Markdown): the current table
+    /link/rate                             Scalars [packets/s]
+    /link/counts                           Scalars [lost, duplicates, out of order, corrupt]
+
+Timelines: "time" (duration: seconds since the session's first packet, or since the
+first sample offline) on everything, and "vehicle_time" (the vehicle's own clock) on the
+vehicle entities. Display-only series are decimated to [view] display_rate_hz.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from gcs_estimator.config import AXES, OBS_NAMES, STATE_NAMES
+
+GROUPS: dict[str, str] = {"CD": "drag", "CL": "lift", "Cm": "moment"}
+"""Coefficient group of each axis, as it appears in entity paths and the layout."""
+
+TIMELINE = "time"
+VEHICLE_TIMELINE = "vehicle_time"
+
+STATE_UNITS: tuple[str, ...] = ("m/s", "deg", "deg", "deg/s")
+
+EKF_COLOR = (31, 119, 180)
+IEKF_COLOR = (255, 127, 14)
+TRUTH_COLOR = (200, 200, 200)
+MEASURED_COLOR = (120, 120, 120)
+
+
+def _lighter(rgb: tuple[int, int, int]) -> tuple[int, int, int, int]:
+    return (rgb[0], rgb[1], rgb[2], 110)
+
+
+def vehicle_root(system_id: int) -> str:
+    return f"/vehicle/{system_id}"
+
+
+def group_of(name: str) -> str:
+    """ "CLa" -> "lift": the group is the coefficient's axis (its first two letters)."""
+    for axis in AXES:
+        if name.startswith(axis):
+            return GROUPS[axis]
+    raise ValueError(f"{name!r} belongs to none of {AXES}")
+
+
+def coefficient_path(system_id: int, name: str) -> str:
+    return f"{vehicle_root(system_id)}/coefficients/{group_of(name)}/{name}"
+
+
+def state_path(system_id: int, state: str) -> str:
+    return f"{vehicle_root(system_id)}/states/{state}"
+
+
+def input_path(system_id: int, which: str) -> str:
+    return f"{vehicle_root(system_id)}/inputs/{which}"
+
+
+def nis_path(system_id: int) -> str:
+    return f"{vehicle_root(system_id)}/diagnostics/nis"
+
+
+def innovation_path(system_id: int, kind: str) -> str:
+    return f"{vehicle_root(system_id)}/diagnostics/innovations/{kind}"
+
+
+def results_path(system_id: int) -> str:
+    return f"{vehicle_root(system_id)}/results"
+
+
+LINK_RATE = "/link/rate"
+LINK_COUNTS = "/link/counts"
+
+
+@dataclass(frozen=True)
+class SeriesStyle:
+    """Static styling of one multi-series entity: names, colours (RGBA) and widths."""
+
+    names: tuple[str, ...]
+    colors: tuple[tuple[int, int, int, int], ...]
+    widths: tuple[float, ...]
+
+
+def _style(*series: tuple[str, tuple[int, ...], float]) -> SeriesStyle:
+    return SeriesStyle(
+        names=tuple(s[0] for s in series),
+        colors=tuple(
+            (c[0], c[1], c[2], c[3] if len(c) > 3 else 255) for c in (s[1] for s in series)
+        ),
+        widths=tuple(s[2] for s in series),
+    )
+
+
+def coefficient_style(has_truth: bool, truth_label: str) -> SeriesStyle:
+    series = [
+        ("EKF", EKF_COLOR, 2.0),
+        ("EKF -2σ", _lighter(EKF_COLOR), 1.0),
+        ("EKF +2σ", _lighter(EKF_COLOR), 1.0),
+        ("IEKF", IEKF_COLOR, 2.0),
+        ("IEKF -2σ", _lighter(IEKF_COLOR), 1.0),
+        ("IEKF +2σ", _lighter(IEKF_COLOR), 1.0),
+    ]
+    if has_truth:
+        series.append((truth_label, TRUTH_COLOR, 1.5))
+    return _style(*series)
+
+
+def state_style(state: str, unit: str) -> SeriesStyle:
+    return _style(
+        (f"measured {state} [{unit}]", MEASURED_COLOR, 1.0),
+        ("EKF", EKF_COLOR, 1.5),
+        ("IEKF", IEKF_COLOR, 1.5),
+    )
+
+
+NIS_STYLE = _style(
+    ("EKF", EKF_COLOR, 1.0),
+    ("IEKF", IEKF_COLOR, 1.0),
+    ("95 % low", TRUTH_COLOR, 1.0),
+    ("95 % high", TRUTH_COLOR, 1.0),
+)
+
+
+def innovation_style() -> SeriesStyle:
+    palette = (
+        (31, 119, 180),
+        (255, 127, 14),
+        (44, 160, 44),
+        (214, 39, 40),
+        (148, 103, 189),
+        (140, 86, 75),
+        (227, 119, 194),
+    )
+    series = [(n, palette[i % len(palette)], 1.0) for i, n in enumerate(OBS_NAMES)]
+    series += [("-2", TRUTH_COLOR, 1.0), ("+2", TRUTH_COLOR, 1.0)]
+    return _style(*series)
+
+
+def build_blueprint(system_ids: Sequence[int], names: Sequence[str], power_input: str) -> object:
+    """The viewer's layout: per vehicle, the drag, lift and moment coefficients side by
+    side on top; states, inputs, diagnostics and the results table in tabs below. Several
+    vehicles get one tab each."""
+    import rerun.blueprint as rrb
+
+    per_vehicle = []
+    for sid in system_ids:
+        columns = []
+        for axis in AXES:
+            group = [n for n in names if n.startswith(axis)]
+            if not group:
+                continue
+            columns.append(
+                rrb.Vertical(
+                    *[rrb.TimeSeriesView(origin=coefficient_path(sid, n), name=n) for n in group],
+                    name=f"{GROUPS[axis]} ({axis})",
+                )
+            )
+        states = rrb.Grid(
+            *[
+                rrb.TimeSeriesView(origin=state_path(sid, s), name=f"{s} [{u}]")
+                for s, u in zip(STATE_NAMES, STATE_UNITS, strict=True)
+            ],
+            name="states",
+        )
+        inputs = rrb.Vertical(
+            rrb.TimeSeriesView(origin=input_path(sid, "elevator"), name="elevator [deg]"),
+            rrb.TimeSeriesView(origin=input_path(sid, power_input), name=power_input),
+            name="inputs",
+        )
+        diagnostics = rrb.Grid(
+            rrb.TimeSeriesView(origin=nis_path(sid), name="NIS"),
+            rrb.TimeSeriesView(origin=innovation_path(sid, "EKF"), name="EKF innovations / σ"),
+            rrb.TimeSeriesView(origin=innovation_path(sid, "IEKF"), name="IEKF innovations / σ"),
+            rrb.TimeSeriesView(origin="/link", name="link"),
+            name="diagnostics",
+        )
+        results = rrb.TextDocumentView(origin=results_path(sid), name="results")
+        per_vehicle.append(
+            rrb.Vertical(
+                rrb.Horizontal(*columns, name="coefficients"),
+                rrb.Tabs(states, inputs, diagnostics, results, name="flight"),
+                row_shares=[3.0, 2.0],
+                name=f"vehicle {sid}",
+            )
+        )
+    root_container = per_vehicle[0] if len(per_vehicle) == 1 else rrb.Tabs(*per_vehicle)
+    return rrb.Blueprint(
+        root_container,
+        rrb.TimePanel(timeline=TIMELINE, play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+    )

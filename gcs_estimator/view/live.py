@@ -1,0 +1,345 @@
+"""The live view: buffers what each filter step produced and sends it to Rerun in blocks.
+
+Per frame the estimator loop only appends references to lists (about a microsecond).
+Every `flush_interval_s` of wall-clock time (and at the end) the rows are stacked into
+columns and sent with `send_columns`, one call per entity, so logging costs little next
+to estimation however fast a replay runs. Coefficient estimates and their bands are sent
+for every frame; display-only series are decimated to `display_rate_hz`.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from gcs_estimator.config import STATE_NAMES, AircraftConfig
+from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.view import layout as lay
+from gcs_estimator.view.outlets import (
+    Columns,
+    Layout,
+    LocalOutlet,
+    Op,
+    Outlet,
+    ProcessOutlet,
+    RemoteSink,
+    Style,
+    Text,
+)
+
+KINDS: tuple[FilterKind, FilterKind] = ("EKF", "IEKF")
+
+_DISPLAY_SCALE = np.array([1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi])
+"""SI states to display units: V m/s, alpha and theta deg, q deg/s."""
+
+
+def _chi2_bounds() -> FloatArray:
+    """95 % two-sided bounds of one NIS value with m = 0..7 degrees of freedom."""
+    from scipy.stats import chi2
+
+    out = np.full((eq.N_OBS + 1, 2), np.nan)
+    for m in range(1, eq.N_OBS + 1):
+        out[m] = chi2.ppf([0.025, 0.975], m)
+    return out
+
+
+LinkSource = Callable[[], tuple[float, Mapping[str, int]]]
+"""Returns (session time [s], link counters) for the link entities."""
+
+TableSource = Callable[[int], str]
+"""Returns the current results table (Markdown) of a vehicle."""
+
+
+@dataclass
+class _Rows:
+    """Frames of one vehicle not yet sent."""
+
+    t: list[float] = field(default_factory=list)
+    tv: list[float] = field(default_factory=list)
+    u: list[FloatArray] = field(default_factory=list)
+    y: list[FloatArray] = field(default_factory=list)
+    outs: dict[FilterKind, list[StepOutput]] = field(default_factory=lambda: {k: [] for k in KINDS})
+    last_bucket: float = math.nan
+    """Display decimation: the last display interval a row was kept for."""
+    last_t: float = 0.0
+
+    def clear(self) -> None:
+        self.t, self.tv, self.u, self.y = [], [], [], []
+        self.outs = {k: [] for k in KINDS}
+
+
+class RerunView:
+    """Sends estimates, states, inputs and diagnostics of every vehicle to the outlets."""
+
+    def __init__(
+        self,
+        outlets: Sequence[Outlet],
+        config: AircraftConfig,
+        truth: FloatArray | None,
+        truth_label: str = "truth",
+        link_source: LinkSource | None = None,
+        table_source: TableSource | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.outlets = list(outlets)
+        self.config = config
+        self.names = config.coefficient_names
+        self.truth = None if truth is None else np.asarray(truth, float)
+        self.truth_label = truth_label
+        self.power_input = "thrust" if config.propulsion.model == "measured" else "throttle"
+        self.link_source = link_source
+        self.table_source = table_source
+        self.clock = clock
+        self.rate = config.view.display_rate_hz
+        self.rows: dict[int, _Rows] = {}
+        self._chi2 = _chi2_bounds()
+        self._last_flush = clock()
+        self._last_table = -math.inf
+        self._link_last = (0.0, 0)
+        """(session time, packets received) at the last link update; the session starts
+        at 0 with nothing received."""
+        self.frames_sent = 0
+
+    # ------------------------------------------------------------ per frame
+    def step(
+        self,
+        system_id: int,
+        t_session: float,
+        t_vehicle: float,
+        u: FloatArray,
+        y: FloatArray,
+        outs: Mapping[FilterKind, StepOutput],
+    ) -> None:
+        rows = self.rows.get(system_id)
+        if rows is None:
+            rows = self.rows[system_id] = _Rows()
+            self._announce(system_id)
+        rows.t.append(t_session)
+        rows.tv.append(t_vehicle)
+        rows.u.append(u)
+        rows.y.append(y)
+        for k in KINDS:
+            rows.outs[k].append(outs[k])
+        self.tick()
+
+    def tick(self) -> None:
+        """Send what is buffered if the flush interval has passed (call it when idle too)."""
+        if self.clock() - self._last_flush >= self.config.view.flush_interval_s:
+            self.flush()
+
+    def _announce(self, system_id: int) -> None:
+        """A new vehicle: style its series once, and lay the viewer out for all vehicles."""
+        has_truth = self.truth is not None
+        coef = lay.coefficient_style(has_truth, self.truth_label)
+        ops: list[Op] = [Style(lay.coefficient_path(system_id, n), coef) for n in self.names]
+        ops += [
+            Style(lay.state_path(system_id, s), lay.state_style(s, unit))
+            for s, unit in zip(STATE_NAMES, lay.STATE_UNITS, strict=True)
+        ]
+        ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
+        ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
+        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.power_input))
+        for op in ops:
+            self._send(op)
+
+    # ------------------------------------------------------------ sending
+    def _send(self, op: Op) -> None:
+        for outlet in self.outlets:
+            outlet.send(op)
+
+    def flush(self) -> None:
+        """Send every buffered row; update the link entities and, now and then, the
+        results tables."""
+        self._last_flush = self.clock()
+        for sid, rows in self.rows.items():
+            if rows.t:
+                self._send_rows(sid, rows)
+        self._send_link()
+        if self.table_source is not None and (
+            self._last_flush - self._last_table >= self.config.view.results_interval_s
+        ):
+            self._last_table = self._last_flush
+            for sid, rows in self.rows.items():
+                self._send(
+                    Text(lay.results_path(sid), lay.TIMELINE, rows.last_t, self.table_source(sid))
+                )
+
+    def _send_rows(self, sid: int, rows: _Rows) -> None:
+        n = len(rows.t)
+        t = np.array(rows.t)
+        tv = np.array(rows.tv)
+        times = {lay.TIMELINE: t, lay.VEHICLE_TIMELINE: tv}
+        x = {k: np.array([o.x for o in rows.outs[k]]) for k in KINDS}
+        sd = {k: np.array([o.sigma for o in rows.outs[k]]) for k in KINDS}
+        ns = eq.N_STATE
+        for i, name in enumerate(self.names):
+            cols = []
+            for k in KINDS:
+                est, s2 = x[k][:, ns + i], 2.0 * sd[k][:, ns + i]
+                cols += [est, est - s2, est + s2]
+            if self.truth is not None:
+                cols.append(np.full(n, self.truth[i]))
+            self._send(Columns(lay.coefficient_path(sid, name), times, np.column_stack(cols)))
+        self.frames_sent += n
+
+        # Display-only series: one row per display interval of vehicle time.
+        bucket = np.floor(tv * self.rate)
+        keep = np.empty(n, bool)
+        keep[0] = bucket[0] != rows.last_bucket
+        keep[1:] = bucket[1:] != bucket[:-1]
+        rows.last_bucket = float(bucket[-1])
+        rows.last_t = float(t[-1])
+        idx = np.flatnonzero(keep)
+        if len(idx):
+            self._send_display(sid, rows, idx, {name: v[idx] for name, v in times.items()}, x)
+        rows.clear()
+
+    def _send_display(
+        self,
+        sid: int,
+        rows: _Rows,
+        idx: np.ndarray,
+        times: dict[str, FloatArray],
+        x: dict[FilterKind, FloatArray],
+    ) -> None:
+        y = np.array(rows.y)[idx]
+        u = np.array(rows.u)[idx]
+        for j, s in enumerate(STATE_NAMES):
+            vals = np.column_stack([y[:, j], x["EKF"][idx, j], x["IEKF"][idx, j]])
+            self._send(Columns(lay.state_path(sid, s), times, vals * _DISPLAY_SCALE[j]))
+        self._send(Columns(lay.input_path(sid, "elevator"), times, np.degrees(u[:, :1])))
+        self._send(Columns(lay.input_path(sid, self.power_input), times, u[:, 1:2]))
+        outs = {k: [rows.outs[k][i] for i in idx] for k in KINDS}
+        m = np.array([o.n_used for o in outs["IEKF"]], int)
+        nis = np.column_stack([np.array([o.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]])
+        self._send(Columns(lay.nis_path(sid), times, nis))
+        for k in KINDS:
+            e = np.array([o.innovation for o in outs[k]])
+            sig = np.array([o.innovation_sigma for o in outs[k]])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                z = e / sig
+            guides = np.tile([-2.0, 2.0], (len(idx), 1))
+            self._send(Columns(lay.innovation_path(sid, k), times, np.hstack([z, guides])))
+
+    def _send_link(self) -> None:
+        if self.link_source is None:
+            return
+        t, counts = self.link_source()
+        if not math.isfinite(t):
+            return
+        received = int(counts.get("received", 0))
+        if t > self._link_last[0]:
+            rate = (received - self._link_last[1]) / (t - self._link_last[0])
+            self._send(Columns(lay.LINK_RATE, {lay.TIMELINE: np.array([t])}, np.array([[rate]])))
+        self._link_last = (t, received)
+        vals = [counts.get(k, 0) for k in ("lost", "duplicates", "out_of_order", "corrupt")]
+        self._send(Columns(lay.LINK_COUNTS, {lay.TIMELINE: np.array([t])}, np.array([vals], float)))
+
+    def close(self, final_tables: Mapping[int, str] | None = None) -> None:
+        """Send what is left and the final results tables; close every outlet."""
+        self.flush()
+        for sid, text in (final_tables or {}).items():
+            rows = self.rows.get(sid)
+            t_end = rows.last_t if rows is not None else 0.0
+            self._send(Text(lay.results_path(sid), lay.TIMELINE, t_end, text))
+        for outlet in self.outlets:
+            outlet.close()
+
+
+# ------------------------------------------------------------------ opening
+
+
+def has_display() -> bool:
+    import os
+
+    return sys.platform in ("darwin", "win32") or bool(
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    )
+
+
+@dataclass(frozen=True)
+class ViewChoice:
+    """Resolved outputs for one session."""
+
+    save: Path | None
+    serve: bool
+    spawn: bool
+    connect: str | None
+
+    @property
+    def any(self) -> bool:
+        return self.save is not None or self.serve or self.spawn or self.connect is not None
+
+
+def resolve_outputs(
+    config: AircraftConfig, outputs: Sequence[str], default_rrd: Path
+) -> ViewChoice:
+    """Turn the outputs asked for ("auto" included) into concrete sinks."""
+    wanted = set(outputs)
+    if "off" in wanted:
+        return ViewChoice(None, False, False, None)
+    if "auto" in wanted:
+        wanted.discard("auto")
+        wanted.add("save")
+        if has_display():
+            wanted.add("spawn")
+    rrd = Path(config.view.rrd_path) if config.view.rrd_path else default_rrd
+    return ViewChoice(
+        save=rrd if "save" in wanted else None,
+        serve="serve" in wanted,
+        spawn="spawn" in wanted,
+        connect=config.view.connect_url if "connect" in wanted else None,
+    )
+
+
+def open_view(
+    config: AircraftConfig,
+    choice: ViewChoice,
+    truth: FloatArray | None,
+    truth_label: str,
+    link_source: LinkSource | None = None,
+    table_source: TableSource | None = None,
+    log: TextIO = sys.stderr,
+) -> RerunView | None:
+    """Open the outlets and say where the view goes and how to look at it."""
+    if not choice.any:
+        return None
+    vc = config.view
+    recording_id = str(uuid.uuid4())
+    outlets: list[Outlet] = []
+    if choice.save is not None or choice.serve:
+        local = LocalOutlet(
+            recording_id,
+            save=choice.save,
+            serve=(vc.serve_bind, vc.serve_port, vc.server_memory_limit) if choice.serve else None,
+            shutdown_timeout_s=vc.shutdown_timeout_s,
+        )
+        outlets.append(local)
+        if choice.save is not None:
+            print(f"view: saving to {choice.save}; open it with: rerun {choice.save}", file=log)
+        if local.server_uri is not None:
+            print(
+                f"view: serving live at {local.server_uri}; join (any time) with: "
+                f"rerun {local.server_uri}",
+                file=log,
+            )
+    remote: list[RemoteSink] = []
+    if choice.spawn:
+        remote.append(("spawn", str(vc.viewer_port)))
+    if choice.connect is not None:
+        remote.append(("connect", choice.connect))
+    if remote:
+        outlet = ProcessOutlet(remote, recording_id, vc.shutdown_timeout_s)
+        outlets.append(outlet)
+        print(f"view: {outlet.description}", file=log)
+    return RerunView(outlets, config, truth, truth_label, link_source, table_source)

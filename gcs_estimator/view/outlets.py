@@ -1,0 +1,242 @@
+"""Where the view's data goes: Rerun recording streams, in this process or in a helper.
+
+Everything the view logs is a small picklable operation (`Op`), applied to a
+`rerun.RecordingStream` by `apply`. Sinks that cannot block the estimator (an .rrd file,
+a gRPC server that viewers join) live on a stream in this process. Sinks that connect
+out to a viewer ("spawn", "connect") live in a helper process: connecting to a viewer
+that is absent takes seconds, and one that accepts the connection but never answers makes
+the SDK's flush and exit hang indefinitely. The estimator only hands operations to a
+bounded queue; at exit the helper gets `shutdown_timeout_s` to drain, then is killed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import queue
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.view.layout import SeriesStyle, build_blueprint
+
+APPLICATION_ID = "gcs-estimator"
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Rows of one Scalars entity: index columns (timeline -> seconds) and values [N x k]."""
+
+    entity: str
+    times: dict[str, FloatArray]
+    values: FloatArray
+
+
+@dataclass(frozen=True)
+class Text:
+    """A Markdown document at one time of the main timeline."""
+
+    entity: str
+    timeline: str
+    t_s: float
+    text: str
+
+
+@dataclass(frozen=True)
+class Style:
+    """Static series names, colours and widths of one entity."""
+
+    entity: str
+    style: SeriesStyle
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The blueprint for these vehicles (sent again when a vehicle appears)."""
+
+    system_ids: tuple[int, ...]
+    names: tuple[str, ...]
+    power_input: str
+
+
+Op = Columns | Text | Style | Layout
+
+
+def apply(rec: Any, op: Op) -> None:
+    """Log one operation to a recording stream."""
+    import rerun as rr
+
+    if isinstance(op, Columns):
+        rec.send_columns(
+            op.entity,
+            indexes=[
+                rr.TimeColumn(name, duration=np.asarray(t, np.float64))
+                for name, t in op.times.items()
+            ],
+            columns=rr.Scalars.columns(scalars=np.asarray(op.values, np.float64)),
+        )
+    elif isinstance(op, Text):
+        rec.send_columns(
+            op.entity,
+            indexes=[rr.TimeColumn(op.timeline, duration=[op.t_s])],
+            columns=rr.TextDocument.columns(text=[op.text], media_type=["text/markdown"]),
+        )
+    elif isinstance(op, Style):
+        rec.log(
+            op.entity,
+            rr.SeriesLines(
+                names=list(op.style.names),
+                colors=list(op.style.colors),
+                widths=list(op.style.widths),
+            ),
+            static=True,
+        )
+    elif isinstance(op, Layout):
+        rec.send_blueprint(
+            build_blueprint(op.system_ids, op.names, op.power_input),
+            make_active=True,
+            make_default=True,
+        )
+
+
+class Outlet:
+    """Takes operations; must never block for long."""
+
+    description: str = ""
+
+    def send(self, op: Op) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class LocalOutlet(Outlet):
+    """A recording stream in this process with non-blocking sinks (file, gRPC server)."""
+
+    def __init__(
+        self,
+        recording_id: str,
+        save: Path | None = None,
+        serve: tuple[str, int, str] | None = None,
+        shutdown_timeout_s: float = 3.0,
+    ) -> None:
+        import rerun as rr
+
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        sinks: list[Any] = []
+        parts = []
+        self.server_uri: str | None = None
+        if save is not None:
+            save.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(save)))
+            parts.append(f"saving to {save}")
+        if serve is not None:
+            bind, port, memory_limit = serve
+            server = rr.GrpcServerSink(bind, port, server_memory_limit=memory_limit)
+            self.server_uri = server.uri
+            sinks.append(server)
+            parts.append(f"serving at {server.uri}")
+        self.rec.set_sinks(*sinks)
+        self.description = "; ".join(parts)
+        self.timeout = shutdown_timeout_s
+
+    def send(self, op: Op) -> None:
+        apply(self.rec, op)
+
+    def close(self) -> None:
+        try:
+            self.rec.flush(timeout_sec=self.timeout)
+        except RuntimeError as exc:  # a flush timeout: the file keeps what was written
+            print(f"note: view: {exc}", file=sys.stderr)
+        self.rec.disconnect()
+
+
+RemoteSink = tuple[Literal["spawn", "connect"], str]
+
+
+def _helper_main(
+    ops: mp.Queue[Op | None], sinks: Sequence[RemoteSink], recording_id: str, timeout: float
+) -> None:
+    """The helper process: apply operations until told to stop, then leave without
+    waiting for a viewer that may never answer."""
+    import rerun as rr
+
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    real: list[Any] = []
+    for kind, arg in sinks:
+        if kind == "spawn":
+            port = int(arg)
+            rec.spawn(port=port, connect=False)
+            real.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
+        else:
+            real.append(rr.GrpcSink(arg))
+    rec.set_sinks(*real)
+    while True:
+        op = ops.get()
+        if op is None:
+            break
+        apply(rec, op)
+    with contextlib.suppress(RuntimeError):  # a flush timeout: the viewer is not answering
+        rec.flush(timeout_sec=timeout)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)  # the SDK's own exit path may wait forever on a silent viewer
+
+
+@dataclass
+class ProcessOutlet(Outlet):
+    """Viewer connections in a helper process behind a bounded queue."""
+
+    sinks: Sequence[RemoteSink]
+    recording_id: str
+    shutdown_timeout_s: float = 3.0
+    max_queued: int = 4000
+    dropped: int = field(default=0, init=False)
+
+    def __post_init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        self.ops: mp.Queue[Op | None] = ctx.Queue(maxsize=self.max_queued)
+        self.proc = ctx.Process(
+            target=_helper_main,
+            args=(self.ops, list(self.sinks), self.recording_id, self.shutdown_timeout_s),
+            daemon=True,
+            name="gcs-estimator-viewer",
+        )
+        self.proc.start()
+        self.description = "; ".join(
+            f"viewer spawned on port {a}" if k == "spawn" else f"streaming to {a}"
+            for k, a in self.sinks
+        )
+
+    def send(self, op: Op) -> None:
+        try:
+            self.ops.put_nowait(op)
+        except queue.Full:
+            if self.dropped == 0:
+                print(
+                    "note: view: the viewer connection is not keeping up; its display "
+                    "skips data (files and results keep everything)",
+                    file=sys.stderr,
+                )
+            self.dropped += 1
+
+    def close(self) -> None:
+        with contextlib.suppress(queue.Full):
+            self.ops.put(None, timeout=0.5)
+        self.proc.join(self.shutdown_timeout_s + 2.0)
+        if self.proc.is_alive():
+            print(
+                "note: view: the viewer did not take the last data in time; connection cut",
+                file=sys.stderr,
+            )
+            self.proc.kill()
+            self.proc.join(2.0)
+        self.ops.cancel_join_thread()  # never wait on a pipe nobody reads
+        self.ops.close()

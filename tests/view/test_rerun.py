@@ -1,0 +1,415 @@
+"""The Rerun view: real .rrd recordings read back with Rerun's own reader, a real gRPC
+server joined late by the real viewer binary, and viewers that are absent or hung."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+import rerun as rr
+from rerun.chunk import RrdReader
+
+from gcs_estimator.config import STATE_NAMES, load_config_with
+from gcs_estimator.estimator import Estimator
+from gcs_estimator.report import final_table, live_table
+from gcs_estimator.station import Station, replay
+from gcs_estimator.telemetry.mavlink import TlogWriter
+from gcs_estimator.view import layout as lay
+from gcs_estimator.view.live import RerunView, ViewChoice, open_view
+from gcs_estimator.view.outlets import LocalOutlet
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+
+ROOT = Path(__file__).resolve().parents[2]
+SHORT = ["simulation.manoeuvre.duration_s=12"]
+
+
+def read_scalars(path: Path, entity: str, timeline: str = lay.TIMELINE) -> tuple[np.ndarray, ...]:
+    """(times [s], values [N x k]) of a Scalars entity, sorted by the timeline."""
+    chunks = (
+        RrdReader(path)
+        .stream()
+        .filter(content=entity, is_static=False, components="Scalars:scalars")
+        .to_chunks()
+    )
+    assert chunks, f"{entity}: no data in {path}"
+    table = pa.Table.from_batches([c.to_record_batch() for c in chunks])
+    t = table.column(timeline).cast(pa.int64()).to_numpy() * 1e-9
+    values = np.array(table.column("Scalars:scalars").to_pylist(), float)
+    order = np.argsort(t, kind="stable")
+    return t[order], values[order]
+
+
+def read_texts(path: Path, entity: str) -> list[str]:
+    chunks = RrdReader(path).stream().filter(content=entity).to_chunks()
+    texts: list[str] = []
+    for c in chunks:
+        batch = c.to_record_batch()
+        if "TextDocument:text" in batch.schema.names:
+            texts += [v[0] for v in batch.column("TextDocument:text").to_pylist() if v]
+    return texts
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Estimator, Path, np.ndarray]:
+    """A 12 s simulated flight (both restarts included) through the view into an .rrd."""
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    flight = simulate(config, seed=2)
+    path = tmp_path_factory.mktemp("view") / "run.rrd"
+    est = Estimator(config)
+    clock = iter(np.arange(0.0, 1e6, 0.05))  # a flush every 20 frames: many blocks
+    view = RerunView(
+        [LocalOutlet("test", save=path)],
+        config,
+        np.array(config.truth),
+        config.truth_label,
+        table_source=lambda sid: live_table(est),
+        clock=lambda: float(next(clock)),
+    )
+    for i in range(len(flight.t_s)):
+        t = float(flight.t_s[i])
+        outs = est.step(t, flight.inputs[i], flight.measurements[i])
+        view.step(1, t - float(flight.t_s[0]), t, flight.inputs[i], flight.measurements[i], outs)
+    view.close({1: final_table(est)})
+    return est, path, flight.t_s
+
+
+def test_coefficients_equal_the_filter_outputs_every_frame(
+    short_run: tuple[Estimator, Path, np.ndarray],
+) -> None:
+    est, path, t_s = short_run
+    tracks = est.tracks()
+    truth = np.array(est.config.truth)
+    for i, name in enumerate(est.names):
+        t, v = read_scalars(path, lay.coefficient_path(1, name))
+        np.testing.assert_allclose(t, t_s - t_s[0], atol=1e-9)  # ns resolution of the index
+        cols = 0
+        for kind in ("EKF", "IEKF"):
+            x = tracks[kind].x[:, 4 + i]
+            s2 = 2 * tracks[kind].sigma[:, 4 + i]
+            np.testing.assert_array_equal(v[:, cols], x)
+            np.testing.assert_array_equal(v[:, cols + 1], x - s2)
+            np.testing.assert_array_equal(v[:, cols + 2], x + s2)
+            cols += 3
+        np.testing.assert_array_equal(v[:, 6], truth[i])
+        tv, _ = read_scalars(path, lay.coefficient_path(1, name), lay.VEHICLE_TIMELINE)
+        np.testing.assert_allclose(tv, t_s, atol=1e-9)
+    # The restart re-runs are in: what the view showed at 5 s is the history's value.
+    assert est.restarts_done == 2
+
+
+def test_display_series_are_decimated_samples_of_the_same_outputs(
+    short_run: tuple[Estimator, Path, np.ndarray],
+) -> None:
+    est, path, t_s = short_run
+    tr = est.tracks()
+    rate = est.config.view.display_rate_hz
+    for j, state in enumerate(STATE_NAMES):
+        t, v = read_scalars(path, lay.state_path(1, state))
+        assert len(t) == len(np.unique(np.floor(t_s * rate)))  # one row per display interval
+        idx = np.searchsorted(t_s - t_s[0], t - 1e-9)
+        scale = 1.0 if state == "V" else 180 / math.pi
+        np.testing.assert_allclose(v[:, 0], tr["EKF"].y[idx, j] * scale, rtol=1e-12)
+        np.testing.assert_allclose(v[:, 1], tr["EKF"].x[idx, j] * scale, rtol=1e-12)
+        np.testing.assert_allclose(v[:, 2], tr["IEKF"].x[idx, j] * scale, rtol=1e-12)
+    t, nis = read_scalars(path, lay.nis_path(1))
+    idx = np.searchsorted(t_s - t_s[0], t - 1e-9)
+    np.testing.assert_array_equal(nis[:, 1], tr["IEKF"].nis[idx])
+    used = tr["IEKF"].n_used[idx]
+    np.testing.assert_array_equal(np.isfinite(nis[:, 2]), used > 0)  # no update, no bound
+    assert np.all(nis[used > 0, 2] < nis[used > 0, 3])  # chi-square 95 % bounds
+    t, el = read_scalars(path, lay.input_path(1, "elevator"))
+    np.testing.assert_allclose(el[:, 0], np.degrees(tr["EKF"].u[idx, 0]))
+    _, z = read_scalars(path, lay.innovation_path(1, "IEKF"))
+    expect = tr["IEKF"].innovation[idx] / tr["IEKF"].innovation_sigma[idx]
+    np.testing.assert_allclose(z[:, :7], expect)
+    assert np.all(z[:, 7] == -2) and np.all(z[:, 8] == 2)
+
+
+def test_results_table_and_layout_are_in_the_recording(
+    short_run: tuple[Estimator, Path, np.ndarray],
+) -> None:
+    est, path, _ = short_run
+    texts = read_texts(path, lay.results_path(1))
+    assert len(texts) >= 2  # live updates, then the final table
+    assert texts[-1] == final_table(est)
+    assert "| CLa |" in texts[0]
+    # The series styles are static and name the filters and the truth line.
+    styles = RrdReader(path).stream().filter(content=lay.coefficient_path(1, "Cma"), is_static=True)
+    names = [
+        c.to_record_batch().column("SeriesLines:names").to_pylist()
+        for c in styles.to_chunks()
+        if "SeriesLines:names" in c.to_record_batch().schema.names
+    ]
+    assert names and names[0][0] == [
+        "EKF",
+        "EKF -2σ",
+        "EKF +2σ",
+        "IEKF",
+        "IEKF -2σ",
+        "IEKF +2σ",
+        "truth",
+    ]
+    # The blueprint travels with the recording: a view for every coefficient and state.
+    reader = RrdReader(path)
+    origins: set[str] = set()
+    for chunk in reader.stream(store=reader.blueprints()[0]).to_chunks():
+        batch = chunk.to_record_batch()
+        if "ViewBlueprint:space_origin" in batch.schema.names:
+            origins.update(o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist())
+    assert {lay.coefficient_path(1, n) for n in est.names} <= origins
+    assert {lay.state_path(1, s) for s in STATE_NAMES} <= origins
+    assert {lay.nis_path(1), lay.results_path(1), "/link"} <= origins
+
+
+def short_tlog(path: Path, vehicles: int) -> None:
+    """Several simulated vehicles' telemetry (each from its own tlog) merged into one."""
+    from gcs_estimator.flightdata import Recording
+    from gcs_estimator.telemetry.mavlink import read_tlog
+
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    records: list[tuple[int, bytes]] = []
+    for sid in range(1, vehicles + 1):
+        fl = simulate(config, seed=sid)
+        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+        own = path.with_suffix(f".{sid}.tlog")
+        SimulatedVehicle(
+            rec, config.link, ("127.0.0.1", 9), system_id=sid, speed=0.0, tlog=own
+        ).run()
+        records += [(r.t_recv_us, r.packet) for r in read_tlog(own)]
+    records.sort(key=lambda r: r[0])
+    w = TlogWriter(path)
+    for i, (_, p) in enumerate(records):
+        w.write(1_000_000_000 + 1000 * i, p)  # 1 ms apart: inside every wait
+    w.close()
+
+
+def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path: Path) -> None:
+    tlog = tmp_path / "two.tlog"
+    short_tlog(tlog, 2)
+    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    rrd = tmp_path / "two.rrd"
+    station = Station(config)
+    station.view = open_view(
+        config,
+        ViewChoice(save=rrd, serve=False, spawn=False, connect=None),
+        np.array(config.truth),
+        "truth",
+        link_source=station.link_now,
+        table_source=lambda sid: live_table(station.vehicles[sid].estimator),
+    )
+    from gcs_estimator.telemetry.mavlink import read_tlog
+
+    replay(station, read_tlog(tlog))
+    station.finish()
+    assert station.view is not None
+    station.view.close()
+    for sid in (1, 2):
+        est = station.vehicles[sid].estimator
+        t, v = read_scalars(rrd, lay.coefficient_path(sid, "Cmq"))
+        assert len(t) == est.frames
+        np.testing.assert_array_equal(
+            v[:, 3], est.tracks()["IEKF"].x[:, 4 + est.names.index("Cmq")]
+        )
+    t, counts = read_scalars(rrd, lay.LINK_COUNTS)
+    assert counts[-1, 0] == station.health.lost
+    _, rate = read_scalars(rrd, lay.LINK_RATE)
+    assert np.all(rate >= 0)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+RERUN_BIN = Path(rr.__file__).parent.parent / "rerun_cli" / "rerun"
+
+
+def test_served_session_is_joined_late_and_the_viewer_gets_the_history(tmp_path: Path) -> None:
+    """A replay serving its view; the real viewer binary joins a few seconds in and still
+    receives everything from the start, and leaves when the session ends."""
+    tlog = tmp_path / "one.tlog"
+    short_tlog(tlog, 1)
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    session = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gcs_estimator.cli",
+            "replay",
+            str(tlog),
+            "--config",
+            str(ROOT / "configs/noc_uav.toml"),
+            "--set",
+            SHORT[0],
+            "--speed",
+            "0.5",  # about 7 s of packets
+            "--out",
+            str(tmp_path),
+            "--view",
+            "serve",
+            "--serve-port",
+            str(port),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    assert session.stderr is not None
+    line = ""
+    while "serving live at" not in line:  # the server is up before any data is sent
+        line = session.stderr.readline()
+        assert line, "the session ended without serving"
+    uri = line.split("join (any time) with: rerun ")[1].strip()
+    time.sleep(3.0)  # join late
+    joiner = subprocess.run(
+        [str(RERUN_BIN), uri, "--save", str(tmp_path / "joined.rrd")],
+        capture_output=True,
+        timeout=120,  # hang guard: it leaves when the session ends
+        env={**env, "RERUN_ANALYTICS": "0"},
+    )
+    assert session.wait(timeout=60) == 0
+    assert joiner.returncode == 0
+    t, v = read_scalars(tmp_path / "joined.rrd", lay.coefficient_path(1, "Cma"))
+    assert len(t) == 601 and t[0] < 0.1  # the history from the first frame on
+    hist = np.genfromtxt(
+        tmp_path / "results_sys1_history.csv",
+        delimiter=",",
+        names=True,
+        dtype=None,
+        encoding="utf-8",
+    )
+    iekf = hist[hist["filter"] == "IEKF"]
+    np.testing.assert_array_equal(v[:, 3], iekf["Cma"])
+
+
+class SilentPeer:
+    """Accepts TCP connections and never answers: a hung viewer."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.port = int(self.sock.getsockname()[1])
+        self.conns: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            self.conns.append(conn)
+
+    def close(self) -> None:
+        self.sock.close()
+        for c in self.conns:
+            c.close()
+
+
+@pytest.fixture
+def silent_peer() -> Iterator[SilentPeer]:
+    peer = SilentPeer()
+    yield peer
+    peer.close()
+
+
+@pytest.mark.parametrize("viewer", ["hung", "absent"])
+def test_run_completes_normally_when_the_viewer_is_unreachable(
+    tmp_path: Path, silent_peer: SilentPeer, viewer: str
+) -> None:
+    """connect to a viewer that never answers, or to a port nobody listens on: the run
+    ends with exit 0, its results and its .rrd, and does not hang on exit."""
+    port = silent_peer.port if viewer == "hung" else free_port()
+    cmd = [
+        sys.executable,
+        "-m",
+        "gcs_estimator.cli",
+        "simulate",
+        "--config",
+        str(ROOT / "configs/noc_uav.toml"),
+        "--set",
+        SHORT[0],
+        "--out",
+        str(tmp_path),
+        "--view",
+        "save",
+        "--connect",
+        f"rerun+http://127.0.0.1:{port}/proxy",
+    ]
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    # A hang guard only (the SDK alone would wait for ever on the hung viewer).
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "streaming to rerun+http://127.0.0.1" in proc.stderr
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert set(data["filters"]) == {"EKF", "IEKF"}
+    t, _ = read_scalars(tmp_path / "simulate_seed1.rrd", lay.coefficient_path(1, "CLa"))
+    assert len(t) == 601
+
+
+def test_reference_values_from_the_command_line_are_shown_and_compared(
+    tmp_path: Path, hfb_data_path: Path
+) -> None:
+    ref = tmp_path / "book.toml"
+    names = load_config_with(ROOT / "configs/hfb320.toml").coefficient_names
+    ref.write_text(
+        '[truth]\nlabel = "book"\n' + "".join(f"{n} = {i + 1}.5\n" for i, n in enumerate(names))
+    )
+    from gcs_estimator.cli import main
+
+    status = main(
+        [
+            "offline",
+            str(hfb_data_path),
+            "--config",
+            str(ROOT / "configs/hfb320.toml"),
+            "--reference",
+            str(ref),
+            "--out",
+            str(tmp_path),
+            "--view",
+            "save",
+        ]
+    )
+    assert status == 0
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["truth_label"] == "book"
+    assert data["filters"]["IEKF"]["estimates"]["Cma"]["truth"] == names.index("Cma") + 1.5
+    _, v = read_scalars(tmp_path / "offline_hfb320_1_10.rrd", lay.coefficient_path(1, "Cma"))
+    assert np.all(v[:, 6] == names.index("Cma") + 1.5)
+    # A reference that misses a coefficient names it.
+    ref.write_text("[truth]\nCD0 = 1.0\n")
+    assert (
+        main(
+            [
+                "offline",
+                str(hfb_data_path),
+                "--config",
+                str(ROOT / "configs/hfb320.toml"),
+                "--reference",
+                str(ref),
+                "--view",
+                "off",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 2
+    )
