@@ -1,9 +1,13 @@
 """Replay speed: a long simulated flight's .tlog through decode, sync and both filters.
 
-    python benchmarks/replay.py --minutes 10
+    python benchmarks/replay.py --minutes 10 [--view]
 
 Prints messages/s, frames/s and the multiple of real time (target >= 100x), for the
-whole pipeline and for decoding alone.
+whole pipeline and for decoding alone. With --view it replays twice more with the Rerun
+view saving an .rrd: once batched as a replay does (flush every wall-clock second), to
+give the cost of the view next to the estimator (target: within 25 %), and once batched
+as a live session does (a flush per second of flight), to give the recording size of a
+live flight, scaled to one hour.
 """
 
 from __future__ import annotations
@@ -14,10 +18,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from gcs_estimator.config import load_config_with
+import numpy as np
+
+from gcs_estimator.config import AircraftConfig, load_config_with
 from gcs_estimator.flightdata import Recording
+from gcs_estimator.report import final_table, live_table
 from gcs_estimator.station import Station, replay
-from gcs_estimator.telemetry.mavlink import Decoder, read_tlog
+from gcs_estimator.telemetry.mavlink import Decoder, TlogRecord, read_tlog
+from gcs_estimator.view.live import RerunView
+from gcs_estimator.view.outlets import LocalOutlet
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
@@ -26,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--config", default="configs/noc_uav.toml")
+    ap.add_argument("--view", action="store_true", help="also time the Rerun view")
     args = ap.parse_args(argv)
     seconds = args.minutes * 60
     # The manoeuvre repeats its multisteps and pulses every minute so the filters work
@@ -61,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         replay(station, records)
         station.finish()
         t_all = time.perf_counter() - t0
+
+        if args.view:
+            t_view, size = replay_with_view(config, records, Path(tmp) / "replay.rrd", live=False)
+            _, size_live = replay_with_view(config, records, Path(tmp) / "live.rrd", live=True)
     frames = station.vehicles[1].frames
     print(f"flight {seconds:.0f} s, {n} packets, {frames} frames (both filters each frame)")
     print(f"decode only : {n / t_decode:,.0f} messages/s")
@@ -68,7 +82,42 @@ def main(argv: list[str] | None = None) -> int:
         f"full replay : {t_all:.2f} s, {n / t_all:,.0f} messages/s, {frames / t_all:,.0f} "
         f"frames/s, {seconds / t_all:.0f}x real time (target >= 100x)"
     )
+    if args.view:
+        print(
+            f"with view   : {t_view:.2f} s, {seconds / t_view:.0f}x real time, "
+            f"{100 * (t_view / t_all - 1):+.1f} % against no view (target <= +25 %); "
+            f".rrd {size / 1e6:.1f} MB"
+        )
+        hour = size_live * 3600 / seconds
+        print(
+            f"live chunks : .rrd {size_live / 1e6:.1f} MB for {seconds:.0f} s "
+            f"-> {hour / 1e6:.0f} MB per hour of flight"
+        )
     return 0
+
+
+def replay_with_view(
+    config: AircraftConfig, records: list[TlogRecord], path: Path, live: bool
+) -> tuple[float, int]:
+    """Replay with the view saving to path; live=True flushes once per second of receive
+    time, as a live session at real time does. Returns (seconds, file size)."""
+    station = Station(config)
+    clock = (lambda: station.t_last_recv) if live else time.monotonic
+    station.view = RerunView(
+        [LocalOutlet("bench", save=path)],
+        config,
+        None if config.truth is None else np.array(config.truth),
+        config.truth_label,
+        link_source=station.link_now,
+        table_source=lambda sid: live_table(station.vehicles[sid].estimator),
+        clock=clock,
+    )
+    t0 = time.perf_counter()
+    replay(station, records)
+    station.finish()
+    station.view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
+    elapsed = time.perf_counter() - t0
+    return elapsed, path.stat().st_size
 
 
 if __name__ == "__main__":
