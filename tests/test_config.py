@@ -42,6 +42,21 @@ ROOT = Path(__file__).resolve().parent.parent
             'preset = "stormy"',
             r"\[simulation.turbulence\] preset: must be one of",
         ),
+        (
+            'outputs = ["auto"]',
+            'outputs = ["save", "screen"]',
+            r"\[view\] outputs: unknown output 'screen'; allowed: \['auto', 'save'",
+        ),
+        (
+            'connect_url = "rerun+http://127.0.0.1:9876/proxy"',
+            'connect_url = "127.0.0.1:9876"',
+            r"\[view\] connect_url: must look like rerun\+http://HOST:PORT/proxy",
+        ),
+        (
+            "display_rate_hz = 25.0",
+            "display_rate_hz = 0",
+            r"\[view\] display_rate_hz: must be a number > 0, got 0",
+        ),
     ],
 )
 def test_errors_name_file_key_and_allowed(tmp_path: Path, old: str, new: str, message: str) -> None:

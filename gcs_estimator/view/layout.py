@@ -17,9 +17,10 @@ Entity paths (documented in the README; tests read them back):
     /link/rate                             Scalars [packets/s]
     /link/counts                           Scalars [lost, duplicates, out of order, corrupt]
 
-Timelines: "time" (duration: seconds since the session's first packet, or since the
-first sample offline) on everything, and "vehicle_time" (the vehicle's own clock) on the
-vehicle entities. Display-only series are decimated to [view] display_rate_hz.
+Timelines (durations, seconds): "flight_time", the vehicle's own clock (the data's time
+offline), and "receive_time", seconds since the session's first packet (the data's first
+sample offline). The link entities take the flight time of the newest frame. Display-only
+series are decimated to [view] display_rate_hz.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from gcs_estimator.config import AXES, OBS_NAMES, STATE_NAMES
 GROUPS: dict[str, str] = {"CD": "drag", "CL": "lift", "Cm": "moment"}
 """Coefficient group of each axis, as it appears in entity paths and the layout."""
 
-TIMELINE = "time"
-VEHICLE_TIMELINE = "vehicle_time"
+TIMELINE = "flight_time"
+RECEIVE_TIMELINE = "receive_time"
 
 STATE_UNITS: tuple[str, ...] = ("m/s", "deg", "deg", "deg/s")
 
@@ -151,11 +152,36 @@ def innovation_style() -> SeriesStyle:
     return _style(*series)
 
 
-def build_blueprint(system_ids: Sequence[int], names: Sequence[str], power_input: str) -> object:
+def y_range(truth: float | None) -> tuple[float, float] | None:
+    """A coefficient plot's initial y range when the truth is known: zero (the start) and
+    the truth with a margin, so that a zero start's first wild seconds do not flatten
+    the convergence (the viewer resets to automatic on double click)."""
+    if truth is None or truth == 0.0:
+        return None
+    lo, hi = min(0.0, truth), max(0.0, truth)
+    margin = 0.6 * abs(truth)
+    return (lo - margin, hi + margin)
+
+
+def build_blueprint(
+    system_ids: Sequence[int],
+    names: Sequence[str],
+    power_input: str,
+    truth: Sequence[float] | None = None,
+) -> object:
     """The viewer's layout: per vehicle, the drag, lift and moment coefficients side by
     side on top; states, inputs, diagnostics and the results table in tabs below. Several
     vehicles get one tab each."""
     import rerun.blueprint as rrb
+
+    def coefficient_view(sid: int, name: str, legend: bool) -> rrb.TimeSeriesView:
+        rng = y_range(None if truth is None else truth[list(names).index(name)])
+        return rrb.TimeSeriesView(
+            origin=coefficient_path(sid, name),
+            name=name,
+            axis_y=rrb.ScalarAxis(range=rng) if rng is not None else None,
+            plot_legend=rrb.PlotLegend(corner="RightTop" if legend else None, visible=legend),
+        )
 
     per_vehicle = []
     for sid in system_ids:
@@ -166,7 +192,7 @@ def build_blueprint(system_ids: Sequence[int], names: Sequence[str], power_input
                 continue
             columns.append(
                 rrb.Vertical(
-                    *[rrb.TimeSeriesView(origin=coefficient_path(sid, n), name=n) for n in group],
+                    *[coefficient_view(sid, n, legend=n == names[0]) for n in group],
                     name=f"{GROUPS[axis]} ({axis})",
                 )
             )

@@ -71,7 +71,8 @@ class _Rows:
     outs: dict[FilterKind, list[StepOutput]] = field(default_factory=lambda: {k: [] for k in KINDS})
     last_bucket: float = math.nan
     """Display decimation: the last display interval a row was kept for."""
-    last_t: float = 0.0
+    last_times: dict[str, float] = field(default_factory=dict)
+    """Both timelines' values at the newest frame sent."""
 
     def clear(self) -> None:
         self.t, self.tv, self.u, self.y = [], [], [], []
@@ -105,6 +106,8 @@ class RerunView:
         self._chi2 = _chi2_bounds()
         self._last_flush = clock()
         self._last_table = -math.inf
+        self._newest: dict[str, float] = {}
+        """Both timelines' values at the newest frame of any vehicle (for the link)."""
         self._link_last = (0.0, 0)
         """(session time, packets received) at the last link update; the session starts
         at 0 with nothing received."""
@@ -148,7 +151,8 @@ class RerunView:
         ]
         ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
         ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
-        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.power_input))
+        truth = None if self.truth is None else tuple(float(v) for v in self.truth)
+        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.power_input, truth))
         for op in ops:
             self._send(op)
 
@@ -170,15 +174,13 @@ class RerunView:
         ):
             self._last_table = self._last_flush
             for sid, rows in self.rows.items():
-                self._send(
-                    Text(lay.results_path(sid), lay.TIMELINE, rows.last_t, self.table_source(sid))
-                )
+                self._send(Text(lay.results_path(sid), rows.last_times, self.table_source(sid)))
 
     def _send_rows(self, sid: int, rows: _Rows) -> None:
         n = len(rows.t)
         t = np.array(rows.t)
         tv = np.array(rows.tv)
-        times = {lay.TIMELINE: t, lay.VEHICLE_TIMELINE: tv}
+        times = {lay.TIMELINE: tv, lay.RECEIVE_TIMELINE: t}
         x = {k: np.array([o.x for o in rows.outs[k]]) for k in KINDS}
         sd = {k: np.array([o.sigma for o in rows.outs[k]]) for k in KINDS}
         ns = eq.N_STATE
@@ -198,7 +200,8 @@ class RerunView:
         keep[0] = bucket[0] != rows.last_bucket
         keep[1:] = bucket[1:] != bucket[:-1]
         rows.last_bucket = float(bucket[-1])
-        rows.last_t = float(t[-1])
+        rows.last_times = {lay.TIMELINE: float(tv[-1]), lay.RECEIVE_TIMELINE: float(t[-1])}
+        self._newest = rows.last_times
         idx = np.flatnonzero(keep)
         if len(idx):
             self._send_display(sid, rows, idx, {name: v[idx] for name, v in times.items()}, x)
@@ -250,8 +253,8 @@ class RerunView:
         self.flush()
         for sid, text in (final_tables or {}).items():
             rows = self.rows.get(sid)
-            t_end = rows.last_t if rows is not None else 0.0
-            self._send(Text(lay.results_path(sid), lay.TIMELINE, t_end, text))
+            if rows is not None and rows.last_times:
+                self._send(Text(lay.results_path(sid), rows.last_times, text))
         for outlet in self.outlets:
             outlet.close()
 

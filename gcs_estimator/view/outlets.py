@@ -40,11 +40,10 @@ class Columns:
 
 @dataclass(frozen=True)
 class Text:
-    """A Markdown document at one time of the main timeline."""
+    """A Markdown document at one time (timeline -> seconds)."""
 
     entity: str
-    timeline: str
-    t_s: float
+    times: dict[str, float]
     text: str
 
 
@@ -63,6 +62,7 @@ class Layout:
     system_ids: tuple[int, ...]
     names: tuple[str, ...]
     power_input: str
+    truth: tuple[float, ...] | None
 
 
 Op = Columns | Text | Style | Layout
@@ -84,7 +84,7 @@ def apply(rec: Any, op: Op) -> None:
     elif isinstance(op, Text):
         rec.send_columns(
             op.entity,
-            indexes=[rr.TimeColumn(op.timeline, duration=[op.t_s])],
+            indexes=[rr.TimeColumn(name, duration=[t]) for name, t in op.times.items()],
             columns=rr.TextDocument.columns(text=[op.text], media_type=["text/markdown"]),
         )
     elif isinstance(op, Style):
@@ -99,7 +99,7 @@ def apply(rec: Any, op: Op) -> None:
         )
     elif isinstance(op, Layout):
         rec.send_blueprint(
-            build_blueprint(op.system_ids, op.names, op.power_input),
+            build_blueprint(op.system_ids, op.names, op.power_input, op.truth),
             make_active=True,
             make_default=True,
         )
