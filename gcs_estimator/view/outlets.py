@@ -161,6 +161,20 @@ class LocalOutlet(Outlet):
 RemoteSink = tuple[Literal["spawn", "connect"], str]
 
 
+def _viewer_executable() -> str | None:
+    """The viewer binary shipped with rerun-sdk in this environment (found even when the
+    environment's bin directory is not on PATH)."""
+    import rerun as rr
+
+    for candidate in (
+        Path(sys.executable).parent / "rerun",
+        Path(rr.__file__).resolve().parent.parent / "rerun_cli" / "rerun",
+    ):
+        if candidate.exists():
+            return str(candidate)
+    return None
+
+
 def _helper_main(
     ops: mp.Queue[Op | None], sinks: Sequence[RemoteSink], recording_id: str, timeout: float
 ) -> None:
@@ -168,23 +182,36 @@ def _helper_main(
     waiting for a viewer that may never answer."""
     import rerun as rr
 
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-    real: list[Any] = []
-    for kind, arg in sinks:
-        if kind == "spawn":
-            port = int(arg)
-            rec.spawn(port=port, connect=False)
-            real.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
-        else:
-            real.append(rr.GrpcSink(arg))
-    rec.set_sinks(*real)
+    rec: Any = None
+    try:
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        real: list[Any] = []
+        for kind, arg in sinks:
+            if kind == "spawn":
+                port = int(arg)
+                rr.spawn(
+                    port=port,
+                    connect=False,
+                    executable_path=_viewer_executable(),
+                    recording=rec,
+                )
+                real.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
+            else:
+                real.append(rr.GrpcSink(arg))
+        rec.set_sinks(*real)
+    except Exception as exc:  # say it once; the estimator goes on without this viewer
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"note: view: no viewer connection ({first}); the run goes on", file=sys.stderr)
+        rec = None
     while True:
         op = ops.get()
         if op is None:
             break
-        apply(rec, op)
-    with contextlib.suppress(RuntimeError):  # a flush timeout: the viewer is not answering
-        rec.flush(timeout_sec=timeout)
+        if rec is not None:
+            apply(rec, op)
+    if rec is not None:
+        with contextlib.suppress(RuntimeError):  # a flush timeout: the viewer is silent
+            rec.flush(timeout_sec=timeout)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)  # the SDK's own exit path may wait forever on a silent viewer
@@ -211,7 +238,7 @@ class ProcessOutlet(Outlet):
         )
         self.proc.start()
         self.description = "; ".join(
-            f"viewer spawned on port {a}" if k == "spawn" else f"streaming to {a}"
+            f"spawning a viewer on port {a}" if k == "spawn" else f"streaming to {a}"
             for k, a in self.sinks
         )
 

@@ -330,13 +330,13 @@ def silent_peer() -> Iterator[SilentPeer]:
     peer.close()
 
 
-@pytest.mark.parametrize("viewer", ["hung", "absent"])
+@pytest.mark.parametrize("viewer", ["hung", "absent", "spawned without a display"])
 def test_run_completes_normally_when_the_viewer_is_unreachable(
     tmp_path: Path, silent_peer: SilentPeer, viewer: str
 ) -> None:
-    """connect to a viewer that never answers, or to a port nobody listens on: the run
-    ends with exit 0, its results and its .rrd, and does not hang on exit."""
-    port = silent_peer.port if viewer == "hung" else free_port()
+    """Stream to a viewer that never answers, to a port nobody listens on, or to a viewer
+    spawned where it cannot open a window: the run ends with exit 0, its results and its
+    .rrd, and does not hang on exit."""
     cmd = [
         sys.executable,
         "-m",
@@ -348,16 +348,19 @@ def test_run_completes_normally_when_the_viewer_is_unreachable(
         SHORT[0],
         "--out",
         str(tmp_path),
-        "--view",
-        "save",
-        "--connect",
-        f"rerun+http://127.0.0.1:{port}/proxy",
     ]
+    if viewer == "spawned without a display":
+        cmd += ["--view", "save,spawn", "--set", f"view.viewer_port={free_port()}"]
+        expect = "spawning a viewer on port"
+    else:
+        port = silent_peer.port if viewer == "hung" else free_port()
+        cmd += ["--view", "save", "--connect", f"rerun+http://127.0.0.1:{port}/proxy"]
+        expect = "streaming to rerun+http://127.0.0.1"
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     # A hang guard only (the SDK alone would wait for ever on the hung viewer).
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr
-    assert "streaming to rerun+http://127.0.0.1" in proc.stderr
+    assert expect in proc.stderr
     data = json.loads((tmp_path / "results.json").read_text())
     assert set(data["filters"]) == {"EKF", "IEKF"}
     t, _ = read_scalars(tmp_path / "simulate_seed1.rrd", lay.coefficient_path(1, "CLa"))
