@@ -140,6 +140,20 @@ class TlogStats:
     truncated_tail: bool = False
 
 
+RESYNC_WINDOW_US = 86_400_000_000
+"""After garbage, a candidate record's time must lie within a day of the last good one."""
+
+
+def _plausible_record(data: bytes, i: int, n: int, t_us: int, last_t: int | None) -> bool:
+    """Whether a record found while resynchronising is real: any 0xFD or 0xFE byte looks
+    like a packet start (timestamps hold them too), so its time must follow the last
+    good record's and the next record, if any, must start where this one ends."""
+    if last_t is not None and abs(t_us - last_t) > RESYNC_WINDOW_US:
+        return False
+    end = i + 8 + n
+    return end == len(data) or packet_length(data, end + 8) > 0
+
+
 def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
     """Records of a .tlog, resynchronising over garbage and stopping at a truncated tail.
 
@@ -149,21 +163,26 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
     st = stats if stats is not None else TlogStats()
     i = 0
     first = True
+    resyncing = False
+    last_t: int | None = None
     while i + 8 < len(data):
         n = packet_length(data, i + 8)
         if n and i + 8 + n <= len(data):
             (t_us,) = struct.unpack_from(">Q", data, i)
-            first = False
-            st.records += 1
-            yield TlogRecord(t_us, data[i + 8 : i + 8 + n])
-            i += 8 + n
-            continue
-        if n and i + 8 + n > len(data):
+            if not resyncing or _plausible_record(data, i, n, t_us, last_t):
+                first = resyncing = False
+                last_t = t_us
+                st.records += 1
+                yield TlogRecord(t_us, data[i + 8 : i + 8 + n])
+                i += 8 + n
+                continue
+        elif n and i + 8 + n > len(data):
             st.truncated_tail = True
             return
         if first and i >= 4096:
             raise TlogError(f"{path}: not a tlog (no MAVLink record in the first 4 KiB)")
         st.junk_bytes += 1
+        resyncing = True
         i += 1
     if first and len(data) > 0:
         raise TlogError(f"{path}: not a tlog (no MAVLink record found)")
