@@ -556,7 +556,7 @@ def _parse_view(s: _Section) -> ViewConfig:
         outputs=outputs,
         rrd_path=s.string("rrd_path", d.rrd_path),
         serve_bind=s.string("serve_bind", d.serve_bind),
-        serve_port=s.integer("serve_port", d.serve_port, minimum=0),
+        serve_port=s.integer("serve_port", d.serve_port, minimum=1),
         server_memory_limit=s.string("server_memory_limit", d.server_memory_limit),
         connect_url=s.string("connect_url", d.connect_url),
         viewer_port=s.integer("viewer_port", d.viewer_port, minimum=1),
@@ -566,7 +566,7 @@ def _parse_view(s: _Section) -> ViewConfig:
         shutdown_timeout_s=s.number("shutdown_timeout_s", d.shutdown_timeout_s, positive=True),
     )
     if view.serve_port > 65535 or view.viewer_port > 65535:
-        raise s.fail("serve_port", "ports are 1..65535 (0: any free port)")
+        raise s.fail("serve_port", "ports are 1..65535")
     if not view.connect_url.startswith(("rerun://", "rerun+http://", "rerun+https://")):
         raise s.fail(
             "connect_url",

@@ -262,6 +262,21 @@ class RerunView:
 # ------------------------------------------------------------------ opening
 
 
+def _viewer_command() -> str:
+    """How to call the viewer from here: the environment's own binary when it is not on
+    PATH (a project .venv that is not activated), else plain `rerun`."""
+    import os
+    import shutil
+
+    from gcs_estimator.view.outlets import viewer_executable
+
+    own = viewer_executable()
+    if own is None or shutil.which("rerun") == own:
+        return "rerun"
+    rel = os.path.relpath(own)
+    return rel if not rel.startswith("..") else own
+
+
 def has_display() -> bool:
     import os
 
@@ -319,6 +334,7 @@ def open_view(
         return None
     vc = config.view
     recording_id = str(uuid.uuid4())
+    viewer = _viewer_command()
     outlets: list[Outlet] = []
     if choice.save is not None or choice.serve:
         local = LocalOutlet(
@@ -329,11 +345,11 @@ def open_view(
         )
         outlets.append(local)
         if choice.save is not None:
-            print(f"view: saving to {choice.save}; open it with: rerun {choice.save}", file=log)
+            print(f"view: saving to {choice.save}; open it with: {viewer} {choice.save}", file=log)
         if local.server_uri is not None:
             print(
                 f"view: serving live at {local.server_uri}; join (any time) with: "
-                f"rerun {local.server_uri}",
+                f"{viewer} {local.server_uri}",
                 file=log,
             )
     remote: list[RemoteSink] = []

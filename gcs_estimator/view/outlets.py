@@ -161,7 +161,7 @@ class LocalOutlet(Outlet):
 RemoteSink = tuple[Literal["spawn", "connect"], str]
 
 
-def _viewer_executable() -> str | None:
+def viewer_executable() -> str | None:
     """The viewer binary shipped with rerun-sdk in this environment (found even when the
     environment's bin directory is not on PATH)."""
     import rerun as rr
@@ -192,7 +192,7 @@ def _helper_main(
                 rr.spawn(
                     port=port,
                     connect=False,
-                    executable_path=_viewer_executable(),
+                    executable_path=viewer_executable(),
                     recording=rec,
                 )
                 real.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
