@@ -98,6 +98,8 @@ def _config(args: argparse.Namespace) -> AircraftConfig:
     if args.rrd is not None:
         view = replace(view, rrd_path=str(args.rrd))
     if args.serve_port is not None:
+        if not 1 <= args.serve_port <= 65535:
+            raise ConfigError(f"--serve-port: ports are 1..65535, got {args.serve_port}")
         view = replace(view, serve_port=args.serve_port)
     config = replace(config, view=replace(view, outputs=tuple(dict.fromkeys(outputs))))
     if args.reference is not None:

@@ -275,7 +275,7 @@ def test_served_session_is_joined_late_and_the_viewer_gets_the_history(tmp_path:
     while "serving live at" not in line:  # the server is up before any data is sent
         line = session.stderr.readline()
         assert line, "the session ended without serving"
-    uri = line.split("join (any time) with: rerun ")[1].strip()
+    uri = line.split("serving live at ")[1].split(";")[0]
     time.sleep(3.0)  # join late
     joiner = subprocess.run(
         [str(RERUN_BIN), uri, "--save", str(tmp_path / "joined.rrd")],
