@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator.config import load_config_with
-from gcs_estimator.report import final_table, live_table
+from gcs_estimator.report import final_table
 from gcs_estimator.station import Station, Stop, Vehicle, listen, open_udp
 from gcs_estimator.telemetry.sync import Frame
-from gcs_estimator.view.live import RerunView
 from gcs_estimator.view.outlets import LocalOutlet
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,14 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     station = Station(config, on_frame=on_frame)  # compiles the kernels before binding
     with tempfile.TemporaryDirectory() as tmp:
         if args.view:
-            station.view = RerunView(
-                [LocalOutlet("bench", save=Path(tmp) / "live.rrd")],
-                config,
-                None if config.truth is None else np.array(config.truth),
-                config.truth_label,
-                link_source=station.link_now,
-                table_source=lambda sid: live_table(station.vehicles[sid].estimator),
-            )
+            station.attach_view([LocalOutlet("bench", save=Path(tmp) / "live.rrd")])
         sock = open_udp("127.0.0.1", 0)
         port = sock.getsockname()[1]
         sim = subprocess.Popen(

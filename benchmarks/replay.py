@@ -18,14 +18,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from gcs_estimator.config import AircraftConfig, load_config_with
 from gcs_estimator.flightdata import Recording
-from gcs_estimator.report import final_table, live_table
+from gcs_estimator.report import final_table
 from gcs_estimator.station import Station, replay
 from gcs_estimator.telemetry.mavlink import Decoder, TlogRecord, read_tlog
-from gcs_estimator.view.live import RerunView
 from gcs_estimator.view.outlets import LocalOutlet
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -103,19 +100,11 @@ def replay_with_view(
     time, as a live session at real time does. Returns (seconds, file size)."""
     station = Station(config)
     clock = (lambda: station.t_last_recv) if live else time.monotonic
-    station.view = RerunView(
-        [LocalOutlet("bench", save=path)],
-        config,
-        None if config.truth is None else np.array(config.truth),
-        config.truth_label,
-        link_source=station.link_now,
-        table_source=lambda sid: live_table(station.vehicles[sid].estimator),
-        clock=clock,
-    )
+    view = station.attach_view([LocalOutlet("bench", save=path)], clock=clock)
     t0 = time.perf_counter()
     replay(station, records)
     station.finish()
-    station.view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
+    view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
     elapsed = time.perf_counter() - t0
     return elapsed, path.stat().st_size
 

@@ -29,7 +29,8 @@ from gcs_estimator.report import (
     markdown_table,
     write_results,
 )
-from gcs_estimator.view.live import LinkSource, RerunView, TableSource, open_view, resolve_outputs
+from gcs_estimator.view.live import RerunView, open_outlets, resolve_outputs
+from gcs_estimator.view.outlets import Outlet
 
 if TYPE_CHECKING:
     from gcs_estimator.station import Station
@@ -108,22 +109,10 @@ def _config(args: argparse.Namespace) -> AircraftConfig:
     return config
 
 
-def _open_view(
-    config: AircraftConfig,
-    args: argparse.Namespace,
-    session: str,
-    table_source: TableSource,
-    link_source: LinkSource | None = None,
-) -> RerunView | None:
+def _outlets(config: AircraftConfig, args: argparse.Namespace, session: str) -> list[Outlet]:
+    """The view's outlets as chosen on the command line or in the config (may be none)."""
     choice = resolve_outputs(config, config.view.outputs, Path(args.out) / f"{session}.rrd")
-    return open_view(
-        config,
-        choice,
-        config_truth(config),
-        config.truth_label,
-        link_source=link_source,
-        table_source=table_source,
-    )
+    return open_outlets(config, choice)
 
 
 def _run_recording(
@@ -135,7 +124,8 @@ def _run_recording(
     session: str,
 ) -> int:
     est = Estimator(config, backend=args.backend)
-    view = _open_view(config, args, session, lambda sid: live_table(est))
+    outlets = _outlets(config, args, session)
+    view = RerunView(outlets, config, table_source=lambda sid: live_table(est)) if outlets else None
     start = time.perf_counter()
     n = len(rec)
     next_report = 0.0
@@ -201,13 +191,9 @@ def _station(
     from gcs_estimator.station import Station
 
     station = Station(config, backend=args.backend, record=record)
-    station.view = _open_view(
-        config,
-        args,
-        session,
-        lambda sid: live_table(station.vehicles[sid].estimator),
-        station.link_now,
-    )
+    outlets = _outlets(config, args, session)
+    if outlets:
+        station.attach_view(outlets)
     return station
 
 

@@ -13,7 +13,7 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -27,6 +27,7 @@ from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.decode import DecodeStats, decode_message
 from gcs_estimator.telemetry.sync import Frame, LinkHealth, Synchronizer
 from gcs_estimator.view.live import RerunView
+from gcs_estimator.view.outlets import Outlet
 
 RCVBUF_BYTES = 8 * 1024 * 1024
 """Listener socket buffer: the ~212 KB default drops packets at high rates."""
@@ -220,6 +221,22 @@ class Station:
                 est = " ".join(f"{n} {cur[0][names.index(n)]:+.3g}" for n in show)
             parts.append(f"[sys {v.system_id}: {v.frames} frames {est}]")
         return " | ".join(parts)
+
+    def attach_view(
+        self, outlets: Sequence[Outlet], clock: Callable[[], float] = time.monotonic
+    ) -> RerunView:
+        """Send every vehicle's estimates, the link health and the live tables to these
+        outlets from now on."""
+        from gcs_estimator.report import live_table
+
+        self.view = RerunView(
+            outlets,
+            self.config,
+            link_source=self.link_now,
+            table_source=lambda sid: live_table(self.vehicles[sid].estimator),
+            clock=clock,
+        )
+        return self.view
 
     def link_now(self) -> tuple[float, dict[str, int]]:
         """(session time of the newest packet [s], link counters), for the live view."""

@@ -86,8 +86,6 @@ class RerunView:
         self,
         outlets: Sequence[Outlet],
         config: AircraftConfig,
-        truth: FloatArray | None,
-        truth_label: str = "truth",
         link_source: LinkSource | None = None,
         table_source: TableSource | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -95,8 +93,8 @@ class RerunView:
         self.outlets = list(outlets)
         self.config = config
         self.names = config.coefficient_names
-        self.truth = None if truth is None else np.asarray(truth, float)
-        self.truth_label = truth_label
+        self.truth = None if config.truth is None else np.array(config.truth, float)
+        self.truth_label = config.truth_label
         self.power_input = "thrust" if config.propulsion.model == "measured" else "throttle"
         self.link_source = link_source
         self.table_source = table_source
@@ -320,18 +318,10 @@ def resolve_outputs(
     )
 
 
-def open_view(
-    config: AircraftConfig,
-    choice: ViewChoice,
-    truth: FloatArray | None,
-    truth_label: str,
-    link_source: LinkSource | None = None,
-    table_source: TableSource | None = None,
-    log: TextIO = sys.stderr,
-) -> RerunView | None:
-    """Open the outlets and say where the view goes and how to look at it."""
-    if not choice.any:
-        return None
+def open_outlets(
+    config: AircraftConfig, choice: ViewChoice, log: TextIO = sys.stderr
+) -> list[Outlet]:
+    """Open the outlets chosen and say where the view goes and how to look at it."""
     vc = config.view
     recording_id = str(uuid.uuid4())
     viewer = _viewer_command()
@@ -361,4 +351,4 @@ def open_view(
         outlet = ProcessOutlet(remote, recording_id, vc.shutdown_timeout_s)
         outlets.append(outlet)
         print(f"view: {outlet.description}", file=log)
-    return RerunView(outlets, config, truth, truth_label, link_source, table_source)
+    return outlets

@@ -26,7 +26,7 @@ from gcs_estimator.report import final_table, live_table
 from gcs_estimator.station import Station, replay
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view import layout as lay
-from gcs_estimator.view.live import RerunView, ViewChoice, open_view
+from gcs_estimator.view.live import RerunView
 from gcs_estimator.view.outlets import LocalOutlet
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -72,8 +72,6 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Estimator, Path
     view = RerunView(
         [LocalOutlet("test", save=path)],
         config,
-        np.array(config.truth),
-        config.truth_label,
         table_source=lambda sid: live_table(est),
         clock=lambda: float(next(clock)),
     )
@@ -201,20 +199,12 @@ def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path:
     config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
     rrd = tmp_path / "two.rrd"
     station = Station(config)
-    station.view = open_view(
-        config,
-        ViewChoice(save=rrd, serve=False, spawn=False, connect=None),
-        np.array(config.truth),
-        "truth",
-        link_source=station.link_now,
-        table_source=lambda sid: live_table(station.vehicles[sid].estimator),
-    )
+    view = station.attach_view([LocalOutlet("two", save=rrd)])
     from gcs_estimator.telemetry.mavlink import read_tlog
 
     replay(station, read_tlog(tlog))
     station.finish()
-    assert station.view is not None
-    station.view.close()
+    view.close()
     for sid in (1, 2):
         est = station.vehicles[sid].estimator
         t, v = read_scalars(rrd, lay.coefficient_path(sid, "Cmq"))
@@ -368,7 +358,7 @@ def test_run_completes_normally_when_the_viewer_is_unreachable(
 
 
 def test_reference_values_from_the_command_line_are_shown_and_compared(
-    tmp_path: Path, hfb_data_path: Path
+    tmp_path: Path, hfb_data_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     ref = tmp_path / "book.toml"
     names = load_config_with(ROOT / "configs/hfb320.toml").coefficient_names
@@ -377,42 +367,18 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
     )
     from gcs_estimator.cli import main
 
-    status = main(
-        [
-            "offline",
-            str(hfb_data_path),
-            "--config",
-            str(ROOT / "configs/hfb320.toml"),
-            "--reference",
-            str(ref),
-            "--out",
-            str(tmp_path),
-            "--view",
-            "save",
-        ]
-    )
-    assert status == 0
+    def offline(*view: str) -> int:
+        cmd = ["offline", str(hfb_data_path), "--config", str(ROOT / "configs/hfb320.toml")]
+        return main([*cmd, "--reference", str(ref), "--out", str(tmp_path), "--view", *view])
+
+    assert offline("save") == 0
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["truth_label"] == "book"
     assert data["filters"]["IEKF"]["estimates"]["Cma"]["truth"] == names.index("Cma") + 1.5
     _, v = read_scalars(tmp_path / "offline_hfb320_1_10.rrd", lay.coefficient_path(1, "Cma"))
     assert np.all(v[:, 6] == names.index("Cma") + 1.5)
-    # A reference that misses a coefficient names it.
+    # A reference that misses a coefficient names the file and the key.
     ref.write_text("[truth]\nCD0 = 1.0\n")
-    assert (
-        main(
-            [
-                "offline",
-                str(hfb_data_path),
-                "--config",
-                str(ROOT / "configs/hfb320.toml"),
-                "--reference",
-                str(ref),
-                "--view",
-                "off",
-                "--out",
-                str(tmp_path),
-            ]
-        )
-        == 2
-    )
+    capsys.readouterr()
+    assert offline("off") == 2
+    assert f"{ref}: [truth] CDV: missing" in capsys.readouterr().err
