@@ -50,6 +50,7 @@ def rate(config_path: str, kind: str, backend: str, frames: int, bare: bool) -> 
                 R,
                 runner.iterations,
                 0.0,
+                tun.relinearise_sigma,
                 tun.max_step_s,
                 0.0,
                 model,

@@ -145,6 +145,46 @@ class Simulation:
 
 
 @dataclass(frozen=True)
+class TurbulenceNoise:
+    """The filter's model of turbulence: white process noise on V, alpha and theta whose
+    level follows a Dryden gust intensity, estimated online from the innovations.
+
+    At vertical gust intensity sigma_w [m/s] (sigma_u = ratio * sigma_w) and airspeed V0,
+    the air-relative V and alpha are driven by the derivative of the gusts. Its spectral
+    density is at most the white (high-frequency) level of the Dryden filters:
+
+        q_V = 2 sigma_u^2 V0 / L_u,    q_alpha = 3 sigma_w^2 / (L_w V0)
+
+    (per unit sigma_w^2 these are the `unit` densities). Theta gets `theta_density`
+    per unit sigma_w^2. Theta has no gust term of its own, but without it the filter
+    pins theta to the average of thousands of samples while the colour of the gusts moves
+    it (measured: theta errors of 80 of its sigma in light turbulence).
+    """
+
+    adaptive: bool
+    """Estimate sigma_w^2 online by covariance matching of the V and alpha innovations."""
+    sigma_w_mps: float
+    """Initial (adaptive) or fixed vertical gust intensity [m/s]."""
+    sigma_u_ratio: float
+    length_u_m: float
+    length_w_m: float
+    theta_density: float
+    """Theta spectral density per unit sigma_w^2 [rad^2/s per (m/s)^2]."""
+    adapt_time_s: float
+    """Averaging time of the online estimate [s]."""
+
+    def unit(self, airspeed_mps: float) -> tuple[float, float, float, float]:
+        """Spectral densities of V, alpha, theta, q per unit sigma_w^2."""
+        v = airspeed_mps
+        return (
+            2.0 * self.sigma_u_ratio**2 * v / self.length_u_m,
+            3.0 / (self.length_w_m * v),
+            self.theta_density,
+            0.0,
+        )
+
+
+@dataclass(frozen=True)
 class FilterTuning:
     """Filter settings: initial belief, noise models and iteration control."""
 
@@ -166,6 +206,10 @@ class FilterTuning:
     """IEKF measurement-update iterations (1 = EKF; the paper uses 7)."""
     iteration_tolerance: float
     """Early stop when the largest state change of an iteration, in prior sigmas, is below."""
+    relinearise_sigma: float
+    """The IEKF keeps its iterations only when the first re-linearisation moves some
+    component by at least this many EKF-posterior sigmas, else it keeps the EKF update;
+    0 = always iterate (the paper). See filters.hybrid.iekf_update."""
     max_step_s: float
     """Longest Runge-Kutta step of the prediction [s]."""
     restart_times_s: tuple[float, ...]
@@ -180,6 +224,8 @@ class FilterTuning:
     so far) or "filter" (the filter's own estimate)."""
     innovation_gate: float
     """Channels whose normalised innovation exceeds this many sigma are rejected; 0 = off."""
+    turbulence: TurbulenceNoise
+    """Process noise from turbulence, on top of state_process_noise."""
 
 
 STREAMED_MESSAGES: tuple[str, ...] = (
@@ -353,6 +399,13 @@ class _Section:
             raise self.fail(key, f"must be a whole number, got {value!r}")
         if value < minimum:
             raise self.fail(key, f"must be >= {minimum}, got {value!r}")
+        return value
+
+    def boolean(self, key: str, default: bool) -> bool:
+        self.used.add(key)
+        value = self.data.get(key, default)
+        if not isinstance(value, bool):
+            raise self.fail(key, f"must be true or false, got {value!r}")
         return value
 
     def string(self, key: str, default: str | None = None, allowed: tuple[str, ...] = ()) -> str:
@@ -726,6 +779,18 @@ def _parse_filter(s: _Section, names: tuple[str, ...]) -> FilterTuning:
         bad = OBS_NAMES[[v <= 0 for v in meas].index(True)]
         raise ms.fail(bad, "must be > 0 (a channel with no noise makes the update singular)")
 
+    tn = s.sub("turbulence")
+    turbulence = TurbulenceNoise(
+        adaptive=tn.boolean("adaptive", True),
+        sigma_w_mps=tn.number("sigma_w_mps", 0.0, nonnegative=True),
+        sigma_u_ratio=tn.number("sigma_u_ratio", 1.5, positive=True),
+        length_u_m=tn.number("length_u_m", 200.0, positive=True),
+        length_w_m=tn.number("length_w_m", 50.0, positive=True),
+        theta_density=tn.number("theta_density", 1.7e-6, nonnegative=True),
+        adapt_time_s=tn.number("adapt_time_s", 10.0, positive=True),
+    )
+    tn.check_unknown()
+
     restarts = s.numbers("restart_times_s", (), nonnegative=True)
     if list(restarts) != sorted(set(restarts)):
         raise s.fail("restart_times_s", f"must be strictly increasing, got {list(restarts)}")
@@ -741,11 +806,13 @@ def _parse_filter(s: _Section, names: tuple[str, ...]) -> FilterTuning:
         measurement_sigma=meas,
         iterations=s.integer("iterations", 7, minimum=1),
         iteration_tolerance=s.number("iteration_tolerance", 0.0, nonnegative=True),
+        relinearise_sigma=s.number("relinearise_sigma", 1.0, nonnegative=True),
         max_step_s=s.number("max_step_s", 0.02, positive=True),
         restart_times_s=restarts,
         warm_start="filter" if warm == "filter" else "equation-error",
         restart_sigma_inflation=s.number("restart_sigma_inflation", 10.0, positive=True),
         innovation_gate=s.number("innovation_gate", 0.0, nonnegative=True),
+        turbulence=turbulence,
     )
     s.check_unknown()
     assert len(tuning.initial_coefficients) == p

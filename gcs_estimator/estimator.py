@@ -21,6 +21,10 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.equations import FloatArray
 
 Backend = Literal["fast", "reference"]
+
+GUST_VAR_FLOOR = -0.1
+"""Lowest running gust variance [m^2/s^2]: in calm air the estimate wanders around zero;
+the floor keeps it from drifting so far below that real turbulence takes long to show."""
 FilterKind = Literal["EKF", "IEKF"]
 
 
@@ -37,6 +41,8 @@ class StepOutput:
     """y - h(x-) per channel, NaN where the channel was not used [7]."""
     innovation_sigma: FloatArray
     """sqrt(diag(S)) per channel, NaN where not used [7]."""
+    gust_sigma: float = 0.0
+    """Vertical gust intensity the step's process noise assumed [m/s]."""
 
 
 @dataclass
@@ -73,6 +79,18 @@ class FilterRunner:
         self.q_coef_final = np.array(tuning.coefficient_process_noise)
         self.q_coef_initial = np.array(tuning.coefficient_process_noise_initial)
         self._q_settled: FloatArray | None = None
+        turbulence = tuning.turbulence
+        self.q_gust_unit = np.array(turbulence.unit(float(self.model.k[eq.V0])))
+        self._gust_num = 0.0
+        self._gust_den = 0.0
+        self.gust_var = turbulence.sigma_w_mps**2
+        """Estimated vertical gust variance sigma_w^2 [m^2/s^2]. The running estimate may
+        dip below zero in calm air (so that it averages to the truth); Q uses max(0, .)."""
+
+    @property
+    def gust_sigma(self) -> float:
+        """Vertical gust intensity the process noise currently assumes [m/s]."""
+        return math.sqrt(max(self.gust_var, 0.0))
 
     def initial_belief(self, y: FloatArray) -> Belief:
         """States from the first measurement where present, coefficients from the config."""
@@ -91,9 +109,63 @@ class FilterRunner:
             # Settled: the same matrix every step, built once.
             if self._q_settled is None:
                 self._q_settled = np.diag(np.concatenate([self.q_state, self.q_coef_final]))
-            return self._q_settled
-        q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
-        return np.diag(np.concatenate([self.q_state, q_coef]))
+            Q = self._q_settled
+        else:
+            q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
+            Q = np.diag(np.concatenate([self.q_state, q_coef]))
+        gust = max(self.gust_var, 0.0)
+        if gust > 0.0:
+            Q = Q.copy()
+            states = np.arange(eq.N_STATE)
+            Q[states, states] += gust * self.q_gust_unit
+        return Q
+
+    def gust_var_of_pass(self) -> float:
+        """Covariance-matching estimate of the gust variance over every step since the
+        last reset, >= 0 (the current level if nothing was measured)."""
+        if self._gust_den <= 0.0:
+            return max(self.gust_var, 0.0)
+        return max(self._gust_num / self._gust_den, 0.0)
+
+    def adapt_turbulence(self, dt: float, u: FloatArray, out: StepOutput) -> None:
+        """Move the gust variance towards the level at which the innovations are as
+        large as the filter predicts (covariance matching, averaged over adapt_time_s by
+        stochastic approximation).
+
+        Each channel c gives a one-sample estimate of the correction,
+        (e_c^2 - S_c) / G_c, where G_c = dt * sum_j H_cj^2 unit_j is the change of S_c
+        per unit gust variance over one step. Channels are weighted by G_c^2 / (2 S_c^2),
+        their Fisher information. The pitch acceleration carries the most: it moves 165
+        rad/s^2 per radian of alpha on the NOC UAV, so alpha noise far below the vane's
+        resolution already shows there. Innovations beyond 5 sigma count as 5 sigma, so
+        that a glitch or the zero-start transient does not set the level.
+        """
+        turbulence = self.config.filter.turbulence
+        if not turbulence.adaptive or not dt > 0.0 or self.belief is None:
+            return
+        from gcs_estimator.filters import fast
+
+        _, H = fast.model_h(self.model, self.belief.x, u)
+        G_all = dt * (H[:, : eq.N_STATE] ** 2 @ self.q_gust_unit)
+        num = 0.0
+        den = 0.0
+        for c in range(eq.N_OBS):
+            e = float(out.innovation[c])
+            sd = float(out.innovation_sigma[c])
+            if not (math.isfinite(e) and sd > 0.0):
+                continue
+            S = sd * sd
+            r2 = min(e * e, 25.0 * S)
+            G = float(G_all[c])
+            num += G * (r2 - S) / (2.0 * S * S)
+            den += G * G / (2.0 * S * S)
+        if den > 0.0:
+            # Batch form over the pass (for the next restart): each step estimates the
+            # level as the level it used plus its correction.
+            self._gust_num += num + den * self.gust_var
+            self._gust_den += den
+            gain = min(1.0, dt / turbulence.adapt_time_s)
+            self.gust_var = max(self.gust_var + gain * num / den, GUST_VAR_FLOOR)
 
     def reset(self, beta0: FloatArray | None = None, sigma0: FloatArray | None = None) -> None:
         """Forget the belief; start again from N(beta0, sigma0^2) (default: configured)."""
@@ -105,6 +177,9 @@ class FilterRunner:
         self.belief = None
         self.t_last = math.nan
         self.t_start = math.nan
+        self.gust_var = tuning.turbulence.sigma_w_mps**2
+        self._gust_num = 0.0
+        self._gust_den = 0.0
 
     def rebase(self, t: float, y: FloatArray) -> None:
         """New time base (the vehicle clock reset): keep what is known of the coefficients,
@@ -149,6 +224,7 @@ class FilterRunner:
                 self.R,
                 self.iterations,
                 tuning.iteration_tolerance,
+                tuning.relinearise_sigma,
                 tuning.max_step_s,
                 tuning.innovation_gate,
                 self.model,
@@ -175,6 +251,7 @@ class FilterRunner:
                     iterations=self.iterations,
                     tolerance=tuning.iteration_tolerance,
                     gate=tuning.innovation_gate,
+                    relinearise=tuning.relinearise_sigma,
                 )
             except np.linalg.LinAlgError:
                 self.failed_updates += 1
@@ -203,7 +280,7 @@ class FilterRunner:
             self.t_start = t
         self.t_last = t
         self.u_last = np.array(u, float)
-        return StepOutput(
+        out = StepOutput(
             x=self.belief.x,  # a fresh array every step: the filter never mutates it
             sigma=np.sqrt(np.diag(self.belief.P)),
             nis=float(nis),
@@ -211,7 +288,10 @@ class FilterRunner:
             iterations=int(iters),
             innovation=e,
             innovation_sigma=s_diag,
+            gust_sigma=self.gust_sigma,
         )
+        self.adapt_turbulence(dt, np.asarray(u, float), out)
+        return out
 
 
 def repair_covariance(P: FloatArray, rel_floor: float = 1e-12) -> FloatArray:
@@ -409,6 +489,12 @@ class Estimator:
             }
         p0 = np.array(tuning.initial_coefficient_sigma)
         for kind, runner in self.filters.items():
+            # The re-run starts at the turbulence level the pass so far measured (over
+            # the whole pass, not its last value). The zero-start pass overstates it
+            # (its innovations also carry the unknown coefficients), which makes the
+            # first re-run cautious; the first re-run, near the solution, measures the
+            # air, and the final pass starts from that.
+            gust_var = runner.gust_var_of_pass() if tuning.turbulence.adaptive else None
             if kind in starts:
                 beta, sigma = starts[kind]
                 # A data-derived prior, widened so that reusing the early data in it
@@ -416,6 +502,8 @@ class Estimator:
                 runner.reset(beta, np.minimum(p0, tuning.restart_sigma_inflation * sigma))
             else:
                 runner.reset()
+            if gust_var is not None:
+                runner.gust_var = gust_var
         # The history keeps what was known live at each time: the re-run replaces only
         # the output of the current frame.
         outs: dict[FilterKind, StepOutput] = {}

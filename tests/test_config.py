@@ -53,6 +53,16 @@ ROOT = Path(__file__).resolve().parent.parent
             r"\[view\] connect_url: must look like rerun\+http://HOST:PORT/proxy",
         ),
         (
+            "adaptive = true",
+            'adaptive = "yes"',
+            r"\[filter.turbulence\] adaptive: must be true or false, got 'yes'",
+        ),
+        (
+            "relinearise_sigma = 1.0",
+            "relinearise_sigma = -1",
+            r"\[filter\] relinearise_sigma: must be a number >= 0, got -1",
+        ),
+        (
             "display_rate_hz = 25.0",
             "display_rate_hz = 0",
             r"\[view\] display_rate_hz: must be a number > 0, got 0",

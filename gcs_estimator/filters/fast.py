@@ -113,6 +113,7 @@ def _step(
     R: FloatArray,
     iterations: int,
     tolerance: float,
+    relinearise: float,
     max_step: float,
     gate: float,
     k: FloatArray,
@@ -165,6 +166,9 @@ def _step(
     sigma = np.sqrt(np.diag(Pp))
     x_i = xp.copy()
     K = np.zeros((n, m))
+    K1 = K
+    Hu1 = Hu
+    HuP1 = Hu @ Pp
     done = 0
     for it in range(iterations):
         if it > 0:
@@ -179,11 +183,28 @@ def _step(
         K = np.ascontiguousarray(Kt.T)
         r = yu - hu - Hu @ (xp - x_i)
         x_next = xp + K @ r
+        if it == 1 and relinearise > 0.0:
+            # Keep the EKF update unless re-linearising moved some component by more
+            # than `relinearise` of its (EKF) posterior sigma (see hybrid.iekf_update).
+            moved = 0.0
+            for j in range(n):
+                var = Pp[j, j]
+                for a in range(m):
+                    var -= K1[j, a] * HuP1[a, j]
+                moved = max(moved, abs(x_next[j] - x_i[j]) / math.sqrt(max(var, 1e-300)))
+            if moved < relinearise:
+                K = K1
+                Hu = Hu1
+                break
         done = it + 1
         biggest = 0.0
         for j in range(n):
             biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
         x_i = x_next
+        if it == 0:
+            K1 = K
+            Hu1 = Hu
+            HuP1 = HuP
         if tolerance > 0.0 and biggest < tolerance:
             break
     I_KH = np.eye(n) - K @ Hu
@@ -202,6 +223,7 @@ def step(
     R: FloatArray,
     iterations: int,
     tolerance: float,
+    relinearise: float,
     max_step: float,
     gate: float,
     model: Model,
@@ -224,6 +246,7 @@ def step(
         R,
         int(iterations),
         float(tolerance),
+        float(relinearise),
         float(max_step),
         float(gate),
         model.k,

@@ -107,6 +107,35 @@ def test_iekf_converges_to_the_map_with_the_prior_held_fixed() -> None:
     assert np.max(np.abs(fb.x - post.x)) > 1e-3
 
 
+def test_relinearisation_gate_keeps_the_ekf_near_the_solution_and_iterates_far() -> None:
+    """relinearise > 0: the iterations are kept only when the first re-linearisation
+    moves the estimate by at least that many EKF-posterior sigmas."""
+
+    def h(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return np.array([x[0] * x[1]]), np.array([[x[1], x[0]]])
+
+    R = np.diag([0.01])
+    # Near the solution (a tight prior): re-linearising moves x by a small fraction of a
+    # posterior sigma, so the EKF update comes back, bit for bit.
+    near = Belief(np.array([1.0, 2.0]), np.diag([1e-3, 1e-3]))
+    y_near = np.array([2.05])
+    ekf, _ = ekf_update(h, near, y_near, R)
+    gated, info = iekf_update(h, near, y_near, R, iterations=7, relinearise=1.0)
+    assert info.iterations == 1
+    np.testing.assert_array_equal(gated.x, ekf.x)
+    np.testing.assert_array_equal(gated.P, ekf.P)
+    # Far from it (a wide prior, a product far from the prior's): the iterations move x
+    # by many sigma and are kept, equal to the ungated IEKF.
+    far = Belief(np.array([0.1, 0.1]), np.diag([4.0, 4.0]))
+    y_far = np.array([3.0])
+    full, _ = iekf_update(h, far, y_far, R, iterations=7)
+    kept, info = iekf_update(h, far, y_far, R, iterations=7, relinearise=1.0)
+    assert info.iterations == 7
+    np.testing.assert_array_equal(kept.x, full.x)
+    ekf_far, _ = ekf_update(h, far, y_far, R)
+    assert np.max(np.abs(kept.x - ekf_far.x) / np.sqrt(np.diag(ekf_far.P))) > 1.0
+
+
 def test_no_channel_present_leaves_the_belief_unchanged() -> None:
     belief = Belief(np.array([1.0, 2.0]), np.eye(2))
     post, info = iekf_update(

@@ -1,0 +1,65 @@
+"""Turbulence: the filters measure its level from their innovations and stay consistent.
+
+The simulator flies Dryden gusts (sim.truth); the filters know nothing of them beyond the
+shape of the process noise they cause (config [filter.turbulence]).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from gcs_estimator.config import AircraftConfig, Turbulence
+from gcs_estimator.estimator import Estimator
+from sim.truth import simulate
+
+WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
+
+
+def _fly(config: AircraftConfig, sigma_w: float, seed: int) -> tuple[Estimator, np.ndarray]:
+    turbulence = Turbulence(sigma_u_mps=1.5 * sigma_w, sigma_w_mps=sigma_w)
+    flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
+    flight = simulate(flown, seed=seed)
+    est = Estimator(flown, keep_history=False)
+    est.run(flight.t_s, flight.inputs, flight.measurements)
+    return est, flight.truth
+
+
+def test_light_turbulence_is_measured_and_the_coefficients_stay_consistent(
+    noc_config: AircraftConfig,
+) -> None:
+    sigma_w = 0.772  # MIL-F-8785C light, low altitude
+    est, truth = _fly(noc_config, sigma_w, seed=3)
+    for kind, runner in est.filters.items():
+        assert runner.gust_sigma == np.clip(runner.gust_sigma, 0.7 * sigma_w, 1.3 * sigma_w), kind
+        beta, sigma = est.current()[kind]
+        z = np.abs(beta - truth) / sigma
+        assert np.all(z < 4.0), (kind, dict(zip(est.names, z.round(1), strict=True)))
+
+
+def test_calm_air_is_measured_as_calm(noc_config: AircraftConfig) -> None:
+    est, truth = _fly(noc_config, 0.0, seed=3)
+    for kind, runner in est.filters.items():
+        assert runner.gust_sigma < 0.1, kind
+        beta, sigma = est.current()[kind]
+        for name in WELL_EXCITED:
+            i = est.names.index(name)
+            assert abs(beta[i] - truth[i]) < 3.0 * sigma[i], (kind, name)
+
+
+def test_without_turbulence_noise_the_filters_are_overconfident_in_turbulence(
+    noc_config: AircraftConfig,
+) -> None:
+    """The same flight with the adaptation off and no gust level: what the adaptation
+    prevents (errors of many sigma)."""
+    tuning = noc_config.filter
+    fixed = replace(
+        noc_config,
+        filter=replace(
+            tuning, turbulence=replace(tuning.turbulence, adaptive=False, sigma_w_mps=0.0)
+        ),
+    )
+    est, truth = _fly(fixed, 0.772, seed=3)
+    beta, sigma = est.current()["IEKF"]
+    assert np.max(np.abs(beta - truth) / sigma) > 10.0
