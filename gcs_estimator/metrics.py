@@ -46,6 +46,8 @@ class FilterSummary:
     nees: float | None
     """Final (x - truth)^T P^-1 (x - truth) over the coefficients; None without truth."""
     steps: int
+    gust_sigma: float = 0.0
+    """Turbulence level (vertical gust sigma) the filter ended with [m/s]."""
 
 
 def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: float) -> float:
@@ -109,5 +111,6 @@ def summarise(estimator: Estimator, truth: FloatArray | None) -> dict[FilterKind
             mean_channels=float(track.n_used[settled].mean()) if settled.any() else math.nan,
             nees=nees,
             steps=len(track.t),
+            gust_sigma=runner.gust_sigma,
         )
     return out

@@ -64,6 +64,7 @@ def markdown_table(
         )
         if s.nees is not None:
             note += f", coefficient NEES {s.nees:.1f} (dof {len(s.coefficients)})"
+        note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
         notes.append(note)
     lines.append("")
     lines.append(
@@ -94,7 +95,8 @@ def live_table(estimator: Estimator) -> str:
                 err = 100 * (x[i] - truth[i]) / abs(truth[i]) if truth[i] else math.nan
                 row.append("-" if not math.isfinite(err) else f"{err:+.2f}")
         lines.append("| " + " | ".join(row) + " |")
-    return f"{estimator.frames} frames\n\n" + "\n".join(lines) + "\n"
+    gusts = ", ".join(f"{k} {estimator.filters[k].gust_sigma:.2f}" for k in kinds)
+    return f"{estimator.frames} frames; turbulence σ_w [m/s]: {gusts}\n\n" + "\n".join(lines) + "\n"
 
 
 def final_table(estimator: Estimator) -> str:
@@ -132,6 +134,7 @@ def results_dict(
             "mean_nis": _num(s.mean_nis),
             "mean_nis_whole_flight": _num(s.mean_nis_all),
             "mean_channels": _num(s.mean_channels),
+            "turbulence_sigma_w_mps": s.gust_sigma,
             "nees": _num(s.nees),
             "updates": s.steps,
             "estimates": {
