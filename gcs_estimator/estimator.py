@@ -22,6 +22,9 @@ from gcs_estimator.model.equations import FloatArray
 
 Backend = Literal["fast", "reference"]
 
+GUST_SENSITIVITY_EVERY = 25
+"""Steps between refreshes of the channels' sensitivity to the gust level."""
+
 GUST_VAR_FLOOR = -0.1
 """Lowest running gust variance [m^2/s^2]: in calm air the estimate wanders around zero;
 the floor keeps it from drifting so far below that real turbulence takes long to show."""
@@ -83,6 +86,8 @@ class FilterRunner:
         self.q_gust_unit = np.array(turbulence.unit(float(self.model.k[eq.V0])))
         self._gust_num = 0.0
         self._gust_den = 0.0
+        self._gust_sens: FloatArray | None = None
+        self._gust_sens_age = 0
         self.gust_var = turbulence.sigma_w_mps**2
         """Estimated vertical gust variance sigma_w^2 [m^2/s^2]. The running estimate may
         dip below zero in calm air (so that it averages to the truth); Q uses max(0, .)."""
@@ -145,20 +150,14 @@ class FilterRunner:
             return
         from gcs_estimator.filters import fast
 
-        _, H = fast.model_h(self.model, self.belief.x, u)
-        G_all = dt * (H[:, : eq.N_STATE] ** 2 @ self.q_gust_unit)
-        num = 0.0
-        den = 0.0
-        for c in range(eq.N_OBS):
-            e = float(out.innovation[c])
-            sd = float(out.innovation_sigma[c])
-            if not (math.isfinite(e) and sd > 0.0):
-                continue
-            S = sd * sd
-            r2 = min(e * e, 25.0 * S)
-            G = float(G_all[c])
-            num += G * (r2 - S) / (2.0 * S * S)
-            den += G * G / (2.0 * S * S)
+        # The channel sensitivities change with the flight state slowly; refreshed every
+        # GUST_SENSITIVITY_EVERY steps (they only weigh the channels).
+        if self._gust_sens is None or self._gust_sens_age >= GUST_SENSITIVITY_EVERY:
+            _, H = fast.model_h(self.model, self.belief.x, u)
+            self._gust_sens = H[:, : eq.N_STATE] ** 2 @ self.q_gust_unit
+            self._gust_sens_age = 0
+        self._gust_sens_age += 1
+        num, den = fast.gust_match(out.innovation, out.innovation_sigma, dt * self._gust_sens)
         if den > 0.0:
             # Batch form over the pass (for the next restart): each step estimates the
             # level as the level it used plus its correction.
@@ -180,6 +179,7 @@ class FilterRunner:
         self.gust_var = tuning.turbulence.sigma_w_mps**2
         self._gust_num = 0.0
         self._gust_den = 0.0
+        self._gust_sens = None
 
     def rebase(self, t: float, y: FloatArray) -> None:
         """New time base (the vehicle clock reset): keep what is known of the coefficients,

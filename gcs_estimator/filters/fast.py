@@ -280,3 +280,22 @@ def model_h(model: Model, x: FloatArray, u: FloatArray) -> tuple[FloatArray, Flo
     """Compiled model.h: observations and Jacobian."""
     out: tuple[FloatArray, FloatArray] = _observe(x, u, model.k, model.axis, model.regressor)
     return out
+
+
+@njit(cache=True)
+def gust_match(
+    e: FloatArray, s: FloatArray, G: FloatArray
+) -> tuple[float, float]:  # pragma: no cover
+    """Weighted covariance-matching sums of one step (see FilterRunner.adapt_turbulence):
+    num = sum w (min(e^2, 25 S) - S), den = sum w G, w = G / (2 S^2), over the channels
+    whose innovation e and its sigma s are present."""
+    num = 0.0
+    den = 0.0
+    for c in range(e.shape[0]):
+        S = s[c] * s[c]
+        if not (math.isfinite(e[c]) and S > 0.0):  # also catches NaN sigma
+            continue
+        w = G[c] / (2.0 * S * S)
+        num += w * (min(e[c] * e[c], 25.0 * S) - S)
+        den += w * G[c]
+    return num, den
