@@ -15,7 +15,7 @@ from numba import njit
 from scipy.linalg import solve_continuous_lyapunov
 
 from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
-from gcs_estimator.model.aircraft import Trim, build_model, trim
+from gcs_estimator.model.aircraft import Model, Trim, build_model, trim
 from gcs_estimator.model.equations import (
     N_OBS,
     N_STATE,
@@ -137,7 +137,8 @@ def simulate(
     dt = 1.0 / (sim.sample_rate_hz * per_sample)
     n_samples = int(math.floor(sim.manoeuvre.duration_s * sim.sample_rate_hz + 1e-9)) + 1
 
-    x0 = model.augment(trimmed.state, truth)
+    de0, power0 = servo_commands(config, trimmed.inputs.reshape(1, 2))[0]
+    x0 = model.augment(_steady_state(model, truth, trimmed.state, de0, power0), truth)
     sensors = sim.sensors
     noise_sigma = np.array(sensors.noise_sigma)
     bias = np.array(sensors.bias)
@@ -148,7 +149,6 @@ def simulate(
     # Inputs are piecewise constant; evaluating them mid-step makes a switch on a step
     # boundary act from that step on, and at a sample time from that sample on.
     t_mid = (np.arange(n_steps) + 0.5) * dt
-    de0, power0 = trimmed.inputs
     u_steps = np.column_stack(
         [
             de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_mid]),
@@ -161,6 +161,8 @@ def simulate(
             np.full(n_samples, power0),
         ]
     )
+    u_steps = servo_commands(config, u_steps)
+    u_samples = servo_commands(config, u_samples)
     gust = np.empty((n_steps + 1, 2))
     for i in range(n_steps + 1):
         gust[i] = gusts.gust()
@@ -182,6 +184,40 @@ def simulate(
         trim=trimmed,
         clean=clean_out,
     )
+
+
+def _steady_state(
+    model: Model, truth: FloatArray, guess: FloatArray, de: float, power: float
+) -> FloatArray:
+    """Steady straight flight (q = 0) at the given servo commands: V, alpha and theta
+    such that Vdot = alphadot = qdot = 0 (a climb or descent of a few hundredths of a
+    degree, where the rounded commands do not hold level flight at V0)."""
+    from scipy.optimize import least_squares
+
+    def residual(z: FloatArray) -> FloatArray:
+        x = model.augment(np.array([z[0], z[1], z[2], 0.0]), truth)
+        fx, _ = model.f(x, np.array([de, power]))
+        return np.array([fx[0], fx[1] * z[0], fx[3]])
+
+    sol = least_squares(residual, guess[:3], xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return np.array([sol.x[0], sol.x[1], sol.x[2], 0.0])
+
+
+def servo_commands(config: AircraftConfig, inputs: FloatArray) -> FloatArray:
+    """The inputs as the servos receive them: whole microseconds of PWM (the link's
+    mapping), which is also what SERVO_OUTPUT_RAW reports. Flying the unrounded values
+    while reporting rounded ones would give the station a thrust 0.25 N off at trim
+    (throttle 0.316), a bias the filters cannot know of."""
+    link = config.link
+    out = np.array(inputs, float)
+    k = link.elevator_us_per_rad
+    out[:, 0] = (
+        np.round(link.elevator_pwm_center_us + out[:, 0] * k) - link.elevator_pwm_center_us
+    ) / k
+    if config.propulsion.model == "propeller":
+        lo, hi = link.throttle_pwm_min_us, link.throttle_pwm_max_us
+        out[:, 1] = (np.round(lo + out[:, 1] * (hi - lo)) - lo) / (hi - lo)
+    return out
 
 
 @njit(cache=True)

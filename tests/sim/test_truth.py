@@ -97,3 +97,17 @@ def test_seeded_and_reproducible(noc_config: AircraftConfig) -> None:
     c = simulate(noc_config, seed=12)
     np.testing.assert_array_equal(a.measurements, b.measurements)
     assert not np.array_equal(a.measurements, c.measurements)
+
+
+def test_servo_commands_are_whole_microseconds(noc_config: AircraftConfig) -> None:
+    """The aircraft flies what its servos get, whole microseconds of PWM, so the inputs
+    the station decodes from SERVO_OUTPUT_RAW are exactly the ones flown."""
+    flight = simulate(noc_config, seed=1)
+    link = noc_config.link
+    elev_us = link.elevator_pwm_center_us + flight.inputs[:, 0] * link.elevator_us_per_rad
+    span = link.throttle_pwm_max_us - link.throttle_pwm_min_us
+    thr_us = link.throttle_pwm_min_us + flight.inputs[:, 1] * span
+    np.testing.assert_allclose(elev_us, np.round(elev_us), atol=1e-9)
+    np.testing.assert_allclose(thr_us, np.round(thr_us), atol=1e-9)
+    # The manoeuvre still reaches its amplitude (3 deg = 50 us, not rounded away).
+    assert np.ptp(elev_us) >= 2 * 50.0 - 1.0
