@@ -21,6 +21,7 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.equations import FloatArray
 
 Backend = Literal["fast", "reference"]
+FilterKind = Literal["EKF", "IEKF"]
 
 GUST_SENSITIVITY_EVERY = 25
 """Steps between refreshes of the channels' sensitivity to the gust level."""
@@ -28,7 +29,6 @@ GUST_SENSITIVITY_EVERY = 25
 GUST_VAR_FLOOR = -0.1
 """Lowest running gust variance [m^2/s^2]: in calm air the estimate wanders around zero;
 the floor keeps it from drifting so far below that real turbulence takes long to show."""
-FilterKind = Literal["EKF", "IEKF"]
 
 
 @dataclass(frozen=True)

@@ -166,9 +166,9 @@ def _step(
     sigma = np.sqrt(np.diag(Pp))
     x_i = xp.copy()
     K = np.zeros((n, m))
-    K1 = K
+    K1 = K  # the first (EKF) iteration's gain, Jacobian and H P, for the gate
     Hu1 = Hu
-    HuP1 = Hu @ Pp
+    HuP1 = np.empty((m, n))
     done = 0
     for it in range(iterations):
         if it > 0:
