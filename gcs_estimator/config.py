@@ -172,6 +172,10 @@ class TurbulenceNoise:
     """Theta spectral density per unit sigma_w^2 [rad^2/s per (m/s)^2]."""
     adapt_time_s: float
     """Averaging time of the online estimate [s]."""
+    detection_sigma: float
+    """The estimated level enters the process noise only while it stands at least this
+    many of its standard errors above zero (0: whenever it is positive). Below that the
+    air is taken as calm: noise the data cannot tell from zero would only discount them."""
 
     def unit(self, airspeed_mps: float) -> tuple[float, float, float, float]:
         """Spectral densities of V, alpha, theta, q per unit sigma_w^2."""
@@ -787,7 +791,8 @@ def _parse_filter(s: _Section, names: tuple[str, ...]) -> FilterTuning:
         length_u_m=tn.number("length_u_m", 200.0, positive=True),
         length_w_m=tn.number("length_w_m", 50.0, positive=True),
         theta_density=tn.number("theta_density", 1.7e-6, nonnegative=True),
-        adapt_time_s=tn.number("adapt_time_s", 10.0, positive=True),
+        adapt_time_s=tn.number("adapt_time_s", 2.0, positive=True),
+        detection_sigma=tn.number("detection_sigma", 3.0, nonnegative=True),
     )
     tn.check_unknown()
 

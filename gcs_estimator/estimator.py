@@ -88,14 +88,38 @@ class FilterRunner:
         self._gust_den = 0.0
         self._gust_sens: FloatArray | None = None
         self._gust_sens_age = 0
+        self._gust_info = 0.0
+        self._gust_gain = 0.0
         self.gust_var = turbulence.sigma_w_mps**2
         """Estimated vertical gust variance sigma_w^2 [m^2/s^2]. The running estimate may
-        dip below zero in calm air (so that it averages to the truth); Q uses max(0, .)."""
+        dip below zero in calm air (so that it averages to the truth); Q uses
+        gust_var_used."""
+
+    @property
+    def gust_var_se(self) -> float:
+        """Standard error of the running gust variance [m^2/s^2]: an exponential average
+        with gain g of one-step estimates of variance 1/I (I their Fisher information)
+        has variance g / (2 - g) / I. Infinite before any step of the pass."""
+        if self._gust_info <= 0.0:
+            return math.inf
+        g = self._gust_gain
+        return math.sqrt(g / (2.0 - g) / self._gust_info)
+
+    @property
+    def gust_var_used(self) -> float:
+        """Gust variance in the process noise: the running estimate where it is
+        detected (config detection_sigma), else 0. A level not yet measured in this pass
+        (the configured one, or the one a restart carries over) is used as it is."""
+        level = max(self.gust_var, 0.0)
+        se = self.gust_var_se
+        if math.isinf(se) or level >= self.config.filter.turbulence.detection_sigma * se:
+            return level
+        return 0.0
 
     @property
     def gust_sigma(self) -> float:
         """Vertical gust intensity the process noise currently assumes [m/s]."""
-        return math.sqrt(max(self.gust_var, 0.0))
+        return math.sqrt(self.gust_var_used)
 
     def initial_belief(self, y: FloatArray) -> Belief:
         """States from the first measurement where present, coefficients from the config."""
@@ -118,7 +142,7 @@ class FilterRunner:
         else:
             q_coef = self.q_coef_final + (self.q_coef_initial - self.q_coef_final) * decay
             Q = np.diag(np.concatenate([self.q_state, q_coef]))
-        gust = max(self.gust_var, 0.0)
+        gust = self.gust_var_used
         if gust > 0.0:
             Q = Q.copy()
             states = np.arange(eq.N_STATE)
@@ -159,12 +183,18 @@ class FilterRunner:
         self._gust_sens_age += 1
         num, den = fast.gust_match(out.innovation, out.innovation_sigma, dt * self._gust_sens)
         if den > 0.0:
-            # Batch form over the pass (for the next restart): each step estimates the
-            # level as the level it used plus its correction.
-            self._gust_num += num + den * self.gust_var
+            # Each step estimates the level as the level its process noise used plus its
+            # correction: averaged over the pass (for the next restart) and running.
+            estimate = self.gust_var_used + num / den
+            self._gust_num += den * estimate
             self._gust_den += den
             gain = min(1.0, dt / turbulence.adapt_time_s)
-            self.gust_var = max(self.gust_var + gain * num / den, GUST_VAR_FLOOR)
+            self._gust_gain = gain
+            if self._gust_info > 0.0:
+                self._gust_info += gain * (den - self._gust_info)
+            else:
+                self._gust_info = den
+            self.gust_var = max(self.gust_var + gain * (estimate - self.gust_var), GUST_VAR_FLOOR)
 
     def reset(self, beta0: FloatArray | None = None, sigma0: FloatArray | None = None) -> None:
         """Forget the belief; start again from N(beta0, sigma0^2) (default: configured)."""
@@ -180,6 +210,7 @@ class FilterRunner:
         self._gust_num = 0.0
         self._gust_den = 0.0
         self._gust_sens = None
+        self._gust_info = 0.0
 
     def rebase(self, t: float, y: FloatArray) -> None:
         """New time base (the vehicle clock reset): keep what is known of the coefficients,

@@ -63,6 +63,11 @@ ROOT = Path(__file__).resolve().parent.parent
             r"\[filter\] relinearise_sigma: must be a number >= 0, got -1",
         ),
         (
+            "detection_sigma = 3.0",
+            "detection_sigma = -3.0",
+            r"\[filter.turbulence\] detection_sigma: must be a number >= 0, got -3.0",
+        ),
+        (
             "display_rate_hz = 25.0",
             "display_rate_hz = 0",
             r"\[view\] display_rate_hz: must be a number > 0, got 0",

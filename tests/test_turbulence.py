@@ -63,3 +63,40 @@ def test_without_turbulence_noise_the_filters_are_overconfident_in_turbulence(
     est, truth = _fly(fixed, 0.772, seed=3)
     beta, sigma = est.current()["IEKF"]
     assert np.max(np.abs(beta - truth) / sigma) > 10.0
+
+
+def _final_pass_levels(config: AircraftConfig, sigma_w: float, seed: int) -> np.ndarray:
+    """The IEKF's running gust variance and the level its process noise used, on every
+    frame after the last restart: [[estimate, used], ...]."""
+    turbulence = Turbulence(sigma_u_mps=1.5 * sigma_w, sigma_w_mps=sigma_w)
+    flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
+    flight = simulate(flown, seed=seed)
+    est = Estimator(flown, keep_history=False)
+    runner = est.filters["IEKF"]
+    rows = []
+    for i in range(len(flight.t_s)):
+        est.step(float(flight.t_s[i]), flight.inputs[i], flight.measurements[i])
+        if not est.restarts_pending:
+            rows.append((runner.gust_var, runner.gust_var_used))
+    return np.array(rows)
+
+
+def test_calm_air_noise_is_not_applied_until_detected(noc_config: AircraftConfig) -> None:
+    """In calm air the running estimate wanders around zero; the detection test keeps
+    those excursions out of the process noise. Without it they go in."""
+    levels = _final_pass_levels(noc_config, 0.0, seed=2)
+    assert np.mean(levels[:, 0] > 0.0) > 0.2  # the estimate does wander above zero
+    assert np.mean(levels[:, 1] > 0.0) < 0.05
+
+    tuning = noc_config.filter
+    undetected = replace(
+        noc_config,
+        filter=replace(tuning, turbulence=replace(tuning.turbulence, detection_sigma=0.0)),
+    )
+    assert np.mean(_final_pass_levels(undetected, 0.0, seed=2)[:, 1] > 0.0) > 0.2
+
+
+def test_light_turbulence_is_detected_throughout(noc_config: AircraftConfig) -> None:
+    levels = _final_pass_levels(noc_config, 0.772, seed=2)
+    assert np.all(levels[:, 1] > 0.0)
+    np.testing.assert_array_equal(levels[:, 1], levels[:, 0])  # applied as estimated
