@@ -82,6 +82,7 @@ class FilterRunner:
         self.q_coef_final = np.array(tuning.coefficient_process_noise)
         self.q_coef_initial = np.array(tuning.coefficient_process_noise_initial)
         self._q_settled: FloatArray | None = None
+        self._q_coef_constant = bool(np.array_equal(self.q_coef_initial, self.q_coef_final))
         turbulence = tuning.turbulence
         self.q_gust_unit = np.array(turbulence.unit(float(self.model.k[eq.V0])))
         self._gust_num = 0.0
@@ -90,29 +91,24 @@ class FilterRunner:
         self._gust_sens_age = 0
         self._gust_info = 0.0
         self._gust_gain = 0.0
+        self._detect2 = turbulence.detection_sigma**2
         self.gust_var = turbulence.sigma_w_mps**2
         """Estimated vertical gust variance sigma_w^2 [m^2/s^2]. The running estimate may
         dip below zero in calm air (so that it averages to the truth); Q uses
         gust_var_used."""
 
     @property
-    def gust_var_se(self) -> float:
-        """Standard error of the running gust variance [m^2/s^2]: an exponential average
-        with gain g of one-step estimates of variance 1/I (I their Fisher information)
-        has variance g / (2 - g) / I. Infinite before any step of the pass."""
-        if self._gust_info <= 0.0:
-            return math.inf
-        g = self._gust_gain
-        return math.sqrt(g / (2.0 - g) / self._gust_info)
-
-    @property
     def gust_var_used(self) -> float:
-        """Gust variance in the process noise: the running estimate where it is
-        detected (config detection_sigma), else 0. A level not yet measured in this pass
+        """Gust variance in the process noise: the running estimate where it stands at
+        least detection_sigma of its standard errors above zero, else 0. An exponential
+        average with gain g of one-step estimates of variance 1/I (I their Fisher
+        information) has variance g / (2 - g) / I. A level not yet measured in this pass
         (the configured one, or the one a restart carries over) is used as it is."""
-        level = max(self.gust_var, 0.0)
-        se = self.gust_var_se
-        if math.isinf(se) or level >= self.config.filter.turbulence.detection_sigma * se:
+        level = self.gust_var
+        if level <= 0.0:
+            return 0.0
+        info, g = self._gust_info, self._gust_gain
+        if info <= 0.0 or level * level * info * (2.0 - g) >= self._detect2 * g:
             return level
         return 0.0
 
@@ -134,7 +130,7 @@ class FilterRunner:
     def process_noise(self, t: float) -> FloatArray:
         """Q at time t: coefficient noise decays from its initial to its final density."""
         decay = math.exp(-(t - self.t_start) / self.config.filter.coefficient_noise_decay_s)
-        if decay < 1e-12 or np.array_equal(self.q_coef_initial, self.q_coef_final):
+        if self._q_coef_constant or decay < 1e-12:
             # Settled: the same matrix every step, built once.
             if self._q_settled is None:
                 self._q_settled = np.diag(np.concatenate([self.q_state, self.q_coef_final]))
@@ -313,7 +309,7 @@ class FilterRunner:
         self.u_last = np.array(u, float)
         out = StepOutput(
             x=self.belief.x,  # a fresh array every step: the filter never mutates it
-            sigma=np.sqrt(np.diag(self.belief.P)),
+            sigma=np.sqrt(variances if healthy else np.diag(self.belief.P)),
             nis=float(nis),
             n_used=int(n_used),
             iterations=int(iters),
