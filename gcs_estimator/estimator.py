@@ -345,6 +345,7 @@ class History:
     n_used: list[int] = field(default_factory=list)
     innovation: list[FloatArray] = field(default_factory=list)
     innovation_sigma: list[FloatArray] = field(default_factory=list)
+    gust_sigma: list[float] = field(default_factory=list)
     u: list[FloatArray] = field(default_factory=list)
     """The frame's inputs [2]."""
     y: list[FloatArray] = field(default_factory=list)
@@ -360,6 +361,7 @@ class History:
         self.n_used.append(out.n_used)
         self.innovation.append(out.innovation)
         self.innovation_sigma.append(out.innovation_sigma)
+        self.gust_sigma.append(out.gust_sigma)
 
     def replace_last(self, out: StepOutput) -> None:
         """The frame's output changed (a restart re-ran up to it): same frame, new output."""
@@ -374,6 +376,7 @@ class History:
             self.n_used,
             self.innovation,
             self.innovation_sigma,
+            self.gust_sigma,
         ):
             seq.pop()
         self.append(t, out, u, y)
@@ -393,6 +396,8 @@ class Track:
     n_used: FloatArray
     innovation: FloatArray
     innovation_sigma: FloatArray
+    gust_sigma: FloatArray
+    """Gust intensity the process noise assumed per frame [N], m/s."""
     u: FloatArray
     """Inputs per frame [N x 2]."""
     y: FloatArray
@@ -409,6 +414,7 @@ class Track:
             n_used=np.array(h.n_used, float),
             innovation=np.array(h.innovation, float).reshape(-1, eq.N_OBS),
             innovation_sigma=np.array(h.innovation_sigma, float).reshape(-1, eq.N_OBS),
+            gust_sigma=np.array(h.gust_sigma, float),
             u=np.array(h.u, float).reshape(-1, 2),
             y=np.array(h.y, float).reshape(-1, eq.N_OBS),
         )

@@ -10,6 +10,8 @@ Entity paths (documented in the README; tests read them back):
     /vehicle/{id}/inputs/elevator          Scalars [elevator deg]
     /vehicle/{id}/inputs/{throttle|thrust} Scalars [throttle 0..1 or thrust N]
     /vehicle/{id}/diagnostics/nis          Scalars [EKF, IEKF, 95 % low, 95 % high]
+    /vehicle/{id}/diagnostics/turbulence   Scalars [EKF, IEKF]: the gust intensity
+        sigma_w [m/s] each filter's process noise assumes (0: calm air)
     /vehicle/{id}/diagnostics/innovations/{EKF|IEKF}
         Scalars, one per observation channel: innovation / its predicted sigma
         (NaN where the channel was missing), with ±2 guide lines
@@ -76,6 +78,10 @@ def nis_path(system_id: int) -> str:
     return f"{vehicle_root(system_id)}/diagnostics/nis"
 
 
+def turbulence_path(system_id: int) -> str:
+    return f"{vehicle_root(system_id)}/diagnostics/turbulence"
+
+
 def innovation_path(system_id: int, kind: str) -> str:
     return f"{vehicle_root(system_id)}/diagnostics/innovations/{kind}"
 
@@ -135,6 +141,8 @@ NIS_STYLE = _style(
     ("95 % low", TRUTH_COLOR, 1.0),
     ("95 % high", TRUTH_COLOR, 1.0),
 )
+
+TURBULENCE_STYLE = _style(("EKF", EKF_COLOR, 1.0), ("IEKF", IEKF_COLOR, 1.0))
 
 
 def innovation_style() -> SeriesStyle:
@@ -210,6 +218,7 @@ def build_blueprint(
         )
         diagnostics = rrb.Grid(
             rrb.TimeSeriesView(origin=nis_path(sid), name="NIS"),
+            rrb.TimeSeriesView(origin=turbulence_path(sid), name="turbulence σ_w [m/s]"),
             rrb.TimeSeriesView(origin=innovation_path(sid, "EKF"), name="EKF innovations / σ"),
             rrb.TimeSeriesView(origin=innovation_path(sid, "IEKF"), name="IEKF innovations / σ"),
             rrb.TimeSeriesView(origin="/link", name="link"),

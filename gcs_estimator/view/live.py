@@ -148,6 +148,7 @@ class RerunView:
             for s, unit in zip(STATE_NAMES, lay.STATE_UNITS, strict=True)
         ]
         ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
+        ops.append(Style(lay.turbulence_path(system_id), lay.TURBULENCE_STYLE))
         ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
         truth = None if self.truth is None else tuple(float(v) for v in self.truth)
         ops.append(Layout(tuple(sorted(self.rows)), self.names, self.power_input, truth))
@@ -224,6 +225,8 @@ class RerunView:
         m = np.array([o.n_used for o in outs["IEKF"]], int)
         nis = np.column_stack([np.array([o.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]])
         self._send(Columns(lay.nis_path(sid), times, nis))
+        gust = np.column_stack([np.array([o.gust_sigma for o in outs[k]]) for k in KINDS])
+        self._send(Columns(lay.turbulence_path(sid), times, gust))
         for k in KINDS:
             e = np.array([o.innovation for o in outs[k]])
             sig = np.array([o.innovation_sigma for o in outs[k]])

@@ -127,6 +127,10 @@ def test_display_series_are_decimated_samples_of_the_same_outputs(
     used = tr["IEKF"].n_used[idx]
     np.testing.assert_array_equal(np.isfinite(nis[:, 2]), used > 0)  # no update, no bound
     assert np.all(nis[used > 0, 2] < nis[used > 0, 3])  # chi-square 95 % bounds
+    _, gust = read_scalars(path, lay.turbulence_path(1))
+    np.testing.assert_array_equal(gust[:, 0], tr["EKF"].gust_sigma[idx])
+    np.testing.assert_array_equal(gust[:, 1], tr["IEKF"].gust_sigma[idx])
+    assert np.all(gust >= 0.0)
     t, el = read_scalars(path, lay.input_path(1, "elevator"))
     np.testing.assert_allclose(el[:, 0], np.degrees(tr["EKF"].u[idx, 0]))
     _, z = read_scalars(path, lay.innovation_path(1, "IEKF"))
