@@ -8,10 +8,10 @@ The observation equations are linear in the coefficients once the states are mea
     CL = C_X*sin(alpha) - C_Z*cos(alpha),  CD = -C_X*cos(alpha) - C_Z*sin(alpha)
 
 and each of CD, CL, Cm is a sum of coefficients times regressors. Solving that gives a
-linearisation point for the filters with no initial guess at all. Its estimates are biased
-when alpha is noisy (errors in variables), so they serve only as a starting point: the
-filters re-run the data from the start with their original, wide initial covariance.
-Where qdot is not measured it is differentiated from q.
+linearisation point for the filters with no initial guess at all. It serves only as a
+starting point: the filters re-run the data from the start with its sigma widened tenfold
+(never wider than the configured prior). Where qdot is not measured it is differentiated
+from q.
 
 Noise in the alpha regressor biases the alpha coefficients towards zero (errors in
 variables): with a 0.3 deg vane and the excursions of the first 5 s of the default
