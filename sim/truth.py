@@ -112,6 +112,20 @@ class _GustModel:
         return np.asarray(self.C @ self.z)
 
 
+def perturbed(config: AircraftConfig, seed: int, spread: float) -> AircraftConfig:
+    """The config with its true coefficients moved by spread/2 to spread of their value,
+    each up or down at random (seeded by seed): an aircraft that is not the paper's, for
+    showing that nothing is tuned to the paper's values. spread <= 0: unchanged."""
+    if config.truth is None:
+        raise ValueError(f"{config.source}: [truth] is needed to perturb it")
+    if spread <= 0.0:
+        return config
+    rng = np.random.default_rng(10_000 + seed)
+    n = len(config.truth)
+    factors = 1.0 + spread * rng.choice([-1.0, 1.0], size=n) * rng.uniform(0.5, 1.0, size=n)
+    return config.with_truth(tuple(float(v) for v in np.array(config.truth) * factors))
+
+
 def simulate(
     config: AircraftConfig,
     seed: int | None = None,
