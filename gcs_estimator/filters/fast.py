@@ -1,8 +1,9 @@
 """Compiled filter step for the aircraft model: the same maths as filters.hybrid, fused.
 
-One call predicts (classical Runge-Kutta of x and P) and runs the (iterated) measurement
-update, exploiting the structure of the augmented model: the coefficient rows of F are
-zero, so F P costs 4 x n x n instead of n^3. tests/filters/test_fast.py checks it against
+One call predicts (classical Runge-Kutta of x and of the transition matrix of P) and runs
+the (iterated) measurement update, exploiting the structure of the augmented model: the
+coefficient rows of F are zero, so the transition matrix differs from I in 4 rows and
+Phi P Phi^T costs 4 x n x n instead of n^3. tests/filters/test_fast.py checks it against
 the numpy reference path step by step.
 """
 
@@ -20,14 +21,20 @@ PSD_JITTER = 1e-12  # same meaning as filters.hybrid.PSD_JITTER
 
 
 @njit(cache=True)
-def _pdot(F: FloatArray, P: FloatArray, Q: FloatArray) -> FloatArray:  # pragma: no cover
-    n = P.shape[0]
-    FP = F[:N_STATE] @ P  # rows >= N_STATE of F are zero: coefficients have no dynamics
-    out = Q.copy()
+def _congruence(M: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
+    """(I + E) M (I + E)^T for symmetric M, where E is zero but for its first N_STATE
+    rows, D: M + E M + M E^T + E M E^T at 4 x n x n instead of n^3."""
+    DM = D @ M
+    out = M.copy()
+    n = M.shape[0]
     for i in range(N_STATE):
         for j in range(n):
-            out[i, j] += FP[i, j]
-            out[j, i] += FP[i, j]
+            out[i, j] += DM[i, j]
+            out[j, i] += DM[i, j]
+    DMD = DM @ np.ascontiguousarray(D.T)
+    for i in range(N_STATE):
+        for j in range(N_STATE):
+            out[i, j] += DMD[i, j]
     return out
 
 
@@ -43,24 +50,28 @@ def _propagate(
     axis: IntArray,
     regressor: IntArray,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    """hybrid.propagate for the aircraft: rows >= N_STATE of F are zero (coefficients
+    have no dynamics), so the transition matrix differs from I in its first N_STATE
+    rows only, and each Runge-Kutta stage of it is N_STATE x n."""
     if dt <= 0.0:
         return x.copy(), P.copy()
     steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
     h = dt / steps
     for _ in range(steps):
         f1, F1 = dynamics(x, u, k, axis, regressor)
-        P1 = _pdot(F1, P, Q)
-        x2 = x + 0.5 * h * f1
-        f2, F2 = dynamics(x2, u, k, axis, regressor)
-        P2 = _pdot(F2, P + 0.5 * h * P1, Q)
-        x3 = x + 0.5 * h * f2
-        f3, F3 = dynamics(x3, u, k, axis, regressor)
-        P3 = _pdot(F3, P + 0.5 * h * P2, Q)
-        x4 = x + h * f3
-        f4, F4 = dynamics(x4, u, k, axis, regressor)
-        P4 = _pdot(F4, P + h * P3, Q)
+        f2, F2 = dynamics(x + 0.5 * h * f1, u, k, axis, regressor)
+        f3, F3 = dynamics(x + 0.5 * h * f2, u, k, axis, regressor)
+        f4, F4 = dynamics(x + h * f3, u, k, axis, regressor)
         x = x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4)
-        P = P + h / 6.0 * (P1 + 2.0 * P2 + 2.0 * P3 + P4)
+        # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :N] D.
+        K1 = np.ascontiguousarray(F1[:N_STATE])
+        K2 = F2[:N_STATE] + 0.5 * h * (np.ascontiguousarray(F2[:N_STATE, :N_STATE]) @ K1)
+        K3 = F3[:N_STATE] + 0.5 * h * (np.ascontiguousarray(F3[:N_STATE, :N_STATE]) @ K2)
+        K4 = F4[:N_STATE] + h * (np.ascontiguousarray(F4[:N_STATE, :N_STATE]) @ K3)
+        D = h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
+        D_m = 0.25 * h * (K1 + K2)
+        Qd = h / 6.0 * (Q + 4.0 * _congruence(Q, D_m) + _congruence(Q, D))
+        P = _congruence(P, D) + Qd
     return x, 0.5 * (P + P.T)
 
 

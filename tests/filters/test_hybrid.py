@@ -66,6 +66,26 @@ def test_equals_exact_kalman_filter_on_linear_model(iterations: int, seed: int) 
     np.testing.assert_allclose(belief.P, P, rtol=EXACT_RTOL, atol=1e-12)
 
 
+def test_a_coarse_step_on_stiff_non_normal_dynamics_keeps_p_positive_definite() -> None:
+    """The aircraft's short period and pitch integrator: alpha drives q at 165 rad/s^2
+    per radian, q drives alpha and theta at 1. From a tight, correlated theta (as after
+    many updates) under strong alpha noise (as in turbulence), one 0.02 s Runge-Kutta
+    step of P' = F P + P F^T + Q itself gives theta a variance 400 times too small and P
+    a negative eigenvalue (measured). The transition-matrix form stays positive definite
+    and close to the exact discretisation."""
+    A = np.array([[-4.5, 0.0, 1.0], [0.0, 0.0, 1.0], [-165.0, 0.0, -10.8]])
+    sigma = np.array([2.5e-4, 1.2e-6, 5.3e-4])
+    corr = np.array([[1.0, 0.75, 0.88], [0.75, 1.0, 0.43], [0.88, 0.43, 1.0]])
+    P0 = corr * np.outer(sigma, sigma)
+    Qc = np.diag([7e-3, 1e-9, 4e-6])
+    Phi, Qd = exact_discretisation(A, Qc, 0.02)
+    exact = Phi @ P0 @ Phi.T + Qd
+    P = propagate(lambda z: (A @ z, A), Belief(np.zeros(3), P0), Qc, 0.02, max_step=0.02).P
+    assert np.linalg.eigvalsh(P).min() > 0.0
+    np.testing.assert_allclose(np.diag(P), np.diag(exact), rtol=0.1)
+    assert np.abs(P - exact).max() < 1e-3 * np.abs(exact).max()
+
+
 def test_iekf_with_one_iteration_is_the_ekf() -> None:
     def h(x: FloatArray) -> tuple[FloatArray, FloatArray]:
         return np.array([np.sin(x[0]) * x[1], x[0] ** 2]), np.array(
