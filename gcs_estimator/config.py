@@ -13,7 +13,14 @@ import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
+Num = TypeVar("Num", float, "NDArray[np.float64]")
+"""A scalar or an array of them: the link's PWM mapping works on either."""
 
 REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0")
 """Regressors a coefficient may have, in kernel order (see model.equations)."""
@@ -265,6 +272,27 @@ class LinkConfig:
 
     def rate(self, message: str) -> float:
         return dict(self.rates_hz).get(message, 0.0)
+
+    # The PWM calibration, both ways: the vehicle encodes with it, the station decodes.
+    def elevator_pwm(self, elevator_rad: Num) -> Num:
+        """SERVO_OUTPUT_RAW microseconds of an elevator deflection [rad] (unrounded)."""
+        return self.elevator_pwm_center_us + elevator_rad * self.elevator_us_per_rad
+
+    def elevator_rad(self, pwm_us: Num) -> Num:
+        """Elevator deflection [rad] of a SERVO_OUTPUT_RAW value [us]."""
+        return (pwm_us - self.elevator_pwm_center_us) / self.elevator_us_per_rad
+
+    def throttle_pwm(self, throttle: Num) -> Num:
+        """SERVO_OUTPUT_RAW microseconds of a throttle setting in [0, 1] (unrounded)."""
+        return self.throttle_pwm_min_us + throttle * (
+            self.throttle_pwm_max_us - self.throttle_pwm_min_us
+        )
+
+    def throttle(self, pwm_us: Num) -> Num:
+        """Throttle setting of a SERVO_OUTPUT_RAW value [us]."""
+        return (pwm_us - self.throttle_pwm_min_us) / (
+            self.throttle_pwm_max_us - self.throttle_pwm_min_us
+        )
 
 
 VIEW_OUTPUTS: tuple[str, ...] = ("auto", "save", "serve", "spawn", "connect", "off")

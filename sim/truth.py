@@ -224,13 +224,9 @@ def servo_commands(config: AircraftConfig, inputs: FloatArray) -> FloatArray:
     (throttle 0.316), a bias the filters cannot know of."""
     link = config.link
     out = np.array(inputs, float)
-    k = link.elevator_us_per_rad
-    out[:, 0] = (
-        np.round(link.elevator_pwm_center_us + out[:, 0] * k) - link.elevator_pwm_center_us
-    ) / k
+    out[:, 0] = link.elevator_rad(np.round(link.elevator_pwm(out[:, 0])))
     if config.propulsion.model == "propeller":
-        lo, hi = link.throttle_pwm_min_us, link.throttle_pwm_max_us
-        out[:, 1] = (np.round(lo + out[:, 1] * (hi - lo)) - lo) / (hi - lo)
+        out[:, 1] = link.throttle(np.round(link.throttle_pwm(out[:, 1])))
     return out
 
 

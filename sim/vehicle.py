@@ -145,14 +145,9 @@ class SimulatedVehicle:
             # observation arrives.
             if "SERVO_OUTPUT_RAW" in due:
                 pwm = [0] * 16
-                pwm[link.elevator_servo - 1] = _pwm(
-                    link.elevator_pwm_center_us + de * link.elevator_us_per_rad
-                )
+                pwm[link.elevator_servo - 1] = _pwm(link.elevator_pwm(de))
                 if link.throttle_servo:
-                    pwm[link.throttle_servo - 1] = _pwm(
-                        link.throttle_pwm_min_us
-                        + power * (link.throttle_pwm_max_us - link.throttle_pwm_min_us)
-                    )
+                    pwm[link.throttle_servo - 1] = _pwm(link.throttle_pwm(power))
                 self._send(self.mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *pwm))
             if "NAMED_VALUE_FLOAT" in due:
                 if not link.throttle_servo:

@@ -74,11 +74,10 @@ def decode_message(
     elif kind == "SERVO_OUTPUT_RAW":
         t = msg.time_usec * 1e-6
         elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
-        vals = [(ELEVATOR, (elev_us - link.elevator_pwm_center_us) / link.elevator_us_per_rad)]
+        vals = [(ELEVATOR, link.elevator_rad(float(elev_us)))]
         if link.throttle_servo > 0:
             thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
-            span = link.throttle_pwm_max_us - link.throttle_pwm_min_us
-            vals.append((POWER, (thr_us - link.throttle_pwm_min_us) / span))
+            vals.append((POWER, link.throttle(float(thr_us))))
     elif kind == "NAMED_VALUE_FLOAT":
         t = msg.time_boot_ms * 1e-3
         name = (
