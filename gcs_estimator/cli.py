@@ -20,7 +20,13 @@ from gcs_estimator.config import (
     load_reference,
 )
 from gcs_estimator.estimator import Estimator
-from gcs_estimator.flightdata import FlightDataError, Recording, load_csv, load_hfb320
+from gcs_estimator.flightdata import (
+    FlightDataError,
+    Recording,
+    data_file,
+    load_csv,
+    load_hfb320,
+)
 from gcs_estimator.metrics import summarise
 from gcs_estimator.report import (
     config_truth,
@@ -171,7 +177,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
-    path = Path(args.data)
+    path = data_file(args.data)
     rec = load_csv(path) if path.suffix.lower() == ".csv" else load_hfb320(path)
     want = "thrust" if config.propulsion.model == "measured" else "throttle"
     if rec.power != want:
@@ -396,7 +402,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")
     _common(p, "configs/hfb320.toml")
-    p.add_argument("data", help="flight data: the HFB-320 ASCII record or a CSV (see README)")
+    p.add_argument(
+        "data",
+        help="flight data: the HFB-320 ASCII record or a CSV (see README), or a folder holding one",
+    )
     p.set_defaults(func=cmd_offline)
     return ap
 

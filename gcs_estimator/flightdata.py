@@ -56,6 +56,31 @@ _HFB_TIME, _HFB_ELEVATOR, _HFB_THRUST = 0, 1, 3
 _HFB_OBSERVATIONS = [4, 5, 6, 7, 8, 9, 10]
 
 
+DATA_SUFFIXES = (".asc", ".csv")
+"""Flight-data files the offline command reads: the HFB-320 ASCII record and CSV."""
+
+
+def data_file(path: str | Path) -> Path:
+    """The flight-data file at path; a folder holding exactly one .asc or .csv file stands
+    for that file (the HFB-320 folder, say). Anything else is a FlightDataError that says
+    what to give instead."""
+    p = Path(path)
+    if not p.exists():
+        raise FlightDataError(f"{p}: no such file or folder")
+    if not p.is_dir():
+        return p
+    found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in DATA_SUFFIXES)
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise FlightDataError(
+            f"{p}: a folder with no flight data in it ({' or '.join(DATA_SUFFIXES)}); "
+            "give the data file itself"
+        )
+    names = ", ".join(f.name for f in found)
+    raise FlightDataError(f"{p}: a folder with several flight-data files ({names}); give one")
+
+
 def load_hfb320(path: str | Path) -> Recording:
     """Read the HFB-320 flight-test record (Jategaonkar test case 4, hfb320_1_10.asc)."""
     try:

@@ -63,7 +63,8 @@ def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_
     np.testing.assert_array_equal(back.measurements, rec.measurements)
     np.testing.assert_array_equal(back.inputs, rec.inputs)
     assert main(["offline", str(csv_path), "--out", str(tmp_path / "a")]) == 0
-    assert main(["offline", str(hfb_data_path), "--out", str(tmp_path / "b")]) == 0
+    # The data's folder stands for its one data file (it also holds a README).
+    assert main(["offline", str(hfb_data_path.parent), "--out", str(tmp_path / "b")]) == 0
     a = json.loads((tmp_path / "a/results.json").read_text())["filters"]
     b = json.loads((tmp_path / "b/results.json").read_text())["filters"]
     assert a == b
@@ -83,3 +84,9 @@ def test_bad_inputs_give_one_clear_error(
     # A throttle record offered to an aircraft whose thrust is measured.
     assert main(["offline", str(tmp_path / "t.csv"), "--out", str(tmp_path)]) == 2
     assert "[propulsion] model" in capsys.readouterr().err
+    # A folder stands for a data file only when it holds exactly one.
+    assert main(["offline", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "several flight-data files (t.csv, x.csv); give one" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["offline", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert "no flight data in it" in capsys.readouterr().err
