@@ -85,6 +85,8 @@ class FilterRunner:
         self._q_coef_constant = bool(np.array_equal(self.q_coef_initial, self.q_coef_final))
         turbulence = tuning.turbulence
         self.q_gust_unit = np.array(turbulence.unit(float(self.model.k[eq.V0])))
+        self._gust_num = 0.0
+        self._gust_den = 0.0
         self._gust_sens: FloatArray | None = None
         self._gust_sens_age = 0
         self._gust_info = 0.0
@@ -143,6 +145,13 @@ class FilterRunner:
             Q[states, states] += gust * self.q_gust_unit
         return Q
 
+    def gust_var_of_pass(self) -> float:
+        """Covariance-matching estimate of the gust variance over every step since the
+        last reset, >= 0 (the current level if nothing was measured)."""
+        if self._gust_den <= 0.0:
+            return max(self.gust_var, 0.0)
+        return max(self._gust_num / self._gust_den, 0.0)
+
     def adapt_turbulence(self, dt: float, u: FloatArray, out: StepOutput) -> None:
         """Move the gust variance towards the level at which the innovations are as
         large as the filter predicts (covariance matching, averaged over adapt_time_s by
@@ -171,8 +180,10 @@ class FilterRunner:
         num, den = fast.gust_match(out.innovation, out.innovation_sigma, dt * self._gust_sens)
         if den > 0.0:
             # Each step estimates the level as the level its process noise used plus its
-            # correction; the running estimate averages them over adapt_time_s.
+            # correction: averaged over the pass (for the next restart) and running.
             estimate = self.gust_var_used + num / den
+            self._gust_num += den * estimate
+            self._gust_den += den
             gain = min(1.0, dt / turbulence.adapt_time_s)
             self._gust_gain = gain
             if self._gust_info > 0.0:
@@ -192,6 +203,8 @@ class FilterRunner:
         self.t_last = math.nan
         self.t_start = math.nan
         self.gust_var = tuning.turbulence.sigma_w_mps**2
+        self._gust_num = 0.0
+        self._gust_den = 0.0
         self._gust_sens = None
         self._gust_info = 0.0
 
@@ -509,16 +522,22 @@ class Estimator:
             }
         p0 = np.array(tuning.initial_coefficient_sigma)
         for kind, runner in self.filters.items():
-            # The re-run starts at the turbulence level the pass ended with (its running
-            # estimate, averaged over adapt_time_s). The zero-start pass tends to
-            # overstate it, which makes the first re-run cautious; its average over the
-            # whole pass can instead come out near calm (early innovations are smaller
-            # than the coefficients' uncertainty predicts), and a re-run that starts as
-            # calm air in real turbulence can lock onto wrong coefficients within its
-            # first steps (light turbulence, seed 24: CLa -194 %). The cost in calm air
-            # is a little caution early in the final pass (NEES 9.3-9.7 on 20 seeds
-            # instead of 9.8).
-            gust_var = max(runner.gust_var, 0.0) if tuning.turbulence.adaptive else None
+            # The first re-run starts at the turbulence level the zero-start pass ended
+            # with (its running estimate). That pass tends to overstate it, which makes
+            # the first re-run cautious. Its average over the whole pass can instead
+            # come out near calm (its early innovations are smaller than the unknown
+            # coefficients make it predict), and a re-run that takes its first steps as
+            # calm air in turbulence can lock onto wrong coefficients (light turbulence,
+            # seed 24: CLa -194 %). Later re-runs start at the average of the pass
+            # before, which started near the solution: its running estimate would still
+            # carry some of that cautious start into the final pass in calm air.
+            gust_var = None
+            if tuning.turbulence.adaptive:
+                gust_var = (
+                    max(runner.gust_var, 0.0)
+                    if self.restarts_done == 0
+                    else runner.gust_var_of_pass()
+                )
             if kind in starts:
                 beta, sigma = starts[kind]
                 # A data-derived prior, widened so that reusing the early data in it
