@@ -201,6 +201,7 @@ def report(results: list[RunResult], title: str) -> None:
 def report_reference(results: list[RunResult]) -> None:
     """The output-error fit next to the IEKF, seed by seed."""
     fits = [r for r in results if r.reference is not None]
+    refs = [r.reference for r in results if r.reference is not None]
     if not fits:
         return
     names = [c.name for c in fits[0].summaries["IEKF"].coefficients]
@@ -218,8 +219,8 @@ def report_reference(results: list[RunResult]) -> None:
     all_within = np.ones(len(fits), dtype=bool)
     for i, name in enumerate(names):
         truth = np.array([r.truth[i] for r in fits])
-        ml = np.array([r.reference[0][i] for r in fits if r.reference is not None])
-        sig = np.array([r.reference[1][i] for r in fits if r.reference is not None])
+        ml = np.array([ref[0][i] for ref in refs])
+        sig = np.array([ref[1][i] for ref in refs])
         iekf = np.array([_num(r.summaries["IEKF"].coefficients[i].estimate) for r in fits])
         errs = 100.0 * np.abs(ml - truth) / np.abs(truth)
         gap = np.abs(iekf - ml) / sig
@@ -236,18 +237,14 @@ def report_reference(results: list[RunResult]) -> None:
         f"\nML well-excited worst seed: {value:.2f} % ({name}); all seven within 5 % of truth "
         f"in {int(all_within.sum())} of {len(fits)} seeds"
     )
-    early = [r for r in fits if r.reference_early is not None]
+    early = [(r.reference_early, r.truth) for r in fits if r.reference_early is not None]
     if early:
         cells = []
         for i, name in enumerate(names):
             if name not in WELL_EXCITED:
                 continue
             errs = np.array(
-                [
-                    100.0 * abs(r.reference_early[i] - r.truth[i]) / abs(r.truth[i])
-                    for r in early
-                    if r.reference_early is not None
-                ]
+                [100.0 * abs(fit[i] - truth[i]) / abs(truth[i]) for fit, truth in early]
             )
             cells.append(
                 f"{name} {np.median(errs):.2f} / {np.max(errs):.2f} "
