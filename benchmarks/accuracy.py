@@ -22,12 +22,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from gcs_estimator.config import load_config_with
-from gcs_estimator.estimator import Estimator, FilterKind
-from gcs_estimator.metrics import FilterSummary, summarise
+from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
+from gcs_estimator.metrics import FilterSummary
 from sim.reference import output_error
 from sim.truth import perturbed, simulate
 
-KINDS: tuple[FilterKind, ...] = ("EKF", "IEKF")
+KINDS = FILTER_KINDS
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 """The coefficients the issue's accuracy targets apply to."""
 DEADLINE_S = 10.0
@@ -61,8 +61,8 @@ def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
     assert config.truth is not None
     truth = config.truth
     flight = simulate(config, seed=seed)
-    est = Estimator(config)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    filters = run.result.filters
     reference = None
     early = None
     if with_reference:
@@ -71,14 +71,14 @@ def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
         early = tuple(output_error(config, flight, until_s=DEADLINE_S).coefficients.tolist())
     return RunResult(
         seed,
-        dict(summarise(est, flight.truth)),
+        dict(run.summaries),
         truth,
         config.filter.restart_times_s,
         float(flight.t_s[-1] - flight.t_s[0]),
-        {kind: runner.gust_sigma for kind, runner in est.filters.items()},
+        {kind: f.gust_sigma for kind, f in filters.items()},
         {
-            kind: (runner.covariance_repairs, runner.failed_updates, runner.divergences)
-            for kind, runner in est.filters.items()
+            kind: (f.health.covariance_repairs, f.health.failed_updates, f.health.divergences)
+            for kind, f in filters.items()
         },
         reference,
         early,
@@ -102,12 +102,11 @@ def information_limit(path: str, overrides: list[str], seed: int) -> dict[str, f
         ),
     )
     flight = simulate(limit, seed=seed)
-    est = Estimator(limit, keep_history=False)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    _, sigma = est.current()["EKF"]
+    res = run_recording(limit, flight.t_s, flight.inputs, flight.measurements, keep_history=False)
+    sigma = res.result.filters["EKF"].sigma
     return {
         name: 100.0 * float(s) / abs(t)
-        for name, s, t in zip(est.names, sigma, config.truth, strict=True)
+        for name, s, t in zip(res.result.names, sigma, config.truth, strict=True)
     }
 
 
@@ -119,7 +118,7 @@ def report(results: list[RunResult], title: str) -> None:
         "| coefficient | "
         + " | ".join(
             f"{k} med err % | {k} worst err % | {k} within 3σ | {k} conv. to truth s (med/worst)"
-            for k in ("EKF", "IEKF")
+            for k in KINDS
         )
         + " |"
     )

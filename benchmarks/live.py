@@ -18,17 +18,41 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from gcs_estimator.config import load_config_with
-from gcs_estimator.report import final_table
-from gcs_estimator.station import Station, Stop, Vehicle, listen, open_udp
-from gcs_estimator.telemetry.sync import Frame
+from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.frames import Frame
+from gcs_estimator.session import Session, VehicleResult, warm_up
+from gcs_estimator.sources import UdpSource, open_udp
+from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.view.live import RerunView, ViewSink
 from gcs_estimator.view.outlets import LocalOutlet
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+class Latency:
+    """A session sink that times each frame from the receipt of the packet that
+    completed it to the end of every sink before it (both filters, the view)."""
+
+    def __init__(self) -> None:
+        self.complete: list[float] = []
+        self.partial: list[float] = []
+
+    def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
+        late = time.time() - frame.t_recv_s
+        (self.complete if np.all(np.isfinite(frame.y)) else self.partial).append(late)
+
+    def tick(self) -> None:
+        pass
+
+    def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,17 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     override = f"simulation.manoeuvre.duration_s={args.seconds}"
     config = load_config_with(args.config, [override])
 
-    complete: list[float] = []
-    partial: list[float] = []
-
-    def on_frame(v: Vehicle, frame: Frame) -> None:
-        late = time.time() - frame.t_recv_s
-        (complete if np.all(np.isfinite(frame.y)) else partial).append(late)
-
-    station = Station(config, on_frame=on_frame)  # compiles the kernels before binding
+    latency = Latency()
+    warm_up(config)  # compiles the kernels before binding
+    session = Session(config)
+    link = MavlinkLink(config.link)
     with tempfile.TemporaryDirectory() as tmp:
         if args.view:
-            station.attach_view([LocalOutlet("bench", save=Path(tmp) / "live.rrd")])
+            view = RerunView([LocalOutlet("bench", save=Path(tmp) / "live.rrd")], config)
+            session.add_sink(ViewSink(view, lambda: link.t_first_recv))
+        session.add_sink(latency)  # after the view: the time includes its work
         sock = open_udp("127.0.0.1", 0)
         port = sock.getsockname()[1]
         sim = subprocess.Popen(
@@ -75,23 +97,17 @@ def main(argv: list[str] | None = None) -> int:
             stderr=subprocess.DEVNULL,
         )
         start = time.time()
-        listen(
-            station, sock, Stop(), idle_exit_s=2.0, status_out=None, max_seconds=args.seconds * 3
-        )
+        source = UdpSource(sock, link, idle_exit_s=2.0, max_seconds=args.seconds * 3)
+        results = session.run(source)
         wall = time.time() - start
-        sock.close()
         sim.wait(timeout=30)
-        station.finish()
-        if station.view is not None:
-            station.view.close(
-                {sid: final_table(v.estimator) for sid, v in station.vehicles.items()}
-            )
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
-    got = sum(v.frames for v in station.vehicles.values())
-    lat = np.array(complete) * 1e3
-    h = station.health
+    got = sum(v.result.frames for v in results.values())
+    lat = np.array(latency.complete) * 1e3
+    partial = latency.partial
+    h = link.health
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
         f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s"

@@ -20,9 +20,11 @@ from pathlib import Path
 
 from gcs_estimator.config import AircraftConfig, load_config_with
 from gcs_estimator.flightdata import Recording
-from gcs_estimator.report import final_table
-from gcs_estimator.station import Station, replay
-from gcs_estimator.telemetry.mavlink import Decoder, TlogRecord, read_tlog
+from gcs_estimator.session import Session, warm_up
+from gcs_estimator.sources import TlogSource
+from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.telemetry.mavlink import Decoder, read_tlog
+from gcs_estimator.view.live import RerunView, ViewSink
 from gcs_estimator.view.outlets import LocalOutlet
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -63,16 +65,16 @@ def main(argv: list[str] | None = None) -> int:
             dec.decode(r.packet)
         t_decode = time.perf_counter() - t0
 
-        station = Station(config)  # kernels compiled here, outside the timing
+        warm_up(config)  # kernels compiled here, outside the timing
+        session = Session(config)
         t0 = time.perf_counter()
-        replay(station, records)
-        station.finish()
+        results = session.run(TlogSource([path], MavlinkLink(config.link)))
         t_all = time.perf_counter() - t0
 
         if args.view:
-            t_view, size = replay_with_view(config, records, Path(tmp) / "replay.rrd", live=False)
-            _, size_live = replay_with_view(config, records, Path(tmp) / "live.rrd", live=True)
-    frames = station.vehicles[1].frames
+            t_view, size = replay_with_view(config, path, Path(tmp) / "replay.rrd", live=False)
+            _, size_live = replay_with_view(config, path, Path(tmp) / "live.rrd", live=True)
+    frames = results[1].result.frames
     print(f"flight {seconds:.0f} s, {n} packets, {frames} frames (both filters each frame)")
     print(f"decode only : {n / t_decode:,.0f} messages/s")
     print(
@@ -94,17 +96,22 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def replay_with_view(
-    config: AircraftConfig, records: list[TlogRecord], path: Path, live: bool
+    config: AircraftConfig, tlog: Path, path: Path, live: bool
 ) -> tuple[float, int]:
     """Replay with the view saving to path; live=True flushes once per second of receive
     time, as a live session at real time does. Returns (seconds, file size)."""
-    station = Station(config)
-    clock = (lambda: station.t_last_recv) if live else time.monotonic
-    view = station.attach_view([LocalOutlet("bench", save=path)], clock=clock)
+    session = Session(config)
+    link = MavlinkLink(config.link)
+    clock = (lambda: link.t_last_recv) if live else time.monotonic
+    view = RerunView(
+        [LocalOutlet("bench", save=path)],
+        config,
+        link_source=lambda: (link.session_time(), link.health.as_dict()),
+        clock=clock,
+    )
+    session.add_sink(ViewSink(view, lambda: link.t_first_recv))
     t0 = time.perf_counter()
-    replay(station, records)
-    station.finish()
-    view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
+    session.run(TlogSource([tlog], link))
     elapsed = time.perf_counter() - t0
     return elapsed, path.stat().st_size
 

@@ -8,9 +8,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-import numpy as np
 
 from gcs_estimator.config import (
     VIEW_OUTPUTS,
@@ -19,27 +16,14 @@ from gcs_estimator.config import (
     load_config_with,
     load_reference,
 )
-from gcs_estimator.estimator import Estimator
-from gcs_estimator.flightdata import (
-    FlightDataError,
-    Recording,
-    data_file,
-    load_csv,
-    load_hfb320,
-)
-from gcs_estimator.metrics import summarise
-from gcs_estimator.report import (
-    config_truth,
-    final_table,
-    live_table,
-    markdown_table,
-    write_results,
-)
-from gcs_estimator.view.live import RerunView, open_outlets, resolve_outputs
-from gcs_estimator.view.outlets import Outlet
-
-if TYPE_CHECKING:
-    from gcs_estimator.station import Station
+from gcs_estimator.flightdata import FlightDataError, data_file, load_csv, load_hfb320
+from gcs_estimator.report import live_table
+from gcs_estimator.session import RecordingSource, Session, Source, Stop, VehicleResult, warm_up
+from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
+from gcs_estimator.sources import SourceError, TlogSource, UdpSource, open_udp
+from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.telemetry.mavlink import TlogWriter
+from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 
 DEFAULT_CONFIG = "configs/noc_uav.toml"
 
@@ -115,50 +99,59 @@ def _config(args: argparse.Namespace) -> AircraftConfig:
     return config
 
 
-def _outlets(config: AircraftConfig, args: argparse.Namespace, session: str) -> list[Outlet]:
-    """The view's outlets as chosen on the command line or in the config (may be none)."""
-    choice = resolve_outputs(config, config.view.outputs, Path(args.out) / f"{session}.rrd")
-    return open_outlets(config, choice)
-
-
-def _run_recording(
+def _view_sink(
     config: AircraftConfig,
-    rec: Recording,
-    truth: np.ndarray | None,
     args: argparse.Namespace,
-    label: str,
-    session: str,
-) -> int:
-    est = Estimator(config, backend=args.backend)
-    outlets = _outlets(config, args, session)
-    view = RerunView(outlets, config, table_source=lambda sid: live_table(est)) if outlets else None
-    start = time.perf_counter()
-    n = len(rec)
-    next_report = 0.0
-    t0 = float(rec.t_s[0]) if n else 0.0
-    for i in range(n):
-        t = float(rec.t_s[i])
-        outs = est.step(t, rec.inputs[i], rec.measurements[i])
-        if view is not None:
-            view.step(1, t - t0, t, rec.inputs[i], rec.measurements[i], outs)
-        frac = (i + 1) / n
-        if frac >= next_report and sys.stderr.isatty():
-            print(f"\r{label}: {frac * 100:5.1f} % of {n} frames", end="", file=sys.stderr)
-            next_report += 0.05
-    elapsed = time.perf_counter() - start
-    if sys.stderr.isatty():
-        print(file=sys.stderr)
-    if view is not None:
-        view.close({1: final_table(est)})
-    summaries = summarise(est, truth)
-    print(
-        f"\n{config.airframe.name}: {label}, {n} frames in {elapsed:.2f} s "
-        f"({n / max(elapsed, 1e-9):,.0f} frames/s, both filters)\n"
+    name: str,
+    session: Session,
+    link: MavlinkLink | None = None,
+) -> ViewSink | None:
+    """The live view as chosen on the command line or in the config (None: no view)."""
+    choice = resolve_outputs(config, config.view.outputs, Path(args.out) / f"{name}.rrd")
+    outlets = open_outlets(config, choice)
+    if not outlets:
+        return None
+    view = RerunView(
+        outlets,
+        config,
+        link_source=None if link is None else lambda: (link.session_time(), link.health.as_dict()),
+        table_source=lambda sid: live_table(session.estimator(sid)),
     )
-    print(markdown_table(summaries, config.truth_label))
-    paths = write_results(Path(args.out), est, truth)
-    print("results: " + ", ".join(str(p) for p in paths.values()))
+    return ViewSink(view, None if link is None else (lambda: link.t_first_recv))
+
+
+def _run(session: Session, source: Source, stop: Stop) -> int:
+    """Drive the session; a source that fails still leaves the results of what it gave."""
+    try:
+        session.run(source, stop)
+    except SourceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
+
+
+def _recording_session(
+    config: AircraftConfig, args: argparse.Namespace, source: RecordingSource, label: str, name: str
+) -> int:
+    stop = Stop().install()
+    session = Session(config, backend=args.backend)
+    view = _view_sink(config, args, name, session)
+    if view is not None:
+        session.add_sink(view)
+    if sys.stderr.isatty():
+        session.add_sink(ProgressSink(source.progress, label))
+
+    def heading(v: VehicleResult, elapsed: float) -> str:
+        n = v.result.frames
+        return (
+            f"{config.airframe.name}: {label}, {n} frames in {elapsed:.2f} s "
+            f"({n / max(elapsed, 1e-9):,.0f} frames/s, both filters)"
+        )
+
+    session.add_sink(
+        ResultsSink(Path(args.out), heading, lambda sid: "results", lambda: session.elapsed_s)
+    )
+    return _run(session, source, stop)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -169,9 +162,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise ConfigError(f"{config.source}: [truth] is needed to simulate this aircraft")
     seed = args.seed if args.seed is not None else config.simulation.seed
     flight = simulate(config, seed=seed)
-    rec = Recording(flight.t_s, flight.inputs, flight.measurements, "throttle")
-    return _run_recording(
-        config, rec, flight.truth, args, f"simulated flight, seed {seed}", f"simulate_seed{seed}"
+    source = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
+    return _recording_session(
+        config, args, source, f"simulated flight, seed {seed}", f"simulate_seed{seed}"
     )
 
 
@@ -179,58 +172,68 @@ def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
     path = data_file(args.data)
     rec = load_csv(path) if path.suffix.lower() == ".csv" else load_hfb320(path)
-    want = "thrust" if config.propulsion.model == "measured" else "throttle"
+    want = config.propulsion.input_name
     if rec.power != want:
         raise ConfigError(
             f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
             f"in the data, but {path} has {rec.power}"
         )
-    return _run_recording(
-        config, rec, config_truth(config), args, f"offline {path.name}", f"offline_{path.stem}"
-    )
+    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements)
+    return _recording_session(config, args, source, f"offline {path.name}", f"offline_{path.stem}")
 
 
-def _station(
-    config: AircraftConfig, args: argparse.Namespace, session: str, record: Path | None = None
-) -> Station:
-    """The ground station with its live view (if any) attached."""
-    from gcs_estimator.station import Station
+def _status_line(link: MavlinkLink, session: Session, elapsed_s: float) -> str:
+    h = link.health
+    parts = [
+        f"{elapsed_s:6.1f} s",
+        f"pkts {h.received}",
+        f"lost {h.lost}",
+        f"dup {h.duplicates}",
+        f"ooo {h.out_of_order}",
+        f"bad {h.corrupt}",
+    ]
+    for sid, est in session.estimators.items():
+        cur = est.snapshot().get("IEKF")
+        shown = ""
+        if cur is not None:
+            names = est.names
+            show = [n for n in ("CLa", "Cma", "Cmq", "Cmde") if n in names]
+            shown = " ".join(f"{n} {cur.coefficients[names.index(n)]:+.3g}" for n in show)
+        parts.append(f"[sys {sid}: {est.frames} frames {shown}]")
+    return " | ".join(parts)
 
-    station = Station(config, backend=args.backend, record=record)
-    outlets = _outlets(config, args, session)
-    if outlets:
-        station.attach_view(outlets)
-    return station
 
+def _link_session(
+    config: AircraftConfig,
+    args: argparse.Namespace,
+    name: str,
+    record: Path | None = None,
+    status: bool = True,
+) -> tuple[Session, MavlinkLink]:
+    """A session over a MAVLink link, with its view and result sinks (and, live, its
+    status line)."""
+    warm_up(config, args.backend)
+    session = Session(config, backend=args.backend)
+    link = MavlinkLink(config.link, recorder=TlogWriter(record) if record else None)
+    view = _view_sink(config, args, name, session, link)
+    if view is not None:
+        session.add_sink(view)
+    if status:
+        session.add_sink(StatusSink(lambda elapsed: _status_line(link, session, elapsed)))
 
-def _finish_station(station: Station, args: argparse.Namespace, elapsed: float) -> int:
-    """Results per vehicle: table on stdout, JSON/Markdown/CSV in --out."""
-    station.finish()
-    if station.view is not None:
-        station.view.close({sid: final_table(v.estimator) for sid, v in station.vehicles.items()})
-    if not station.vehicles:
-        print("no vehicle data received", file=sys.stderr)
-    link = station.link_stats()
-    for v in station.vehicles.values():
-        est = v.estimator
-        truth = config_truth(station.config)
-        print(f"\nvehicle {v.system_id}: {est.frames} frames in {elapsed:.2f} s\n")
-        print(markdown_table(summarise(est, truth), station.config.truth_label))
-        paths = write_results(
-            Path(args.out),
-            est,
-            truth,
-            extra={"link": link, "system_id": v.system_id},
-            stem=f"results_sys{v.system_id}",
+    def heading(v: VehicleResult, elapsed: float) -> str:
+        return f"vehicle {v.system_id}: {v.result.frames} frames in {elapsed:.2f} s"
+
+    session.add_sink(
+        ResultsSink(
+            Path(args.out), heading, lambda sid: f"results_sys{sid}", lambda: session.elapsed_s
         )
-        print("results: " + ", ".join(str(p) for p in paths.values()))
-    print("link: " + ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles"))
-    return 0
+    )
+    return session, link
 
 
 def cmd_listen(args: argparse.Namespace) -> int:
-    from gcs_estimator.station import Stop, listen, open_udp
-
+    stop = Stop().install()
     config = _config(args)
     host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
     if not port.isdigit():
@@ -240,71 +243,36 @@ def cmd_listen(args: argparse.Namespace) -> int:
         if args.record
         else Path(args.out) / (time.strftime("live_%Y%m%d_%H%M%S") + ".tlog")
     )
-    station = _station(config, args, record.stem, record)
+    session, link = _link_session(config, args, record.stem, record)
     sock = open_udp(host or "0.0.0.0", int(port))
-    stop = Stop()
-    stop.install()
     print(
         f"listening on udp {host or '0.0.0.0'}:{port}, recording to {record} (Ctrl-C to stop)",
         file=sys.stderr,
     )
-    start = time.time()
-    try:
-        listen(station, sock, stop, idle_exit_s=args.idle_exit, max_seconds=args.duration)
-    finally:
-        sock.close()
-    return _finish_station(station, args, time.time() - start)
+    source = UdpSource(sock, link, idle_exit_s=args.idle_exit, max_seconds=args.duration)
+    return _run(session, source, stop)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from gcs_estimator.station import Stop, replay
-    from gcs_estimator.telemetry.mavlink import TlogError, TlogStats, read_tlog
-
+    stop = Stop().install()
     config = _config(args)
-    station = _station(config, args, Path(args.tlogs[0]).stem)
-    stop = Stop()
-    stop.install()
-    start = time.time()
-    for path in args.tlogs:
-        stats = TlogStats()
-        try:
-            records = list(read_tlog(path, stats))
-        except TlogError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        except OSError as exc:
-            print(f"error: {path}: cannot read: {exc.strerror}", file=sys.stderr)
-            return 2
-        if stats.junk_bytes:
-            print(f"note: {path}: {stats.junk_bytes} garbage bytes skipped", file=sys.stderr)
-        if stats.truncated_tail:
-            print(
-                f"note: {path}: truncated at the end; the last partial record is ignored",
-                file=sys.stderr,
-            )
-        replay(
-            station,
-            records,
-            total=len(records),
-            speed=args.speed,
-            stop=stop,
-            progress_out=sys.stderr if sys.stderr.isatty() or args.progress else None,
-        )
-    elapsed = time.time() - start
-    return _finish_station(station, args, elapsed)
+    session, link = _link_session(config, args, Path(args.tlogs[0]).stem, status=False)
+    source = TlogSource(args.tlogs, link, speed=args.speed)
+    if sys.stderr.isatty() or args.progress:
+        session.add_sink(ProgressSink(source.progress, "replay"))
+    return _run(session, source, stop)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """The simulated UAV and the ground station as two processes talking UDP."""
     import subprocess
 
-    from gcs_estimator.station import Stop, listen, open_udp
-
+    stop = Stop().install()
     config = _config(args)
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     record = Path(args.out) / "demo.tlog"
-    station = _station(config, args, "demo", record)
+    session, link = _link_session(config, args, "demo", record)
     cmd = [
         sys.executable,
         "-m",
@@ -327,17 +295,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     vehicle = subprocess.Popen(cmd)
-    stop = Stop()
-    stop.install()
-    start = time.time()
     try:
-        listen(station, sock, stop, idle_exit_s=1.5)
+        return _run(session, UdpSource(sock, link, idle_exit_s=1.5), stop)
     finally:
-        sock.close()
         if vehicle.poll() is None:
             vehicle.terminate()
         vehicle.wait(timeout=10)
-    return _finish_station(station, args, time.time() - start)
 
 
 def build_parser() -> argparse.ArgumentParser:

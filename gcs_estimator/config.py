@@ -65,6 +65,11 @@ class Airframe:
     """l_x*sin(sigma_T) + l_z*cos(sigma_T) [m]: pitching moment per newton of thrust."""
 
 
+PowerInput = Literal["throttle", "thrust"]
+POWER_COLUMNS: dict[str, str] = {"throttle": "throttle", "thrust": "thrust_n"}
+"""Column name of the second input in CSV files and histories."""
+
+
 @dataclass(frozen=True)
 class Propulsion:
     """Thrust model: Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2), or measured Fe."""
@@ -73,6 +78,11 @@ class Propulsion:
     prop_area_m2: float = 0.0
     prop_coefficient: float = 0.0
     motor_constant_mps: float = 0.0
+
+    @property
+    def input_name(self) -> PowerInput:
+        """What the second input is: the throttle (propeller model) or measured thrust."""
+        return "thrust" if self.model == "measured" else "throttle"
 
 
 @dataclass(frozen=True)
@@ -91,6 +101,11 @@ class CoefficientStructure:
     @property
     def pairs(self) -> tuple[tuple[str, str], ...]:
         return tuple((axis, r) for axis in AXES for r in getattr(self, axis))
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """Axis ("CD", "CL" or "Cm") of each parameter, in state order."""
+        return tuple(axis for axis, _ in self.pairs)
 
 
 @dataclass(frozen=True)

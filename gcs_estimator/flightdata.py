@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import POWER_COLUMNS, PowerInput
 
 CSV_OBSERVATIONS: tuple[str, ...] = (
     "airspeed_mps",
@@ -43,8 +44,8 @@ class Recording:
     t_s: FloatArray
     inputs: FloatArray
     measurements: FloatArray
-    power: str
-    """"throttle" or "thrust": what the second input column holds."""
+    power: PowerInput
+    """What the second input column holds."""
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -106,13 +107,14 @@ def load_csv(path: str | Path) -> Recording:
             missing = [c for c in CSV_REQUIRED if c not in header]
             if missing:
                 raise FlightDataError(f"{path}: missing column(s) {missing}; need {CSV_REQUIRED}")
-            if "thrust_n" in header:
+            power: PowerInput
+            if POWER_COLUMNS["thrust"] in header:
                 power = "thrust"
-            elif "throttle" in header:
+            elif POWER_COLUMNS["throttle"] in header:
                 power = "throttle"
             else:
                 raise FlightDataError(f"{path}: needs a 'throttle' or a 'thrust_n' column")
-            power_col = "thrust_n" if power == "thrust" else "throttle"
+            power_col = POWER_COLUMNS[power]
             rows: list[list[float]] = []
             for line, row in enumerate(reader, start=2):
                 try:
@@ -137,7 +139,7 @@ def _cell(text: str | None) -> float:
 
 def write_csv(path: str | Path, rec: Recording) -> None:
     """Write a recording in the documented CSV layout."""
-    power_col = "thrust_n" if rec.power == "thrust" else "throttle"
+    power_col = POWER_COLUMNS[rec.power]
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow([*CSV_REQUIRED, power_col])

@@ -7,9 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gcs_estimator.estimator import Estimator, FilterKind, Track
-from gcs_estimator.model import equations as eq
-from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.estimator import EstimatorResult, FilterKind
 
 CONVERGENCE_BAND = 0.05
 """Convergence: the estimate stays within 5 % (spec model.md)."""
@@ -50,6 +49,13 @@ class FilterSummary:
     """Turbulence level (vertical gust sigma) the filter ended with [m/s]."""
 
 
+def percent_error(estimate: float, reference: float) -> float | None:
+    """100 * (estimate - reference) / |reference|; None for a zero reference."""
+    if reference == 0.0:
+        return None
+    return 100.0 * (estimate - reference) / abs(reference)
+
+
 def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: float) -> float:
     """First time after which values stay within band*|target| of target [s]; NaN if the
     last value is outside. A target of 0 has no relative band: NaN."""
@@ -62,31 +68,28 @@ def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: flo
     return float(t[0]) if len(idx) == 0 else float(t[idx[-1] + 1])
 
 
-def summarise(estimator: Estimator, truth: FloatArray | None) -> dict[FilterKind, FilterSummary]:
+def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterKind, FilterSummary]:
     """Figures for each filter of a finished run (needs the estimator's history)."""
-    tracks = estimator.tracks()
     out: dict[FilterKind, FilterSummary] = {}
-    for kind, runner in estimator.filters.items():
-        track: Track = tracks[kind]
-        if runner.belief is None or len(track.t) == 0:
+    restarts = result.config.filter.restart_times_s
+    for kind, fr in result.filters.items():
+        track = fr.track
+        if track is None or len(track.t) == 0:
             continue
-        x = runner.belief.x[eq.N_STATE :]
-        P = runner.belief.P[eq.N_STATE :, eq.N_STATE :]
-        sigma = np.sqrt(np.diag(P))
+        x = fr.coefficients
         t0 = float(track.t[0])
         coeffs = []
-        for i, name in enumerate(estimator.names):
-            series = track.x[:, eq.N_STATE + i]
+        for i, name in enumerate(result.names):
+            series = track.coefficients[:, i]
             tru = None if truth is None else float(truth[i])
-            err = None if tru is None or tru == 0.0 else 100.0 * (x[i] - tru) / abs(tru)
             coeffs.append(
                 CoefficientSummary(
                     name=name,
                     estimate=float(x[i]),
-                    sigma=float(sigma[i]),
+                    sigma=float(fr.sigma[i]),
                     truth=tru,
-                    error_pct=err,
-                    z=None if tru is None else float((x[i] - tru) / sigma[i]),
+                    error_pct=None if tru is None else percent_error(float(x[i]), tru),
+                    z=None if tru is None else float((x[i] - tru) / fr.sigma[i]),
                     converged_final_s=stay_within_time(
                         track.t, series, float(x[i]), CONVERGENCE_BAND
                     )
@@ -97,12 +100,11 @@ def summarise(estimator: Estimator, truth: FloatArray | None) -> dict[FilterKind
                 )
             )
         used = track.n_used > 0
-        restarts = estimator.config.filter.restart_times_s
         settled = used & (track.t - t0 > (restarts[-1] if restarts else -1.0))
         nees = None
         if truth is not None:
             d = x - truth
-            nees = float(d @ np.linalg.solve(P, d))
+            nees = float(d @ np.linalg.solve(fr.covariance, d))
         out[kind] = FilterSummary(
             kind=kind,
             coefficients=tuple(coeffs),
@@ -111,6 +113,6 @@ def summarise(estimator: Estimator, truth: FloatArray | None) -> dict[FilterKind
             mean_channels=float(track.n_used[settled].mean()) if settled.any() else math.nan,
             nees=nees,
             steps=len(track.t),
-            gust_sigma=runner.gust_sigma,
+            gust_sigma=fr.gust_sigma,
         )
     return out

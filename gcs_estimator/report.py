@@ -11,10 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from gcs_estimator.config import OBS_NAMES, STATE_NAMES, AircraftConfig
-from gcs_estimator.estimator import Estimator, FilterKind
-from gcs_estimator.metrics import FilterSummary, summarise
-from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.config import POWER_COLUMNS
+from gcs_estimator.estimator import FILTER_KINDS, Estimator, EstimatorResult, FilterKind
+from gcs_estimator.metrics import FilterSummary, percent_error
+from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
+from gcs_estimator.session import VehicleResult
 
 
 def _fmt(v: float | None, digits: int = 4) -> str:
@@ -32,7 +33,7 @@ def markdown_table(
 ) -> str:
     """Table I layout: one row per coefficient, estimate and sigma per filter, plus the
     true (or reference) value, error in percent and in sigmas when it is known."""
-    kinds: list[FilterKind] = [k for k in ("EKF", "IEKF") if k in summaries]
+    kinds: list[FilterKind] = [k for k in FILTER_KINDS if k in summaries]
     if not kinds:
         return "(no estimates yet)\n"
     first = summaries[kinds[0]]
@@ -77,11 +78,11 @@ def markdown_table(
 
 def live_table(estimator: Estimator) -> str:
     """The current estimates as a Markdown table (cheap: no history is read)."""
-    current = estimator.current()
+    current = estimator.snapshot()
     if not current:
         return "(waiting for data)\n"
     truth = estimator.config.truth
-    kinds = [k for k in ("EKF", "IEKF") if k in current]
+    kinds = [k for k in FILTER_KINDS if k in current]
     head = ["coefficient"] + ([estimator.config.truth_label] if truth else [])
     for k in kinds:
         head += [f"{k} estimate", f"{k} ±2σ"] + ([f"{k} error %"] if truth else [])
@@ -89,47 +90,45 @@ def live_table(estimator: Estimator) -> str:
     for i, name in enumerate(estimator.names):
         row = [name] + ([_fmt(truth[i])] if truth else [])
         for k in kinds:
-            x, s = current[k]
-            row += [_fmt(float(x[i])), f"{2 * s[i]:.2g}"]
+            snap = current[k]
+            x = float(snap.coefficients[i])
+            row += [_fmt(x), f"{2 * snap.sigma[i]:.2g}"]
             if truth:
-                err = 100 * (x[i] - truth[i]) / abs(truth[i]) if truth[i] else math.nan
-                row.append("-" if not math.isfinite(err) else f"{err:+.2f}")
+                err = percent_error(x, truth[i])
+                row.append("-" if err is None else f"{err:+.2f}")
         lines.append("| " + " | ".join(row) + " |")
-    gusts = ", ".join(f"{k} {estimator.filters[k].gust_sigma:.2f}" for k in kinds)
+    gusts = ", ".join(f"{k} {current[k].gust_sigma:.2f}" for k in kinds)
     return f"{estimator.frames} frames; turbulence σ_w [m/s]: {gusts}\n\n" + "\n".join(lines) + "\n"
 
 
-def final_table(estimator: Estimator) -> str:
+def final_table(vehicle: VehicleResult) -> str:
     """The finished run's Table I (with convergence times), as in results.md."""
-    truth = config_truth(estimator.config)
-    return markdown_table(summarise(estimator, truth), estimator.config.truth_label)
+    return markdown_table(vehicle.summaries, vehicle.result.config.truth_label)
 
 
-def results_dict(
-    estimator: Estimator,
-    truth: FloatArray | None,
-    extra: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
+def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Everything a script needs: estimates, sigmas, convergence, NIS, config used."""
-    summaries = summarise(estimator, truth)
-    config = estimator.config
+    result = vehicle.result
+    config = result.config
     out: dict[str, Any] = {
         "aircraft": config.airframe.name,
         "config_source": config.source,
-        "truth_label": config.truth_label if truth is not None else None,
-        "coefficients": list(estimator.names),
+        "truth_label": config.truth_label if vehicle.truth is not None else None,
+        "coefficients": list(result.names),
         "filters": {},
         "diagnostics": {
-            "frames": estimator.frames,
-            "restarts_done": estimator.restarts_done,
-            "warm_start": None if estimator.warm_start is None else estimator.warm_start.tolist(),
-            "failed_updates": {k: r.failed_updates for k, r in estimator.filters.items()},
-            "divergences": {k: r.divergences for k, r in estimator.filters.items()},
-            "covariance_repairs": {k: r.covariance_repairs for k, r in estimator.filters.items()},
+            "frames": result.frames,
+            "restarts_done": result.restarts_done,
+            "warm_start": None if result.warm_start is None else result.warm_start.tolist(),
+            "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
+            "divergences": {k: f.health.divergences for k, f in result.filters.items()},
+            "covariance_repairs": {
+                k: f.health.covariance_repairs for k, f in result.filters.items()
+            },
         },
         "config": _jsonable(config.raw),
     }
-    for kind, s in summaries.items():
+    for kind, s in vehicle.summaries.items():
         out["filters"][kind] = {
             "mean_nis": _num(s.mean_nis),
             "mean_nis_whole_flight": _num(s.mean_nis_all),
@@ -169,12 +168,11 @@ def _jsonable(data: Any) -> Any:
     return data
 
 
-def write_history_csv(path: Path, estimator: Estimator) -> None:
+def write_history_csv(path: Path, result: EstimatorResult) -> None:
     """Time histories, one row per filter and frame: estimates and sigmas of every state
     and coefficient, NIS, channels used, and the frame's inputs and measurements."""
-    tracks = estimator.tracks()
-    names = list(STATE_NAMES) + list(estimator.names)
-    power = "thrust_n" if estimator.config.propulsion.model == "measured" else "throttle"
+    names = list(FLIGHT_STATES) + list(result.names)
+    power = POWER_COLUMNS[result.config.propulsion.input_name]
 
     def cell(v: float) -> str:
         return repr(float(v)) if np.isfinite(v) else ""
@@ -188,7 +186,10 @@ def write_history_csv(path: Path, estimator: Estimator) -> None:
             + ["nis", "channels", "in_elevator_rad", f"in_{power}"]
             + [f"meas_{n}" for n in OBS_NAMES]
         )
-        for kind, tr in tracks.items():
+        for kind, fr in result.filters.items():
+            tr = fr.track
+            if tr is None:
+                continue
             for i in range(len(tr.t)):
                 row = [kind, repr(float(tr.t[i]))]
                 row += [repr(float(v)) for v in tr.x[i]]
@@ -201,28 +202,20 @@ def write_history_csv(path: Path, estimator: Estimator) -> None:
 
 def write_results(
     out_dir: Path,
-    estimator: Estimator,
-    truth: FloatArray | None,
+    vehicle: VehicleResult,
     extra: Mapping[str, Any] | None = None,
     stem: str = "results",
 ) -> dict[str, Path]:
-    """Write results.json, results.md and history.csv into out_dir; return their paths."""
+    """Write <stem>.json, <stem>.md and <stem>_history.csv into out_dir; return their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = results_dict(estimator, truth, extra)
+    data = results_dict(vehicle, extra)
     paths = {
         "json": out_dir / f"{stem}.json",
         "markdown": out_dir / f"{stem}.md",
         "csv": out_dir / f"{stem}_history.csv",
     }
     paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    title = f"# {estimator.config.airframe.name}: estimated aerodynamic coefficients\n\n"
-    summaries = summarise(estimator, truth)
-    paths["markdown"].write_text(
-        title + markdown_table(summaries, estimator.config.truth_label), encoding="utf-8"
-    )
-    write_history_csv(paths["csv"], estimator)
+    title = f"# {vehicle.result.config.airframe.name}: estimated aerodynamic coefficients\n\n"
+    paths["markdown"].write_text(title + final_table(vehicle), encoding="utf-8")
+    write_history_csv(paths["csv"], vehicle.result)
     return paths
-
-
-def config_truth(config: AircraftConfig) -> FloatArray | None:
-    return None if config.truth is None else np.array(config.truth, float)

@@ -30,9 +30,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.signal import savgol_coeffs
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model
-from gcs_estimator.model.equations import FloatArray
 
 
 class WarmStart(NamedTuple):
@@ -114,10 +114,10 @@ def equation_error(
     sigma = np.array(prior_sigma, float)
     counts = [0, 0, 0]
     for a, target in enumerate((CD, CL, Cm)):
-        idx = np.flatnonzero(model.axis == a)
+        idx = np.flatnonzero(model.arrays.axis == a)
         if len(idx) == 0:
             continue
-        X = regressors[:, model.regressor[idx]]
+        X = regressors[:, model.arrays.regressor[idx]]
         ok = np.isfinite(target) & np.all(np.isfinite(X), axis=1)
         if ok.sum() < len(idx) + 2:
             continue

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.equations import N_STATE, FloatArray
-from sim.truth import Flight, _integrate
+from sim.truth import Flight, integrate
 
 
 @dataclass(frozen=True)
@@ -57,17 +57,7 @@ def output_error(
     scale = np.maximum(np.abs(start), 1e-3)
 
     def residual(z: FloatArray) -> FloatArray:
-        _, h = _integrate(
-            z * scale,
-            u_steps,
-            u_samples,
-            no_gust,
-            dt,
-            per_sample,
-            model.k,
-            model.axis,
-            model.regressor,
-        )
+        _, h = integrate(z * scale, u_steps, u_samples, no_gust, dt, per_sample, model.arrays)
         return np.asarray(((y - h) * weight).ravel())
 
     sol = least_squares(residual, start / scale, x_scale="jac", method="lm", xtol=1e-12)
@@ -76,8 +66,8 @@ def output_error(
     cov = np.linalg.inv(J.T @ J)
     sigma = np.sqrt(np.diag(cov))
     return OutputErrorFit(
-        state0=x[:N_STATE],
-        coefficients=x[N_STATE:],
-        sigma=sigma[N_STATE:],
+        state0=x[model.flight],
+        coefficients=x[model.coefficients],
+        sigma=sigma[model.coefficients],
         cost=float(np.mean(sol.fun**2)),
     )

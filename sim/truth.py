@@ -14,16 +14,12 @@ import numpy as np
 from numba import njit
 from scipy.linalg import solve_continuous_lyapunov
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
-from gcs_estimator.model.aircraft import Model, Trim, build_model, trim
-from gcs_estimator.model.equations import (
-    N_OBS,
-    N_STATE,
-    FloatArray,
-    IntArray,
-    dynamics,
-    observe,
-)
+from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
+from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS
+from gcs_estimator.model.equations import ModelArrays, air_relative, observe, rk4_step
 
 
 @dataclass(frozen=True)
@@ -182,9 +178,7 @@ def simulate(
         gust[i] = gusts.gust()
         gusts.step(dt)
 
-    air_states, clean = _integrate(
-        x0, u_steps, u_samples, gust, dt, per_sample, model.k, model.axis, model.regressor
-    )
+    air_states, clean = integrate(x0, u_steps, u_samples, gust, dt, per_sample, model.arrays)
     y = clean + bias + noise_sigma * rng.standard_normal(clean.shape)
     q_nz = quantum > 0
     y[:, q_nz] = np.round(y[:, q_nz] / quantum[q_nz]) * quantum[q_nz]
@@ -209,9 +203,7 @@ def _steady_state(
     from scipy.optimize import least_squares
 
     def residual(z: FloatArray) -> FloatArray:
-        x = model.augment(np.array([z[0], z[1], z[2], 0.0]), truth)
-        fx, _ = model.f(x, np.array([de, power]))
-        return np.array([fx[0], fx[1] * z[0], fx[3]])
+        return steady_residual(model, truth, z, np.array([de, power]))
 
     sol = least_squares(residual, guess[:3], xtol=1e-15, ftol=1e-15, gtol=1e-15)
     return np.array([sol.x[0], sol.x[1], sol.x[2], 0.0])
@@ -231,46 +223,31 @@ def servo_commands(config: AircraftConfig, inputs: FloatArray) -> FloatArray:
 
 
 @njit(cache=True)
-def _air(x: FloatArray, g: FloatArray) -> FloatArray:  # pragma: no cover
-    xa = x.copy()
-    xa[0] = x[0] + g[0]
-    xa[1] = x[1] + g[1] / x[0]
-    return xa
-
-
-@njit(cache=True)
-def _integrate(
+def integrate(
     x0: FloatArray,
     u_steps: FloatArray,
     u_samples: FloatArray,
     gust: FloatArray,
     dt: float,
     per_sample: int,
-    k: FloatArray,
-    axis: IntArray,
-    regressor: IntArray,
+    m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
-    """Classical Runge-Kutta with the gust held over each step; samples air-relative
-    states and noise-free observations every per_sample steps."""
+    """Fly x0 with classical Runge-Kutta (equations.rk4_step), inputs u_steps [steps x 2]
+    and gust [steps + 1 x 2] held over each step of dt [s]; every per_sample steps, sample
+    the air-relative flight states and the noise-free observations with u_samples."""
     n_samples = u_samples.shape[0]
-    states = np.empty((n_samples, N_STATE))
+    states = np.empty((n_samples, N_FLIGHT))
     clean = np.empty((n_samples, N_OBS))
     x = x0.copy()
     step = 0
     for i in range(n_samples):
-        xa = _air(x, gust[step])
-        states[i] = xa[:N_STATE]
-        h, _ = observe(xa, u_samples[i], k, axis, regressor)
+        xa = air_relative(x, gust[step])
+        states[i] = xa[:N_FLIGHT]
+        h, _ = observe(xa, u_samples[i], m)
         clean[i] = h
         if i == n_samples - 1:
             break
         for _ in range(per_sample):
-            u = u_steps[step]
-            g = gust[step]
-            k1, _ = dynamics(_air(x, g), u, k, axis, regressor)
-            k2, _ = dynamics(_air(x + 0.5 * dt * k1, g), u, k, axis, regressor)
-            k3, _ = dynamics(_air(x + 0.5 * dt * k2, g), u, k, axis, regressor)
-            k4, _ = dynamics(_air(x + dt * k3, g), u, k, axis, regressor)
-            x = x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            x = rk4_step(x, u_steps[step], gust[step], dt, m)[0]
             step += 1
     return states, clean

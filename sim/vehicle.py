@@ -12,16 +12,15 @@ from __future__ import annotations
 import contextlib
 import math
 import socket
-import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pymavlink.dialects.v20 import ardupilotmega as dialect
-
 from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
 from gcs_estimator.flightdata import Recording
+from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
 
 BOOT_OFFSET_S = 5.0
 """The vehicle has been up this long when the recording starts [s]."""
@@ -50,22 +49,23 @@ class SimulatedVehicle:
 
     def __post_init__(self) -> None:
         self.rates = {m: self.link.rate(m) for m in STREAMED_MESSAGES}
-        self.mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
-        self.mav.robust_parsing = True
+        self.codec = Codec(self.system_id, 1)
+        self.mav = self.codec.mav
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1" if self.target[0].startswith("127.") else "0.0.0.0", 0))
         self.sock.setblocking(False)
-        self._tlog_fh = open(self.tlog, "wb") if self.tlog else None  # noqa: SIM115
+        self._tlog = TlogWriter(self.tlog) if self.tlog else None
 
     def _send(self, msg: Any) -> None:
-        buf = msg.pack(self.mav)
-        self.mav.seq = (self.mav.seq + 1) % 256  # pack() does not advance it; send() would
+        self._send_packet(self.codec.pack(msg))
+
+    def _send_packet(self, buf: bytes) -> None:
         # Nobody listening (ICMP unreachable) is no reason to stop flying.
         with contextlib.suppress(OSError):
             self.sock.sendto(buf, self.target)
         self.stats.sent += 1
-        if self._tlog_fh is not None:
-            self._tlog_fh.write(struct.pack(">Q", int(time.time() * 1e6)) + buf)
+        if self._tlog is not None:
+            self._tlog.write(int(time.time() * 1e6), buf)
 
     def _serve(self) -> None:
         """Answer what the ground station sent."""
@@ -74,30 +74,24 @@ class SimulatedVehicle:
                 data, _ = self.sock.recvfrom(65535)
             except (BlockingIOError, ConnectionRefusedError, OSError):
                 return
-            for msg in self.mav.parse_buffer(data) or []:
+            for msg in self.codec.parse(data):
                 kind = msg.get_type()
                 if kind == "HEARTBEAT":
                     self.stats.gcs_heartbeats += 1
-                elif kind == "COMMAND_LONG" and msg.command == dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
-                    name = next(
-                        (
-                            n
-                            for n in STREAMED_MESSAGES
-                            if getattr(dialect, f"MAVLINK_MSG_ID_{n}") == int(msg.param1)
-                        ),
-                        None,
-                    )
-                    ok = name is not None
-                    if name is not None:
-                        interval = msg.param2
-                        self.rates[name] = (
-                            0.0
-                            if interval < 0
-                            else (1e6 / interval if interval > 0 else self.link.rate(name))
-                        )
-                        self.stats.rate_changes += 1
-                    result = dialect.MAV_RESULT_ACCEPTED if ok else dialect.MAV_RESULT_DENIED
-                    self._send(self.mav.command_ack_encode(msg.command, result))
+                elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                    self._set_interval(msg.command, int(msg.param1), float(msg.param2))
+
+    def _set_interval(self, command: int, message_id: int, interval_us: float) -> None:
+        """SET_MESSAGE_INTERVAL: stream the message at 1e6 / interval_us Hz (-1: stop; 0: the
+        default rate); acknowledged, DENIED for a message this vehicle does not stream."""
+        name = mavlink.MESSAGE_NAME.get(message_id)
+        ok = name in STREAMED_MESSAGES
+        if name is not None and ok:
+            rate = 1e6 / interval_us if interval_us > 0 else self.link.rate(name)
+            self.rates[name] = 0.0 if interval_us < 0 else rate
+            self.stats.rate_changes += 1
+        result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+        self._send_packet(self.codec.command_ack(command, result))
 
     def run(self, stop_after_s: float | None = None) -> VehicleStats:
         """Stream the whole recording (or until stop_after_s of vehicle time)."""
@@ -121,15 +115,7 @@ class SimulatedVehicle:
             us, ms = int(round(tv * 1e6)), int(round(tv * 1e3))
             if t >= next_hb - 1e-9:
                 next_hb += 1.0
-                self._send(
-                    self.mav.heartbeat_encode(
-                        dialect.MAV_TYPE_FIXED_WING,
-                        dialect.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                        dialect.MAV_MODE_FLAG_AUTO_ENABLED,
-                        0,
-                        dialect.MAV_STATE_ACTIVE,
-                    )
-                )
+                self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
                 self._send(self.mav.system_time_encode(int(time.time() * 1e6), ms))
             y = rec.measurements[i]
             de, power = float(rec.inputs[i, 0]), float(rec.inputs[i, 1])
@@ -196,9 +182,9 @@ class SimulatedVehicle:
         return self.stats
 
     def close(self) -> None:
-        if self._tlog_fh is not None:
-            self._tlog_fh.close()
-            self._tlog_fh = None
+        if self._tlog is not None:
+            self._tlog.close()
+            self._tlog = None
         self.sock.close()
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from gcs_estimator.cli import main
 from gcs_estimator.config import load_config_with
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_csv, load_hfb320, write_csv
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,12 +43,11 @@ def test_simulate_writes_table_json_and_csv(
 
     config = load_config_with(ROOT / "configs/noc_uav.toml", ["simulation.manoeuvre.duration_s=20"])
     flight = simulate(config, seed=3)
-    est = Estimator(config)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    for kind, (beta, sigma) in est.current().items():
-        for i, name in enumerate(est.names):
+    res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
+    for kind, f in res.filters.items():
+        for i, name in enumerate(res.names):
             got = data["filters"][kind]["estimates"][name]
-            assert got["estimate"] == beta[i] and got["sigma"] == sigma[i]
+            assert got["estimate"] == f.coefficients[i] and got["sigma"] == f.sigma[i]
     assert data["config"]["simulation"]["manoeuvre"]["duration_s"] == 20
     history = (tmp_path / "results_history.csv").read_text().splitlines()
     assert len(history) == 1 + 2 * len(flight.t_s)

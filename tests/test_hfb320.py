@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import load_hfb320
 
 REQUIRED = ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa")
@@ -23,13 +23,12 @@ def test_hfb320_from_zero_matches_the_book(hfb_config: AircraftConfig, hfb_data_
     rec = load_hfb320(hfb_data_path)
     assert len(rec) == 601
     assert hfb_config.filter.initial_coefficients == (0.0,) * 11
-    est = Estimator(hfb_config)
-    est.run(rec.t_s, rec.inputs, rec.measurements)
+    res = run_recording(hfb_config, rec.t_s, rec.inputs, rec.measurements).result
     reference = dict(zip(hfb_config.coefficient_names, hfb_config.truth or (), strict=True))
-    iekf_beta, iekf_sigma = est.current()["IEKF"]
+    iekf = res.filters["IEKF"]
     for name in REQUIRED:
-        i = est.names.index(name)
-        assert iekf_beta[i] == pytest.approx(reference[name], rel=TOLERANCE), name
-        assert 0.0 < iekf_sigma[i] < abs(reference[name])  # a sigma is reported, and sane
-    assert all(r.divergences == 0 for r in est.filters.values())
-    assert np.all(np.isfinite(est.current()["EKF"][0]))
+        i = res.names.index(name)
+        assert iekf.coefficients[i] == pytest.approx(reference[name], rel=TOLERANCE), name
+        assert 0.0 < iekf.sigma[i] < abs(reference[name])  # a sigma is reported, and sane
+    assert all(f.health.divergences == 0 for f in res.filters.values())
+    assert np.all(np.isfinite(res.filters["EKF"].coefficients))

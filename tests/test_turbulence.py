@@ -11,42 +11,39 @@ from dataclasses import replace
 import numpy as np
 
 from gcs_estimator.config import AircraftConfig, Turbulence, load_config_with
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimator import Estimator, EstimatorResult, run_recording
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 
 
-def _fly(config: AircraftConfig, sigma_w: float, seed: int) -> tuple[Estimator, np.ndarray]:
+def _fly(config: AircraftConfig, sigma_w: float, seed: int) -> tuple[EstimatorResult, np.ndarray]:
     turbulence = Turbulence(sigma_u_mps=1.5 * sigma_w, sigma_w_mps=sigma_w)
     flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
     flight = simulate(flown, seed=seed)
-    est = Estimator(flown, keep_history=False)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    return est, flight.truth
+    run = run_recording(flown, flight.t_s, flight.inputs, flight.measurements, keep_history=False)
+    return run.result, flight.truth
 
 
 def test_light_turbulence_is_measured_and_the_coefficients_stay_consistent(
     noc_config: AircraftConfig,
 ) -> None:
     sigma_w = 0.772  # MIL-F-8785C light, low altitude
-    est, truth = _fly(noc_config, sigma_w, seed=3)
-    for kind, runner in est.filters.items():
-        assert runner.gust_sigma == np.clip(runner.gust_sigma, 0.7 * sigma_w, 1.3 * sigma_w), kind
-        beta, sigma = est.current()[kind]
-        z = np.abs(beta - truth) / sigma
-        assert np.all(z < 4.0), (kind, dict(zip(est.names, z.round(1), strict=True)))
+    res, truth = _fly(noc_config, sigma_w, seed=3)
+    for kind, f in res.filters.items():
+        assert f.gust_sigma == np.clip(f.gust_sigma, 0.7 * sigma_w, 1.3 * sigma_w), kind
+        z = np.abs(f.coefficients - truth) / f.sigma
+        assert np.all(z < 4.0), (kind, dict(zip(res.names, z.round(1), strict=True)))
 
 
 def test_calm_air_is_measured_as_calm(noc_config: AircraftConfig) -> None:
-    est, truth = _fly(noc_config, 0.0, seed=3)
-    for kind, runner in est.filters.items():
-        assert runner.gust_sigma < 0.1, kind
-        beta, sigma = est.current()[kind]
+    res, truth = _fly(noc_config, 0.0, seed=3)
+    for kind, f in res.filters.items():
+        assert f.gust_sigma < 0.1, kind
         for name in WELL_EXCITED:
-            i = est.names.index(name)
-            assert abs(beta[i] - truth[i]) < 3.0 * sigma[i], (kind, name)
+            i = res.names.index(name)
+            assert abs(f.coefficients[i] - truth[i]) < 3.0 * f.sigma[i], (kind, name)
 
 
 def test_without_turbulence_noise_the_filters_are_overconfident_in_turbulence(
@@ -61,9 +58,9 @@ def test_without_turbulence_noise_the_filters_are_overconfident_in_turbulence(
             tuning, turbulence=replace(tuning.turbulence, adaptive=False, sigma_w_mps=0.0)
         ),
     )
-    est, truth = _fly(fixed, 0.772, seed=3)
-    beta, sigma = est.current()["IEKF"]
-    assert np.max(np.abs(beta - truth) / sigma) > 10.0
+    res, truth = _fly(fixed, 0.772, seed=3)
+    f = res.filters["IEKF"]
+    assert np.max(np.abs(f.coefficients - truth) / f.sigma) > 10.0
 
 
 def _final_pass_levels(config: AircraftConfig, sigma_w: float, seed: int) -> np.ndarray:
@@ -73,12 +70,13 @@ def _final_pass_levels(config: AircraftConfig, sigma_w: float, seed: int) -> np.
     flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
     flight = simulate(flown, seed=seed)
     est = Estimator(flown, keep_history=False)
-    runner = est.filters["IEKF"]
+    detection2 = est.tunings["IEKF"].detection2
     rows = []
     for i in range(len(flight.t_s)):
         est.step(float(flight.t_s[i]), flight.inputs[i], flight.measurements[i])
-        if not est.restarts_pending:
-            rows.append((runner.gust_var, runner.gust_var_used))
+        state = est.states["IEKF"]
+        if not est.restarts_pending and state is not None:
+            rows.append((state.gust.var, state.gust.applied(detection2)))
     return np.array(rows)
 
 
@@ -112,14 +110,12 @@ def test_covariance_stays_positive_definite_on_a_perturbed_aircraft_in_turbulenc
     paper = load_config_with(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     config = perturbed(paper, 8, 0.3)
     flight = simulate(config, seed=8)
-    est = Estimator(config, keep_history=False)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    for kind, runner in est.filters.items():
-        assert runner.covariance_repairs == 0, kind
-        assert runner.failed_updates == 0, kind
-        beta, sigma = est.current()[kind]
-        z = np.abs(beta - flight.truth) / sigma
-        assert np.all(z < 7.0), (kind, dict(zip(est.names, z.round(1), strict=True)))
+    res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
+    for kind, f in res.filters.items():
+        assert f.health.covariance_repairs == 0, kind
+        assert f.health.failed_updates == 0, kind
+        z = np.abs(f.coefficients - flight.truth) / f.sigma
+        assert np.all(z < 7.0), (kind, dict(zip(res.names, z.round(1), strict=True)))
 
 
 def test_the_first_re_run_starts_at_the_level_the_zero_start_pass_ended_with() -> None:
@@ -131,11 +127,10 @@ def test_the_first_re_run_starts_at_the_level_the_zero_start_pass_ended_with() -
     Starting the re-run at the level the pass ended with keeps it cautious instead."""
     config = load_config_with(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     flight = simulate(config, seed=24)
-    est = Estimator(config, keep_history=False)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    well = [est.names.index(n) for n in ("CL0", "CLa", "Cm0", "Cma", "Cmq", "Cmde")]
-    for kind, (beta, sigma) in est.current().items():
-        z = np.abs(beta - flight.truth) / sigma
-        assert np.all(z < 5.0), (kind, dict(zip(est.names, z.round(1), strict=True)))
-        err = 100.0 * np.abs(beta - flight.truth)[well] / np.abs(flight.truth[well])
+    res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
+    well = [res.names.index(n) for n in ("CL0", "CLa", "Cm0", "Cma", "Cmq", "Cmde")]
+    for kind, f in res.filters.items():
+        z = np.abs(f.coefficients - flight.truth) / f.sigma
+        assert np.all(z < 5.0), (kind, dict(zip(res.names, z.round(1), strict=True)))
+        err = 100.0 * np.abs(f.coefficients - flight.truth)[well] / np.abs(flight.truth[well])
         assert np.all(err < 5.0), (kind, err.round(1))

@@ -1,10 +1,12 @@
-"""Compiled filter step for the aircraft model: the same maths as filters.hybrid, fused.
+"""The compiled backend of the step contract (filters.core): the same maths as the numpy
+reference (filters.reference), fused into one numba call per step.
 
-One call predicts (classical Runge-Kutta of x and of the transition matrix of P) and runs
-the (iterated) measurement update, exploiting the structure of the augmented model: the
-coefficient rows of F are zero, so the transition matrix differs from I in 4 rows and
-Phi P Phi^T costs 4 x n x n instead of n^3. tests/filters/test_fast.py checks it against
-the numpy reference path step by step.
+One call builds the process noise, predicts (classical Runge-Kutta of x and of the
+transition matrix of P), runs the (iterated) measurement update, checks the belief's
+health and adapts the gust level. It exploits the structure of the augmented model: the
+rows of F below the dynamic blocks are zero, so the transition matrix differs from I in
+n_dynamic rows and Phi P Phi^T costs n_dynamic x n x n instead of n^3.
+tests/filters/test_fast.py checks it against the reference, kernel and flight alike.
 """
 
 from __future__ import annotations
@@ -13,27 +15,35 @@ import math
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
+from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.filters import core
+from gcs_estimator.filters.core import FilterState, GustState, StepInfo, Tuning
+from gcs_estimator.filters.hybrid import PSD_JITTER
+from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model
-from gcs_estimator.model.equations import N_OBS, N_STATE, FloatArray, IntArray, dynamics, observe
+from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
 
-PSD_JITTER = 1e-12  # same meaning as filters.hybrid.PSD_JITTER
+register_jitable(core.gust_applied)
 
 
 @njit(cache=True)
 def _congruence(M: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
-    """(I + E) M (I + E)^T for symmetric M, where E is zero but for its first N_STATE
-    rows, D: M + E M + M E^T + E M E^T at 4 x n x n instead of n^3."""
+    """(I + E) M (I + E)^T for symmetric M, where E is zero but for its first d rows,
+    D [d x n]: M + E M + M E^T + E M E^T at d x n x n instead of n^3."""
     DM = D @ M
     out = M.copy()
     n = M.shape[0]
-    for i in range(N_STATE):
+    d = D.shape[0]
+    for i in range(d):
         for j in range(n):
             out[i, j] += DM[i, j]
             out[j, i] += DM[i, j]
     DMD = DM @ np.ascontiguousarray(D.T)
-    for i in range(N_STATE):
-        for j in range(N_STATE):
+    for i in range(d):
+        for j in range(d):
             out[i, j] += DMD[i, j]
     return out
 
@@ -46,28 +56,24 @@ def _propagate(
     Q: FloatArray,
     dt: float,
     max_step: float,
-    k: FloatArray,
-    axis: IntArray,
-    regressor: IntArray,
+    m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
-    """hybrid.propagate for the aircraft: rows >= N_STATE of F are zero (coefficients
-    have no dynamics), so the transition matrix differs from I in its first N_STATE
-    rows only, and each Runge-Kutta stage of it is N_STATE x n."""
+    """hybrid.propagate for the aircraft: rows >= d = n_dynamic of F are zero, so the
+    transition matrix differs from I in its first d rows only, and each Runge-Kutta stage
+    of it is d x n."""
     if dt <= 0.0:
         return x.copy(), P.copy()
     steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
     h = dt / steps
+    d = m.n_dynamic
+    still = np.zeros(2)
     for _ in range(steps):
-        f1, F1 = dynamics(x, u, k, axis, regressor)
-        f2, F2 = dynamics(x + 0.5 * h * f1, u, k, axis, regressor)
-        f3, F3 = dynamics(x + 0.5 * h * f2, u, k, axis, regressor)
-        f4, F4 = dynamics(x + h * f3, u, k, axis, regressor)
-        x = x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4)
-        # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :N] D.
-        K1 = np.ascontiguousarray(F1[:N_STATE])
-        K2 = F2[:N_STATE] + 0.5 * h * (np.ascontiguousarray(F2[:N_STATE, :N_STATE]) @ K1)
-        K3 = F3[:N_STATE] + 0.5 * h * (np.ascontiguousarray(F3[:N_STATE, :N_STATE]) @ K2)
-        K4 = F4[:N_STATE] + h * (np.ascontiguousarray(F4[:N_STATE, :N_STATE]) @ K3)
+        x, F1, F2, F3, F4 = rk4_step(x, u, still, h, m)
+        # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
+        K1 = np.ascontiguousarray(F1[:d])
+        K2 = F2[:d] + 0.5 * h * (np.ascontiguousarray(F2[:d, :d]) @ K1)
+        K3 = F3[:d] + 0.5 * h * (np.ascontiguousarray(F3[:d, :d]) @ K2)
+        K4 = F4[:d] + h * (np.ascontiguousarray(F4[:d, :d]) @ K3)
         D = h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
         D_m = 0.25 * h * (K1 + K2)
         Qd = h / 6.0 * (Q + 4.0 * _congruence(Q, D_m) + _congruence(Q, D))
@@ -113,193 +119,149 @@ def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # prag
 
 
 @njit(cache=True)
-def _step(
-    x: FloatArray,
-    P: FloatArray,
-    u_prev: FloatArray,
-    dt: float,
-    u: FloatArray,
-    y: FloatArray,
-    Q: FloatArray,
-    R: FloatArray,
-    iterations: int,
-    tolerance: float,
-    relinearise: float,
-    max_step: float,
-    gate: float,
-    k: FloatArray,
-    axis: IntArray,
-    regressor: IntArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:  # pragma: no cover
-    n = x.shape[0]
-    xp, Pp = _propagate(x, P, u_prev, Q, dt, max_step, k, axis, regressor)
-    e_out = np.full(N_OBS, np.nan)
-    s_out = np.full(N_OBS, np.nan)
-
-    hx, H = observe(xp, u, k, axis, regressor)
-    HP = H @ Pp
+def _select(
+    y: FloatArray, hx: FloatArray, H: FloatArray, HP: FloatArray, R: FloatArray, gate: float
+) -> np.ndarray:  # pragma: no cover
+    """Channels present in y and, with gate > 0, within gate sigma of the prediction."""
     idx = np.empty(N_OBS, dtype=np.int64)
     m = 0
     for i in range(N_OBS):
-        if math.isfinite(y[i]):
-            s_ii = 0.0
-            for j in range(n):
-                s_ii += HP[i, j] * H[i, j]
-            s_ii += R[i, i]
-            e_i = y[i] - hx[i]
-            if gate > 0.0 and abs(e_i) > gate * math.sqrt(s_ii):
-                continue
-            idx[m] = i
-            m += 1
-    if m == 0:
+        if not math.isfinite(y[i]):
+            continue
+        s_ii = 0.0
+        for j in range(H.shape[1]):
+            s_ii += HP[i, j] * H[i, j]
+        s_ii += R[i, i]
+        if gate > 0.0 and abs(y[i] - hx[i]) > gate * math.sqrt(s_ii):
+            continue
+        idx[m] = i
+        m += 1
+    return idx[:m]
+
+
+@njit(cache=True)
+def _moved(
+    x_next: FloatArray, x_i: FloatArray, Pp: FloatArray, K1: FloatArray, HuP1: FloatArray
+) -> float:  # pragma: no cover
+    """Largest move of a component in EKF-posterior sigmas (the relinearisation gate)."""
+    moved = 0.0
+    for j in range(x_next.shape[0]):
+        var = Pp[j, j]
+        for a in range(K1.shape[1]):
+            var -= K1[j, a] * HuP1[a, j]
+        moved = max(moved, abs(x_next[j] - x_i[j]) / math.sqrt(max(var, 1e-300)))
+    return moved
+
+
+@njit(cache=True)
+def _largest_step(
+    x_next: FloatArray, x_i: FloatArray, sigma: FloatArray
+) -> float:  # pragma: no cover
+    biggest = 0.0
+    for j in range(x_next.shape[0]):
+        biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
+    return biggest
+
+
+@njit(cache=True)
+def _iterate(
+    xp: FloatArray,
+    Pp: FloatArray,
+    u: FloatArray,
+    yu: FloatArray,
+    Ru: FloatArray,
+    idx: np.ndarray,
+    hu: FloatArray,
+    Hu: FloatArray,
+    HuP: FloatArray,
+    S: FloatArray,
+    tun: Tuning,
+    m: ModelArrays,
+) -> tuple[FloatArray, FloatArray, FloatArray, int, bool]:  # pragma: no cover
+    """The (iterated) update with the prior held fixed (hybrid.iekf_update), from h, H,
+    H P and S at the prior on the channels used: returns the last iterate, gain and
+    Jacobian, the iterations kept, and False if some S_i was not positive definite."""
+    sigma = np.sqrt(np.diag(Pp))
+    x_i = xp.copy()
+    K = K1 = np.zeros((xp.shape[0], idx.shape[0]))
+    Hu1 = Hu
+    HuP1 = np.empty((idx.shape[0], xp.shape[0]))
+    done = 0
+    for it in range(tun.iterations):
+        if it > 0:
+            hx_i, H_i = observe(x_i, u, m)
+            Hu = np.ascontiguousarray(H_i[idx])
+            hu = hx_i[idx]
+            HuP = Hu @ Pp
+            S = HuP @ Hu.T + Ru
+        Kt, ok = _psd_solve(S, HuP)
+        if not ok:
+            return xp, K, Hu, 0, False
+        K = np.ascontiguousarray(Kt.T)
+        x_next = xp + K @ (yu - hu - Hu @ (xp - x_i))
+        if (
+            it == 1
+            and tun.relinearise > 0.0
+            and _moved(x_next, x_i, Pp, K1, HuP1) < tun.relinearise
+        ):
+            # Keep the EKF update: re-linearising moved nothing by `relinearise` sigmas.
+            return x_i, K1, Hu1, done, True
+        done = it + 1
+        biggest = _largest_step(x_next, x_i, sigma)
+        x_i = x_next
+        if it == 0:
+            K1, Hu1, HuP1 = K, Hu, HuP
+        if tun.tolerance > 0.0 and biggest < tun.tolerance:
+            break
+    return x_i, K, Hu, done, True
+
+
+@njit(cache=True)
+def _update(
+    xp: FloatArray, Pp: FloatArray, u: FloatArray, y: FloatArray, tun: Tuning, m: ModelArrays
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:  # pragma: no cover
+    """Measurement update: (x+, P+, innovations [7], their sigmas [7], NIS, channels used,
+    iterations); channels used -1 with NaN innovations and NIS when it failed."""
+    e_out = np.full(N_OBS, np.nan)
+    s_out = np.full(N_OBS, np.nan)
+    hx, H = observe(xp, u, m)
+    HP = H @ Pp
+    idx = _select(y, hx, H, HP, tun.R, tun.gate)
+    k = idx.shape[0]
+    if k == 0:
         return xp, Pp, e_out, s_out, 0.0, 0, 0
-    idx = idx[:m]
-    yu = np.empty(m)
-    Ru = np.empty((m, m))
-    for a in range(m):
-        yu[a] = y[idx[a]]
-        for b in range(m):
-            Ru[a, b] = R[idx[a], idx[b]]
     Hu = np.ascontiguousarray(H[idx])
+    HuP = np.ascontiguousarray(HP[idx])
     hu = hx[idx]
+    yu = y[idx]
+    Ru = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            Ru[a, b] = tun.R[idx[a], idx[b]]
     # Innovation statistics at the prior (NIS).
-    S = Hu @ Pp @ Hu.T + Ru
+    S = HuP @ Hu.T + Ru
     e = yu - hu
-    Se, ok = _psd_solve(S, e.reshape(m, 1))
+    Se, ok = _psd_solve(S, e.reshape(k, 1))
+    if not ok:
+        return xp, Pp, e_out, s_out, math.nan, -1, 0
+    x, K, Hu, done, ok = _iterate(xp, Pp, u, yu, Ru, idx, hu, Hu, HuP, S, tun, m)
     if not ok:
         return xp, Pp, e_out, s_out, math.nan, -1, 0
     nis = 0.0
-    for a in range(m):
+    for a in range(k):
         nis += e[a] * Se[a, 0]
         e_out[idx[a]] = e[a]
         s_out[idx[a]] = math.sqrt(S[a, a])
-
-    sigma = np.sqrt(np.diag(Pp))
-    x_i = xp.copy()
-    K = np.zeros((n, m))
-    K1 = K  # the first (EKF) iteration's gain, Jacobian and H P, for the gate
-    Hu1 = Hu
-    HuP1 = np.empty((m, n))
-    done = 0
-    for it in range(iterations):
-        if it > 0:
-            hx_i, H_i = observe(x_i, u, k, axis, regressor)
-            Hu = np.ascontiguousarray(H_i[idx])
-            hu = hx_i[idx]
-        HuP = Hu @ Pp
-        S_i = HuP @ Hu.T + Ru
-        Kt, ok = _psd_solve(S_i, HuP)
-        if not ok:
-            return xp, Pp, e_out, s_out, math.nan, -1, 0
-        K = np.ascontiguousarray(Kt.T)
-        r = yu - hu - Hu @ (xp - x_i)
-        x_next = xp + K @ r
-        if it == 1 and relinearise > 0.0:
-            # Keep the EKF update unless re-linearising moved some component by more
-            # than `relinearise` of its (EKF) posterior sigma (see hybrid.iekf_update).
-            moved = 0.0
-            for j in range(n):
-                var = Pp[j, j]
-                for a in range(m):
-                    var -= K1[j, a] * HuP1[a, j]
-                moved = max(moved, abs(x_next[j] - x_i[j]) / math.sqrt(max(var, 1e-300)))
-            if moved < relinearise:
-                K = K1
-                Hu = Hu1
-                break
-        done = it + 1
-        biggest = 0.0
-        for j in range(n):
-            biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
-        x_i = x_next
-        if it == 0:
-            K1 = K
-            Hu1 = Hu
-            HuP1 = HuP
-        if tolerance > 0.0 and biggest < tolerance:
-            break
-    I_KH = np.eye(n) - K @ Hu
-    P_post = I_KH @ Pp @ np.ascontiguousarray(I_KH.T) + K @ Ru @ np.ascontiguousarray(K.T)
-    return x_i, 0.5 * (P_post + P_post.T), e_out, s_out, nis, m, done
-
-
-def step(
-    x: FloatArray,
-    P: FloatArray,
-    u_prev: FloatArray,
-    dt: float,
-    u: FloatArray,
-    y: FloatArray,
-    Q: FloatArray,
-    R: FloatArray,
-    iterations: int,
-    tolerance: float,
-    relinearise: float,
-    max_step: float,
-    gate: float,
-    model: Model,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:
-    """Predict over dt [s] with inputs u_prev held, then update with y (NaN = missing).
-
-    Returns x+, P+, innovation [7] and its sigma [7] (NaN for unused channels), NIS,
-    channels used, iterations run. Same contract as hybrid.propagate + hybrid.iekf_update,
-    except that it never raises: if an innovation covariance is not positive definite the
-    update is skipped and channels used is -1 (the caller counts and reports it).
-    """
-    out: tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int] = _step(
-        x,
-        P,
-        u_prev,
-        float(dt),
-        u,
-        y,
-        Q,
-        R,
-        int(iterations),
-        float(tolerance),
-        float(relinearise),
-        float(max_step),
-        float(gate),
-        model.k,
-        model.axis,
-        model.regressor,
-    )
-    return out
-
-
-@njit(cache=True)
-def _dynamics(
-    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
-) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
-    return dynamics(x, u, k, axis, regressor)
-
-
-@njit(cache=True)
-def _observe(
-    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
-) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
-    return observe(x, u, k, axis, regressor)
-
-
-def model_f(model: Model, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Compiled model.f: dynamics and Jacobian (same equations, for the simulator)."""
-    out: tuple[FloatArray, FloatArray] = _dynamics(x, u, model.k, model.axis, model.regressor)
-    return out
-
-
-def model_h(model: Model, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Compiled model.h: observations and Jacobian."""
-    out: tuple[FloatArray, FloatArray] = _observe(x, u, model.k, model.axis, model.regressor)
-    return out
+    I_KH = np.eye(xp.shape[0]) - K @ Hu
+    P = I_KH @ Pp @ np.ascontiguousarray(I_KH.T) + K @ Ru @ np.ascontiguousarray(K.T)
+    return x, 0.5 * (P + P.T), e_out, s_out, nis, k, done
 
 
 @njit(cache=True)
 def gust_match(
     e: FloatArray, s: FloatArray, G: FloatArray
 ) -> tuple[float, float]:  # pragma: no cover
-    """Weighted covariance-matching sums of one step (see FilterRunner.adapt_turbulence):
-    num = sum w (min(e^2, 25 S) - S), den = sum w G, w = G / (2 S^2), over the channels
-    whose innovation e and its sigma s are present."""
+    """reference.gust_match, compiled."""
     num = 0.0
     den = 0.0
     for c in range(e.shape[0]):
@@ -307,6 +269,190 @@ def gust_match(
         if not (math.isfinite(e[c]) and S > 0.0):  # also catches NaN sigma
             continue
         w = G[c] / (2.0 * S * S)
-        num += w * (min(e[c] * e[c], 25.0 * S) - S)
+        num += w * (min(e[c] * e[c], core.GUST_CLIP * S) - S)
         den += w * G[c]
     return num, den
+
+
+@njit(cache=True)
+def _adapt_gust(
+    g: GustState,
+    tun: Tuning,
+    m: ModelArrays,
+    dt: float,
+    x: FloatArray,
+    u: FloatArray,
+    e: FloatArray,
+    s: FloatArray,
+    applied: float,
+) -> GustState:  # pragma: no cover
+    """reference.adapt_gust, compiled."""
+    if not tun.adaptive or not dt > 0.0:
+        return g
+    sens = g.sens
+    age = g.sens_age
+    if age >= core.GUST_SENSITIVITY_EVERY:
+        _, H = observe(x, u, m)
+        sens = (H * H) @ tun.gust_unit
+        age = 0
+    age += 1
+    num, den = gust_match(e, s, dt * sens)
+    if not den > 0.0:
+        return GustState(g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age)
+    estimate = applied + num / den
+    gain = min(1.0, dt / tun.adapt_time_s)
+    info = g.info + gain * (den - g.info) if g.info > 0.0 else den
+    var = max(g.var + gain * (estimate - g.var), core.GUST_VAR_FLOOR)
+    return GustState(var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age)
+
+
+@njit(cache=True)
+def _process_noise(st: FilterState, tun: Tuning) -> tuple[FloatArray, float]:  # pragma: no cover
+    """core.process_noise, compiled: Q (full) and the gust variance in it."""
+    decay = math.exp(-max(st.t - st.t_start, 0.0) / tun.q_decay_s)
+    q = tun.q_final.copy()
+    if decay >= 1e-12:
+        q = tun.q_final + (tun.q_initial - tun.q_final) * decay
+    g = st.gust
+    applied = core.gust_applied(g.var, g.info, g.gain, tun.detection2)
+    if applied > 0.0:
+        q = q + applied * tun.gust_unit
+    return np.diag(q), applied
+
+
+@njit(cache=True)
+def _step(
+    st: FilterState, t: float, u: FloatArray, y: FloatArray, tun: Tuning, m: ModelArrays
+) -> tuple[FilterState, StepInfo, bool]:  # pragma: no cover
+    u_prev = st.u if np.all(np.isfinite(st.u)) else u
+    dt = t - st.t
+    Q, applied = _process_noise(st, tun)
+    xp, Pp = _propagate(st.x, st.P, u_prev, Q, dt, tun.max_step_s, m)
+    x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
+    variances = np.diag(P).copy()
+    healthy = variances.min() > 0.0 and math.isfinite(x.sum() + P.sum())
+    gust = _adapt_gust(st.gust, tun, m, dt, x, u, e, s, applied)
+    new = FilterState(x, P, t, u.copy(), st.t_start, gust)
+    info = StepInfo(
+        np.sqrt(np.maximum(variances, 0.0)),
+        nis,
+        max(used, 0),
+        done,
+        e,
+        s,
+        math.sqrt(applied),
+        used < 0,
+        False,
+        False,
+    )
+    return new, info, healthy
+
+
+@njit(cache=True)
+def _kernel(
+    x: FloatArray,
+    P: FloatArray,
+    t_prev: float,
+    u_prev: FloatArray,
+    t_start: float,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_sens: FloatArray,
+    g_age: int,
+    t: float,
+    u: FloatArray,
+    y: FloatArray,
+    R: FloatArray,
+    q_final: FloatArray,
+    q_initial: FloatArray,
+    q_decay_s: float,
+    gust_unit: FloatArray,
+    iterations: int,
+    tolerance: float,
+    relinearise: float,
+    max_step_s: float,
+    gate: float,
+    adaptive: bool,
+    adapt_time_s: float,
+    detection2: float,
+    prior_x: FloatArray,
+    prior_sigma: FloatArray,
+    gust_var0: float,
+    k: FloatArray,
+    axis: IntArray,
+    regressor: IntArray,
+    coef_start: int,
+    n_dynamic: int,
+) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
+    """_step over the fields of FilterState, Tuning and ModelArrays, in their order."""
+    st = FilterState(
+        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, g_sens, g_age)
+    )
+    tun = Tuning(
+        R,
+        q_final,
+        q_initial,
+        q_decay_s,
+        gust_unit,
+        iterations,
+        tolerance,
+        relinearise,
+        max_step_s,
+        gate,
+        adaptive,
+        adapt_time_s,
+        detection2,
+        prior_x,
+        prior_sigma,
+        gust_var0,
+    )
+    new, info, healthy = _step(
+        st, t, u, y, tun, ModelArrays(k, axis, regressor, coef_start, n_dynamic)
+    )
+    g = new.gust
+    return (
+        new.x,
+        new.P,
+        new.u,
+        info.sigma,
+        info.nis,
+        info.n_used,
+        info.iterations,
+        info.innovation,
+        info.innovation_sigma,
+        info.gust_sigma,
+        info.failed,
+        healthy,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.sens,
+        g.sens_age,
+    )
+
+
+def kernel_step(
+    state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
+) -> tuple[FilterState, StepInfo, bool]:
+    """Predict with the held inputs, update with y, adapt the gust level (core contract)."""
+    t = float(t)
+    (x, P, u_held, sigma, nis, used, done, e, s, gust_sigma, failed, healthy, *gust) = _kernel(
+        state.x,
+        state.P,
+        state.t,
+        state.u,
+        state.t_start,
+        *state.gust,
+        t,
+        u,
+        y,
+        *tuning,
+        *model.arrays,
+    )
+    new = FilterState(x, P, t, u_held, state.t_start, GustState(*gust))
+    return new, StepInfo(sigma, nis, used, done, e, s, gust_sigma, failed), healthy

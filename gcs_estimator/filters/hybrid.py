@@ -13,12 +13,9 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
 
-from gcs_estimator.model.equations import FloatArray
-
-BoolArray = NDArray[np.bool_]
+from gcs_estimator.arrays import BoolArray, FloatArray
 
 Dynamics = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
 """x -> (f(x), F = df/dx), inputs already bound."""

@@ -8,19 +8,29 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AXES, REGRESSORS, AircraftConfig
 from gcs_estimator.model import equations as eq
-from gcs_estimator.model.equations import FloatArray, IntArray
+from gcs_estimator.model.channels import FLIGHT_STATES
+from gcs_estimator.model.equations import ModelArrays
+from gcs_estimator.model.state import StateLayout
+
+FLIGHT, COEFFICIENTS = "flight", "coefficients"
+"""Names of the augmented state's blocks."""
 
 
 @dataclass(frozen=True)
 class Model:
-    """Packed airframe constants and coefficient structure of one aircraft."""
+    """One aircraft: its augmented-state layout and the arrays the equations take."""
 
-    k: FloatArray
-    axis: IntArray
-    regressor: IntArray
+    layout: StateLayout
+    arrays: ModelArrays
     names: tuple[str, ...]
+    """Coefficient names, in state order."""
+
+    @property
+    def k(self) -> FloatArray:
+        return self.arrays.k
 
     @property
     def n_coefficients(self) -> int:
@@ -28,21 +38,36 @@ class Model:
 
     @property
     def n(self) -> int:
-        """Augmented state dimension, 4 + number of coefficients."""
-        return eq.N_STATE + len(self.names)
+        """Augmented state dimension."""
+        return self.layout.n
+
+    @property
+    def coefficients(self) -> slice:
+        """Where the coefficients sit in the augmented state."""
+        return self.layout.block(COEFFICIENTS).slice
+
+    @property
+    def flight(self) -> slice:
+        """Where the flight states [V, alpha, theta, q] sit in the augmented state."""
+        return self.layout.block(FLIGHT).slice
 
     def f(self, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
-        return eq.dynamics(x, u, self.k, self.axis, self.regressor)
+        return eq.dynamics(x, u, self.arrays)
 
     def h(self, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
-        return eq.observe(x, u, self.k, self.axis, self.regressor)
+        return eq.observe(x, u, self.arrays)
 
     def augment(self, state: FloatArray, beta: FloatArray) -> FloatArray:
-        return np.concatenate([np.asarray(state, float), np.asarray(beta, float)])
+        """The augmented state of flight states and coefficients (other blocks at 0)."""
+        x = np.zeros(self.n)
+        x[self.flight] = state
+        x[self.coefficients] = beta
+        return x
 
 
 def build_model(config: AircraftConfig) -> Model:
-    """Pack an aircraft configuration for the equations."""
+    """Pack an aircraft configuration for the equations: the state is the flight block
+    (dynamic) followed by the coefficients of the configured structure (constant)."""
     a = config.airframe
     p = config.propulsion
     k = np.zeros(eq.N_CONST)
@@ -65,7 +90,16 @@ def build_model(config: AircraftConfig) -> Model:
     pairs = config.structure.pairs
     axis = np.array([AXES.index(ax) for ax, _ in pairs], dtype=np.int64)
     regressor = np.array([REGRESSORS.index(r) for _, r in pairs], dtype=np.int64)
-    return Model(k=k, axis=axis, regressor=regressor, names=config.structure.names)
+    names = config.structure.names
+    layout = StateLayout.assemble([(FLIGHT, FLIGHT_STATES, True), (COEFFICIENTS, names, False)])
+    arrays = ModelArrays(
+        k=k,
+        axis=axis,
+        regressor=regressor,
+        coef_start=layout.block(COEFFICIENTS).start,
+        n_dynamic=layout.n_dynamic,
+    )
+    return Model(layout=layout, arrays=arrays, names=names)
 
 
 @dataclass(frozen=True)
@@ -78,6 +112,17 @@ class Trim:
     """Largest |state derivative| left at the solution [SI]."""
 
 
+def steady_residual(
+    model: Model, beta: FloatArray, state: FloatArray, inputs: FloatArray
+) -> FloatArray:
+    """[Vdot, alphadot * V, qdot] of straight flight (q = 0) at state [V, alpha, theta]
+    and inputs: zero in steady flight. Scaled so that each equation weighs alike
+    (m/s^2, rad/s, rad/s^2)."""
+    x = model.augment(np.array([state[0], state[1], state[2], 0.0]), beta)
+    fx, _ = model.f(x, inputs)
+    return np.array([fx[0], fx[1] * state[0], fx[3]])
+
+
 def trim(model: Model, beta: FloatArray, airspeed_mps: float | None = None) -> Trim:
     """Trim for level flight (theta = alpha, q = 0) at the given airspeed.
 
@@ -88,10 +133,7 @@ def trim(model: Model, beta: FloatArray, airspeed_mps: float | None = None) -> T
 
     def residual(z: FloatArray) -> FloatArray:
         alpha, de, power = z
-        x = model.augment(np.array([V, alpha, alpha, 0.0]), beta)
-        fx, _ = model.f(x, np.array([de, power]))
-        # Scale so that each equation weighs alike: m/s^2, rad/s, rad/s^2.
-        return np.array([fx[0], fx[1] * V, fx[3]])
+        return steady_residual(model, beta, np.array([V, alpha, alpha]), np.array([de, power]))
 
     weight = model.k[eq.MASS] * model.k[eq.GRAV]
     guess = np.array([0.05, 0.0, 0.3 if propeller else 0.1 * weight])

@@ -1,31 +1,30 @@
 """Longitudinal aircraft model: dynamics, observations and their analytic Jacobians.
 
-Source: Meng, Liu and Veres (2010), eq. 11-14, as corrected in spec/model.md.
+Source: Meng, Liu and Veres (2010), eq. 11-14, as corrected in docs/model.md.
 
-Augmented state x_a = [V, alpha, theta, q, beta_1 .. beta_p]: airspeed [m/s], angle of
-attack [rad], pitch angle [rad], pitch rate [rad/s], then the aerodynamic coefficients.
-Input u = [de, throttle_or_thrust]: elevator [rad] (positive trailing edge down), and
-throttle [0..1] for the propeller model or thrust [N] when thrust is measured.
+Augmented state x_a (model.state): the flight states [V, alpha, theta, q] first
+(airspeed [m/s], angle of attack [rad], pitch angle [rad], pitch rate [rad/s]), the
+aerodynamic coefficients from ``coef_start`` on, and whatever other blocks the layout
+declares. Input u = [de, throttle_or_thrust]: elevator [rad] (positive trailing edge
+down), and throttle [0..1] for the propeller model or thrust [N] when thrust is measured.
 
-The functions take the airframe as a packed float array ``k`` (indices below) and the
-coefficient structure as two int arrays: ``axis[i]`` (0 = CD, 1 = CL, 2 = Cm) and
-``regressor[i]`` (0 = 1, 1 = alpha, 2 = qhat, 3 = elevator, 4 = V/V0) of parameter i.
-They are written with scalar arithmetic and loops only, so that the very same source runs
-as plain Python (the reference path) and compiles with numba (the fast path).
+The functions take the aircraft as ModelArrays: the airframe packed into a float array
+``k`` (indices below), the coefficient structure as two int arrays, ``axis[i]`` (0 = CD,
+1 = CL, 2 = Cm) and ``regressor[i]`` (0 = 1, 1 = alpha, 2 = qhat, 3 = elevator,
+4 = V/V0) of coefficient i, and the layout offsets. They are written with scalar
+arithmetic and loops only, so that the very same source runs as plain Python (the
+reference path, which imports no compiler) and compiles with numba (model.compiled).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import NamedTuple
 
 import numpy as np
-from numba.extending import register_jitable
-from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 
 # Packed airframe constants (see pack_constants in model.aircraft).
 MASS, AREA, CHORD, IYY, RHO, GRAV, V0, SIGMA_T, ARM = 0, 1, 2, 3, 4, 5, 6, 7, 8
@@ -33,21 +32,27 @@ PROP_KIND, PROP_AREA, PROP_COEF, MOTOR_K = 9, 10, 11, 12
 N_CONST = 13
 PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 
-N_STATE = 4
-N_OBS = 7
+N_STATE = N_FLIGHT
+"""The flight states [V, alpha, theta, q] are x_a[0:4]."""
 AXIS_D, AXIS_L, AXIS_M = 0, 1, 2
 REG_ONE, REG_ALPHA, REG_QHAT, REG_ELEV, REG_SPEED = 0, 1, 2, 3, 4
 
-_F = TypeVar("_F", bound=Callable[..., Any])
+
+class ModelArrays(NamedTuple):
+    """One aircraft as the equations and the compiled kernels take it."""
+
+    k: FloatArray
+    """Airframe and propulsion constants, indexed MASS .. MOTOR_K."""
+    axis: IntArray
+    """Axis (AXIS_D, AXIS_L, AXIS_M) of each coefficient."""
+    regressor: IntArray
+    """Regressor (REG_ONE .. REG_SPEED) of each coefficient."""
+    coef_start: int
+    """Index of the first coefficient in the augmented state."""
+    n_dynamic: int
+    """Leading elements of the augmented state with dynamics; F is zero below them."""
 
 
-def jitable(fn: _F) -> _F:
-    """Mark a function as callable from numba-compiled code; from Python it is unchanged."""
-    out: _F = register_jitable(fn)
-    return out
-
-
-@jitable
 def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
     """Thrust Fe [N] and dFe/dV [N s/m].
 
@@ -61,15 +66,15 @@ def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
     return u1, 0.0
 
 
-@jitable
 def aero_coefficients(
-    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
+    x: FloatArray, u: FloatArray, m: ModelArrays
 ) -> tuple[FloatArray, FloatArray]:
     """Coefficients C = [CD, CL, Cm] and their Jacobian dC/dx_a (3 x n).
 
     C_axis = sum_i beta_i * r_regressor(i) with r = [1, alpha, q*cbar/(2*V0), de, V/V0]
     (paper eq. 12, generalised to a configured structure).
     """
+    k = m.k
     n = x.shape[0]
     V = x[0]
     alpha = x[1]
@@ -83,12 +88,13 @@ def aero_coefficients(
     r[REG_SPEED] = V / k[V0]
     C = np.zeros(3)
     dC = np.zeros((3, n))
-    for i in range(n - N_STATE):
-        a = axis[i]
-        j = regressor[i]
-        b = x[N_STATE + i]
+    c0 = m.coef_start
+    for i in range(m.axis.shape[0]):
+        a = m.axis[i]
+        j = m.regressor[i]
+        b = x[c0 + i]
         C[a] += b * r[j]
-        dC[a, N_STATE + i] = r[j]
+        dC[a, c0 + i] = r[j]
         if j == REG_ALPHA:
             dC[a, 1] += b
         elif j == REG_QHAT:
@@ -98,10 +104,7 @@ def aero_coefficients(
     return C, dC
 
 
-@jitable
-def dynamics(
-    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
-) -> tuple[FloatArray, FloatArray]:
+def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
     """State derivative f(x_a, u) and its Jacobian F = df/dx_a (paper eq. 11, corrected).
 
         Vdot     = -(qbar*S/m)*CD + g*sin(alpha - theta) + (Fe/m)*cos(alpha + sigma_T)
@@ -111,8 +114,9 @@ def dynamics(
         qdot     = (qbar*S*cbar/Iy)*Cm + Fe*arm/Iy
         betadot  = 0
 
-    Returns f [n] and F [n x n], n = 4 + number of coefficients.
+    Returns f [n] and F [n x n], n the dimension of the augmented state.
     """
+    k = model.k
     n = x.shape[0]
     V = x[0]
     alpha = x[1]
@@ -122,7 +126,7 @@ def dynamics(
     A = k[AREA] / m
     g = k[GRAV]
     rho = k[RHO]
-    C, dC = aero_coefficients(x, u, k, axis, regressor)
+    C, dC = aero_coefficients(x, u, model)
     Fe, dFe = thrust(V, u[1], k)
     qbar = 0.5 * rho * V * V
     sat = math.sin(alpha - theta)
@@ -155,10 +159,7 @@ def dynamics(
     return f, F
 
 
-@jitable
-def observe(
-    x: FloatArray, u: FloatArray, k: FloatArray, axis: IntArray, regressor: IntArray
-) -> tuple[FloatArray, FloatArray]:
+def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
     """Observations h(x_a, u) and H = dh/dx_a (paper eq. 13-14, C_Z corrected).
 
         y = [V, alpha, theta, q, qdot, a_x, a_z]
@@ -168,13 +169,14 @@ def observe(
     a_x, a_z are body-axis specific forces [m/s^2]; qdot [rad/s^2] as in dynamics().
     Returns h [7] and H [7 x n].
     """
+    k = model.k
     n = x.shape[0]
     V = x[0]
     alpha = x[1]
     m = k[MASS]
     A = k[AREA] / m
     rho = k[RHO]
-    C, dC = aero_coefficients(x, u, k, axis, regressor)
+    C, dC = aero_coefficients(x, u, model)
     Fe, dFe = thrust(V, u[1], k)
     qbar = 0.5 * rho * V * V
     sa = math.sin(alpha)
@@ -208,3 +210,26 @@ def observe(
     H[5, 1] += qbar * A * (C[1] * ca + C[0] * sa)
     H[6, 1] += qbar * A * (C[1] * sa - C[0] * ca)
     return h, H
+
+
+def air_relative(x: FloatArray, gust: FloatArray) -> FloatArray:
+    """The state the air sees under a gust [u_g, w_g] [m/s] (small-gust approximation):
+    V + u_g and alpha + w_g / V; the rest unchanged."""
+    xa = x.copy()
+    xa[0] = x[0] + gust[0]
+    xa[1] = x[1] + gust[1] / x[0]
+    return xa
+
+
+def rk4_step(
+    x: FloatArray, u: FloatArray, gust: FloatArray, h: float, model: ModelArrays
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """One classical Runge-Kutta step of x' = f(air_relative(x, gust), u) over h [s],
+    inputs and gust held. Returns x(t + h) and the Jacobians F1..F4 at the four stages
+    (the filters propagate the transition matrix from them; the simulator ignores them).
+    The filters fly in still air (gust 0), where air_relative(x) is x exactly."""
+    f1, F1 = dynamics(air_relative(x, gust), u, model)
+    f2, F2 = dynamics(air_relative(x + 0.5 * h * f1, gust), u, model)
+    f3, F3 = dynamics(air_relative(x + 0.5 * h * f2, gust), u, model)
+    f4, F4 = dynamics(air_relative(x + h * f3, gust), u, model)
+    return x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4), F1, F2, F3, F4

@@ -1,8 +1,8 @@
-"""Decode at the edge: MAVLink messages -> SI samples stamped with both clocks.
+"""Decode at the edge: MAVLink packets -> SI samples stamped with both clocks, or link events.
 
-Channels 0..6 are the observations (V, alpha, theta, q, qdot, a_x, a_z); 7 is the
-elevator [rad] and 8 the throttle [0..1] or thrust [N]. Downstream code never sees a
-MAVLink object.
+Channels are model.channels.Channel: the observations 0..6 in the order of the model's
+h(x), then the elevator [rad] and the throttle [0..1] or thrust [N]. Downstream code never
+sees a MAVLink object.
 """
 
 from __future__ import annotations
@@ -11,21 +11,19 @@ import math
 from dataclasses import dataclass
 
 from gcs_estimator.config import LinkConfig
-from gcs_estimator.telemetry.mavlink import MAVLinkMessage
+from gcs_estimator.model.channels import Channel
+from gcs_estimator.telemetry.mavlink import MAV_TYPE_GCS, Decoder, MAVLinkMessage
 
-V, ALPHA, THETA, Q, QDOT, AX, AZ, ELEVATOR, POWER = range(9)
-N_CHANNELS = 9
-
-PLAUSIBLE: dict[int, tuple[float, float]] = {
-    V: (0.5, 400.0),
-    ALPHA: (-math.pi / 2, math.pi / 2),
-    THETA: (-math.pi / 2, math.pi / 2),
-    Q: (-10.0, 10.0),
-    QDOT: (-100.0, 100.0),
-    AX: (-200.0, 200.0),
-    AZ: (-200.0, 200.0),
-    ELEVATOR: (-1.0, 1.0),
-    POWER: (-1e7, 1e7),
+PLAUSIBLE: dict[Channel, tuple[float, float]] = {
+    Channel.V: (0.5, 400.0),
+    Channel.ALPHA: (-math.pi / 2, math.pi / 2),
+    Channel.THETA: (-math.pi / 2, math.pi / 2),
+    Channel.Q: (-10.0, 10.0),
+    Channel.QDOT: (-100.0, 100.0),
+    Channel.AX: (-200.0, 200.0),
+    Channel.AZ: (-200.0, 200.0),
+    Channel.ELEVATOR: (-1.0, 1.0),
+    Channel.POWER: (-1e7, 1e7),
 }
 """Physically possible ranges [SI]; a value outside is absurd and dropped (and counted)."""
 
@@ -40,7 +38,45 @@ class Sample:
     """Vehicle clock [s since boot]; None for messages without a timestamp (VFR_HUD)."""
     t_recv_s: float
     """Ground receive time [s since the Unix epoch]."""
-    values: tuple[tuple[int, float], ...]
+    values: tuple[tuple[Channel, float], ...]
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """A HEARTBEAT: presence of a vehicle (or of another ground station)."""
+
+    ground_station: bool
+
+
+@dataclass(frozen=True)
+class CommandAck:
+    command: int
+    result: int
+
+
+@dataclass(frozen=True)
+class Unknown:
+    """A message the dialect does not know."""
+
+    name: str
+
+
+@dataclass(frozen=True)
+class Ignored:
+    """A valid message that carries nothing the estimator uses."""
+
+
+Event = Sample | Heartbeat | CommandAck | Unknown | Ignored
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """One packet that passed its CRC: its header and what it means."""
+
+    system_id: int
+    component_id: int
+    seq: int
+    event: Event
 
 
 @dataclass
@@ -51,51 +87,70 @@ class DecodeStats:
     """Messages that carry nothing the estimator uses (known, or unknown to the dialect)."""
 
 
+def decode_packet(
+    decoder: Decoder, packet: bytes, t_recv_s: float, link: LinkConfig, stats: DecodeStats
+) -> Decoded | None:
+    """What one packet means; None if it fails its CRC or framing."""
+    msg = decoder.decode(packet)
+    if msg is None:
+        return None
+    kind = msg.get_type()
+    event: Event
+    if kind.startswith("UNKNOWN"):
+        event = Unknown(kind)
+    elif kind == "HEARTBEAT":
+        event = Heartbeat(int(msg.type) == MAV_TYPE_GCS)
+    elif kind == "COMMAND_ACK":
+        event = CommandAck(int(msg.command), int(msg.result))
+    else:
+        sample = decode_message(msg, t_recv_s, link, stats)
+        event = Ignored() if sample is None else sample
+    return Decoded(int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq()), event)
+
+
+def _values(
+    msg: MAVLinkMessage, kind: str, link: LinkConfig
+) -> tuple[float | None, list[tuple[Channel, float]]] | None:
+    """(vehicle time [s] or None, channel values) of a message we use, else None."""
+    if kind == "HIGHRES_IMU":
+        return msg.time_usec * 1e-6, [
+            (Channel.AX, msg.xacc),
+            (Channel.AZ, msg.zacc),
+            (Channel.Q, msg.ygyro),
+        ]
+    if kind == "ATTITUDE":
+        return msg.time_boot_ms * 1e-3, [(Channel.THETA, msg.pitch)]
+    if kind == "AOA_SSA":
+        return msg.time_usec * 1e-6, [(Channel.ALPHA, math.radians(msg.AOA))]
+    if kind == "VFR_HUD":
+        return None, [(Channel.V, msg.airspeed)]
+    if kind == "SERVO_OUTPUT_RAW":
+        elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
+        vals = [(Channel.ELEVATOR, link.elevator_rad(float(elev_us)))]
+        if link.throttle_servo > 0:
+            thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
+            vals.append((Channel.POWER, link.throttle(float(thr_us))))
+        return msg.time_usec * 1e-6, vals
+    if kind == "NAMED_VALUE_FLOAT":
+        name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")
+        channel = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}.get(
+            name.rstrip("\x00")
+        )
+        return None if channel is None else (msg.time_boot_ms * 1e-3, [(channel, msg.value)])
+    return None
+
+
 def decode_message(
     msg: MAVLinkMessage, t_recv_s: float, link: LinkConfig, stats: DecodeStats
 ) -> Sample | None:
     """The sample a message carries, or None if it carries none."""
     kind = msg.get_type()
-    sysid = int(msg.get_srcSystem())
-    t: float | None
-    vals: list[tuple[int, float]]
-    if kind == "HIGHRES_IMU":
-        t = msg.time_usec * 1e-6
-        vals = [(AX, msg.xacc), (AZ, msg.zacc), (Q, msg.ygyro)]
-    elif kind == "ATTITUDE":
-        t = msg.time_boot_ms * 1e-3
-        vals = [(THETA, msg.pitch)]
-    elif kind == "AOA_SSA":
-        t = msg.time_usec * 1e-6
-        vals = [(ALPHA, math.radians(msg.AOA))]
-    elif kind == "VFR_HUD":
-        t = None
-        vals = [(V, msg.airspeed)]
-    elif kind == "SERVO_OUTPUT_RAW":
-        t = msg.time_usec * 1e-6
-        elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
-        vals = [(ELEVATOR, link.elevator_rad(float(elev_us)))]
-        if link.throttle_servo > 0:
-            thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
-            vals.append((POWER, link.throttle(float(thr_us))))
-    elif kind == "NAMED_VALUE_FLOAT":
-        t = msg.time_boot_ms * 1e-3
-        name = (
-            msg.name.rstrip("\x00")
-            if isinstance(msg.name, str)
-            else msg.name.decode("ascii", "replace").rstrip("\x00")
-        )
-        if name == link.qdot_name:
-            vals = [(QDOT, msg.value)]
-        elif name == link.thrust_name:
-            vals = [(POWER, msg.value)]
-        else:
-            stats.ignored_messages += 1
-            return None
-    else:
+    found = _values(msg, kind, link)
+    if found is None:
         stats.ignored_messages += 1
         return None
-    good: list[tuple[int, float]] = []
+    t, vals = found
+    good: list[tuple[Channel, float]] = []
     for ch, v in vals:
         lo, hi = PLAUSIBLE[ch]
         fv = float(v)
@@ -105,4 +160,4 @@ def decode_message(
             stats.invalid_values += 1
     if not good:
         return None
-    return Sample(sysid, kind, t, t_recv_s, tuple(good))
+    return Sample(int(msg.get_srcSystem()), kind, t, t_recv_s, tuple(good))

@@ -33,9 +33,12 @@ MSG_ID = {
     "AOA_SSA": dialect.MAVLINK_MSG_ID_AOA_SSA,
     "NAMED_VALUE_FLOAT": dialect.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT,
 }
+MESSAGE_NAME = {v: k for k, v in MSG_ID.items()}
 MAV_TYPE_FIXED_WING = dialect.MAV_TYPE_FIXED_WING
 MAV_TYPE_GCS = dialect.MAV_TYPE_GCS
 MAV_CMD_SET_MESSAGE_INTERVAL = dialect.MAV_CMD_SET_MESSAGE_INTERVAL
+MAV_RESULT_ACCEPTED = dialect.MAV_RESULT_ACCEPTED
+MAV_RESULT_DENIED = dialect.MAV_RESULT_DENIED
 
 
 def new_codec(system_id: int, component_id: int) -> Any:
@@ -43,6 +46,57 @@ def new_codec(system_id: int, component_id: int) -> Any:
     mav = dialect.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
     mav.robust_parsing = True
     return mav
+
+
+class Codec:
+    """This end of a link (ground station or vehicle): encodes its messages with its own
+    system and component ids and sequence numbers, and parses what it receives."""
+
+    def __init__(self, system_id: int, component_id: int) -> None:
+        self.mav = new_codec(system_id, component_id)
+        """The dialect's encoder: build messages with its *_encode methods, then pack()."""
+
+    def pack(self, msg: MAVLinkMessage) -> bytes:
+        """The packet of a message; advances the sequence number (pack() itself does not)."""
+        buf: bytes = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return buf
+
+    def heartbeat(self, mav_type: int) -> bytes:
+        """HEARTBEAT of a ground station (MAV_TYPE_GCS) or a fixed-wing ArduPilot vehicle."""
+        if mav_type == MAV_TYPE_GCS:
+            autopilot, base_mode = dialect.MAV_AUTOPILOT_INVALID, 0
+        else:
+            autopilot = dialect.MAV_AUTOPILOT_ARDUPILOTMEGA
+            base_mode = dialect.MAV_MODE_FLAG_AUTO_ENABLED
+        return self.pack(
+            self.mav.heartbeat_encode(mav_type, autopilot, base_mode, 0, dialect.MAV_STATE_ACTIVE)
+        )
+
+    def set_message_interval(self, target_system: int, message: str, rate_hz: float) -> bytes:
+        """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL: stream `message` at rate_hz (0: stop)."""
+        interval_us = 1e6 / rate_hz if rate_hz > 0 else -1
+        msg = self.mav.command_long_encode(
+            target_system,
+            1,
+            MAV_CMD_SET_MESSAGE_INTERVAL,
+            0,
+            MSG_ID[message],
+            interval_us,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        return self.pack(msg)
+
+    def command_ack(self, command: int, result: int) -> bytes:
+        return self.pack(self.mav.command_ack_encode(command, result))
+
+    def parse(self, data: bytes) -> list[MAVLinkMessage]:
+        """The messages in a received datagram (bad packets are skipped)."""
+        return list(self.mav.parse_buffer(data) or [])
 
 
 def packet_length(buf: bytes | bytearray, start: int = 0) -> int:
@@ -112,6 +166,12 @@ class TlogError(ValueError):
     """The file is not a tlog at all."""
 
 
+def tlog_record(t_recv_us: int, packet: bytes) -> bytes:
+    """One .tlog record: the receive time [us since the Unix epoch], big-endian, then the
+    packet."""
+    return struct.pack(">Q", t_recv_us) + packet
+
+
 class TlogWriter:
     """Appends records; flushed on close (and by the caller at will)."""
 
@@ -122,7 +182,7 @@ class TlogWriter:
         self.records = 0
 
     def write(self, t_recv_us: int, packet: bytes) -> None:
-        self._fh.write(struct.pack(">Q", t_recv_us) + packet)
+        self._fh.write(tlog_record(t_recv_us, packet))
         self.records += 1
 
     def flush(self) -> None:

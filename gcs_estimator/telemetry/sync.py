@@ -15,28 +15,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
-from gcs_estimator.model.equations import N_OBS, FloatArray
-from gcs_estimator.telemetry.decode import ELEVATOR, POWER, Sample
+from gcs_estimator.frames import Frame
+from gcs_estimator.model.channels import N_OBS, Channel
+from gcs_estimator.telemetry.decode import Sample
 
 CLOCK_RESET_S = 1.0
 """A vehicle time this far behind the last frame is a clock reset (reboot), not lateness."""
-
-
-@dataclass(frozen=True)
-class Frame:
-    """Synchronised inputs and observations of one vehicle at one vehicle time."""
-
-    system_id: int
-    t_vehicle_s: float
-    t_recv_s: float
-    """Receive time of the newest sample in the frame [s since epoch]."""
-    inputs: FloatArray
-    """[elevator rad, throttle 0..1 or thrust N], held from the latest samples."""
-    y: FloatArray
-    """Observations [7], NaN where the channel is missing."""
-    clock_reset: bool = False
-    """First frame after the vehicle clock went back (the filters rebase their time)."""
 
 
 @dataclass
@@ -68,15 +54,15 @@ class Synchronizer:
     _open: _Open | None = None
     _last_t: float = -math.inf
     _inputs: list[float] = field(default_factory=lambda: [math.nan, math.nan])
-    _untimed: list[tuple[int, float]] = field(default_factory=list)
+    _untimed: list[tuple[Channel, float]] = field(default_factory=list)
     _reset_pending: bool = False
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it completes (zero, one or two)."""
         out: list[Frame] = []
         for ch, v in sample.values:
-            if ch in (ELEVATOR, POWER):
-                self._inputs[ch - ELEVATOR] = v
+            if ch in (Channel.ELEVATOR, Channel.POWER):
+                self._inputs[ch - Channel.ELEVATOR] = v
         obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
         t = sample.t_vehicle_s
         if t is None:

@@ -30,7 +30,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from gcs_estimator.config import AXES, OBS_NAMES, STATE_NAMES
+from gcs_estimator.config import AXES
+from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
 
 GROUPS: dict[str, str] = {"CD": "drag", "CL": "lift", "Cm": "moment"}
 """Coefficient group of each axis, as it appears in entity paths and the layout."""
@@ -54,16 +55,9 @@ def vehicle_root(system_id: int) -> str:
     return f"/vehicle/{system_id}"
 
 
-def group_of(name: str) -> str:
-    """ "CLa" -> "lift": the group is the coefficient's axis (its first two letters)."""
-    for axis in AXES:
-        if name.startswith(axis):
-            return GROUPS[axis]
-    raise ValueError(f"{name!r} belongs to none of {AXES}")
-
-
-def coefficient_path(system_id: int, name: str) -> str:
-    return f"{vehicle_root(system_id)}/coefficients/{group_of(name)}/{name}"
+def coefficient_path(system_id: int, name: str, axis: str) -> str:
+    """Entity of coefficient `name` of `axis` ("CD", "CL" or "Cm"; the config's structure)."""
+    return f"{vehicle_root(system_id)}/coefficients/{GROUPS[axis]}/{name}"
 
 
 def state_path(system_id: int, state: str) -> str:
@@ -174,6 +168,7 @@ def y_range(truth: float | None) -> tuple[float, float] | None:
 def build_blueprint(
     system_ids: Sequence[int],
     names: Sequence[str],
+    axes: Sequence[str],
     power_input: str,
     truth: Sequence[float] | None = None,
 ) -> object:
@@ -182,10 +177,11 @@ def build_blueprint(
     vehicles get one tab each."""
     import rerun.blueprint as rrb
 
-    def coefficient_view(sid: int, name: str, legend: bool) -> rrb.TimeSeriesView:
-        rng = y_range(None if truth is None else truth[list(names).index(name)])
+    def coefficient_view(sid: int, i: int, legend: bool) -> rrb.TimeSeriesView:
+        name = names[i]
+        rng = y_range(None if truth is None else truth[i])
         return rrb.TimeSeriesView(
-            origin=coefficient_path(sid, name),
+            origin=coefficient_path(sid, name, axes[i]),
             name=name,
             axis_y=rrb.ScalarAxis(range=rng) if rng is not None else None,
             plot_legend=rrb.PlotLegend(corner="RightTop" if legend else None, visible=legend),
@@ -195,19 +191,19 @@ def build_blueprint(
     for sid in system_ids:
         columns = []
         for axis in AXES:
-            group = [n for n in names if n.startswith(axis)]
+            group = [i for i, a in enumerate(axes) if a == axis]
             if not group:
                 continue
             columns.append(
                 rrb.Vertical(
-                    *[coefficient_view(sid, n, legend=n == names[0]) for n in group],
+                    *[coefficient_view(sid, i, legend=i == 0) for i in group],
                     name=f"{GROUPS[axis]} ({axis})",
                 )
             )
         states = rrb.Grid(
             *[
                 rrb.TimeSeriesView(origin=state_path(sid, s), name=f"{s} [{u}]")
-                for s, u in zip(STATE_NAMES, STATE_UNITS, strict=True)
+                for s, u in zip(FLIGHT_STATES, STATE_UNITS, strict=True)
             ],
             name="states",
         )

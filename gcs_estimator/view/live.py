@@ -16,14 +16,16 @@ import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from gcs_estimator.config import STATE_NAMES, AircraftConfig
-from gcs_estimator.estimator import FilterKind, StepOutput
-from gcs_estimator.model import equations as eq
-from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimator import FILTER_KINDS, FilterKind, StepOutput
+from gcs_estimator.frames import Frame
+from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS
 from gcs_estimator.view import layout as lay
 from gcs_estimator.view.outlets import (
     Columns,
@@ -37,7 +39,10 @@ from gcs_estimator.view.outlets import (
     Text,
 )
 
-KINDS: tuple[FilterKind, FilterKind] = ("EKF", "IEKF")
+if TYPE_CHECKING:
+    from gcs_estimator.session import VehicleResult
+
+KINDS = FILTER_KINDS
 
 _DISPLAY_SCALE = np.array([1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi])
 """SI states to display units: V m/s, alpha and theta deg, q deg/s."""
@@ -47,8 +52,8 @@ def _chi2_bounds() -> FloatArray:
     """95 % two-sided bounds of one NIS value with m = 0..7 degrees of freedom."""
     from scipy.stats import chi2
 
-    out = np.full((eq.N_OBS + 1, 2), np.nan)
-    for m in range(1, eq.N_OBS + 1):
+    out = np.full((N_OBS + 1, 2), np.nan)
+    for m in range(1, N_OBS + 1):
         out[m] = chi2.ppf([0.025, 0.975], m)
     return out
 
@@ -93,9 +98,13 @@ class RerunView:
         self.outlets = list(outlets)
         self.config = config
         self.names = config.coefficient_names
+        self.axes = config.structure.axes
+        model = build_model(config)
+        self.flight = model.flight
+        self.coefficients = model.coefficients
         self.truth = None if config.truth is None else np.array(config.truth, float)
         self.truth_label = config.truth_label
-        self.power_input = "thrust" if config.propulsion.model == "measured" else "throttle"
+        self.power_input = config.propulsion.input_name
         self.link_source = link_source
         self.table_source = table_source
         self.clock = clock
@@ -142,16 +151,19 @@ class RerunView:
         """A new vehicle: style its series once, and lay the viewer out for all vehicles."""
         has_truth = self.truth is not None
         coef = lay.coefficient_style(has_truth, self.truth_label)
-        ops: list[Op] = [Style(lay.coefficient_path(system_id, n), coef) for n in self.names]
+        ops: list[Op] = [
+            Style(lay.coefficient_path(system_id, n, a), coef)
+            for n, a in zip(self.names, self.axes, strict=True)
+        ]
         ops += [
             Style(lay.state_path(system_id, s), lay.state_style(s, unit))
-            for s, unit in zip(STATE_NAMES, lay.STATE_UNITS, strict=True)
+            for s, unit in zip(FLIGHT_STATES, lay.STATE_UNITS, strict=True)
         ]
         ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
         ops.append(Style(lay.turbulence_path(system_id), lay.TURBULENCE_STYLE))
         ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
         truth = None if self.truth is None else tuple(float(v) for v in self.truth)
-        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.power_input, truth))
+        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.axes, self.power_input, truth))
         for op in ops:
             self._send(op)
 
@@ -181,16 +193,17 @@ class RerunView:
         tv = np.array(rows.tv)
         times = {lay.TIMELINE: tv, lay.RECEIVE_TIMELINE: t}
         x = {k: np.array([o.x for o in rows.outs[k]]) for k in KINDS}
-        sd = {k: np.array([o.sigma for o in rows.outs[k]]) for k in KINDS}
-        ns = eq.N_STATE
+        sd = {k: np.array([o.info.sigma for o in rows.outs[k]]) for k in KINDS}
+        c0 = self.coefficients.start
         for i, name in enumerate(self.names):
             cols = []
             for k in KINDS:
-                est, s2 = x[k][:, ns + i], 2.0 * sd[k][:, ns + i]
+                est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
                 cols += [est, est - s2, est + s2]
             if self.truth is not None:
                 cols.append(np.full(n, self.truth[i]))
-            self._send(Columns(lay.coefficient_path(sid, name), times, np.column_stack(cols)))
+            path = lay.coefficient_path(sid, name, self.axes[i])
+            self._send(Columns(path, times, np.column_stack(cols)))
         self.frames_sent += n
 
         # Display-only series: one row per display interval of vehicle time.
@@ -216,20 +229,23 @@ class RerunView:
     ) -> None:
         y = np.array(rows.y)[idx]
         u = np.array(rows.u)[idx]
-        for j, s in enumerate(STATE_NAMES):
-            vals = np.column_stack([y[:, j], x["EKF"][idx, j], x["IEKF"][idx, j]])
+        for j, s in enumerate(FLIGHT_STATES):
+            col = self.flight.start + j
+            vals = np.column_stack([y[:, j], x["EKF"][idx, col], x["IEKF"][idx, col]])
             self._send(Columns(lay.state_path(sid, s), times, vals * _DISPLAY_SCALE[j]))
         self._send(Columns(lay.input_path(sid, "elevator"), times, np.degrees(u[:, :1])))
         self._send(Columns(lay.input_path(sid, self.power_input), times, u[:, 1:2]))
         outs = {k: [rows.outs[k][i] for i in idx] for k in KINDS}
-        m = np.array([o.n_used for o in outs["IEKF"]], int)
-        nis = np.column_stack([np.array([o.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]])
+        m = np.array([o.info.n_used for o in outs["IEKF"]], int)
+        nis = np.column_stack(
+            [np.array([o.info.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]]
+        )
         self._send(Columns(lay.nis_path(sid), times, nis))
-        gust = np.column_stack([np.array([o.gust_sigma for o in outs[k]]) for k in KINDS])
+        gust = np.column_stack([np.array([o.info.gust_sigma for o in outs[k]]) for k in KINDS])
         self._send(Columns(lay.turbulence_path(sid), times, gust))
         for k in KINDS:
-            e = np.array([o.innovation for o in outs[k]])
-            sig = np.array([o.innovation_sigma for o in outs[k]])
+            e = np.array([o.info.innovation for o in outs[k]])
+            sig = np.array([o.info.innovation_sigma for o in outs[k]])
             with np.errstate(invalid="ignore", divide="ignore"):
                 z = e / sig
             guides = np.tile([-2.0, 2.0], (len(idx), 1))
@@ -258,6 +274,38 @@ class RerunView:
                 self._send(Text(lay.results_path(sid), rows.last_times, text))
         for outlet in self.outlets:
             outlet.close()
+
+
+class ViewSink:
+    """The view as a session sink: every frame's outputs, refreshed when idle, final
+    tables at the end."""
+
+    def __init__(self, view: RerunView, t_zero: Callable[[], float] | None = None) -> None:
+        self.view = view
+        self.t_zero = t_zero
+        """Zero of the receive timeline (the session's first packet); default: the first
+        frame's time."""
+        self._t0 = math.nan
+
+    def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
+        if math.isnan(self._t0):
+            self._t0 = self.t_zero() if self.t_zero is not None else frame.t_recv_s
+        self.view.step(
+            frame.system_id,
+            frame.t_recv_s - self._t0,
+            frame.t_vehicle_s,
+            frame.inputs,
+            frame.y,
+            outs,
+        )
+
+    def tick(self) -> None:
+        self.view.tick()
+
+    def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
+        from gcs_estimator.report import final_table
+
+        self.view.close({sid: final_table(v) for sid, v in results.items()})
 
 
 # ------------------------------------------------------------------ opening

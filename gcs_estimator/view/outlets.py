@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from gcs_estimator.model.equations import FloatArray
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.view.layout import SeriesStyle, build_blueprint
 
 APPLICATION_ID = "gcs-estimator"
@@ -61,6 +61,7 @@ class Layout:
 
     system_ids: tuple[int, ...]
     names: tuple[str, ...]
+    axes: tuple[str, ...]
     power_input: str
     truth: tuple[float, ...] | None
 
@@ -99,7 +100,7 @@ def apply(rec: Any, op: Op) -> None:
         )
     elif isinstance(op, Layout):
         rec.send_blueprint(
-            build_blueprint(op.system_ids, op.names, op.power_input, op.truth),
+            build_blueprint(op.system_ids, op.names, op.axes, op.power_input, op.truth),
             make_active=True,
             make_default=True,
         )

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
-from gcs_estimator.model.equations import FloatArray
 
 # Central differences with step 1e-6 relative: truncation ~1e-12, rounding ~1e-10 of the
 # function's scale. Entries are compared relative to the Jacobian's largest entry per row.

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimator import run_recording
 from sim.reference import output_error
 from sim.truth import simulate
 
@@ -39,13 +39,12 @@ def test_both_filters_end_at_the_maximum_likelihood_estimate_with_its_sigma(
     z = (fit.coefficients - flight.truth) / fit.sigma
     assert np.all(np.abs(z) < 4.0), z
 
-    est = Estimator(noc_config, keep_history=False)
-    est.run(flight.t_s, flight.inputs, flight.measurements)
-    for kind, (estimate, sigma) in est.current().items():
-        gap = (np.asarray(estimate) - fit.coefficients) / fit.sigma
-        assert np.all(np.abs(gap) < 0.3), (kind, dict(zip(est.names, gap.round(2), strict=True)))
-        ratio = np.asarray(sigma) / fit.sigma
+    res = run_recording(noc_config, flight.t_s, flight.inputs, flight.measurements).result
+    for kind, f in res.filters.items():
+        gap = (f.coefficients - fit.coefficients) / fit.sigma
+        assert np.all(np.abs(gap) < 0.3), (kind, dict(zip(res.names, gap.round(2), strict=True)))
+        ratio = f.sigma / fit.sigma
         assert np.all(np.abs(ratio - 1.0) < 0.05), (
             kind,
-            dict(zip(est.names, ratio.round(3), strict=True)),
+            dict(zip(res.names, ratio.round(3), strict=True)),
         )

@@ -6,17 +6,21 @@ import json
 import math
 import subprocess
 import sys
-import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import AircraftConfig, load_config_with
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_hfb320
-from gcs_estimator.station import Station, Stop, listen, open_udp, replay
+from gcs_estimator.frames import Frame
+from gcs_estimator.session import Session, Stop
+from gcs_estimator.sources import TlogSource, UdpSource, open_udp
+from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
 from sim.vehicle import SimulatedVehicle
 
@@ -24,13 +28,27 @@ ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
 
 
+class Ground:
+    """A ground station as the commands build it: a session over a MAVLink link."""
+
+    def __init__(self, config: AircraftConfig, record: Path | None = None) -> None:
+        self.session = Session(config)
+        self.link = MavlinkLink(config.link, recorder=TlogWriter(record) if record else None)
+
+    def frames(self, sysid: int = 1) -> int:
+        return self.session.estimators[sysid].frames
+
+    def final(self, sysid: int = 1) -> dict[str, np.ndarray]:
+        return {k: s.coefficients for k, s in self.session.estimators[sysid].snapshot().items()}
+
+
 def fly_to_station(
     config: AircraftConfig, recs: list[Recording], speed: float, record: Path | None
-) -> Station:
+) -> Ground:
     """Vehicles in threads of this process (real sockets) -> a listening station."""
     import threading
 
-    station = Station(config, record=record)
+    ground = Ground(config, record)
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     vehicles = [
@@ -40,23 +58,23 @@ def fly_to_station(
     threads = [threading.Thread(target=v.run) for v in vehicles]
     for t in threads:
         t.start()
-    listen(station, sock, Stop(), idle_exit_s=1.0, status_out=None, max_seconds=120)
+    ground.session.run(UdpSource(sock, ground.link, idle_exit_s=1.0, max_seconds=120))
     for t in threads:
         t.join()
-    sock.close()
-    station.finish()
-    return station
+    return ground
 
 
-def final(station: Station, sysid: int = 1) -> dict[str, np.ndarray]:
-    return {k: v[0] for k, v in station.vehicles[sysid].estimator.current().items()}
+def replay(config: AircraftConfig, path: Path) -> Ground:
+    ground = Ground(config)
+    ground.session.run(TlogSource([path], ground.link))
+    return ground
 
 
 def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) -> None:
     """Separate vehicle process -> UDP -> station; the recorded tlog replays to the same
     final estimates; the vehicle answered the station's heartbeat and rate requests."""
     config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
-    station = Station(config, record=tmp_path / "live.tlog")
+    station = Ground(config, record=tmp_path / "live.tlog")
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     proc = subprocess.Popen(
@@ -77,23 +95,19 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
         stderr=subprocess.PIPE,
         text=True,
     )
-    listen(station, sock, Stop(), idle_exit_s=1.5, status_out=None, max_seconds=120)
-    sock.close()
+    station.session.run(UdpSource(sock, station.link, idle_exit_s=1.5, max_seconds=120))
     _, err = proc.communicate(timeout=30)
-    station.finish()
     assert proc.returncode == 0
     assert "GCS heartbeats" in err and " 0 GCS heartbeats" not in err
     assert " 0 rate changes" not in err
-    v = station.vehicles[1]
-    assert v.frames == 601  # 12 s at 50 Hz, every frame
-    assert station.health.lost == 0 and station.health.corrupt == 0
-    assert 0 in v.acked  # COMMAND_ACK MAV_RESULT_ACCEPTED for SET_MESSAGE_INTERVAL
-    live = final(station)
+    assert station.frames() == 601  # 12 s at 50 Hz, every frame
+    assert station.link.health.lost == 0 and station.link.health.corrupt == 0
+    # COMMAND_ACK MAV_RESULT_ACCEPTED for SET_MESSAGE_INTERVAL
+    assert 0 in station.link.vehicles[1].acked
+    live = station.final()
 
-    again = Station(config)
-    replay(again, read_tlog(tmp_path / "live.tlog"))
-    again.finish()
-    for kind, beta in final(again).items():
+    again = replay(config, tmp_path / "live.tlog")
+    for kind, beta in again.final().items():
         np.testing.assert_array_equal(beta, live[kind])
 
 
@@ -106,22 +120,20 @@ def test_link_reaches_the_offline_estimate(tmp_path: Path, noc_config: AircraftC
     fl = simulate(config, seed=9)
     rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
     station = fly_to_station(config, [rec], speed=0.0, record=None)
-    offline = Estimator(config)
-    offline.run(fl.t_s, fl.inputs, fl.measurements)
-    for kind, (beta, sigma) in offline.current().items():
-        assert np.all(np.abs(final(station)[kind] - beta) < 0.5 * sigma), kind
+    offline = run_recording(config, fl.t_s, fl.inputs, fl.measurements).result
+    for kind, f in offline.filters.items():
+        assert np.all(np.abs(station.final()[kind] - f.coefficients) < 0.5 * f.sigma), kind
 
 
 def test_hfb320_playback_through_the_link(tmp_path: Path, hfb_data_path: Path) -> None:
     config = load_config_with(ROOT / "configs/hfb320.toml")
     rec = load_hfb320(hfb_data_path)
     station = fly_to_station(config, [rec], speed=0.0, record=None)
-    assert station.vehicles[1].frames == len(rec)
-    offline = Estimator(config)
-    offline.run(rec.t_s, rec.inputs, rec.measurements)
-    for kind, (beta, sigma) in offline.current().items():
+    assert station.frames() == len(rec)
+    offline = run_recording(config, rec.t_s, rec.inputs, rec.measurements).result
+    for kind, f in offline.filters.items():
         # float32 fields and 1 us elevator PWM: differences a fraction of the sigmas.
-        assert np.all(np.abs(final(station)[kind] - beta) < 0.5 * sigma), kind
+        assert np.all(np.abs(station.final()[kind] - f.coefficients) < 0.5 * f.sigma), kind
 
 
 def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
@@ -134,10 +146,10 @@ def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
         fl = simulate(c, seed=seed)
         recs.append(Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"))
     station = fly_to_station(config, recs, speed=0.0, record=None)
-    assert sorted(station.vehicles) == [1, 2]
-    assert all(v.frames == 601 for v in station.vehicles.values())
+    assert sorted(station.session.estimators) == [1, 2]
+    assert station.frames(1) == station.frames(2) == 601
     cla = config.coefficient_names.index("Cma")
-    a, b = final(station, 1)["IEKF"][cla], final(station, 2)["IEKF"][cla]
+    a, b = station.final(1)["IEKF"][cla], station.final(2)["IEKF"][cla]
     assert b / a == pytest.approx(1.2, rel=0.03)  # each vehicle its own estimate
 
 
@@ -155,20 +167,37 @@ def recorded_flight(tmp_path: Path) -> tuple[AircraftConfig, list[tuple[int, byt
     return config, [(r.t_recv_us, r.packet) for r in read_tlog(tmp_path / "v.tlog")]
 
 
-def run_records(config: AircraftConfig, records: list[tuple[int, bytes]]) -> Station:
-    station = Station(config)
-    t0 = records[0][0]
-    for i, (_, pkt) in enumerate(records):
-        # Receive times 2 ms apart: deterministic and well inside max_wait.
-        station.handle_packet(pkt, (t0 + 2000 * i) * 1e-6)
-    station.finish()
-    return station
+class Packets:
+    """A source of packets as single datagrams (session.Source), received 2 ms apart:
+    deterministic and well inside max_wait."""
+
+    def __init__(self, link: MavlinkLink, records: list[tuple[int, bytes]]) -> None:
+        self.link = link
+        self.records = records
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        t0 = self.records[0][0]
+        for i, (_, pkt) in enumerate(self.records):
+            yield from self.link.packet(pkt, (t0 + 2000 * i) * 1e-6)
+        yield from self.link.flush()
+
+    def link_stats(self) -> dict[str, Any]:
+        return self.link.stats()
+
+    def close(self) -> None:
+        self.link.close()
+
+
+def run_records(config: AircraftConfig, records: list[tuple[int, bytes]]) -> Ground:
+    ground = Ground(config)
+    ground.session.run(Packets(ground.link, records))
+    return ground
 
 
 def test_bad_packets_are_counted_and_skipped(tmp_path: Path) -> None:
     config, recs = recorded_flight(tmp_path)
     clean = run_records(config, recs)
-    n_frames = clean.vehicles[1].frames
+    n_frames = clean.frames()
 
     bad: list[tuple[int, bytes]] = []
     for i, (t, pkt) in enumerate(recs):
@@ -184,10 +213,10 @@ def test_bad_packets_are_counted_and_skipped(tmp_path: Path) -> None:
         if i == 300:
             bad.append((t, pkt))  # duplicated
     station = run_records(config, bad)
-    h = station.health
+    h = station.link.health
     assert h.corrupt == 2 and h.duplicates == 1 and h.lost == 2
-    assert station.vehicles[1].frames == n_frames  # partial frames, nothing stalls
-    assert np.all(np.isfinite(final(station)["IEKF"]))
+    assert station.frames() == n_frames  # partial frames, nothing stalls
+    assert np.all(np.isfinite(station.final()["IEKF"]))
 
 
 def test_nan_absurd_values_reorder_clock_reset_unknown_and_second_vehicle(
@@ -214,13 +243,13 @@ def test_nan_absurd_values_reorder_clock_reset_unknown_and_second_vehicle(
     # The vehicle reboots: the rest of the flight again, with its clock from the start.
     seq += recs[: len(recs) // 2]
     station = run_records(config, seq)
-    v = station.vehicles[1]
-    assert station.decode_stats.invalid_values == 2
-    assert 7 in station.vehicles  # second vehicle known, estimated separately
-    assert v.sync.stats.clock_resets == 1
-    assert station.health.out_of_order >= 1
-    assert station.unknown_messages == 1  # decoded as UNKNOWN_60000, skipped
-    beta = final(station)["IEKF"]
+    link = station.link
+    assert link.decode_stats.invalid_values == 2
+    assert 7 in link.vehicles  # second vehicle known, estimated separately
+    assert link.vehicles[1].sync.stats.clock_resets == 1
+    assert link.health.out_of_order >= 1
+    assert link.unknown_messages == 1  # decoded as UNKNOWN_60000, skipped
+    beta = station.final()["IEKF"]
     assert np.all(np.isfinite(beta))
     # The estimates known before the reboot are kept (not reset to zero).
     assert abs(beta[config.coefficient_names.index("Cma")]) > 1.0
@@ -270,9 +299,13 @@ def test_sigterm_stops_cleanly_with_results(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(4.0)
+    assert proc.stderr is not None
+    # Wait for the station to say it listens (kernels compiled, handlers installed).
+    for line in proc.stderr:
+        if line.startswith("listening on"):
+            break
     proc.terminate()
-    _out, err = proc.communicate(timeout=30)
+    _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "no vehicle data received" in err
     assert (tmp_path / "x.tlog").exists()

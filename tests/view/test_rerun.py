@@ -20,13 +20,16 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from gcs_estimator.config import STATE_NAMES, load_config_with
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.config import load_config_with
+from gcs_estimator.estimator import FILTER_KINDS, Track
+from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
 from gcs_estimator.report import final_table, live_table
-from gcs_estimator.station import Station, replay
+from gcs_estimator.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.sources import TlogSource
+from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view import layout as lay
-from gcs_estimator.view.live import RerunView
+from gcs_estimator.view.live import RerunView, ViewSink
 from gcs_estimator.view.outlets import LocalOutlet
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -61,58 +64,70 @@ def read_texts(path: Path, entity: str) -> list[str]:
     return texts
 
 
+Run = tuple[VehicleResult, Path, np.ndarray]
+
+
+def path_of(run: VehicleResult, name: str, sid: int = 1) -> str:
+    """The entity of coefficient `name` (its axis from the run's config)."""
+    names = run.result.names
+    return lay.coefficient_path(sid, name, run.result.config.structure.axes[names.index(name)])
+
+
+def tracks(run: VehicleResult) -> dict[str, Track]:
+    out = {k: f.track for k, f in run.result.filters.items()}
+    assert all(t is not None for t in out.values())
+    return out  # type: ignore[return-value]
+
+
 @pytest.fixture(scope="module")
-def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Estimator, Path, np.ndarray]:
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     """A 12 s simulated flight (both restarts included) through the view into an .rrd."""
     config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
     flight = simulate(config, seed=2)
     path = tmp_path_factory.mktemp("view") / "run.rrd"
-    est = Estimator(config)
-    clock = iter(np.arange(0.0, 1e6, 0.05))  # a flush every 20 frames: many blocks
+    session = Session(config)
+    clock = iter(np.arange(0.0, 1e6, 0.05))  # a flush every 10 frames: many blocks
     view = RerunView(
         [LocalOutlet("test", save=path)],
         config,
-        table_source=lambda sid: live_table(est),
+        table_source=lambda sid: live_table(session.estimator(sid)),
         clock=lambda: float(next(clock)),
     )
-    for i in range(len(flight.t_s)):
-        t = float(flight.t_s[i])
-        outs = est.step(t, flight.inputs[i], flight.measurements[i])
-        view.step(1, t - float(flight.t_s[0]), t, flight.inputs[i], flight.measurements[i], outs)
-    view.close({1: final_table(est)})
-    return est, path, flight.t_s
+    session.add_sink(ViewSink(view))
+    results = session.run(RecordingSource(flight.t_s, flight.inputs, flight.measurements))
+    return results[1], path, flight.t_s
 
 
 def test_coefficients_equal_the_filter_outputs_every_frame(
-    short_run: tuple[Estimator, Path, np.ndarray],
+    short_run: Run,
 ) -> None:
-    est, path, t_s = short_run
-    tracks = est.tracks()
-    truth = np.array(est.config.truth)
-    for i, name in enumerate(est.names):
-        t, v = read_scalars(path, lay.coefficient_path(1, name))
+    run, path, t_s = short_run
+    tr = tracks(run)
+    truth = np.array(run.result.config.truth)
+    for i, name in enumerate(run.result.names):
+        t, v = read_scalars(path, path_of(run, name))
         np.testing.assert_allclose(t, t_s, atol=1e-9)  # ns resolution of the index
         cols = 0
-        for kind in ("EKF", "IEKF"):
-            x = tracks[kind].x[:, 4 + i]
-            s2 = 2 * tracks[kind].sigma[:, 4 + i]
+        for kind in FILTER_KINDS:
+            x = tr[kind].coefficients[:, i]
+            s2 = 2 * tr[kind].coefficient_sigma[:, i]
             np.testing.assert_array_equal(v[:, cols], x)
             np.testing.assert_array_equal(v[:, cols + 1], x - s2)
             np.testing.assert_array_equal(v[:, cols + 2], x + s2)
             cols += 3
         np.testing.assert_array_equal(v[:, 6], truth[i])
-        tr, _ = read_scalars(path, lay.coefficient_path(1, name), lay.RECEIVE_TIMELINE)
-        np.testing.assert_allclose(tr, t_s - t_s[0], atol=1e-9)
+        trecv, _ = read_scalars(path, path_of(run, name), lay.RECEIVE_TIMELINE)
+        np.testing.assert_allclose(trecv, t_s - t_s[0], atol=1e-9)
     # The restart re-runs are in: what the view showed at 5 s is the history's value.
-    assert est.restarts_done == 2
+    assert run.result.restarts_done == 2
 
 
 def test_display_series_are_decimated_samples_of_the_same_outputs(
-    short_run: tuple[Estimator, Path, np.ndarray],
+    short_run: Run,
 ) -> None:
-    est, path, t_s = short_run
-    tr = est.tracks()
-    rate = est.config.view.display_rate_hz
+    run, path, t_s = short_run
+    tr = tracks(run)
+    rate = run.result.config.view.display_rate_hz
     for j, state in enumerate(STATE_NAMES):
         t, v = read_scalars(path, lay.state_path(1, state))
         assert len(t) == len(np.unique(np.floor(t_s * rate)))  # one row per display interval
@@ -140,15 +155,15 @@ def test_display_series_are_decimated_samples_of_the_same_outputs(
 
 
 def test_results_table_and_layout_are_in_the_recording(
-    short_run: tuple[Estimator, Path, np.ndarray],
+    short_run: Run,
 ) -> None:
-    est, path, _ = short_run
+    run, path, _ = short_run
     texts = read_texts(path, lay.results_path(1))
     assert len(texts) >= 2  # live updates, then the final table
-    assert texts[-1] == final_table(est)
+    assert texts[-1] == final_table(run)
     assert "| CLa |" in texts[0]
     # The series styles are static and name the filters and the truth line.
-    styles = RrdReader(path).stream().filter(content=lay.coefficient_path(1, "Cma"), is_static=True)
+    styles = RrdReader(path).stream().filter(content=path_of(run, "Cma"), is_static=True)
     names = [
         c.to_record_batch().column("SeriesLines:names").to_pylist()
         for c in styles.to_chunks()
@@ -170,7 +185,7 @@ def test_results_table_and_layout_are_in_the_recording(
         batch = chunk.to_record_batch()
         if "ViewBlueprint:space_origin" in batch.schema.names:
             origins.update(o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist())
-    assert {lay.coefficient_path(1, n) for n in est.names} <= origins
+    assert {path_of(run, n) for n in run.result.names} <= origins
     assert {lay.state_path(1, s) for s in STATE_NAMES} <= origins
     assert {lay.nis_path(1), lay.results_path(1), "/link"} <= origins
 
@@ -202,22 +217,24 @@ def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path:
     short_tlog(tlog, 2)
     config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
     rrd = tmp_path / "two.rrd"
-    station = Station(config)
-    view = station.attach_view([LocalOutlet("two", save=rrd)])
-    from gcs_estimator.telemetry.mavlink import read_tlog
-
-    replay(station, read_tlog(tlog))
-    station.finish()
-    view.close()
+    session = Session(config)
+    link = MavlinkLink(config.link)
+    view = RerunView(
+        [LocalOutlet("two", save=rrd)],
+        config,
+        link_source=lambda: (link.session_time(), link.health.as_dict()),
+    )
+    session.add_sink(ViewSink(view, lambda: link.t_first_recv))
+    results = session.run(TlogSource([tlog], link))
     for sid in (1, 2):
-        est = station.vehicles[sid].estimator
-        t, v = read_scalars(rrd, lay.coefficient_path(sid, "Cmq"))
-        assert len(t) == est.frames
+        run = results[sid]
+        t, v = read_scalars(rrd, path_of(run, "Cmq", sid))
+        assert len(t) == run.result.frames
         np.testing.assert_array_equal(
-            v[:, 3], est.tracks()["IEKF"].x[:, 4 + est.names.index("Cmq")]
+            v[:, 3], tracks(run)["IEKF"].coefficients[:, run.result.names.index("Cmq")]
         )
     t, counts = read_scalars(rrd, lay.LINK_COUNTS)
-    assert counts[-1, 0] == station.health.lost
+    assert counts[-1, 0] == link.health.lost
     _, rate = read_scalars(rrd, lay.LINK_RATE)
     assert np.all(rate >= 0)
 
@@ -279,7 +296,7 @@ def test_served_session_is_joined_late_and_the_viewer_gets_the_history(tmp_path:
     )
     assert session.wait(timeout=60) == 0
     assert joiner.returncode == 0
-    t, v = read_scalars(tmp_path / "joined.rrd", lay.coefficient_path(1, "Cma"))
+    t, v = read_scalars(tmp_path / "joined.rrd", lay.coefficient_path(1, "Cma", "Cm"))
     hist = np.genfromtxt(
         tmp_path / "results_sys1_history.csv",
         delimiter=",",
@@ -356,8 +373,8 @@ def test_run_completes_normally_when_the_viewer_is_unreachable(
     assert proc.returncode == 0, proc.stderr
     assert expect in proc.stderr
     data = json.loads((tmp_path / "results.json").read_text())
-    assert set(data["filters"]) == {"EKF", "IEKF"}
-    t, _ = read_scalars(tmp_path / "simulate_seed1.rrd", lay.coefficient_path(1, "CLa"))
+    assert set(data["filters"]) == set(FILTER_KINDS)
+    t, _ = read_scalars(tmp_path / "simulate_seed1.rrd", lay.coefficient_path(1, "CLa", "CL"))
     assert len(t) == 601
 
 
@@ -379,7 +396,7 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["truth_label"] == "book"
     assert data["filters"]["IEKF"]["estimates"]["Cma"]["truth"] == names.index("Cma") + 1.5
-    _, v = read_scalars(tmp_path / "offline_hfb320_1_10.rrd", lay.coefficient_path(1, "Cma"))
+    _, v = read_scalars(tmp_path / "offline_hfb320_1_10.rrd", lay.coefficient_path(1, "Cma", "Cm"))
     assert np.all(v[:, 6] == names.index("Cma") + 1.5)
     # A reference that misses a coefficient names the file and the key.
     ref.write_text("[truth]\nCD0 = 1.0\n")

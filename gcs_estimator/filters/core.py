@@ -1,0 +1,358 @@
+"""One filter step over values: the contract the numpy reference and the compiled kernel
+both keep.
+
+    step(state, t, u, y, tuning, model) -> (state', info)
+
+predicts the belief N(x, P) from state.t to vehicle time t [s] and updates it with the
+observations y [7] (NaN = missing). Everything a filter carries from one frame to the next
+is in FilterState; nothing is hidden on an object, so a restart is a new initial state.
+Which backend runs is chosen once (`stepper`); both have the same failure semantics:
+
+- an innovation covariance that is not positive definite skips the update: the state is
+  the prediction, innovations and NIS are NaN, `failed` is set;
+- a covariance that lost positive definiteness to rounding is repaired (eigenvalue floor)
+  and `repaired` is set;
+- a belief that went non-finite starts again from the configured prior at this frame, and
+  `diverged` is set.
+
+Process noise (Q, continuous-time spectral density, diagonal):
+
+    Q(t) = diag(q_final + (q_initial - q_final) exp(-(t - t_start) / q_decay_s))
+           + sigma_w^2 diag(gust_unit)
+
+where sigma_w^2 is the vertical gust variance estimated online by covariance matching
+(GustState), applied only once detected.
+
+Source: Meng, Liu and Veres (2010), sections III-IV; docs/model.md.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Literal, NamedTuple
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.channels import N_OBS
+
+FilterKind = Literal["EKF", "IEKF"]
+FILTER_KINDS: tuple[FilterKind, ...] = ("EKF", "IEKF")
+Backend = Literal["fast", "reference"]
+
+GUST_SENSITIVITY_EVERY = 25
+"""Steps between refreshes of the channels' sensitivity to the gust level (they only
+weigh the channels, and change with the flight state slowly)."""
+
+GUST_VAR_FLOOR = -0.1
+"""Lowest running gust variance [m^2/s^2]: in calm air the estimate wanders around zero;
+the floor keeps it from drifting so far below that real turbulence takes long to show."""
+
+GUST_CLIP = 25.0
+"""Squared innovations count at most this many times their variance (5 sigma) in the
+covariance matching, so that a glitch or the zero-start transient does not set the level."""
+
+
+class GustState(NamedTuple):
+    """Online estimate of the vertical gust variance sigma_w^2 [m^2/s^2].
+
+    Covariance matching: each step estimates the level at which its innovations e_c are as
+    large as predicted, from (e_c^2 - S_c) / G_c per channel, G_c = dt sum_j H_cj^2 unit_j
+    the change of S_c per unit gust variance, weighted by G_c^2 / (2 S_c^2) (their Fisher
+    information). The running estimate is an exponential average with gain
+    g = dt / adapt_time_s; the pass sums give the average over the whole pass.
+    """
+
+    var: float
+    """Running estimate; may dip below zero in calm air so that it averages to the truth."""
+    info: float
+    """Running Fisher information I of one step's estimate (0: nothing measured yet)."""
+    gain: float
+    """The averaging gain g of the last step."""
+    pass_num: float
+    pass_den: float
+    """Information-weighted sums of the step estimates since the pass started."""
+    sens: FloatArray
+    """Per-channel G_c / dt [N_OBS], refreshed every GUST_SENSITIVITY_EVERY steps."""
+    sens_age: int
+
+    @staticmethod
+    def start(var: float) -> GustState:
+        return GustState(var, 0.0, 0.0, 0.0, 0.0, np.zeros(N_OBS), GUST_SENSITIVITY_EVERY)
+
+    def applied(self, detection2: float) -> float:
+        """The level in the process noise: the running estimate where it stands at least
+        detection_sigma of its standard errors above zero, else 0. The exponential average
+        of one-step estimates of variance 1/I has variance g / (2 - g) / I. A level not yet
+        measured in this pass (configured, or carried over by a restart) is used as is."""
+        return gust_applied(self.var, self.info, self.gain, detection2)
+
+    def pass_average(self) -> float:
+        """The pass's information-weighted average level, >= 0 (the running level if
+        nothing was measured)."""
+        if self.pass_den <= 0.0:
+            return max(self.var, 0.0)
+        return max(self.pass_num / self.pass_den, 0.0)
+
+
+def gust_applied(var: float, info: float, gain: float, detection2: float) -> float:
+    """See GustState.applied (a function of scalars, so that the kernel shares it)."""
+    if var <= 0.0:
+        return 0.0
+    if info <= 0.0 or var * var * info * (2.0 - gain) >= detection2 * gain:
+        return var
+    return 0.0
+
+
+class FilterState(NamedTuple):
+    """Everything one filter carries from one frame to the next."""
+
+    x: FloatArray
+    """Augmented state estimate [n] (layout: model.state)."""
+    P: FloatArray
+    """Its covariance [n x n]."""
+    t: float
+    """Vehicle time of the belief [s]."""
+    u: FloatArray
+    """Inputs held since t [elevator rad, throttle or thrust N]."""
+    t_start: float
+    """Origin of the process-noise schedule [s] (the pass's first frame)."""
+    gust: GustState
+
+
+class Tuning(NamedTuple):
+    """One filter's settings, as the step takes them (built once from the config)."""
+
+    R: FloatArray
+    """Measurement noise covariance [N_OBS x N_OBS]."""
+    q_final: FloatArray
+    """Settled process-noise spectral density per state [n]."""
+    q_initial: FloatArray
+    """Process-noise spectral density at t_start [n]; decays to q_final."""
+    q_decay_s: float
+    gust_unit: FloatArray
+    """Process-noise spectral density per unit sigma_w^2 [n] (zero but on flight states)."""
+    iterations: int
+    """Measurement-update iterations: 1 is the EKF, more the IEKF."""
+    tolerance: float
+    """Early stop when no state moves by more than this many prior sigmas (0: off)."""
+    relinearise: float
+    """Keep the IEKF's iterations only when they move some component by at least this many
+    EKF-posterior sigmas (0: always iterate). See hybrid.iekf_update."""
+    max_step_s: float
+    """Longest Runge-Kutta step of the prediction [s]."""
+    gate: float
+    """Reject channels whose innovation exceeds this many sigma (0: off)."""
+    adaptive: bool
+    """Estimate the gust level online."""
+    adapt_time_s: float
+    detection2: float
+    """Squared detection threshold of the gust level, in its standard errors."""
+    prior_x: FloatArray
+    """Configured prior mean of the coefficient block; the flight states come from the
+    first measurement."""
+    prior_sigma: FloatArray
+    """Configured prior sigma of the whole augmented state [n]."""
+    gust_var0: float
+    """Configured initial gust variance [m^2/s^2]."""
+
+
+class StepInfo(NamedTuple):
+    """What one step reports."""
+
+    sigma: FloatArray
+    """sqrt(diag(P)) after the step [n]."""
+    nis: float
+    """e^T S^-1 e over the channels used; NaN when the update failed."""
+    n_used: int
+    iterations: int
+    innovation: FloatArray
+    """y - h(x-) per channel, NaN where not used [N_OBS]."""
+    innovation_sigma: FloatArray
+    """sqrt(diag(S)) per channel, NaN where not used [N_OBS]."""
+    gust_sigma: float
+    """Vertical gust intensity the step's process noise assumed [m/s]."""
+    failed: bool = False
+    repaired: bool = False
+    diverged: bool = False
+
+
+def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
+    """The step's settings for one filter kind from the config."""
+    ft = config.filter
+    n = model.n
+    flight, coef = model.flight, model.coefficients
+    q_final = np.zeros(n)
+    q_initial = np.zeros(n)
+    q_final[flight] = ft.state_process_noise
+    q_initial[flight] = ft.state_process_noise
+    q_final[coef] = ft.coefficient_process_noise
+    q_initial[coef] = ft.coefficient_process_noise_initial
+    unit = np.zeros(n)
+    unit[flight] = ft.turbulence.unit(float(model.k[eq.V0]))
+    prior_x = np.zeros(n)
+    prior_x[coef] = ft.initial_coefficients
+    prior_sigma = np.zeros(n)
+    prior_sigma[flight] = ft.initial_state_sigma
+    prior_sigma[coef] = ft.initial_coefficient_sigma
+    return Tuning(
+        R=np.diag(np.square(ft.measurement_sigma)),
+        q_final=q_final,
+        q_initial=q_initial,
+        q_decay_s=ft.coefficient_noise_decay_s,
+        gust_unit=unit,
+        iterations=1 if kind == "EKF" else ft.iterations,
+        tolerance=ft.iteration_tolerance,
+        relinearise=ft.relinearise_sigma,
+        max_step_s=ft.max_step_s,
+        gate=ft.innovation_gate,
+        adaptive=ft.turbulence.adaptive,
+        adapt_time_s=ft.turbulence.adapt_time_s,
+        detection2=ft.turbulence.detection_sigma**2,
+        prior_x=prior_x,
+        prior_sigma=prior_sigma,
+        gust_var0=ft.turbulence.sigma_w_mps**2,
+    )
+
+
+def initial_state(
+    model: Model,
+    tuning: Tuning,
+    t: float,
+    u: FloatArray,
+    y: FloatArray,
+    coefficients: FloatArray | None = None,
+    coefficient_sigma: FloatArray | None = None,
+    gust_var: float | None = None,
+) -> FilterState:
+    """The belief at the first frame of a pass: flight states from the measurement where
+    present (else trim speed and zeros), coefficients N(coefficients, sigma^2) (default:
+    the configured prior), the gust level given (default: configured)."""
+    x = tuning.prior_x.copy()
+    sigma = tuning.prior_sigma.copy()
+    flight = model.flight
+    state = np.array([model.k[eq.V0], 0.0, 0.0, 0.0])
+    measured = np.isfinite(y[flight])
+    state[measured] = y[flight][measured]
+    x[flight] = state
+    if coefficients is not None:
+        x[model.coefficients] = coefficients
+    if coefficient_sigma is not None:
+        sigma[model.coefficients] = coefficient_sigma
+    return FilterState(
+        x=x,
+        P=np.diag(sigma**2),
+        t=t,
+        u=np.array(u, float),
+        t_start=t,
+        gust=GustState.start(tuning.gust_var0 if gust_var is None else gust_var),
+    )
+
+
+def rebase(
+    state: FilterState, model: Model, tuning: Tuning, t: float, y: FloatArray
+) -> FilterState:
+    """A new time base (the vehicle clock reset): keep what is known of the coefficients,
+    take the flight states afresh from the measurement with their initial uncertainty.
+    The process-noise schedule keeps its age."""
+    fresh = initial_state(model, tuning, t, state.u, y)
+    flight = model.flight
+    x = state.x.copy()
+    P = state.P.copy()
+    x[flight] = fresh.x[flight]
+    P[flight, :] = 0.0
+    P[:, flight] = 0.0
+    P[flight, flight] = fresh.P[flight, flight]
+    return state._replace(
+        x=x,
+        P=P,
+        t=t,
+        u=np.full(state.u.shape, np.nan),
+        t_start=t - (state.t - state.t_start),
+    )
+
+
+def process_noise(state: FilterState, tuning: Tuning) -> tuple[FloatArray, float]:
+    """Diagonal of Q at the state's time, and the gust variance in it."""
+    age = max(state.t - state.t_start, 0.0)
+    decay = math.exp(-age / tuning.q_decay_s)
+    q = (
+        tuning.q_final
+        if decay < 1e-12
+        else tuning.q_final + (tuning.q_initial - tuning.q_final) * decay
+    )
+    gust = state.gust.applied(tuning.detection2)
+    if gust > 0.0:
+        q = q + gust * tuning.gust_unit
+    return q, gust
+
+
+def repair_covariance(P: FloatArray, rel_floor: float = 1e-12) -> FloatArray:
+    """Nearest symmetric matrix with eigenvalues >= rel_floor * largest eigenvalue.
+
+    Rounding in an update with a very wide prior (a zero start with sigma 100) can leave
+    P with a negative variance; the step repairs it and says so rather than stop.
+    """
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    w = np.maximum(w, rel_floor * max(float(w.max()), 1e-300))
+    out: FloatArray = (V * w) @ V.T
+    return 0.5 * (out + out.T)
+
+
+KernelStep = Callable[
+    [FilterState, float, FloatArray, FloatArray, Tuning, Model],
+    tuple[FilterState, StepInfo, bool],
+]
+"""A backend: (state, t, u, y, tuning, model) -> (state', info, healthy), where healthy
+says every variance is positive and the belief finite."""
+
+StepFn = Callable[
+    [FilterState, float, FloatArray, FloatArray, Tuning, Model], tuple[FilterState, StepInfo]
+]
+
+
+def guarded(kernel: KernelStep) -> StepFn:
+    """The step contract around a backend: repair or restart an unhealthy belief."""
+
+    def step(
+        state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
+    ) -> tuple[FilterState, StepInfo]:
+        new, info, healthy = kernel(state, t, u, y, tuning, model)
+        if healthy:
+            return new, info
+        return _recover(new, info, t, u, y, tuning, model)
+
+    return step
+
+
+def _recover(
+    state: FilterState,
+    info: StepInfo,
+    t: float,
+    u: FloatArray,
+    y: FloatArray,
+    tuning: Tuning,
+    model: Model,
+) -> tuple[FilterState, StepInfo]:
+    if np.isfinite(state.x).all() and np.isfinite(state.P).all():
+        P = repair_covariance(state.P)
+        return state._replace(P=P), info._replace(sigma=np.sqrt(np.diag(P)), repaired=True)
+    # Diverged (e.g. garbage input that passed every check): start again from the
+    # configured prior at this frame rather than stop estimating.
+    fresh = initial_state(model, tuning, t, u, y)
+    return fresh, info._replace(sigma=np.sqrt(np.diag(fresh.P)), diverged=True)
+
+
+def stepper(backend: Backend) -> StepFn:
+    """The step of the chosen backend: "fast" (compiled) or "reference" (numpy)."""
+    if backend == "fast":
+        from gcs_estimator.filters import fast
+
+        return guarded(fast.kernel_step)
+    from gcs_estimator.filters import reference
+
+    return guarded(reference.kernel_step)

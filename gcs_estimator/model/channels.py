@@ -1,0 +1,38 @@
+"""Signal channels: one numbering for decoding, synchronising and the observation model.
+
+Channels 0..6 are the observations y in the order of h(x) (spec: docs/model.md, eq. 13-14);
+7 and 8 are the inputs. The observation model's row i is Channel(i).
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class Channel(IntEnum):
+    V = 0
+    """True airspeed [m/s]."""
+    ALPHA = 1
+    """Angle of attack [rad]."""
+    THETA = 2
+    """Pitch angle [rad]."""
+    Q = 3
+    """Pitch rate [rad/s]."""
+    QDOT = 4
+    """Pitch acceleration [rad/s^2]."""
+    AX = 5
+    """Body-axis specific force, forward [m/s^2]."""
+    AZ = 6
+    """Body-axis specific force, down [m/s^2]."""
+    ELEVATOR = 7
+    """Elevator deflection [rad], positive trailing edge down (input)."""
+    POWER = 8
+    """Throttle [0..1] or thrust [N] (input)."""
+
+
+N_OBS = 7
+"""Observation channels: Channel.V .. Channel.AZ."""
+OBS_NAMES: tuple[str, ...] = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")
+FLIGHT_STATES: tuple[str, ...] = ("V", "alpha", "theta", "q")
+"""The flight states, in state order; each is also observed directly (channels 0..3)."""
+N_FLIGHT = len(FLIGHT_STATES)

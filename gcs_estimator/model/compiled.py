@@ -1,0 +1,44 @@
+"""The model's equations compiled with numba: the one place the compiler meets the model.
+
+model.equations is plain Python (the reference path imports no compiler). Registering its
+functions here lets compiled code (the filter kernel, the truth simulator) call them; the
+source stays one.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+from numba.extending import register_jitable
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.model import equations as eq
+from gcs_estimator.model.equations import ModelArrays
+
+for _fn in (eq.thrust, eq.aero_coefficients, eq.dynamics, eq.observe, eq.air_relative, eq.rk4_step):
+    register_jitable(_fn)
+
+
+@njit(cache=True)
+def _dynamics(
+    x: FloatArray, u: FloatArray, m: ModelArrays
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    return eq.dynamics(x, u, m)
+
+
+@njit(cache=True)
+def _observe(
+    x: FloatArray, u: FloatArray, m: ModelArrays
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    return eq.observe(x, u, m)
+
+
+def dynamics(x: FloatArray, u: FloatArray, m: ModelArrays) -> tuple[FloatArray, FloatArray]:
+    """Compiled equations.dynamics: f and F."""
+    out: tuple[FloatArray, FloatArray] = _dynamics(x, u, m)
+    return out
+
+
+def observe(x: FloatArray, u: FloatArray, m: ModelArrays) -> tuple[FloatArray, FloatArray]:
+    """Compiled equations.observe: h and H."""
+    out: tuple[FloatArray, FloatArray] = _observe(x, u, m)
+    return out

@@ -1,0 +1,201 @@
+"""The one loop: frames from a source, both filters per vehicle, outputs to sinks.
+
+    source (UDP, tlog, data file, simulator) -> frames -> Estimator per vehicle -> sinks
+    (the Rerun view, the results writer, the status line or progress bar)
+
+A Session drives every command and benchmark alike and owns the shutdown: whatever ends
+the run (end of data, a signal, an error in the source), the sinks get the results of
+what was processed.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any, Protocol
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimator import Backend, Estimator, EstimatorResult, FilterKind, StepOutput
+from gcs_estimator.frames import Frame
+from gcs_estimator.metrics import FilterSummary, summarise
+
+
+class Stop:
+    """Set by SIGINT/SIGTERM (once installed); sources check it and end cleanly."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def install(self) -> Stop:
+        def handler(signum: int, frame: FrameType | None) -> None:
+            self.requested = True
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+        return self
+
+
+class Source(Protocol):
+    """Where frames come from."""
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        """Frames in arrival order; None when time passed without one (sinks may refresh)."""
+        ...
+
+    def link_stats(self) -> dict[str, Any] | None:
+        """Counters of the link the frames came over (None for a data file)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class VehicleResult:
+    """The end of one vehicle's run: the estimator's result and its summaries."""
+
+    system_id: int
+    result: EstimatorResult
+    summaries: dict[FilterKind, FilterSummary]
+    truth: FloatArray | None
+
+
+class Sink(Protocol):
+    """Where the estimates go."""
+
+    def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None: ...
+
+    def tick(self) -> None:
+        """Time passed (called after every frame and when the source is idle)."""
+        ...
+
+    def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
+        """The run ended: final results per vehicle, link counters (None offline)."""
+        ...
+
+
+def config_truth(config: AircraftConfig) -> FloatArray | None:
+    return None if config.truth is None else np.array(config.truth, float)
+
+
+class Session:
+    """Estimators per vehicle between one source and its sinks."""
+
+    def __init__(
+        self,
+        config: AircraftConfig,
+        sinks: Sequence[Sink] = (),
+        backend: Backend = "fast",
+        keep_history: bool = True,
+    ) -> None:
+        self.config = config
+        self.sinks = list(sinks)
+        self.backend = backend
+        self.keep_history = keep_history
+        self.estimators: dict[int, Estimator] = {}
+        self.started = time.perf_counter()
+        self.elapsed_s = 0.0
+        """Wall-clock duration of the last run [s]."""
+        self._results: dict[int, VehicleResult] | None = None
+
+    def estimator(self, system_id: int) -> Estimator:
+        est = self.estimators.get(system_id)
+        if est is None:
+            est = self.estimators[system_id] = Estimator(
+                self.config, backend=self.backend, keep_history=self.keep_history
+            )
+        return est
+
+    def add_sink(self, sink: Sink) -> None:
+        self.sinks.append(sink)
+
+    def run(self, source: Source, stop: Stop | None = None) -> dict[int, VehicleResult]:
+        """Process every frame of the source until it ends or stop is requested; then
+        finish the sinks (always, with what was processed) and close the source."""
+        stop = stop if stop is not None else Stop()
+        self.started = time.perf_counter()
+        try:
+            for frame in source.frames(stop):
+                if frame is not None:
+                    self.process(frame)
+                for sink in self.sinks:
+                    sink.tick()
+        finally:
+            self.elapsed_s = time.perf_counter() - self.started
+            try:
+                results = self.results()
+                link = source.link_stats()
+                for sink in self.sinks:
+                    sink.finish(results, link)
+            finally:
+                source.close()
+        return results
+
+    def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
+        est = self.estimator(frame.system_id)
+        if frame.clock_reset:
+            est.rebase(frame.t_vehicle_s, frame.y)
+        outs = est.step(frame.t_vehicle_s, frame.inputs, frame.y)
+        for sink in self.sinks:
+            sink.on_frame(frame, outs)
+        return outs
+
+    def results(self) -> dict[int, VehicleResult]:
+        """Each vehicle's result and summaries (computed once, at the end)."""
+        if self._results is None or len(self._results) != len(self.estimators):
+            truth = config_truth(self.config)
+            out = {}
+            for sid, est in self.estimators.items():
+                result = est.result()
+                out[sid] = VehicleResult(sid, result, summarise(result, truth), truth)
+            self._results = out
+        return self._results
+
+
+class RecordingSource:
+    """The frames of a recording held in arrays (a data file, a simulated flight)."""
+
+    SYSTEM_ID = 1
+
+    def __init__(self, t_s: FloatArray, inputs: FloatArray, measurements: FloatArray) -> None:
+        self.t_s = np.asarray(t_s, float)
+        self.inputs = np.asarray(inputs, float)
+        self.measurements = np.asarray(measurements, float)
+        self.done = 0
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        for i in range(len(self.t_s)):
+            if stop.requested:
+                return
+            t = float(self.t_s[i])
+            self.done = i + 1
+            yield Frame(self.SYSTEM_ID, t, t, self.inputs[i], self.measurements[i])
+
+    def progress(self) -> tuple[int, int]:
+        """(frames done, frames in all)."""
+        return self.done, len(self.t_s)
+
+    def link_stats(self) -> dict[str, Any] | None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+def warm_up(config: AircraftConfig, backend: Backend = "fast") -> None:
+    """Compile (or load) the filter kernels and import what a restart needs now, not while
+    packets queue up."""
+    if backend != "fast":
+        return
+    from gcs_estimator.model.aircraft import trim
+
+    est = Estimator(config, keep_history=False)
+    t = trim(est.model, np.zeros(est.model.n_coefficients) + 0.1)
+    y = np.concatenate([t.state, np.zeros(3)])
+    est.step(0.0, t.inputs, y)
+    est.step(0.02, t.inputs, y)

@@ -1,0 +1,173 @@
+"""Frame sources over MAVLink: live UDP, and .tlog recordings (session.RecordingSource
+serves data files and simulated flights).
+
+Both feed the same MavlinkLink (decode, link health, synchronise), so a replay of a
+live session's recording makes the same frames as the live run did.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+from gcs_estimator.frames import Frame
+from gcs_estimator.session import Stop
+from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.telemetry.mavlink import Codec, TlogError, TlogRecord, TlogStats, read_tlog
+
+RCVBUF_BYTES = 8 * 1024 * 1024
+"""Listener socket buffer: the ~212 KB default drops packets at high rates."""
+
+POLL_S = 0.02
+"""Longest wait for a datagram before the sinks get an idle tick [s]."""
+
+
+class SourceError(RuntimeError):
+    """A source cannot deliver (unreadable or not a recording); the message says which."""
+
+
+def open_udp(host: str, port: int) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    # SO_RCVBUF is capped by net.core.rmem_max; FORCE (privileged) is not.
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), RCVBUF_BYTES)
+    except OSError:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
+    sock.bind((host, port))
+    sock.setblocking(False)
+    return sock
+
+
+class UdpSource:
+    """Datagrams from a bound UDP socket; the ground station's own messages go back to
+    each vehicle's address (heartbeat at 1 Hz, rate requests until acknowledged)."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        link: MavlinkLink,
+        idle_exit_s: float | None = None,
+        max_seconds: float | None = None,
+    ) -> None:
+        self.sock = sock
+        self.link = link
+        self.idle_exit_s = idle_exit_s
+        self.max_seconds = max_seconds
+        self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
+        self._last_data: float | None = None
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        start = time.time()
+        last_ground = 0.0
+        while not stop.requested and not self._done(start):
+            ready, _, _ = select.select([self.sock], [], [], POLL_S)
+            if ready:
+                yield from self._drain()
+            now = time.time()
+            yield from self.link.poll(now)
+            if now - last_ground >= 1.0:
+                last_ground = now
+                self._send_ground(now)
+            yield None
+        yield from self.link.flush()
+
+    def _done(self, start: float) -> bool:
+        now = time.time()
+        if self.max_seconds is not None and now - start > self.max_seconds:
+            return True
+        last = self._last_data
+        return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
+
+    def _drain(self) -> Iterator[Frame]:
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(65535)
+            except OSError:  # BlockingIOError: drained
+                return
+            t = self._last_data = time.time()
+            yield from self.link.datagram(data, t, addr)
+
+    def _send_ground(self, now: float) -> None:
+        for packet, address in self.link.ground_messages(self.codec, now):
+            try:
+                self.sock.sendto(packet, address)
+            except OSError:
+                self.link.report_once("send", f"cannot send to {address}: vehicle gone?")
+
+    def link_stats(self) -> dict[str, Any]:
+        return self.link.stats()
+
+    def close(self) -> None:
+        self.sock.close()
+        self.link.close()
+
+
+class TlogSource:
+    """The packets of .tlog files, in order, as fast as possible or at a multiple of the
+    recorded real time (speed > 0)."""
+
+    def __init__(
+        self,
+        paths: Sequence[str | Path],
+        link: MavlinkLink,
+        speed: float = 0.0,
+        log: TextIO | None = None,
+    ) -> None:
+        self.paths = [Path(p) for p in paths]
+        self.link = link
+        self.speed = speed
+        self.log = sys.stderr if log is None else log
+        self.done = 0
+        self.total = 0
+
+    def _records(self, path: Path) -> list[TlogRecord]:
+        stats = TlogStats()
+        try:
+            records = list(read_tlog(path, stats))
+        except TlogError as exc:
+            raise SourceError(str(exc)) from exc
+        except OSError as exc:
+            raise SourceError(f"{path}: cannot read: {exc.strerror}") from exc
+        if stats.junk_bytes:
+            print(f"note: {path}: {stats.junk_bytes} garbage bytes skipped", file=self.log)
+        if stats.truncated_tail:
+            print(
+                f"note: {path}: truncated at the end; the last partial record is ignored",
+                file=self.log,
+            )
+        return records
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        t0_rec = t0_wall = None
+        for path in self.paths:
+            records = self._records(path)
+            self.done, self.total = 0, len(records)
+            for rec in records:
+                if stop.requested:
+                    break
+                t = rec.t_recv_us * 1e-6
+                if self.speed > 0:
+                    if t0_rec is None or t0_wall is None:
+                        t0_rec, t0_wall = t, time.time()
+                    delay = (t - t0_rec) / self.speed - (time.time() - t0_wall)
+                    if delay > 0:
+                        time.sleep(delay)
+                self.done += 1
+                yield from self.link.packet(rec.packet, t)
+        yield from self.link.flush()
+
+    def progress(self) -> tuple[int, int]:
+        """(packets done, packets in the current file)."""
+        return self.done, self.total
+
+    def link_stats(self) -> dict[str, Any]:
+        return self.link.stats()
+
+    def close(self) -> None:
+        self.link.close()
