@@ -32,6 +32,7 @@ from gcs_estimator.sources import UdpSource, open_udp
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.view.live import RerunView, ViewSink
 from gcs_estimator.view.outlets import LocalOutlet
+from sim.cli import command as vehicle_command
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -77,21 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         sock = open_udp("127.0.0.1", 0)
         port = sock.getsockname()[1]
         sim = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "sim.cli",
-                "--config",
-                args.config,
-                "--set",
-                override,
-                "--vehicles",
-                str(args.vehicles),
-                "--target",
-                f"127.0.0.1:{port}",
-                "--speed",
-                "1",
-            ],
+            vehicle_command(args.config, f"127.0.0.1:{port}", 1.0, [override], args.vehicles),
             cwd=ROOT,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,

@@ -273,21 +273,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     port = sock.getsockname()[1]
     record = Path(args.out) / "demo.tlog"
     session, link = _link_session(config, args, "demo", record)
-    cmd = [
-        sys.executable,
-        "-m",
-        "sim.cli",
-        "--config",
-        args.config,
-        "--target",
-        f"127.0.0.1:{port}",
-        "--speed",
-        str(args.speed),
-    ]
-    for item in args.set:
-        cmd += ["--set", item]
-    if args.seed is not None:
-        cmd += ["--seed", str(args.seed)]
+    from sim.cli import command as vehicle_command
+
+    cmd = vehicle_command(args.config, f"127.0.0.1:{port}", args.speed, args.set, seed=args.seed)
     print(
         f"demo: simulated NOC UAV -> udp 127.0.0.1:{port} -> ground station "
         f"({config.simulation.manoeuvre.duration_s:.0f} s flight at {args.speed:g}x; "

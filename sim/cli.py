@@ -23,6 +23,25 @@ def _target(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+def command(
+    config: str | Path,
+    target: str,
+    speed: float = 1.0,
+    overrides: Sequence[str] = (),
+    vehicles: int = 1,
+    seed: int | None = None,
+) -> list[str]:
+    """The command line that runs the simulated vehicle(s) as a process of their own with
+    this Python, streaming to target HOST:PORT."""
+    cmd = [sys.executable, "-m", "sim.cli", "--config", str(config), "--target", target]
+    cmd += ["--speed", str(speed), "--vehicles", str(vehicles)]
+    for item in overrides:
+        cmd += ["--set", item]
+    if seed is not None:
+        cmd += ["--seed", str(seed)]
+    return cmd
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="gcs-sim", description=__doc__)
     ap.add_argument("--config", default="configs/noc_uav.toml")

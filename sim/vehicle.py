@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.telemetry import mavlink
@@ -96,90 +97,78 @@ class SimulatedVehicle:
     def run(self, stop_after_s: float | None = None) -> VehicleStats:
         """Stream the whole recording (or until stop_after_s of vehicle time)."""
         rec = self.recording
-        link = self.link
         start_wall = time.time()
         t_first = float(rec.t_s[0])
         next_due = {m: t_first for m in STREAMED_MESSAGES}
         next_hb = t_first
         for i in range(len(rec)):
-            t_rel = float(rec.t_s[i]) - t_first
-            if stop_after_s is not None and t_rel > stop_after_s:
-                break
-            if self.speed > 0:
-                delay = t_rel / self.speed - (time.time() - start_wall)
-                if delay > 0:
-                    time.sleep(delay)
-            self._serve()
             t = float(rec.t_s[i])
+            if stop_after_s is not None and t - t_first > stop_after_s:
+                break
+            self._pace(t - t_first, start_wall)
+            self._serve()
             tv = t - t_first + BOOT_OFFSET_S
             us, ms = int(round(tv * 1e6)), int(round(tv * 1e3))
             if t >= next_hb - 1e-9:
                 next_hb += 1.0
                 self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
                 self._send(self.mav.system_time_encode(int(time.time() * 1e6), ms))
-            y = rec.measurements[i]
-            de, power = float(rec.inputs[i, 0]), float(rec.inputs[i, 1])
-            due = set()
-            for m in STREAMED_MESSAGES:
-                r = self.rates[m]
-                if r > 0 and t >= next_due[m] - 1e-6:
-                    due.add(m)
-                    next_due[m] += 1.0 / r
-                    if next_due[m] < t:  # rate above the sample rate: once per sample
-                        next_due[m] = t + 1.0 / r
-            # Inputs first, then observations: a frame is complete when its last
-            # observation arrives.
-            if "SERVO_OUTPUT_RAW" in due:
-                pwm = [0] * 16
-                pwm[link.elevator_servo - 1] = _pwm(link.elevator_pwm(de))
-                if link.throttle_servo:
-                    pwm[link.throttle_servo - 1] = _pwm(link.throttle_pwm(power))
-                self._send(self.mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *pwm))
-            if "NAMED_VALUE_FLOAT" in due:
-                if not link.throttle_servo:
-                    self._send(
-                        self.mav.named_value_float_encode(ms, link.thrust_name.encode(), power)
-                    )
-                if math.isfinite(y[4]):
-                    self._send(
-                        self.mav.named_value_float_encode(ms, link.qdot_name.encode(), float(y[4]))
-                    )
-            if "AOA_SSA" in due:
-                self._send(self.mav.aoa_ssa_encode(us, math.degrees(float(y[1])), 0.0))
-            if "ATTITUDE" in due:
-                self._send(
-                    self.mav.attitude_encode(ms, 0.0, float(y[2]), 0.0, 0.0, float(y[3]), 0.0)
-                )
-            if "HIGHRES_IMU" in due:
-                self._send(
-                    self.mav.highres_imu_encode(
-                        us,
-                        float(y[5]),
-                        0.0,
-                        float(y[6]),
-                        0.0,
-                        float(y[3]),
-                        0.0,
-                        0.0,
-                        0.0,
-                        0.0,
-                        0.0,
-                        0.0,
-                        0.0,
-                        0.0,
-                        0b11111,
-                    )
-                )
-            if "VFR_HUD" in due:
-                thr_pct = int(round(100 * power)) if link.throttle_servo else 0
-                self._send(
-                    self.mav.vfr_hud_encode(
-                        float(y[0]), float(y[0]), 0, max(0, min(100, thr_pct)), 100.0, 0.0
-                    )
-                )
+            due = self._due(t, next_due)
+            for msg in self._messages(due, us, ms, rec.measurements[i], rec.inputs[i]):
+                self._send(msg)
         self._serve()
         self.close()
         return self.stats
+
+    def _pace(self, t_rel: float, start_wall: float) -> None:
+        """At speed > 0, wait until t_rel [s] of flight has passed in real time / speed."""
+        if self.speed > 0:
+            delay = t_rel / self.speed - (time.time() - start_wall)
+            if delay > 0:
+                time.sleep(delay)
+
+    def _due(self, t: float, next_due: dict[str, float]) -> set[str]:
+        """The messages due at vehicle time t at their current rates."""
+        due = set()
+        for m in STREAMED_MESSAGES:
+            r = self.rates[m]
+            if r > 0 and t >= next_due[m] - 1e-6:
+                due.add(m)
+                next_due[m] += 1.0 / r
+                if next_due[m] < t:  # rate above the sample rate: once per sample
+                    next_due[m] = t + 1.0 / r
+        return due
+
+    def _messages(
+        self, due: set[str], us: int, ms: int, y: FloatArray, inputs: FloatArray
+    ) -> list[Any]:
+        """The due messages of one sample. Inputs first, then observations: a frame is
+        complete when its last observation arrives."""
+        link, mav = self.link, self.mav
+        de, power = float(inputs[0]), float(inputs[1])
+        out: list[Any] = []
+        if "SERVO_OUTPUT_RAW" in due:
+            pwm = [0] * 16
+            pwm[link.elevator_servo - 1] = _pwm(link.elevator_pwm(de))
+            if link.throttle_servo:
+                pwm[link.throttle_servo - 1] = _pwm(link.throttle_pwm(power))
+            out.append(mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *pwm))
+        if "NAMED_VALUE_FLOAT" in due:
+            if not link.throttle_servo:
+                out.append(mav.named_value_float_encode(ms, link.thrust_name.encode(), power))
+            if math.isfinite(y[4]):
+                out.append(mav.named_value_float_encode(ms, link.qdot_name.encode(), float(y[4])))
+        if "AOA_SSA" in due:
+            out.append(mav.aoa_ssa_encode(us, math.degrees(float(y[1])), 0.0))
+        if "ATTITUDE" in due:
+            out.append(mav.attitude_encode(ms, 0.0, float(y[2]), 0.0, 0.0, float(y[3]), 0.0))
+        if "HIGHRES_IMU" in due:
+            imu = (float(y[5]), 0.0, float(y[6]), 0.0, float(y[3]), 0.0) + (0.0,) * 7
+            out.append(mav.highres_imu_encode(us, *imu, 0b11111))
+        if "VFR_HUD" in due:
+            thr_pct = max(0, min(100, int(round(100 * power)) if link.throttle_servo else 0))
+            out.append(mav.vfr_hud_encode(float(y[0]), float(y[0]), 0, thr_pct, 100.0, 0.0))
+        return out
 
     def close(self) -> None:
         if self._tlog is not None:

@@ -39,6 +39,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.equations import ModelArrays
 
 FilterKind = Literal["EKF", "IEKF"]
 FILTER_KINDS: tuple[FilterKind, ...] = ("EKF", "IEKF")
@@ -276,19 +277,71 @@ def rebase(
     )
 
 
+# The functions below are written once, for both backends: plain Python on numpy arrays
+# and named tuples, which filters.fast also compiles.
+
+
 def process_noise(state: FilterState, tuning: Tuning) -> tuple[FloatArray, float]:
     """Diagonal of Q at the state's time, and the gust variance in it."""
-    age = max(state.t - state.t_start, 0.0)
-    decay = math.exp(-age / tuning.q_decay_s)
-    q = (
-        tuning.q_final
-        if decay < 1e-12
-        else tuning.q_final + (tuning.q_initial - tuning.q_final) * decay
-    )
-    gust = state.gust.applied(tuning.detection2)
+    decay = math.exp(-max(state.t - state.t_start, 0.0) / tuning.q_decay_s)
+    q = tuning.q_final.copy()
+    if decay >= 1e-12:
+        q = tuning.q_final + (tuning.q_initial - tuning.q_final) * decay
+    g = state.gust
+    gust = gust_applied(g.var, g.info, g.gain, tuning.detection2)
     if gust > 0.0:
         q = q + gust * tuning.gust_unit
     return q, gust
+
+
+def gust_match(e: FloatArray, s: FloatArray, G: FloatArray) -> tuple[float, float]:
+    """Weighted covariance-matching sums of one step (GustState):
+    num = sum w (min(e^2, 25 S) - S), den = sum w G, w = G / (2 S^2), over the channels
+    whose innovation e and its sigma s are present."""
+    num = 0.0
+    den = 0.0
+    for c in range(e.shape[0]):
+        S = s[c] * s[c]
+        if not (math.isfinite(e[c]) and S > 0.0):  # also catches NaN sigma
+            continue
+        w = G[c] / (2.0 * S * S)
+        num += w * (min(e[c] * e[c], GUST_CLIP * S) - S)
+        den += w * G[c]
+    return num, den
+
+
+def adapt_gust(
+    g: GustState,
+    tuning: Tuning,
+    model: ModelArrays,
+    dt: float,
+    x: FloatArray,
+    u: FloatArray,
+    e: FloatArray,
+    s: FloatArray,
+    applied: float,
+) -> GustState:
+    """One step of the gust estimate (GustState) from the step's innovations e and their
+    sigmas s at the posterior x, refreshing the channel sensitivities when due. Each step
+    estimates the level as the one its process noise used (applied) plus a correction:
+    averaged over the pass (for the next restart) and running."""
+    if not tuning.adaptive or not dt > 0.0:
+        return g
+    sens = g.sens
+    age = g.sens_age
+    if age >= GUST_SENSITIVITY_EVERY:
+        _, H = eq.observe(x, u, model)
+        sens = (H * H) @ tuning.gust_unit
+        age = 0
+    age += 1
+    num, den = gust_match(e, s, dt * sens)
+    if not den > 0.0:
+        return GustState(g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age)
+    estimate = applied + num / den
+    gain = min(1.0, dt / tuning.adapt_time_s)
+    info = g.info + gain * (den - g.info) if g.info > 0.0 else den
+    var = max(g.var + gain * (estimate - g.var), GUST_VAR_FLOOR)
+    return GustState(var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age)
 
 
 def repair_covariance(P: FloatArray, rel_floor: float = 1e-12) -> FloatArray:

@@ -12,6 +12,7 @@ tests/filters/test_fast.py checks it against the reference, kernel and flight al
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -26,7 +27,8 @@ from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
 
-register_jitable(core.gust_applied)
+for _fn in (core.gust_applied, core.process_noise, core.gust_match, core.adapt_gust):
+    register_jitable(_fn)
 
 
 @njit(cache=True)
@@ -82,8 +84,9 @@ def _propagate(
 
 
 @njit(cache=True)
-def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
-    """S^-1 B by Cholesky with a tiny diagonal; (garbage, False) if S is not PD."""
+def _cholesky(S: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
+    """Lower Cholesky factor of S plus a tiny diagonal (hybrid.PSD_JITTER); False if S is
+    not positive definite (or not finite)."""
     m = S.shape[0]
     scale = 1.0
     for i in range(m):
@@ -95,13 +98,23 @@ def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # prag
             acc = S[i, j]
             for c in range(j):
                 acc -= L[i, c] * L[j, c]
-            if i == j:
-                acc += jitter
-                if not acc > 0.0:  # also catches NaN
-                    return B.copy(), False
-                L[i, i] = math.sqrt(acc)
-            else:
+            if i != j:
                 L[i, j] = acc / L[j, j]
+                continue
+            acc += jitter
+            if not acc > 0.0:  # also catches NaN
+                return L, False
+            L[i, i] = math.sqrt(acc)
+    return L, True
+
+
+@njit(cache=True)
+def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
+    """S^-1 B by Cholesky with a tiny diagonal; (garbage, False) if S is not PD."""
+    L, ok = _cholesky(S)
+    if not ok:
+        return B.copy(), False
+    m = S.shape[0]
     # Forward then back substitution: S^-1 B = L^-T L^-1 B.
     Z = np.empty_like(B)
     for col in range(B.shape[1]):
@@ -258,80 +271,18 @@ def _update(
 
 
 @njit(cache=True)
-def gust_match(
-    e: FloatArray, s: FloatArray, G: FloatArray
-) -> tuple[float, float]:  # pragma: no cover
-    """reference.gust_match, compiled."""
-    num = 0.0
-    den = 0.0
-    for c in range(e.shape[0]):
-        S = s[c] * s[c]
-        if not (math.isfinite(e[c]) and S > 0.0):  # also catches NaN sigma
-            continue
-        w = G[c] / (2.0 * S * S)
-        num += w * (min(e[c] * e[c], core.GUST_CLIP * S) - S)
-        den += w * G[c]
-    return num, den
-
-
-@njit(cache=True)
-def _adapt_gust(
-    g: GustState,
-    tun: Tuning,
-    m: ModelArrays,
-    dt: float,
-    x: FloatArray,
-    u: FloatArray,
-    e: FloatArray,
-    s: FloatArray,
-    applied: float,
-) -> GustState:  # pragma: no cover
-    """reference.adapt_gust, compiled."""
-    if not tun.adaptive or not dt > 0.0:
-        return g
-    sens = g.sens
-    age = g.sens_age
-    if age >= core.GUST_SENSITIVITY_EVERY:
-        _, H = observe(x, u, m)
-        sens = (H * H) @ tun.gust_unit
-        age = 0
-    age += 1
-    num, den = gust_match(e, s, dt * sens)
-    if not den > 0.0:
-        return GustState(g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age)
-    estimate = applied + num / den
-    gain = min(1.0, dt / tun.adapt_time_s)
-    info = g.info + gain * (den - g.info) if g.info > 0.0 else den
-    var = max(g.var + gain * (estimate - g.var), core.GUST_VAR_FLOOR)
-    return GustState(var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age)
-
-
-@njit(cache=True)
-def _process_noise(st: FilterState, tun: Tuning) -> tuple[FloatArray, float]:  # pragma: no cover
-    """core.process_noise, compiled: Q (full) and the gust variance in it."""
-    decay = math.exp(-max(st.t - st.t_start, 0.0) / tun.q_decay_s)
-    q = tun.q_final.copy()
-    if decay >= 1e-12:
-        q = tun.q_final + (tun.q_initial - tun.q_final) * decay
-    g = st.gust
-    applied = core.gust_applied(g.var, g.info, g.gain, tun.detection2)
-    if applied > 0.0:
-        q = q + applied * tun.gust_unit
-    return np.diag(q), applied
-
-
-@njit(cache=True)
 def _step(
     st: FilterState, t: float, u: FloatArray, y: FloatArray, tun: Tuning, m: ModelArrays
 ) -> tuple[FilterState, StepInfo, bool]:  # pragma: no cover
     u_prev = st.u if np.all(np.isfinite(st.u)) else u
     dt = t - st.t
-    Q, applied = _process_noise(st, tun)
+    q, applied = core.process_noise(st, tun)
+    Q = np.diag(q)
     xp, Pp = _propagate(st.x, st.P, u_prev, Q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
     variances = np.diag(P).copy()
     healthy = variances.min() > 0.0 and math.isfinite(x.sum() + P.sum())
-    gust = _adapt_gust(st.gust, tun, m, dt, x, u, e, s, applied)
+    gust = core.adapt_gust(st.gust, tun, m, dt, x, u, e, s, applied)
     new = FilterState(x, P, t, u.copy(), st.t_start, gust)
     info = StepInfo(
         np.sqrt(np.maximum(variances, 0.0)),
@@ -441,7 +392,8 @@ def kernel_step(
 ) -> tuple[FilterState, StepInfo, bool]:
     """Predict with the held inputs, update with y, adapt the gust level (core contract)."""
     t = float(t)
-    (x, P, u_held, sigma, nis, used, done, e, s, gust_sigma, failed, healthy, *gust) = _kernel(
+    kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
+    (x, P, u_held, sigma, nis, used, done, e, s, gust_sigma, failed, healthy, *gust) = kernel(
         state.x,
         state.P,
         state.t,

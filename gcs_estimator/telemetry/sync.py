@@ -59,31 +59,14 @@ class Synchronizer:
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it completes (zero, one or two)."""
-        out: list[Frame] = []
         for ch, v in sample.values:
             if ch in (Channel.ELEVATOR, Channel.POWER):
                 self._inputs[ch - Channel.ELEVATOR] = v
         obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
         t = sample.t_vehicle_s
         if t is None:
-            # No timestamp (VFR_HUD): it belongs with the frame being filled.
-            if self._open is not None:
-                for ch, v in obs:
-                    self._open.y[ch] = v
-                self._open.t_last_recv = sample.t_recv_s
-                out += self._emit_if_complete()
-            else:
-                self._untimed += obs
-            return out
-        if t < self._last_t - CLOCK_RESET_S or (
-            self._open is not None and t < self._open.t - CLOCK_RESET_S
-        ):
-            self.stats.clock_resets += 1
-            out += self._emit()
-            self._last_t = -math.inf
-            self._reset_pending = True
-        if self._open is not None and t > self._open.t + self.link.frame_window_s:
-            out += self._emit()
+            return self._add_untimed(obs, sample.t_recv_s)
+        out = self._close_before(t)
         if self._open is None:
             if t <= self._last_t:
                 self.stats.late_samples += 1
@@ -96,10 +79,35 @@ class Synchronizer:
         elif t < self._open.t - self.link.frame_window_s:
             self.stats.late_samples += 1
             return out
+        return out + self._fill(obs, sample.t_recv_s)
+
+    def _add_untimed(self, obs: list[tuple[Channel, float]], t_recv_s: float) -> list[Frame]:
+        """A sample without a timestamp (VFR_HUD) belongs with the frame being filled."""
+        if self._open is None:
+            self._untimed += obs
+            return []
+        return self._fill(obs, t_recv_s)
+
+    def _fill(self, obs: list[tuple[Channel, float]], t_recv_s: float) -> list[Frame]:
+        assert self._open is not None
         for ch, v in obs:
             self._open.y[ch] = v
-        self._open.t_last_recv = sample.t_recv_s
-        out += self._emit_if_complete()
+        self._open.t_last_recv = t_recv_s
+        return self._emit_if_complete()
+
+    def _close_before(self, t: float) -> list[Frame]:
+        """Frames that a sample at vehicle time t closes: the open one if t starts a new
+        frame, and, when t went back by more than CLOCK_RESET_S, everything before it."""
+        out: list[Frame] = []
+        if t < self._last_t - CLOCK_RESET_S or (
+            self._open is not None and t < self._open.t - CLOCK_RESET_S
+        ):
+            self.stats.clock_resets += 1
+            out += self._emit()
+            self._last_t = -math.inf
+            self._reset_pending = True
+        if self._open is not None and t > self._open.t + self.link.frame_window_s:
+            out += self._emit()
         return out
 
     def poll(self, t_recv_s: float) -> list[Frame]:

@@ -309,3 +309,29 @@ def test_covariance_stays_symmetric_positive_definite(noc_config: AircraftConfig
             worst_asym = max(worst_asym, float(np.max(np.abs(P - P.T))))
             assert np.linalg.eigvalsh(P).min() > 0.0, f"P not positive definite at frame {i}"
     assert worst_asym == 0.0  # symmetrised after every step
+
+
+def test_the_reference_backend_runs_without_the_compiler() -> None:
+    """The numpy reference path (and the estimator built on it) imports no numba: it is
+    the independent check of the compiled one."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from gcs_estimator.config import load_config\n"
+        "from gcs_estimator.estimator import Estimator\n"
+        "from gcs_estimator.model.aircraft import trim\n"
+        "import numpy as np\n"
+        "est = Estimator(load_config('configs/noc_uav.toml'), backend='reference')\n"
+        "t = trim(est.model, np.array(est.config.truth))\n"
+        "out = est.step(0.0, t.inputs, np.concatenate([t.state, np.zeros(3)]))\n"
+        "assert np.isfinite(out['IEKF'].x).all()\n"
+        "print('numba' in sys.modules)\n"
+    )
+    from tests.conftest import ROOT
+
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert done.stdout.strip() == "False"

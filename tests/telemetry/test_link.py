@@ -22,6 +22,7 @@ from gcs_estimator.session import Session, Stop
 from gcs_estimator.sources import TlogSource, UdpSource, open_udp
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
+from sim.cli import command as vehicle_command
 from sim.vehicle import SimulatedVehicle
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -78,19 +79,7 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "sim.cli",
-            "--config",
-            str(ROOT / "configs/noc_uav.toml"),
-            "--set",
-            SHORT[0],
-            "--target",
-            f"127.0.0.1:{port}",
-            "--speed",
-            "4",
-        ],
+        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT),
         cwd=ROOT,
         stderr=subprocess.PIPE,
         text=True,
