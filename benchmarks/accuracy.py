@@ -23,7 +23,7 @@ from scipy.stats import chi2
 
 from gcs_estimator.config import load_config_with
 from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
-from gcs_estimator.metrics import FilterSummary
+from gcs_estimator.metrics import FilterSummary, percent_error
 from sim.reference import output_error
 from sim.truth import perturbed, simulate
 
@@ -221,7 +221,7 @@ def report_reference(results: list[RunResult]) -> None:
         ml = np.array([ref[0][i] for ref in refs])
         sig = np.array([ref[1][i] for ref in refs])
         iekf = np.array([_num(r.summaries["IEKF"].coefficients[i].estimate) for r in fits])
-        errs = 100.0 * np.abs(ml - truth) / np.abs(truth)
+        errs = np.array([abs(_num(percent_error(m, t))) for m, t in zip(ml, truth, strict=True)])
         gap = np.abs(iekf - ml) / sig
         if name in WELL_EXCITED:
             worst.append((float(np.max(errs)), name))
@@ -242,9 +242,7 @@ def report_reference(results: list[RunResult]) -> None:
         for i, name in enumerate(names):
             if name not in WELL_EXCITED:
                 continue
-            errs = np.array(
-                [100.0 * abs(fit[i] - truth[i]) / abs(truth[i]) for fit, truth in early]
-            )
+            errs = np.array([abs(_num(percent_error(fit[i], truth[i]))) for fit, truth in early])
             cells.append(
                 f"{name} {np.median(errs):.2f} / {np.max(errs):.2f} "
                 f"({np.sum(errs <= 5.0)} of {len(errs)} within 5 %)"
