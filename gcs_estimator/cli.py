@@ -291,12 +291,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
         vehicle.wait(timeout=10)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("gcs-estimator")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="gcs-estimator",
         description="Identify a fixed-wing aircraft's longitudinal aerodynamic coefficients "
         "from flight data with an EKF and an iterated EKF side by side.",
     )
+    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="fly the simulated aircraft and estimate offline")

@@ -110,7 +110,7 @@ class CoefficientStructure:
 
 @dataclass(frozen=True)
 class Manoeuvre:
-    """Elevator excitation around trim: 3-2-1-1 multisteps and pulses (spec model.md)."""
+    """Elevator excitation around trim: 3-2-1-1 multisteps and pulses (docs/model.md)."""
 
     duration_s: float = 60.0
     multistep_starts_s: tuple[float, ...] = (2.0, 6.0)

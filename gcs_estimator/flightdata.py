@@ -61,13 +61,26 @@ DATA_SUFFIXES = (".asc", ".csv")
 """Flight-data files the offline command reads: the HFB-320 ASCII record and CSV."""
 
 
+BUNDLED = Path(__file__).resolve().parent / "data"
+"""Flight data shipped with the package, one folder per record (hfb320: the HFB-320
+flight test, with its provenance and the textbook's reference values)."""
+
+
+def bundled(name: str) -> Path:
+    """The folder of a bundled flight-data record, e.g. bundled("hfb320")."""
+    return BUNDLED / name
+
+
 def data_file(path: str | Path) -> Path:
     """The flight-data file at path; a folder holding exactly one .asc or .csv file stands
-    for that file (the HFB-320 folder, say). Anything else is a FlightDataError that says
-    what to give instead."""
+    for that file (the HFB-320 folder, say), and the name of a bundled record for its
+    folder (`hfb320`). Anything else is a FlightDataError that says what to give instead."""
     p = Path(path)
+    if not p.exists() and (BUNDLED / str(path)).is_dir():
+        p = BUNDLED / str(path)
     if not p.exists():
-        raise FlightDataError(f"{p}: no such file or folder")
+        known = ", ".join(sorted(d.name for d in BUNDLED.iterdir() if d.is_dir()))
+        raise FlightDataError(f"{p}: no such file or folder (bundled records: {known})")
     if not p.is_dir():
         return p
     found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in DATA_SUFFIXES)

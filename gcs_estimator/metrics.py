@@ -11,7 +11,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.estimator import EstimatorResult, FilterKind
 
 CONVERGENCE_BAND = 0.05
-"""Convergence: the estimate stays within 5 % (spec model.md)."""
+"""Convergence: the estimate stays within 5 % (docs/model.md)."""
 
 
 @dataclass(frozen=True)

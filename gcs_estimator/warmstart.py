@@ -1,7 +1,7 @@
 """Equation-error warm start: linear least squares of the coefficients on measured data.
 
 The observation equations are linear in the coefficients once the states are measured
-(spec model.md, eq. 13-14):
+(docs/model.md, eq. 13-14):
 
     Cm = (qdot - Fe*arm/Iy) / (qbar*S*cbar/Iy)
     C_X = (a_x - Fe*cos(sigma_T)/m) / (qbar*S/m),  C_Z = (a_z + Fe*sin(sigma_T)/m) / (qbar*S/m)

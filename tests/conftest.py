@@ -1,4 +1,4 @@
-"""Shared fixtures: the project's configs and the shared HFB-320 record."""
+"""Shared fixtures: the project's configs and the bundled HFB-320 record."""
 
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ from pathlib import Path
 import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.flightdata import bundled
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
-HFB320_DATA = ROOT.parent / "shared" / "data" / "hfb320" / "hfb320_1_10.asc"
+HFB320_DATA = bundled("hfb320") / "hfb320_1_10.asc"
 
 
 @pytest.fixture(scope="session")
@@ -25,8 +26,6 @@ def hfb_config() -> AircraftConfig:
 
 @pytest.fixture(scope="session")
 def hfb_data_path() -> Path:
-    if not HFB320_DATA.exists():
-        pytest.fail(f"HFB-320 record missing at {HFB320_DATA}: shared/ must sit beside the repo")
     return HFB320_DATA
 
 

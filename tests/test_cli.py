@@ -62,11 +62,14 @@ def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_
     np.testing.assert_array_equal(back.measurements, rec.measurements)
     np.testing.assert_array_equal(back.inputs, rec.inputs)
     assert main(["offline", str(csv_path), "--out", str(tmp_path / "a")]) == 0
-    # The data's folder stands for its one data file (it also holds a README).
+    # The data's folder stands for its one data file (it also holds a README), and the
+    # bundled record's name for its folder.
     assert main(["offline", str(hfb_data_path.parent), "--out", str(tmp_path / "b")]) == 0
+    assert main(["offline", "hfb320", "--out", str(tmp_path / "c")]) == 0
     a = json.loads((tmp_path / "a/results.json").read_text())["filters"]
     b = json.loads((tmp_path / "b/results.json").read_text())["filters"]
-    assert a == b
+    c = json.loads((tmp_path / "c/results.json").read_text())["filters"]
+    assert a == b == c
 
 
 def test_bad_inputs_give_one_clear_error(
@@ -89,3 +92,5 @@ def test_bad_inputs_give_one_clear_error(
     (tmp_path / "empty").mkdir()
     assert main(["offline", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
     assert "no flight data in it" in capsys.readouterr().err
+    assert main(["offline", "hfb321", "--out", str(tmp_path / "o")]) == 2
+    assert "bundled records: hfb320" in capsys.readouterr().err

@@ -1,7 +1,7 @@
 """Real flight data: the HFB-320 record from all-zero coefficients, against the book.
 
 Reference values: Jategaonkar, Flight Vehicle System Identification, 2nd ed., test case 4
-(filter error method), as listed in shared/data/hfb320/README.md.
+(filter error method), as listed in gcs_estimator/data/hfb320/README.md.
 """
 
 from __future__ import annotations

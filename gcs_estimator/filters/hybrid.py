@@ -4,7 +4,7 @@ Reference path: plain numpy, textbook symbols, any model given as callables. The
 compiled path (filters.fast) fuses the same steps for the aircraft model and is tested
 against this one.
 
-Source: Meng, Liu and Veres (2010), sections III-IV; spec/model.md.
+Source: Meng, Liu and Veres (2010), sections III-IV; docs/model.md.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ class ModelArrays(NamedTuple):
 def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
     """Thrust Fe [N] and dFe/dV [N s/m].
 
-    Propeller model (spec model.md): Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2).
+    Propeller model (docs/model.md): Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2).
     Measured thrust: Fe = u1.
     """
     if k[PROP_KIND] == PROP_PROPELLER:

@@ -13,7 +13,7 @@ from sim.truth import elevator_offset_rad, simulate
 
 
 def test_trim_matches_the_spec(noc_config: AircraftConfig) -> None:
-    """spec/model.md: V = 24 m/s, alpha = 2.97 deg, elevator 0.42 deg, throttle 0.316,
+    """docs/model.md: V = 24 m/s, alpha = 2.97 deg, elevator 0.42 deg, throttle 0.316,
     thrust 7.7 N (quoted to the digits given there)."""
     flight = simulate(noc_config, seed=1)
     trim = flight.trim

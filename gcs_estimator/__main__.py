@@ -1,0 +1,5 @@
+"""`python -m gcs_estimator`: the gcs-estimator command."""
+
+from gcs_estimator.cli import entrypoint
+
+entrypoint()
