@@ -51,18 +51,39 @@ def _congruence(M: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
 
 
 @njit(cache=True)
+def _congruence_diag(q: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
+    """_congruence(diag(q), D): D diag(q) is D with its columns scaled, exactly the
+    products the matrix product would sum with zeros."""
+    DM = np.empty_like(D)
+    for i in range(D.shape[0]):
+        for j in range(D.shape[1]):
+            DM[i, j] = D[i, j] * q[j]
+    out = np.diag(q)
+    d = D.shape[0]
+    for i in range(d):
+        for j in range(q.shape[0]):
+            out[i, j] += DM[i, j]
+            out[j, i] += DM[i, j]
+    DMD = DM @ np.ascontiguousarray(D.T)
+    for i in range(d):
+        for j in range(d):
+            out[i, j] += DMD[i, j]
+    return out
+
+
+@njit(cache=True)
 def _propagate(
     x: FloatArray,
     P: FloatArray,
     u: FloatArray,
-    Q: FloatArray,
+    q: FloatArray,
     dt: float,
     max_step: float,
     m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     """hybrid.propagate for the aircraft: rows >= d = n_dynamic of F are zero, so the
     transition matrix differs from I in its first d rows only, and each Runge-Kutta stage
-    of it is d x n."""
+    of it is d x n. Q = diag(q)."""
     if dt <= 0.0:
         return x.copy(), P.copy()
     steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
@@ -78,7 +99,7 @@ def _propagate(
         K4 = F4[:d] + h * (np.ascontiguousarray(F4[:d, :d]) @ K3)
         D = h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
         D_m = 0.25 * h * (K1 + K2)
-        Qd = h / 6.0 * (Q + 4.0 * _congruence(Q, D_m) + _congruence(Q, D))
+        Qd = h / 6.0 * (np.diag(q) + 4.0 * _congruence_diag(q, D_m) + _congruence_diag(q, D))
         P = _congruence(P, D) + Qd
     return x, 0.5 * (P + P.T)
 
@@ -277,8 +298,7 @@ def _step(
     u_prev = st.u if np.all(np.isfinite(st.u)) else u
     dt = t - st.t
     q, applied = core.process_noise(st, tun)
-    Q = np.diag(q)
-    xp, Pp = _propagate(st.x, st.P, u_prev, Q, dt, tun.max_step_s, m)
+    xp, Pp = _propagate(st.x, st.P, u_prev, q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
     variances = np.diag(P).copy()
     healthy = variances.min() > 0.0 and math.isfinite(x.sum() + P.sum())
