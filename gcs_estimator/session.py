@@ -119,6 +119,7 @@ class Session:
         finish the sinks (always, with what was processed) and close the source."""
         stop = stop if stop is not None else Stop()
         self.started = time.perf_counter()
+        self._results = None
         try:
             for frame in source.frames(stop):
                 if frame is not None:
@@ -128,7 +129,7 @@ class Session:
         finally:
             self.elapsed_s = time.perf_counter() - self.started
             try:
-                results = self.results()
+                results = self._results = self.results()
                 link = source.link_stats()
                 for sink in self.sinks:
                     sink.finish(results, link)
@@ -146,15 +147,16 @@ class Session:
         return outs
 
     def results(self) -> dict[int, VehicleResult]:
-        """Each vehicle's result and summaries (computed once, at the end)."""
-        if self._results is None or len(self._results) != len(self.estimators):
-            truth = config_truth(self.config)
-            out = {}
-            for sid, est in self.estimators.items():
-                result = est.result()
-                out[sid] = VehicleResult(sid, result, summarise(result, truth), truth)
-            self._results = out
-        return self._results
+        """Each vehicle's result and summaries: those the last run ended with, else as
+        things stand now (reads every history: not for every frame)."""
+        if self._results is not None:
+            return self._results
+        truth = config_truth(self.config)
+        out = {}
+        for sid, est in self.estimators.items():
+            result = est.result()
+            out[sid] = VehicleResult(sid, result, summarise(result, truth), truth)
+        return out
 
 
 class RecordingSource:
