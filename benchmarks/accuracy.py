@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from gcs_estimator.config import load_config_with
+from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
 from gcs_estimator.metrics import FilterSummary, percent_error
 from sim.reference import output_error
@@ -57,7 +57,7 @@ def _num(v: float | None) -> float:
 
 def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
     path, overrides, seed, perturb, with_reference = args
-    config = perturbed(load_config_with(path, overrides), seed, perturb)
+    config = perturbed(load_config(path, overrides), seed, perturb)
     assert config.truth is not None
     truth = config.truth
     flight = simulate(config, seed=seed)
@@ -92,7 +92,7 @@ def information_limit(path: str, overrides: list[str], seed: int) -> dict[str, f
     vs 4.17 %, Cmq 0.28 % vs 0.28 %, CLa 0.54 % vs 0.54 %)."""
     from dataclasses import replace
 
-    config = load_config_with(path, overrides)
+    config = load_config(path, overrides)
     assert config.truth is not None
     tuning = config.filter
     limit = replace(

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from gcs_estimator.config import load_config_with
+from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.session import Session, VehicleResult, warm_up
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--view", action="store_true", help="with the Rerun view saving an .rrd")
     args = ap.parse_args(argv)
     override = f"simulation.manoeuvre.duration_s={args.seconds}"
-    config = load_config_with(args.config, [override])
+    config = load_config(args.config, [override])
 
     latency = Latency()
     warm_up(config)  # compiles the kernels before binding

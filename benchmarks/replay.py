@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.session import Session, warm_up
 from gcs_estimator.sources import TlogSource
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     # on real excitation throughout.
     starts = [m * 60 + s for m in range(int(args.minutes)) for s in (2.0, 6.0)]
     pulses = [m * 60 + s for m in range(int(args.minutes)) for s in (12.0, 30.0)]
-    config = load_config_with(
+    config = load_config(
         args.config,
         [
             f"simulation.manoeuvre.duration_s={seconds}",

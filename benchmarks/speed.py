@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
 from gcs_estimator.filters import core, fast
 from gcs_estimator.filters.core import FilterState, Tuning
@@ -49,7 +49,7 @@ def rate(
 ) -> float:
     # relinearise_sigma = 0: the IEKF runs all N iterations every step (the configured
     # gate usually stops it after 2 near the solution, which would flatter the figure).
-    config = load_config_with("configs/noc_uav.toml", ["filter.relinearise_sigma=0"])
+    config = load_config("configs/noc_uav.toml", ["filter.relinearise_sigma=0"])
     flight = simulate(config, seed=1)
     model = build_model(config)
     tuning = core.tuning_of(config, model, kind)
@@ -64,7 +64,7 @@ def rate(
 
 def whole_flight() -> tuple[float, int]:
     """Frames per second of a 60 s flight through the estimator, both filters."""
-    config = load_config_with("configs/noc_uav.toml", [])
+    config = load_config("configs/noc_uav.toml", [])
     flight = simulate(config, seed=1)
     best = 0.0
     for _ in range(3):

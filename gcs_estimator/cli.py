@@ -13,10 +13,11 @@ from gcs_estimator.config import (
     VIEW_OUTPUTS,
     AircraftConfig,
     ConfigError,
-    load_config_with,
+    config_reference,
+    load_config,
     load_reference,
 )
-from gcs_estimator.flightdata import FlightDataError, data_file, load_csv, load_hfb320
+from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
 from gcs_estimator.session import RecordingSource, Session, Source, Stop, VehicleResult, warm_up
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
@@ -25,11 +26,20 @@ from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 
-DEFAULT_CONFIG = "configs/noc_uav.toml"
+DEFAULT_CONFIG = "noc_uav"
+
+
+def _config_arg(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument(
+        "--config",
+        default=default,
+        help="aircraft config: a shipped name (noc_uav, hfb320) or a TOML path "
+        "(default: %(default)s)",
+    )
 
 
 def _common(p: argparse.ArgumentParser, config_default: str = DEFAULT_CONFIG) -> None:
-    p.add_argument("--config", default=config_default, help="aircraft TOML (default: %(default)s)")
+    _config_arg(p, config_default)
     p.add_argument(
         "--set",
         action="append",
@@ -75,7 +85,7 @@ def _common(p: argparse.ArgumentParser, config_default: str = DEFAULT_CONFIG) ->
 
 def _config(args: argparse.Namespace) -> AircraftConfig:
     """The config with --set overrides, --reference values and view options applied."""
-    config = load_config_with(args.config, args.set)
+    config = load_config(args.config, args.set)
     view = config.view
     outputs = list(view.outputs)
     if args.view is not None:
@@ -170,8 +180,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
-    path = data_file(args.data)
-    rec = load_csv(path) if path.suffix.lower() == ".csv" else load_hfb320(path)
+    path, rec = load_recording(args.data)
     want = config.propulsion.input_name
     if rec.power != want:
         raise ConfigError(
@@ -245,8 +254,9 @@ def cmd_listen(args: argparse.Namespace) -> int:
     )
     session, link = _link_session(config, args, record.stem, record)
     sock = open_udp(host or "0.0.0.0", int(port))
+    bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
     print(
-        f"listening on udp {host or '0.0.0.0'}:{port}, recording to {record} (Ctrl-C to stop)",
+        f"listening on udp {host or '0.0.0.0'}:{bound}, recording to {record} (Ctrl-C to stop)",
         file=sys.stderr,
     )
     source = UdpSource(sock, link, idle_exit_s=args.idle_exit, max_seconds=args.duration)
@@ -289,6 +299,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if vehicle.poll() is None:
             vehicle.terminate()
         vehicle.wait(timeout=10)
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    """Print the configuration reference (Markdown) for the config's coefficient names."""
+    names = load_config(args.config).coefficient_names
+    print(config_reference(names), end="")
+    return 0
 
 
 def _version() -> str:
@@ -362,12 +379,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")
-    _common(p, "configs/hfb320.toml")
+    _common(p, "hfb320")
     p.add_argument(
         "data",
         help="flight data: the HFB-320 ASCII record or a CSV (see README), or a folder holding one",
     )
     p.set_defaults(func=cmd_offline)
+
+    p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
+    _config_arg(p, DEFAULT_CONFIG)
+    p.set_defaults(func=cmd_keys)
     return ap
 
 

@@ -265,7 +265,7 @@ class Estimator:
                 u_b,
                 y_b,
                 np.array(tuning.initial_coefficients),
-                np.array(tuning.initial_coefficient_sigma),
+                np.array(tuning.initial_sigma.coefficients),
             )
             self.warm_start = ws.beta
             means = {k: (ws.beta, ws.sigma) for k in FILTER_KINDS}
@@ -275,7 +275,7 @@ class Estimator:
                 for k, s in self.states.items()
                 if s is not None
             }
-        p0 = np.array(tuning.initial_coefficient_sigma)
+        p0 = np.array(tuning.initial_sigma.coefficients)
         for kind, state in self.states.items():
             assert state is not None
             beta, sigma = means[kind]

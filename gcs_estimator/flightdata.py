@@ -95,6 +95,12 @@ def data_file(path: str | Path) -> Path:
     raise FlightDataError(f"{p}: a folder with several flight-data files ({names}); give one")
 
 
+def load_recording(path: str | Path) -> tuple[Path, Recording]:
+    """The flight data at path (see data_file): a CSV, else the HFB-320 ASCII format."""
+    file = data_file(path)
+    return file, load_csv(file) if file.suffix.lower() == ".csv" else load_hfb320(file)
+
+
 def load_hfb320(path: str | Path) -> Recording:
     """Read the HFB-320 flight-test record (Jategaonkar test case 4, hfb320_1_10.asc)."""
     try:

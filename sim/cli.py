@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator.config import ConfigError, load_config_with
-from gcs_estimator.flightdata import FlightDataError, Recording, load_csv, load_hfb320
+from gcs_estimator.config import ConfigError, load_config
+from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
@@ -44,7 +44,11 @@ def command(
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="gcs-sim", description=__doc__)
-    ap.add_argument("--config", default="configs/noc_uav.toml")
+    ap.add_argument(
+        "--config",
+        default="noc_uav",
+        help="a shipped config's name or a TOML path (default: %(default)s)",
+    )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument(
         "--target",
@@ -67,17 +71,16 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--playback",
         default=None,
-        help="stream a data file instead (HFB-320 .asc or CSV, see README)",
+        help="stream flight data instead: a bundled record's name (hfb320), an HFB-320 .asc "
+        "or a CSV (see README)",
     )
     return ap
 
 
 def recordings(args: argparse.Namespace) -> list[Recording]:
-    config = load_config_with(args.config, args.set)
+    config = load_config(args.config, args.set)
     if args.playback:
-        path = Path(args.playback)
-        rec = load_csv(path) if path.suffix.lower() == ".csv" else load_hfb320(path)
-        return [rec] * args.vehicles
+        return [load_recording(args.playback)[1]] * args.vehicles
     out = []
     base = config.simulation.seed if args.seed is None else args.seed
     for k in range(args.vehicles):
@@ -93,7 +96,7 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        config = load_config_with(args.config, args.set)
+        config = load_config(args.config, args.set)
         recs = recordings(args)
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)

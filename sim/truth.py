@@ -20,6 +20,7 @@ from gcs_estimator.model import compiled  # noqa: F401  (makes the equations com
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays, air_relative, observe, rk4_step
+from gcs_estimator.telemetry import pwm
 
 
 @dataclass(frozen=True)
@@ -90,11 +91,11 @@ class _GustModel:
         cw = np.array([0.0, 1.0, math.sqrt(3.0) * Tw])
         self.C = np.vstack(
             [
-                turb.sigma_u_mps * cu / math.sqrt(cu @ Pss @ cu),
-                turb.sigma_w_mps * cw / math.sqrt(cw @ Pss @ cw),
+                turb.sigma_u * cu / math.sqrt(cu @ Pss @ cu),
+                turb.sigma_w * cw / math.sqrt(cw @ Pss @ cw),
             ]
         )
-        self.active = turb.sigma_u_mps > 0.0 or turb.sigma_w_mps > 0.0
+        self.active = turb.sigma_u > 0.0 or turb.sigma_w > 0.0
         self.z = rng.multivariate_normal(np.zeros(3), Pss) if self.active else np.zeros(3)
         self.rng = rng
 
@@ -216,9 +217,9 @@ def servo_commands(config: AircraftConfig, inputs: FloatArray) -> FloatArray:
     (throttle 0.316), a bias the filters cannot know of."""
     link = config.link
     out = np.array(inputs, float)
-    out[:, 0] = link.elevator_rad(np.round(link.elevator_pwm(out[:, 0])))
+    out[:, 0] = pwm.elevator_rad(link, np.round(pwm.elevator_pwm(link, out[:, 0])))
     if config.propulsion.model == "propeller":
-        out[:, 1] = link.throttle(np.round(link.throttle_pwm(out[:, 1])))
+        out[:, 1] = pwm.throttle(link, np.round(pwm.throttle_pwm(link, out[:, 1])))
     return out
 
 

@@ -20,7 +20,7 @@ from typing import Any
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
 from gcs_estimator.flightdata import Recording
-from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry import mavlink, pwm
 from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
 
 BOOT_OFFSET_S = 5.0
@@ -148,11 +148,11 @@ class SimulatedVehicle:
         de, power = float(inputs[0]), float(inputs[1])
         out: list[Any] = []
         if "SERVO_OUTPUT_RAW" in due:
-            pwm = [0] * 16
-            pwm[link.elevator_servo - 1] = _pwm(link.elevator_pwm(de))
+            servos = [0] * 16
+            servos[link.elevator_servo - 1] = _pwm(pwm.elevator_pwm(link, de))
             if link.throttle_servo:
-                pwm[link.throttle_servo - 1] = _pwm(link.throttle_pwm(power))
-            out.append(mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *pwm))
+                servos[link.throttle_servo - 1] = _pwm(pwm.throttle_pwm(link, power))
+            out.append(mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, *servos))
         if "NAMED_VALUE_FLOAT" in due:
             if not link.throttle_servo:
                 out.append(mav.named_value_float_encode(ms, link.thrust_name.encode(), power))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.cli import main
-from gcs_estimator.config import load_config_with
+from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_csv, load_hfb320, write_csv
 
@@ -41,7 +41,7 @@ def test_simulate_writes_table_json_and_csv(
     # Same run by hand: the JSON holds exactly what the estimator returned.
     from sim.truth import simulate
 
-    config = load_config_with(ROOT / "configs/noc_uav.toml", ["simulation.manoeuvre.duration_s=20"])
+    config = load_config(ROOT / "configs/noc_uav.toml", ["simulation.manoeuvre.duration_s=20"])
     flight = simulate(config, seed=3)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
     for kind, f in res.filters.items():

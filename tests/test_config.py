@@ -1,12 +1,25 @@
-"""Configuration errors name the file, the key and what is allowed."""
+"""Configuration: every key declared once; errors name the file, table, key and what is allowed."""
 
 from __future__ import annotations
 
+import json
+import re
+import tomllib
+from dataclasses import replace
 from pathlib import Path
+from typing import Any, get_args, get_origin
 
 import pytest
 
-from gcs_estimator.config import ConfigError, load_config, load_config_with
+from gcs_estimator.config import (
+    COEFFICIENT,
+    AircraftConfig,
+    ConfigError,
+    config_reference,
+    load_config,
+    parse_config,
+)
+from gcs_estimator.schema import Spec, leaves
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -23,10 +36,14 @@ ROOT = Path(__file__).resolve().parent.parent
         (
             'CD = ["1", "alpha", "elevator"]',
             'CD = ["1", "beta"]',
-            r"\[coefficients\] CD: unknown regressor 'beta'; allowed",
+            r"\[coefficients\] CD: unknown value 'beta'; allowed",
         ),
         ("Cmde = -3.7891", "", r"\[truth\] Cmde: missing"),
-        ("iterations = 7", "iterations = 0", r"\[filter\] iterations: must be >= 1, got 0"),
+        (
+            "iterations = 7",
+            "iterations = 0",
+            r"\[filter\] iterations: must be a whole number >= 1, got 0",
+        ),
         (
             "mass_kg = 13.5",
             "mass_kg = 13.5\nmass = 2",
@@ -45,7 +62,7 @@ ROOT = Path(__file__).resolve().parent.parent
         (
             'outputs = ["auto"]',
             'outputs = ["save", "screen"]',
-            r"\[view\] outputs: unknown output 'screen'; allowed: \['auto', 'save'",
+            r"\[view\] outputs: unknown value 'screen'; allowed: \['auto', 'save'",
         ),
         (
             'connect_url = "rerun+http://127.0.0.1:9876/proxy"',
@@ -128,10 +145,100 @@ def test_both_shipped_configs_load_with_their_structures() -> None:
 
 def test_overrides_apply_and_are_validated() -> None:
     path = ROOT / "configs" / "noc_uav.toml"
-    c = load_config_with(path, ["filter.iterations=3", 'simulation.turbulence.preset="light"'])
+    c = load_config(path, ["filter.iterations=3", 'simulation.turbulence.preset="light"'])
     assert c.filter.iterations == 3
-    assert c.simulation.turbulence.sigma_w_mps > 0
-    with pytest.raises(ConfigError, match=r"\[filter\] iterations: must be >= 1"):
-        load_config_with(path, ["filter.iterations=0"])
+    assert c.simulation.turbulence.sigma_w > 0
+    with pytest.raises(ConfigError, match=r"\[filter\] iterations: must be a whole number >= 1"):
+        load_config(path, ["filter.iterations=0"])
     with pytest.raises(ConfigError, match="expected KEY=VALUE"):
-        load_config_with(path, ["filter.iterations"])
+        load_config(path, ["filter.iterations"])
+
+
+def _bad_values(tp: Any, spec: Spec) -> list[Any]:
+    """Values the schema must refuse for a key: the wrong type, and out of its bounds."""
+    if tp is str:
+        return [5] + (["nonsense"] if spec.choices else [])
+    if tp is bool:
+        return ["yes"]
+    if get_origin(tp) is tuple:
+        return ["x", ["nonsense"] if get_args(tp)[0] is str else ["x"]]
+    bad: list[Any] = ["x", True]
+    bad += [b - 1 for b in (spec.gt, spec.ge) if b is not None]
+    bad += [spec.le + 1] if spec.le is not None else []
+    return bad
+
+
+NOC_NAMES = load_config("noc_uav").coefficient_names
+KEYS = list(leaves(AircraftConfig, {COEFFICIENT: NOC_NAMES}))
+
+
+@pytest.mark.parametrize(
+    ("table", "key", "spec", "tp"), [k[:4] for k in KEYS], ids=[f"{k.table}.{k.name}" for k in KEYS]
+)
+def test_every_key_refuses_a_bad_value_and_names_itself(
+    table: str, key: str, spec: Spec, tp: Any
+) -> None:
+    """Each key of the schema, given each kind of bad value on the command line, is named
+    in the error with its table, and the value is quoted."""
+    dotted = f"{table}.{key}" if table else key
+    where = re.escape(f"[{table}] {key}: " if table else f"{key}: ")
+    for value in _bad_values(tp, spec):
+        with pytest.raises(ConfigError, match=where) as info:
+            load_config("noc_uav", [f"{dotted}={json.dumps(value)}"])
+        assert "got" in str(info.value) or "unknown value" in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ('propulsion.model="measured"', r"\[link\] throttle_servo: must be 0 .* \"measured\""),
+        ("propulsion.prop_area_m2=0", r"\[propulsion\] prop_area_m2: a number > 0 is needed"),
+        ("simulation.manoeuvre.pulse_durations_s=[1.0]", r"pulse_durations_s: must have 2 values"),
+        ("link.elevator_us_per_rad=0", r"\[link\] elevator_us_per_rad: must not be 0"),
+        ("link.throttle_pwm_max_us=900", r"\[link\] throttle_pwm_max_us: must be greater"),
+        ('link.thrust_name="ELEVENCHARS"', r"\[link\] thrust_name: NAMED_VALUE_FLOAT names are"),
+        ("filter.measurement_sigma.q=0", r"\[filter.measurement_sigma\] q: must be a number > 0"),
+        (
+            "filter.initial_sigma.coefficients.Cxx=1",
+            r"\[filter.initial_sigma.coefficients\] Cxx: unknown key",
+        ),
+        ("coefficients.CD=[]", r"\[truth\] CD0: unknown key; known keys here: \[.CL0."),
+        ('coefficients.Cm=["1", "1"]', r"\[coefficients\] Cm: lists a value twice"),
+    ],
+)
+def test_rules_between_keys_name_the_key_to_fix(override: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        load_config("noc_uav", [override])
+
+
+def test_defaults_are_declared_once_and_match_the_complete_example() -> None:
+    """A minimal airframe file (required keys only) gets the same tuning as the complete
+    example writes out: the defaults and the documented values are one set of numbers."""
+    data = tomllib.loads((ROOT / "configs" / "noc_uav.toml").read_text())
+    minimal = {k: data[k] for k in ("airframe", "propulsion", "coefficients", "truth")}
+    small = parse_config(minimal)
+    full = load_config("noc_uav")
+    # The one per-aircraft choice the example makes: wider priors on the qhat derivatives.
+    sigma = replace(full.filter.initial_sigma, coefficients=small.filter.initial_sigma.coefficients)
+    assert small.filter == replace(full.filter, initial_sigma=sigma)
+    assert small.simulation == full.simulation
+    assert small.link == full.link and small.view == full.view
+
+
+def test_shipped_configs_are_found_by_name_from_anywhere(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert load_config("hfb320").airframe.name == "HFB-320"
+    with pytest.raises(
+        ConfigError,
+        match=r"nosuch: no such file, nor a shipped config; shipped: \['hfb320', 'noc_uav'\]",
+    ):
+        load_config("nosuch")
+
+
+def test_the_configuration_reference_is_generated_from_the_schema() -> None:
+    """docs/configuration.md is what `gcs-estimator keys` prints: regenerate it with
+    `./run gcs keys > docs/configuration.md` after changing a key."""
+    text = (ROOT / "docs" / "configuration.md").read_text()
+    assert text == config_reference(NOC_NAMES)

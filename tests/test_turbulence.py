@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from gcs_estimator.config import AircraftConfig, Turbulence, load_config_with
+from gcs_estimator.config import AircraftConfig, Turbulence, load_config
 from gcs_estimator.estimator import Estimator, EstimatorResult, run_recording
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
@@ -107,7 +107,7 @@ def test_covariance_stays_positive_definite_on_a_perturbed_aircraft_in_turbulenc
     positive definiteness there in over a thousand steps (theta's variance went negative
     and was repaired), and the IEKF ended 16 sigma off on Cma. Propagated through its
     transition matrix, P needs no repair and the estimates stay within a few sigma."""
-    paper = load_config_with(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
+    paper = load_config(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     config = perturbed(paper, 8, 0.3)
     flight = simulate(config, seed=8)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
@@ -125,7 +125,7 @@ def test_the_first_re_run_starts_at_the_level_the_zero_start_pass_ended_with() -
     then took its first steps as calm air while gusts moved the pitch acceleration by many
     of its sigma: it locked onto CLa -194 % (EKF) and -40 % (IEKF) and never recovered.
     Starting the re-run at the level the pass ended with keeps it cautious instead."""
-    config = load_config_with(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
+    config = load_config(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     flight = simulate(config, seed=24)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
     well = [res.names.index(n) for n in ("CL0", "CLa", "Cm0", "Cma", "Cmq", "Cmde")]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator import warmstart
-from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.model.aircraft import build_model
 from sim.truth import perturbed, simulate
@@ -27,14 +27,14 @@ def _first_seconds_fit(config: AircraftConfig, seed: int, seconds: float) -> np.
         flight.inputs[:n],
         flight.measurements[:n],
         np.array(tuning.initial_coefficients),
-        np.array(tuning.initial_coefficient_sigma),
+        np.array(tuning.initial_sigma.coefficients),
     ).beta
 
 
 def test_smoothing_alpha_takes_out_most_of_the_errors_in_variables_bias(
     noc_config: AircraftConfig, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    short = load_config_with(CONFIGS / "noc_uav.toml", ["simulation.manoeuvre.duration_s=6.0"])
+    short = load_config(CONFIGS / "noc_uav.toml", ["simulation.manoeuvre.duration_s=6.0"])
     truth = np.array(noc_config.truth)
     names = list(noc_config.structure.names)
     pick = [names.index("CLa"), names.index("Cma")]
@@ -57,7 +57,7 @@ def test_ekf_from_zero_stays_consistent_on_an_aircraft_far_from_the_paper() -> N
     # Seed 26 of the accuracy benchmark's --perturb 0.3: CLa +21 %, Cma +29 %, Cmq +17 %,
     # Cmde -27 % off the paper. The unsmoothed warm start had CLa 31 % low there, and the
     # EKF's re-run locked onto CLa +176 % at 68 sigma.
-    config = perturbed(load_config_with(CONFIGS / "noc_uav.toml", []), 26, 0.3)
+    config = perturbed(load_config(CONFIGS / "noc_uav.toml", []), 26, 0.3)
     flight = simulate(config, seed=26)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
     for kind, f in res.filters.items():

@@ -189,22 +189,22 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     flight, coef = model.flight, model.coefficients
     q_final = np.zeros(n)
     q_initial = np.zeros(n)
-    q_final[flight] = ft.state_process_noise
-    q_initial[flight] = ft.state_process_noise
-    q_final[coef] = ft.coefficient_process_noise
-    q_initial[coef] = ft.coefficient_process_noise_initial
+    q_final[flight] = ft.process_noise.states
+    q_initial[flight] = ft.process_noise.states
+    q_final[coef] = ft.process_noise.coefficients
+    q_initial[coef] = ft.process_noise.coefficients_initial
     unit = np.zeros(n)
     unit[flight] = ft.turbulence.unit(float(model.k[eq.V0]))
     prior_x = np.zeros(n)
     prior_x[coef] = ft.initial_coefficients
     prior_sigma = np.zeros(n)
-    prior_sigma[flight] = ft.initial_state_sigma
-    prior_sigma[coef] = ft.initial_coefficient_sigma
+    prior_sigma[flight] = ft.initial_sigma.states
+    prior_sigma[coef] = ft.initial_sigma.coefficients
     return Tuning(
         R=np.diag(np.square(ft.measurement_sigma)),
         q_final=q_final,
         q_initial=q_initial,
-        q_decay_s=ft.coefficient_noise_decay_s,
+        q_decay_s=ft.process_noise.coefficient_decay_s,
         gust_unit=unit,
         iterations=1 if kind == "EKF" else ft.iterations,
         tolerance=ft.iteration_tolerance,

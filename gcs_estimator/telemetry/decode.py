@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.model.channels import Channel
+from gcs_estimator.telemetry import pwm
 from gcs_estimator.telemetry.mavlink import MAV_TYPE_GCS, Decoder, MAVLinkMessage
 
 PLAUSIBLE: dict[Channel, tuple[float, float]] = {
@@ -126,10 +127,10 @@ def _values(
         return None, [(Channel.V, msg.airspeed)]
     if kind == "SERVO_OUTPUT_RAW":
         elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
-        vals = [(Channel.ELEVATOR, link.elevator_rad(float(elev_us)))]
+        vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(elev_us)))]
         if link.throttle_servo > 0:
             thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
-            vals.append((Channel.POWER, link.throttle(float(thr_us))))
+            vals.append((Channel.POWER, pwm.throttle(link, float(thr_us))))
         return msg.time_usec * 1e-6, vals
     if kind == "NAMED_VALUE_FLOAT":
         name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.cli import main as gcs_main
-from gcs_estimator.config import AircraftConfig, load_config_with
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_hfb320
 from gcs_estimator.frames import Frame
@@ -74,7 +74,7 @@ def replay(config: AircraftConfig, path: Path) -> Ground:
 def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) -> None:
     """Separate vehicle process -> UDP -> station; the recorded tlog replays to the same
     final estimates; the vehicle answered the station's heartbeat and rate requests."""
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     station = Ground(config, record=tmp_path / "live.tlog")
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
@@ -105,7 +105,7 @@ def test_link_reaches_the_offline_estimate(tmp_path: Path, noc_config: AircraftC
     and sends float32 fields: the estimates move by a fraction of their sigma, no more."""
     from sim.truth import simulate
 
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     fl = simulate(config, seed=9)
     rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
     station = fly_to_station(config, [rec], speed=0.0, record=None)
@@ -115,7 +115,7 @@ def test_link_reaches_the_offline_estimate(tmp_path: Path, noc_config: AircraftC
 
 
 def test_hfb320_playback_through_the_link(tmp_path: Path, hfb_data_path: Path) -> None:
-    config = load_config_with(ROOT / "configs/hfb320.toml")
+    config = load_config(ROOT / "configs/hfb320.toml")
     rec = load_hfb320(hfb_data_path)
     station = fly_to_station(config, [rec], speed=0.0, record=None)
     assert station.frames() == len(rec)
@@ -128,7 +128,7 @@ def test_hfb320_playback_through_the_link(tmp_path: Path, hfb_data_path: Path) -
 def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
     from sim.truth import simulate
 
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     other = config.with_truth(tuple(np.array(config.truth or ()) * 1.2))
     recs = []
     for c, seed in ((config, 1), (other, 2)):
@@ -146,7 +146,7 @@ def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
 
 
 def recorded_flight(tmp_path: Path) -> tuple[AircraftConfig, list[tuple[int, bytes]]]:
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     from sim.truth import simulate
 
     fl = simulate(config, seed=3)

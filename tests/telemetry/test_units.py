@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.model.channels import Channel
-from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry import mavlink, pwm
 from gcs_estimator.telemetry.decode import (
     CommandAck,
     DecodeStats,
@@ -69,13 +69,13 @@ def test_each_message_decodes_to_its_channels_in_si_units(vehicle: Codec) -> Non
     hud = _decode(vehicle.pack(mav.vfr_hud_encode(24.0, 24.0, 0, 30, 100, 0)))
     assert isinstance(hud, Sample) and hud.t_vehicle_s is None  # VFR_HUD has no timestamp
     assert dict(hud.values) == pytest.approx({Channel.V: 24.0})
-    pwm = [0] * 16
-    pwm[LINK.elevator_servo - 1] = round(LINK.elevator_pwm(0.05))
-    pwm[LINK.throttle_servo - 1] = round(LINK.throttle_pwm(0.3))
-    servo = _decode(vehicle.pack(mav.servo_output_raw_encode(2_500_000, 0, *pwm)))
+    servos = [0] * 16
+    servos[LINK.elevator_servo - 1] = round(pwm.elevator_pwm(LINK, 0.05))
+    servos[LINK.throttle_servo - 1] = round(pwm.throttle_pwm(LINK, 0.3))
+    servo = _decode(vehicle.pack(mav.servo_output_raw_encode(2_500_000, 0, *servos)))
     assert isinstance(servo, Sample)
     values = dict(servo.values)
-    assert values[Channel.ELEVATOR] == pytest.approx(0.05, abs=LINK.elevator_rad(1501.0))
+    assert values[Channel.ELEVATOR] == pytest.approx(0.05, abs=pwm.elevator_rad(LINK, 1501.0))
     assert values[Channel.POWER] == pytest.approx(0.3, abs=1e-3)  # 1 us of PWM
     qdot = _decode(vehicle.pack(mav.named_value_float_encode(2500, b"QDOT", 1.5)))
     assert isinstance(qdot, Sample) and dict(qdot.values) == pytest.approx({Channel.QDOT: 1.5})

@@ -20,7 +20,7 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from gcs_estimator.config import load_config_with
+from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FILTER_KINDS, Track
 from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
 from gcs_estimator.report import final_table, live_table
@@ -82,7 +82,7 @@ def tracks(run: VehicleResult) -> dict[str, Track]:
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     """A 12 s simulated flight (both restarts included) through the view into an .rrd."""
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     flight = simulate(config, seed=2)
     path = tmp_path_factory.mktemp("view") / "run.rrd"
     session = Session(config)
@@ -195,7 +195,7 @@ def short_tlog(path: Path, vehicles: int) -> None:
     from gcs_estimator.flightdata import Recording
     from gcs_estimator.telemetry.mavlink import read_tlog
 
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     records: list[tuple[int, bytes]] = []
     for sid in range(1, vehicles + 1):
         fl = simulate(config, seed=sid)
@@ -215,7 +215,7 @@ def short_tlog(path: Path, vehicles: int) -> None:
 def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path: Path) -> None:
     tlog = tmp_path / "two.tlog"
     short_tlog(tlog, 2)
-    config = load_config_with(ROOT / "configs/noc_uav.toml", SHORT)
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     rrd = tmp_path / "two.rrd"
     session = Session(config)
     link = MavlinkLink(config.link)
@@ -382,7 +382,7 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
     tmp_path: Path, hfb_data_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     ref = tmp_path / "book.toml"
-    names = load_config_with(ROOT / "configs/hfb320.toml").coefficient_names
+    names = load_config(ROOT / "configs/hfb320.toml").coefficient_names
     ref.write_text(
         '[truth]\nlabel = "book"\n' + "".join(f"{n} = {i + 1}.5\n" for i, n in enumerate(names))
     )

@@ -1,0 +1,120 @@
+"""Installed from a wheel, the commands work from an empty directory: nothing of the
+repository beside them (configs and the HFB-320 record are package data)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import sysconfig
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class Installed:
+    """A virtual environment with the project installed from its wheel, and an empty
+    working directory to run its commands in."""
+
+    def __init__(self, root: Path) -> None:
+        wheels = root / "wheels"
+        _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+              "-w", str(wheels), str(ROOT)], cwd=root)  # fmt: skip
+        self.venv = root / "venv"
+        _run([sys.executable, "-m", "venv", str(self.venv)], cwd=root)
+        # The dependencies come from this environment: its site-packages as a plain path
+        # (a .pth line runs no .pth inside it, so this checkout's editable finder stays out).
+        purelib = Path(sysconfig.get_paths()["purelib"])
+        (self._site() / "dependencies.pth").write_text(f"{purelib}\n")
+        wheel = next(wheels.glob("gcs_estimator-*.whl"))
+        _run([str(self.bin("python")), "-m", "pip", "install", "--no-deps", "--no-index",
+              "--quiet", str(wheel)], cwd=root)  # fmt: skip
+        self.cwd = root / "empty"
+        self.cwd.mkdir()
+
+    def _site(self) -> Path:
+        found = list((self.venv / "lib").glob("python3*/site-packages"))
+        assert len(found) == 1, found
+        return found[0]
+
+    def bin(self, name: str) -> Path:
+        return self.venv / "bin" / name
+
+    def run(self, *args: str) -> subprocess.CompletedProcess[str]:
+        return _run([str(self.bin(args[0])), *args[1:]], cwd=self.cwd)
+
+    def popen(self, *args: str) -> subprocess.Popen[str]:
+        return subprocess.Popen(
+            [str(self.bin(args[0])), *args[1:]],
+            cwd=self.cwd,
+            env=_clean_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+
+def _clean_env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
+
+
+def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(cmd, cwd=cwd, env=_clean_env(), capture_output=True, text=True)
+    assert proc.returncode == 0, f"{cmd}\n{proc.stdout}\n{proc.stderr}"
+    return proc
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
+    yield Installed(tmp_path_factory.mktemp("install"))
+
+
+def test_the_installed_package_is_the_wheel_not_this_checkout(installed: Installed) -> None:
+    where = installed.run(
+        "python", "-c", "import gcs_estimator, sim; print(gcs_estimator.__file__, sim.__file__)"
+    )
+    assert str(installed.venv) in where.stdout and str(ROOT) not in where.stdout
+    assert installed.run("gcs-estimator", "--version").stdout.startswith("gcs-estimator ")
+    mod = installed.run("python", "-m", "gcs_estimator", "keys", "--config", "hfb320")
+    assert "| `CmV` |" in mod.stdout
+
+
+def test_simulate_and_offline_from_an_empty_directory(installed: Installed) -> None:
+    installed.run(
+        "gcs-estimator", "simulate", "--view", "off", "--set", "simulation.manoeuvre.duration_s=20"
+    )
+    sim = json.loads((installed.cwd / "out" / "results.json").read_text())
+    installed.run("gcs-estimator", "offline", "hfb320", "--view", "off", "--out", "hfb")
+    hfb = json.loads((installed.cwd / "hfb" / "results.json").read_text())
+    assert sim["aircraft"] == "NOC UAV" and hfb["aircraft"] == "HFB-320"
+    for res in (sim, hfb):
+        assert len(res["filters"]["IEKF"]["estimates"]) == 11
+
+
+def test_simulated_vehicle_to_listening_station_on_loopback(installed: Installed) -> None:
+    station = installed.popen(
+        "gcs-estimator", "listen", "udpin:127.0.0.1:0", "--view", "off", "--idle-exit", "2",
+        "--set", "simulation.manoeuvre.duration_s=15",
+    )  # fmt: skip
+    assert station.stderr is not None
+    port = ""
+    for line in station.stderr:
+        if line.startswith("listening on"):
+            port = line.split()[3].rstrip(",").rsplit(":", 1)[1]
+            break
+    assert port, station.stderr.read()
+    installed.run(
+        "gcs-sim", "--target", f"127.0.0.1:{port}", "--speed", "4",
+        "--set", "simulation.manoeuvre.duration_s=15",
+    )  # fmt: skip
+    _out, err = station.communicate(timeout=120)
+    assert station.returncode == 0, err
+    res = json.loads((installed.cwd / "out" / "results_sys1.json").read_text())
+    assert res["link"]["received"] > 0
+    assert len(res["filters"]["IEKF"]["estimates"]) == 11
