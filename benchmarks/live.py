@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import record  # benchmarks/record.py: the script's directory is on sys.path
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
@@ -60,9 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--vehicles", type=int, default=10)
     ap.add_argument("--seconds", type=float, default=30.0, help="flight duration")
-    ap.add_argument("--config", default=str(ROOT / "configs/noc_uav.toml"))
+    ap.add_argument("--config", default="noc_uav")
     ap.add_argument("--view", action="store_true", help="with the Rerun view saving an .rrd")
+    record.add_argument(ap, "live")
     args = ap.parse_args(argv)
+    with record.recorded("live", args.record, "Live link: latency and load on loopback UDP"):
+        return run(args)
+
+
+def run(args: argparse.Namespace) -> int:
     override = f"simulation.manoeuvre.duration_s={args.seconds}"
     config = load_config(args.config, [override])
 

@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import record  # benchmarks/record.py: the script's directory is on sys.path
+
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.session import Session, warm_up
@@ -33,9 +35,15 @@ from sim.vehicle import SimulatedVehicle
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--minutes", type=float, default=10.0)
-    ap.add_argument("--config", default="configs/noc_uav.toml")
+    ap.add_argument("--config", default="noc_uav")
     ap.add_argument("--view", action="store_true", help="also time the Rerun view")
+    record.add_argument(ap, "replay")
     args = ap.parse_args(argv)
+    with record.recorded("replay", args.record, "Replay: .tlog to estimates, as fast as possible"):
+        return run(args)
+
+
+def run(args: argparse.Namespace) -> int:
     seconds = args.minutes * 60
     # The manoeuvre repeats its multisteps and pulses every minute so the filters work
     # on real excitation throughout.

@@ -14,11 +14,13 @@ frames per second.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections.abc import Callable
 
 import numpy as np
+import record  # benchmarks/record.py: the script's directory is on sys.path
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
@@ -49,7 +51,7 @@ def rate(
 ) -> float:
     # relinearise_sigma = 0: the IEKF runs all N iterations every step (the configured
     # gate usually stops it after 2 near the solution, which would flatter the figure).
-    config = load_config("configs/noc_uav.toml", ["filter.relinearise_sigma=0"])
+    config = load_config("noc_uav", ["filter.relinearise_sigma=0"])
     flight = simulate(config, seed=1)
     model = build_model(config)
     tuning = core.tuning_of(config, model, kind)
@@ -64,7 +66,7 @@ def rate(
 
 def whole_flight() -> tuple[float, int]:
     """Frames per second of a 60 s flight through the estimator, both filters."""
-    config = load_config("configs/noc_uav.toml", [])
+    config = load_config("noc_uav", [])
     flight = simulate(config, seed=1)
     best = 0.0
     for _ in range(3):
@@ -75,6 +77,14 @@ def whole_flight() -> tuple[float, int]:
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    record.add_argument(ap, "speed")
+    args = ap.parse_args()
+    with record.recorded("speed", args.record, "Speed: filter steps per second"):
+        return run()
+
+
+def run() -> int:
     fast_step, ref_step = core.stepper("fast"), core.stepper("reference")
     print(
         "| filter | kernel steps/s | step contract steps/s | contract / kernel | "

@@ -14,12 +14,9 @@ starting point: the filters re-run the data from the start with its sigma widene
 from q.
 
 Noise in the alpha regressor biases the alpha coefficients towards zero (errors in
-variables): with a 0.3 deg vane and the excursions of the first 5 s of the default
-manoeuvre, CLa and Cma come out 11 % low on average and up to 30 % low on an aircraft
-whose CLa is larger, far enough off for the EKF's re-run to lock onto a wrong solution.
-Alpha is a state, smooth between samples, so it is smoothed first: a zero-phase
-quadratic Savitzky-Golay filter over 0.2 s passes the 2 Hz short period and cuts the
-noise variance fourfold, which brings the mean bias to 2.5 %.
+variables), so alpha, a state smooth between samples, is smoothed first: a zero-phase
+quadratic Savitzky-Golay filter over 0.2 s passes the 2 Hz short period
+(docs/decisions/0001).
 """
 
 from __future__ import annotations

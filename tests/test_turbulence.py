@@ -102,11 +102,9 @@ def test_light_turbulence_is_detected_throughout(noc_config: AircraftConfig) -> 
 
 
 def test_covariance_stays_positive_definite_on_a_perturbed_aircraft_in_turbulence() -> None:
-    """Seed 8 of the accuracy benchmark's --turbulence light --perturb 0.3, the aircraft
-    with the widest alpha excursion. Propagating P by Runge-Kutta on its own equation lost
-    positive definiteness there in over a thousand steps (theta's variance went negative
-    and was repaired), and the IEKF ended 16 sigma off on Cma. Propagated through its
-    transition matrix, P needs no repair and the estimates stay within a few sigma."""
+    """Seed 8 of `accuracy --turbulence light --perturb 0.3`, the widest alpha excursion,
+    where integrating P' itself needed repairs (docs/decisions/0002): P needs none and
+    the estimates stay within a few sigma."""
     paper = load_config(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     config = perturbed(paper, 8, 0.3)
     flight = simulate(config, seed=8)
@@ -119,12 +117,9 @@ def test_covariance_stays_positive_definite_on_a_perturbed_aircraft_in_turbulenc
 
 
 def test_the_first_re_run_starts_at_the_level_the_zero_start_pass_ended_with() -> None:
-    """Seed 24 in light turbulence. The zero-start pass's innovations are mostly the
-    unknown coefficients, so its average level came out near calm (0.07 m/s against
-    0.77). The first re-run, from a good equation-error start (CLa and Cma within 2 %),
-    then took its first steps as calm air while gusts moved the pitch acceleration by many
-    of its sigma: it locked onto CLa -194 % (EKF) and -40 % (IEKF) and never recovered.
-    Starting the re-run at the level the pass ended with keeps it cautious instead."""
+    """Seed 24 in light turbulence, where a re-run that started as calm air locked onto
+    wrong coefficients (docs/decisions/0005): every well-excited coefficient ends within
+    5 % and 5 sigma."""
     config = load_config(CONFIGS / "noc_uav.toml", ["simulation.turbulence.preset=light"])
     flight = simulate(config, seed=24)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result

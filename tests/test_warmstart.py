@@ -54,9 +54,8 @@ def test_smoothing_alpha_takes_out_most_of_the_errors_in_variables_bias(
 
 
 def test_ekf_from_zero_stays_consistent_on_an_aircraft_far_from_the_paper() -> None:
-    # Seed 26 of the accuracy benchmark's --perturb 0.3: CLa +21 %, Cma +29 %, Cmq +17 %,
-    # Cmde -27 % off the paper. The unsmoothed warm start had CLa 31 % low there, and the
-    # EKF's re-run locked onto CLa +176 % at 68 sigma.
+    # Seed 26 of `accuracy --perturb 0.3`, where an unsmoothed warm start sent the EKF's
+    # re-run to a wrong solution (docs/decisions/0001).
     config = perturbed(load_config(CONFIGS / "noc_uav.toml", []), 26, 0.3)
     flight = simulate(config, seed=26)
     res = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result

@@ -69,10 +69,8 @@ def propagate(f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: f
     with Phi the Runge-Kutta solution of Phi' = F Phi from the same stages as x (fourth
     order, like x), Phi_m its second-order value at mid-step and Qd Simpson's rule for
     the integral of Phi(s) Q Phi(s)^T. A congruence keeps P positive semi-definite
-    whatever the step. Runge-Kutta on P' = F P + P F^T + Q itself does not: the aircraft's
-    F is far from normal (pitch acceleration moves 165 rad/s^2 per radian of alpha, alpha
-    moves q not at all), and at 0.02 s steps in turbulence that form gave theta-q
-    correlations above 2.
+    whatever the step. Runge-Kutta on P' = F P + P F^T + Q itself does not, on an F as far
+    from normal as an aircraft's (docs/decisions/0002).
     """
     if dt <= 0.0:
         return belief

@@ -67,12 +67,10 @@ def test_equals_exact_kalman_filter_on_linear_model(iterations: int, seed: int) 
 
 
 def test_a_coarse_step_on_stiff_non_normal_dynamics_keeps_p_positive_definite() -> None:
-    """The aircraft's short period and pitch integrator: alpha drives q at 165 rad/s^2
-    per radian, q drives alpha and theta at 1. From a tight, correlated theta (as after
-    many updates) under strong alpha noise (as in turbulence), one 0.02 s Runge-Kutta
-    step of P' = F P + P F^T + Q itself gives theta a variance 400 times too small and P
-    a negative eigenvalue (measured). The transition-matrix form stays positive definite
-    and close to the exact discretisation."""
+    """The aircraft's short period and pitch integrator (alpha drives q at 165 rad/s^2 per
+    radian), from a tight, correlated theta under strong alpha noise: the case where
+    integrating P' itself fails (docs/decisions/0002). The transition-matrix form stays
+    positive definite and close to the exact discretisation."""
     A = np.array([[-4.5, 0.0, 1.0], [0.0, 0.0, 1.0], [-165.0, 0.0, -10.8]])
     sigma = np.array([2.5e-4, 1.2e-6, 5.3e-4])
     corr = np.array([[1.0, 0.75, 0.88], [0.75, 1.0, 0.43], [0.88, 0.43, 1.0]])
