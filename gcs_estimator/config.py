@@ -226,6 +226,9 @@ class Simulation:
     sample_rate_hz: float = setting(50.0, gt=0, unit="Hz")
     integration_step_s: float = setting(0.002, gt=0, unit="s")
     seed: int = setting(1)
+    actuator_time_constant_s: float = setting(
+        0.0, ge=0, unit="s", doc="first-order servo lag; 0: each command holds until the next"
+    )
     manoeuvre: Manoeuvre = table(Manoeuvre)
     sensors: Sensors = table(Sensors)
     turbulence: Turbulence = table(Turbulence)
@@ -324,6 +327,17 @@ class FilterTuning:
 
 
 @dataclass(frozen=True)
+class DataConfig:
+    """What the flight data are, whatever carries them (a link, a log, a file)."""
+
+    input_hold: str = setting(
+        "linear",
+        choices=("linear", "previous"),
+        doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
+    )
+
+
+@dataclass(frozen=True)
 class LinkConfig:
     """How the aircraft's signals map onto MAVLink (telemetry.pwm), and the rates to ask for."""
 
@@ -396,6 +410,7 @@ class AircraftConfig:
     reference: Reference | None = table(Reference, optional=True, toml="truth")
     simulation: Simulation = table(Simulation)
     filter: FilterTuning = table(FilterTuning)
+    data: DataConfig = table(DataConfig)
     link: LinkConfig = table(LinkConfig)
     view: ViewConfig = table(ViewConfig)
     source: str = setting("<config>", internal=True)

@@ -314,9 +314,7 @@ class Key(NamedTuple):
 REQUIRED = "(required)"
 
 
-def leaves(
-    cls: type[Any], context: Mapping[str, tuple[str, ...]], path: str = ""
-) -> Iterator[Key]:
+def leaves(cls: type[Any], context: Mapping[str, tuple[str, ...]], path: str = "") -> Iterator[Key]:
     """Every key of the schema, depth first, in declaration order."""
     hints = get_type_hints(cls)
     for f in fields(cls):

@@ -172,8 +172,16 @@ def simulate(
             np.full(n_samples, power0),
         ]
     )
-    u_steps = servo_commands(config, u_steps)
-    u_samples = servo_commands(config, u_samples)
+    if sim.actuator_time_constant_s > 0.0:
+        # The servo lags its command: the elevator moves between samples, flown as it
+        # moves and reported (to PWM resolution) as it stands at each sample.
+        position = servo_lag(u_steps[:, 0], de0, dt, sim.actuator_time_constant_s)
+        u_steps[:, 0] = 0.5 * (position[:-1] + position[1:])
+        u_samples[:, 0] = position[::per_sample]
+        u_samples = servo_commands(config, u_samples)
+    else:
+        u_steps = servo_commands(config, u_steps)
+        u_samples = servo_commands(config, u_samples)
     gust = np.empty((n_steps + 1, 2))
     for i in range(n_steps + 1):
         gust[i] = gusts.gust()
@@ -193,6 +201,17 @@ def simulate(
         trim=trimmed,
         clean=clean_out,
     )
+
+
+def servo_lag(command: FloatArray, start: float, dt: float, tau: float) -> FloatArray:
+    """Positions of a first-order servo (time constant tau [s]) at the step boundaries,
+    from `start`, under commands held over each step of dt [s] (exact per step)."""
+    decay = math.exp(-dt / tau)
+    position = np.empty(command.shape[0] + 1)
+    position[0] = start
+    for i, c in enumerate(command):
+        position[i + 1] = c + (position[i] - c) * decay
+    return position
 
 
 def _steady_state(
@@ -249,6 +268,6 @@ def integrate(
         if i == n_samples - 1:
             break
         for _ in range(per_sample):
-            x = rk4_step(x, u_steps[step], gust[step], dt, m)[0]
+            x = rk4_step(x, u_steps[step], u_steps[step], gust[step], dt, m)[0]
             step += 1
     return states, clean

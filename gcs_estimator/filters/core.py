@@ -160,6 +160,8 @@ class Tuning(NamedTuple):
     """Configured prior sigma of the whole augmented state [n]."""
     gust_var0: float
     """Configured initial gust variance [m^2/s^2]."""
+    linear_inputs: bool
+    """Inputs linear between samples (first-order hold), else held at the earlier sample."""
 
 
 class StepInfo(NamedTuple):
@@ -217,6 +219,7 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         prior_x=prior_x,
         prior_sigma=prior_sigma,
         gust_var0=ft.turbulence.sigma_w_mps**2,
+        linear_inputs=config.data.input_hold == "linear",
     )
 
 
@@ -279,6 +282,22 @@ def rebase(
 
 # The functions below are written once, for both backends: plain Python on numpy arrays
 # and named tuples, which filters.fast also compiles.
+
+
+def input_path(u_prev: FloatArray, u: FloatArray, linear: bool) -> tuple[FloatArray, FloatArray]:
+    """The inputs at the start and the end of a prediction interval: from the earlier
+    sample to this one (first-order hold), or the earlier sample held (zero-order hold).
+    An input missing at either end is held at the sample that has it."""
+    start = u_prev.copy()
+    for i in range(u.shape[0]):
+        if not math.isfinite(start[i]):
+            start[i] = u[i]
+    end = start.copy()
+    if linear:
+        for i in range(u.shape[0]):
+            if math.isfinite(u[i]):
+                end[i] = u[i]
+    return start, end
 
 
 def process_noise(state: FilterState, tuning: Tuning) -> tuple[FloatArray, float]:

@@ -27,7 +27,13 @@ from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
 
-for _fn in (core.gust_applied, core.process_noise, core.gust_match, core.adapt_gust):
+for _fn in (
+    core.gust_applied,
+    core.input_path,
+    core.process_noise,
+    core.gust_match,
+    core.adapt_gust,
+):
     register_jitable(_fn)
 
 
@@ -75,7 +81,8 @@ def _congruence_diag(q: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no 
 def _propagate(
     x: FloatArray,
     P: FloatArray,
-    u: FloatArray,
+    u0: FloatArray,
+    u1: FloatArray,
     q: FloatArray,
     dt: float,
     max_step: float,
@@ -83,15 +90,18 @@ def _propagate(
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     """hybrid.propagate for the aircraft: rows >= d = n_dynamic of F are zero, so the
     transition matrix differs from I in its first d rows only, and each Runge-Kutta stage
-    of it is d x n. Q = diag(q)."""
+    of it is d x n. Q = diag(q); the inputs go linearly from u0 to u1 over dt."""
     if dt <= 0.0:
         return x.copy(), P.copy()
     steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
     h = dt / steps
     d = m.n_dynamic
     still = np.zeros(2)
-    for _ in range(steps):
-        x, F1, F2, F3, F4 = rk4_step(x, u, still, h, m)
+    du = u1 - u0
+    for j in range(steps):
+        ua = u0 + du * (j / steps)
+        ub = u0 + du * ((j + 1) / steps)
+        x, F1, F2, F3, F4 = rk4_step(x, ua, ub, still, h, m)
         # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
         K1 = np.ascontiguousarray(F1[:d])
         K2 = F2[:d] + 0.5 * h * (np.ascontiguousarray(F2[:d, :d]) @ K1)
@@ -295,10 +305,10 @@ def _update(
 def _step(
     st: FilterState, t: float, u: FloatArray, y: FloatArray, tun: Tuning, m: ModelArrays
 ) -> tuple[FilterState, StepInfo, bool]:  # pragma: no cover
-    u_prev = st.u if np.all(np.isfinite(st.u)) else u
+    u_prev, u_end = core.input_path(st.u, u, tun.linear_inputs)
     dt = t - st.t
     q, applied = core.process_noise(st, tun)
-    xp, Pp = _propagate(st.x, st.P, u_prev, q, dt, tun.max_step_s, m)
+    xp, Pp = _propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
     variances = np.diag(P).copy()
     healthy = variances.min() > 0.0 and math.isfinite(x.sum() + P.sum())
@@ -352,6 +362,7 @@ def _kernel(
     prior_x: FloatArray,
     prior_sigma: FloatArray,
     gust_var0: float,
+    linear_inputs: bool,
     k: FloatArray,
     axis: IntArray,
     regressor: IntArray,
@@ -379,6 +390,7 @@ def _kernel(
         prior_x,
         prior_sigma,
         gust_var0,
+        linear_inputs,
     )
     new, info, healthy = _step(
         st, t, u, y, tun, ModelArrays(k, axis, regressor, coef_start, n_dynamic)
@@ -410,7 +422,7 @@ def _kernel(
 def kernel_step(
     state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
 ) -> tuple[FilterState, StepInfo, bool]:
-    """Predict with the held inputs, update with y, adapt the gust level (core contract)."""
+    """Predict, update with y, adapt the gust level (core contract)."""
     t = float(t)
     kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
     (x, P, u_held, sigma, nis, used, done, e, s, gust_sigma, failed, healthy, *gust) = kernel(

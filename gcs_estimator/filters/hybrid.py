@@ -17,8 +17,9 @@ from scipy.linalg import cho_factor, cho_solve
 
 from gcs_estimator.arrays import BoolArray, FloatArray
 
-Dynamics = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
-"""x -> (f(x), F = df/dx), inputs already bound."""
+Dynamics = Callable[[FloatArray, float], tuple[FloatArray, FloatArray]]
+"""(x, s) -> (f(x), F = df/dx) at the fraction s in [0, 1] of the prediction interval
+(the inputs, bound by the caller, may change over it)."""
 Observation = Callable[[FloatArray], tuple[FloatArray, FloatArray]]
 """x -> (h(x), H = dh/dx), inputs already bound."""
 
@@ -59,7 +60,7 @@ def psd_solve(S: FloatArray, B: FloatArray) -> FloatArray:
 
 
 def propagate(f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: float) -> Belief:
-    """Predict over dt: x' = f(x) by classical Runge-Kutta, P by its transition matrix.
+    """Predict over dt: x' = f(x, t) by classical Runge-Kutta, P by its transition matrix.
 
     Steps no longer than max_step [s]; uneven measurement intervals are fine. Q is the
     continuous-time process noise spectral density (L = I). Over each step
@@ -78,11 +79,12 @@ def propagate(f: Dynamics, belief: Belief, Q: FloatArray, dt: float, max_step: f
     h = dt / steps
     x, P = belief.x, belief.P
     eye = np.eye(x.size)
-    for _ in range(steps):
-        f1, F1 = f(x)
-        f2, F2 = f(x + 0.5 * h * f1)
-        f3, F3 = f(x + 0.5 * h * f2)
-        f4, F4 = f(x + h * f3)
+    for j in range(steps):
+        s0, sm, s1 = j / steps, (j + 0.5) / steps, (j + 1) / steps
+        f1, F1 = f(x, s0)
+        f2, F2 = f(x + 0.5 * h * f1, sm)
+        f3, F3 = f(x + 0.5 * h * f2, sm)
+        f4, F4 = f(x + h * f3, s1)
         x = x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4)
         K1 = F1
         K2 = F2 @ (eye + 0.5 * h * K1)

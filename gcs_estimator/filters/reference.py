@@ -21,13 +21,15 @@ from gcs_estimator.model.channels import N_OBS
 def kernel_step(
     state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
 ) -> tuple[FilterState, StepInfo, bool]:
-    """Predict with the held inputs, update with y, adapt the gust level (core contract)."""
-    u_prev = state.u if np.isfinite(state.u).all() else u
+    """Predict, update with y, adapt the gust level (core contract)."""
+    u_prev, u_end = core.input_path(state.u, u, tuning.linear_inputs)
     dt = t - state.t
     q, applied = core.process_noise(state, tuning)
-    prior = hybrid.propagate(
-        lambda x: model.f(x, u_prev), Belief(state.x, state.P), np.diag(q), dt, tuning.max_step_s
-    )
+
+    def f(x: FloatArray, s: float) -> tuple[FloatArray, FloatArray]:
+        return model.f(x, u_prev + s * (u_end - u_prev))
+
+    prior = hybrid.propagate(f, Belief(state.x, state.P), np.diag(q), dt, tuning.max_step_s)
     e = np.full(N_OBS, np.nan)
     s = np.full(N_OBS, np.nan)
     failed = False

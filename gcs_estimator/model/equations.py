@@ -222,14 +222,21 @@ def air_relative(x: FloatArray, gust: FloatArray) -> FloatArray:
 
 
 def rk4_step(
-    x: FloatArray, u: FloatArray, gust: FloatArray, h: float, model: ModelArrays
+    x: FloatArray,
+    u0: FloatArray,
+    u1: FloatArray,
+    gust: FloatArray,
+    h: float,
+    model: ModelArrays,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """One classical Runge-Kutta step of x' = f(air_relative(x, gust), u) over h [s],
-    inputs and gust held. Returns x(t + h) and the Jacobians F1..F4 at the four stages
-    (the filters propagate the transition matrix from them; the simulator ignores them).
-    The filters fly in still air (gust 0), where air_relative(x) is x exactly."""
-    f1, F1 = dynamics(air_relative(x, gust), u, model)
-    f2, F2 = dynamics(air_relative(x + 0.5 * h * f1, gust), u, model)
-    f3, F3 = dynamics(air_relative(x + 0.5 * h * f2, gust), u, model)
-    f4, F4 = dynamics(air_relative(x + h * f3, gust), u, model)
+    """One classical Runge-Kutta step of x' = f(air_relative(x, gust), u(t)) over h [s],
+    the inputs linear from u0 to u1 (u0 = u1: held), the gust held. Returns x(t + h) and
+    the Jacobians F1..F4 at the four stages (the filters propagate the transition matrix
+    from them; the simulator ignores them). The filters fly in still air (gust 0), where
+    air_relative(x) is x exactly."""
+    um = u0 + 0.5 * (u1 - u0)
+    f1, F1 = dynamics(air_relative(x, gust), u0, model)
+    f2, F2 = dynamics(air_relative(x + 0.5 * h * f1, gust), um, model)
+    f3, F3 = dynamics(air_relative(x + 0.5 * h * f2, gust), um, model)
+    f4, F4 = dynamics(air_relative(x + h * f3, gust), u1, model)
     return x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4), F1, F2, F3, F4

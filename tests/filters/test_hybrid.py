@@ -59,7 +59,7 @@ def test_equals_exact_kalman_filter_on_linear_model(iterations: int, seed: int) 
         Phi, Qd = exact_discretisation(A, Qc, dt)
         x, P = Phi @ x, Phi @ P @ Phi.T + Qd
         x, P = kalman(x, P, y, C, R)
-        belief = propagate(lambda z: (A @ z, A), belief, Qc, dt, max_step=1e-3)
+        belief = propagate(lambda z, _s: (A @ z, A), belief, Qc, dt, max_step=1e-3)
         belief, info = iekf_update(lambda z: (C @ z, C), belief, y, R, iterations=iterations)
         assert info.used.sum() == np.isfinite(y).sum()
     np.testing.assert_allclose(belief.x, x, rtol=EXACT_RTOL, atol=1e-12)
@@ -78,7 +78,7 @@ def test_a_coarse_step_on_stiff_non_normal_dynamics_keeps_p_positive_definite() 
     Qc = np.diag([7e-3, 1e-9, 4e-6])
     Phi, Qd = exact_discretisation(A, Qc, 0.02)
     exact = Phi @ P0 @ Phi.T + Qd
-    P = propagate(lambda z: (A @ z, A), Belief(np.zeros(3), P0), Qc, 0.02, max_step=0.02).P
+    P = propagate(lambda z, _s: (A @ z, A), Belief(np.zeros(3), P0), Qc, 0.02, max_step=0.02).P
     assert np.linalg.eigvalsh(P).min() > 0.0
     np.testing.assert_allclose(np.diag(P), np.diag(exact), rtol=0.1)
     assert np.abs(P - exact).max() < 1e-3 * np.abs(exact).max()
