@@ -64,6 +64,8 @@ NOC_SENSOR_SIGMA: tuple[float, ...] = (
     0.2,
 )
 """The simulated sensors' noise, and the filters' measurement sigma unless set."""
+BIAS_SIGMA: tuple[float, ...] = (1.0, math.radians(2.0), math.radians(2.0), 0.01, 0.1, 0.5, 0.5)
+"""Prior 1 sigma of an estimated sensor bias, per channel [SI]."""
 
 PropulsionKind = Literal["propeller", "measured"]
 PowerInput = Literal["throttle", "thrust"]
@@ -89,6 +91,24 @@ class Airframe:
     gravity_mps2: float = setting(9.80665, gt=0, unit="m/s^2")
     thrust_inclination_rad: float = setting(0.0, unit="rad", doc="sigma_T: thrust line to body x")
     thrust_moment_arm_m: float = setting(0.0, unit="m", doc="l_x*sin(sigma_T) + l_z*cos(sigma_T)")
+
+
+@dataclass(frozen=True)
+class SensorPlacement:
+    """Where the sensors sit relative to the CG (body axes: x forward, z down), and which
+    channels carry a constant bias the filters estimate with the coefficients."""
+
+    vane_x_m: float = setting(0.0, unit="m", doc="angle-of-attack vane, ahead of the CG")
+    vane_z_m: float = setting(0.0, unit="m", doc="angle-of-attack vane, below the CG")
+    accel_x_m: float = setting(0.0, unit="m", doc="accelerometers, ahead of the CG")
+    accel_z_m: float = setting(0.0, unit="m", doc="accelerometers, below the CG")
+    bias_states: tuple[str, ...] = setting(
+        (), choices=OBS_NAMES, unique=True, doc='channels whose bias is estimated, e.g. ["q"]'
+    )
+
+    @property
+    def bias_channels(self) -> tuple[int, ...]:
+        return tuple(OBS_NAMES.index(c) for c in self.bias_states)
 
 
 @dataclass(frozen=True)
@@ -247,6 +267,9 @@ class InitialSigma:
         unit="SI",
     )
     coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=10.0, gt=0)
+    biases: tuple[float, ...] = _per_channel(
+        BIAS_SIGMA, gt=0, doc="sensor biases ([sensors] bias_states), SI units"
+    )
 
 
 @dataclass(frozen=True)
@@ -268,6 +291,7 @@ class ProcessNoise:
     coefficients_initial: tuple[float, ...] = setting(
         (), keys=COEFFICIENT, fill=1e-12, ge=0, fallback="coefficients", doc="level at t = 0"
     )
+    biases: tuple[float, ...] = _per_channel(0.0, ge=0, doc="bias random walk; 0: constant")
 
 
 @dataclass(frozen=True)
@@ -407,6 +431,7 @@ class AircraftConfig:
     structure: CoefficientStructure = table(
         CoefficientStructure, required=True, toml="coefficients"
     )
+    sensors: SensorPlacement = table(SensorPlacement)
     reference: Reference | None = table(Reference, optional=True, toml="truth")
     simulation: Simulation = table(Simulation)
     filter: FilterTuning = table(FilterTuning)

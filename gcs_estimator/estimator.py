@@ -144,6 +144,9 @@ class FilterResult(NamedTuple):
     """Coefficient covariance [p x p]."""
     gust_sigma: float
     """Turbulence level (vertical gust sigma) the filter ended with [m/s]."""
+    biases: FloatArray
+    """Estimated sensor biases ([sensors] bias_states; empty when none) [SI]."""
+    bias_sigma: FloatArray
     health: Health
     track: Track | None
     """Time histories (None when the estimator keeps none)."""
@@ -159,6 +162,11 @@ class EstimatorResult(NamedTuple):
     warm_start: FloatArray | None
     """Equation-error coefficients of the first restart, when that is the warm start."""
     filters: dict[FilterKind, FilterResult]
+    bias_names: tuple[str, ...] = ()
+    """Names of the estimated sensor biases, e.g. ("q_bias",)."""
+    warm_start_samples: tuple[int, int, int] | None = None
+    """Frames the warm start fitted per axis (CD, CL, Cm), of `warm_start_frames`."""
+    warm_start_frames: int = 0
 
 
 class _Start(NamedTuple):
@@ -190,6 +198,8 @@ class Estimator:
         self.frames = 0
         self.restarts_done = 0
         self.warm_start: FloatArray | None = None
+        self._warm_samples: tuple[int, int, int] | None = None
+        self._warm_frames = 0
         self._buffer: list[tuple[float, FloatArray, FloatArray]] = []
         self._t0 = math.nan
 
@@ -268,6 +278,7 @@ class Estimator:
                 np.array(tuning.initial_sigma.coefficients),
             )
             self.warm_start = ws.beta
+            self._warm_samples, self._warm_frames = ws.samples, len(t_b)
             means = {k: (ws.beta, ws.sigma) for k in FILTER_KINDS}
         else:
             means = {
@@ -320,6 +331,7 @@ class Estimator:
             if s is None:
                 continue
             cov = s.P[coef, coef]
+            biases = self.model.biases
             gust = s.gust.applied(self.tunings[kind].detection2)
             track = Track.of(self.histories[kind], self.model) if self.keep_history else None
             filters[kind] = FilterResult(
@@ -328,11 +340,21 @@ class Estimator:
                 np.sqrt(np.diag(cov)),
                 cov,
                 math.sqrt(gust),
+                s.x[biases].copy(),
+                np.sqrt(np.diag(s.P))[biases],
                 self.health[kind],
                 track,
             )
         return EstimatorResult(
-            self.config, self.names, self.frames, self.restarts_done, self.warm_start, filters
+            self.config,
+            self.names,
+            self.frames,
+            self.restarts_done,
+            self.warm_start,
+            filters,
+            self.model.bias_names,
+            self._warm_samples,
+            self._warm_frames,
         )
 
 

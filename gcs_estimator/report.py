@@ -102,8 +102,25 @@ def live_table(estimator: Estimator) -> str:
 
 
 def final_table(vehicle: VehicleResult) -> str:
-    """The finished run's Table I (with convergence times), as in results.md."""
-    return markdown_table(vehicle.summaries, vehicle.result.config.truth_label)
+    """The finished run's Table I (with convergence times), as in results.md, and what
+    the run estimated beside the coefficients or fitted to start them."""
+    result = vehicle.result
+    notes = []
+    for kind, f in result.filters.items():
+        if result.bias_names:
+            biases = ", ".join(
+                f"{n.removesuffix('_bias')} {b:+.3g} ± {s:.2g}"
+                for n, b, s in zip(result.bias_names, f.biases, f.bias_sigma, strict=True)
+            )
+            notes.append(f"{kind} sensor biases [SI]: {biases}")
+    if result.warm_start_samples is not None:
+        cd, cl, cm = result.warm_start_samples
+        notes.append(
+            f"equation-error warm start: fitted CD, CL, Cm on {cd}, {cl}, {cm} of "
+            f"{result.warm_start_frames} frames"
+        )
+    table = markdown_table(vehicle.summaries, result.config.truth_label)
+    return table + "".join(f"- {n}\n" for n in notes)
 
 
 def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -120,6 +137,8 @@ def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None)
             "frames": result.frames,
             "restarts_done": result.restarts_done,
             "warm_start": None if result.warm_start is None else result.warm_start.tolist(),
+            "warm_start_samples": result.warm_start_samples,
+            "warm_start_frames": result.warm_start_frames,
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
             "covariance_repairs": {
@@ -147,6 +166,15 @@ def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None)
                     "within_5pct_of_truth_s": _num(c.converged_truth_s),
                 }
                 for c in s.coefficients
+            },
+            "sensor_biases": {
+                name: {"estimate": float(b), "sigma": float(sd)}
+                for name, b, sd in zip(
+                    result.bias_names,
+                    result.filters[kind].biases,
+                    result.filters[kind].bias_sigma,
+                    strict=True,
+                )
             },
         }
     if extra:

@@ -53,18 +53,26 @@ SMOOTH_S = 0.2
 
 
 def _smooth(t: FloatArray, x: FloatArray, span_s: float) -> FloatArray:
-    """Zero-phase quadratic Savitzky-Golay smoothing over span_s. Samples whose window is
-    incomplete (the ends, or a missing sample within it) come back NaN; with fewer than 5
-    samples in the span the data come back as they are."""
-    if len(t) < 2:
+    """Zero-phase quadratic Savitzky-Golay smoothing over span_s. Short gaps (a channel
+    sent at a lower rate than the frames, a lost packet) are bridged linearly first; the
+    ends, and samples farther than half a span from a real one, come back NaN. With fewer
+    than 5 samples in the span the data come back as they are."""
+    finite = np.isfinite(x)
+    if len(t) < 2 or finite.sum() < 2:
         return x
     dt = float(np.median(np.diff(t)))
     n = int(span_s / dt) if dt > 0 else 0
     n = n if n % 2 == 1 else n - 1
     if n < 5 or n > len(x):
         return x
+    known = t[finite]
+    filled = np.interp(t, known, x[finite])
+    after = np.clip(np.searchsorted(known, t), 0, len(known) - 1)
+    before = np.clip(after - 1, 0, len(known) - 1)
+    nearest = np.minimum(np.abs(known[after] - t), np.abs(t - known[before]))
     out = np.full_like(x, np.nan)
-    out[n // 2 : len(x) - n // 2] = np.convolve(x, savgol_coeffs(n, 2), mode="valid")
+    out[n // 2 : len(x) - n // 2] = np.convolve(filled, savgol_coeffs(n, 2), mode="valid")
+    out[nearest > 0.5 * span_s] = np.nan
     return out
 
 
@@ -84,11 +92,14 @@ def equation_error(
     k = model.k
     y = measurements
     V = y[:, 0]
-    alpha = y[:, 1]
     q = y[:, 3]
     qdot = y[:, 4].copy()
     if not np.isfinite(qdot).any():
         qdot = _qdot_from_q(t_s, q)
+    # Back to the CG from where the sensors sit (model.equations: sensor placement).
+    alpha = y[:, 1] + q * k[eq.VANE_X] / V
+    ax = y[:, 5] - qdot * k[eq.ACCEL_Z] + q * q * k[eq.ACCEL_X]
+    az = y[:, 6] + qdot * k[eq.ACCEL_X] + q * q * k[eq.ACCEL_Z]
     de = inputs[:, 0]
     Fe = np.array(
         [eq.thrust(float(v), float(p), k)[0] for v, p in zip(V, inputs[:, 1], strict=True)]
@@ -99,8 +110,8 @@ def equation_error(
     alpha_s = _smooth(t_s, alpha, SMOOTH_S)
     alpha = np.where(np.isfinite(alpha_s), alpha_s, alpha)  # also in the axis rotation
     Cm = (qdot - Fe * k[eq.ARM] / k[eq.IYY]) / (qbar * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY])
-    CX = (y[:, 5] - Fe * math.cos(k[eq.SIGMA_T]) / m) / force
-    CZ = (y[:, 6] + Fe * math.sin(k[eq.SIGMA_T]) / m) / force
+    CX = (ax - Fe * math.cos(k[eq.SIGMA_T]) / m) / force
+    CZ = (az + Fe * math.sin(k[eq.SIGMA_T]) / m) / force
     CL = CX * np.sin(alpha) - CZ * np.cos(alpha)
     CD = -CX * np.cos(alpha) - CZ * np.sin(alpha)
     regressors = np.column_stack(

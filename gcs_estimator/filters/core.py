@@ -202,6 +202,10 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     prior_sigma = np.zeros(n)
     prior_sigma[flight] = ft.initial_sigma.states
     prior_sigma[coef] = ft.initial_sigma.coefficients
+    channels = list(config.sensors.bias_channels)
+    prior_sigma[model.biases] = np.array(ft.initial_sigma.biases)[channels]
+    q_final[model.biases] = np.array(ft.process_noise.biases)[channels]
+    q_initial[model.biases] = q_final[model.biases]
     return Tuning(
         R=np.diag(np.square(ft.measurement_sigma)),
         q_final=q_final,

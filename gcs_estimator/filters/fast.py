@@ -368,6 +368,8 @@ def _kernel(
     regressor: IntArray,
     coef_start: int,
     n_dynamic: int,
+    bias_channel: IntArray,
+    bias_start: int,
 ) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
     """_step over the fields of FilterState, Tuning and ModelArrays, in their order."""
     st = FilterState(
@@ -393,7 +395,12 @@ def _kernel(
         linear_inputs,
     )
     new, info, healthy = _step(
-        st, t, u, y, tun, ModelArrays(k, axis, regressor, coef_start, n_dynamic)
+        st,
+        t,
+        u,
+        y,
+        tun,
+        ModelArrays(k, axis, regressor, coef_start, n_dynamic, bias_channel, bias_start),
     )
     g = new.gust
     return (

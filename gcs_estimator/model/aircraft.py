@@ -15,7 +15,7 @@ from gcs_estimator.model.channels import FLIGHT_STATES
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.model.state import StateLayout
 
-FLIGHT, COEFFICIENTS = "flight", "coefficients"
+FLIGHT, COEFFICIENTS, BIASES = "flight", "coefficients", "biases"
 """Names of the augmented state's blocks."""
 
 
@@ -45,6 +45,15 @@ class Model:
     def coefficients(self) -> slice:
         """Where the coefficients sit in the augmented state."""
         return self.layout.block(COEFFICIENTS).slice
+
+    @property
+    def biases(self) -> slice:
+        """Where the estimated sensor biases sit in the augmented state (may be empty)."""
+        return self.layout.block(BIASES).slice
+
+    @property
+    def bias_names(self) -> tuple[str, ...]:
+        return self.layout.block(BIASES).names
 
     @property
     def flight(self) -> slice:
@@ -80,6 +89,9 @@ def build_model(config: AircraftConfig) -> Model:
     k[eq.V0] = a.trim_airspeed_mps
     k[eq.SIGMA_T] = a.thrust_inclination_rad
     k[eq.ARM] = a.thrust_moment_arm_m
+    s = config.sensors
+    k[eq.VANE_X], k[eq.VANE_Z] = s.vane_x_m, s.vane_z_m
+    k[eq.ACCEL_X], k[eq.ACCEL_Z] = s.accel_x_m, s.accel_z_m
     if p.model == "propeller":
         k[eq.PROP_KIND] = eq.PROP_PROPELLER
         k[eq.PROP_AREA] = p.prop_area_m2
@@ -91,13 +103,18 @@ def build_model(config: AircraftConfig) -> Model:
     axis = np.array([AXES.index(ax) for ax, _ in pairs], dtype=np.int64)
     regressor = np.array([REGRESSORS.index(r) for _, r in pairs], dtype=np.int64)
     names = config.structure.names
-    layout = StateLayout.assemble([(FLIGHT, FLIGHT_STATES, True), (COEFFICIENTS, names, False)])
+    biases = tuple(f"{c}_bias" for c in s.bias_states)
+    layout = StateLayout.assemble(
+        [(FLIGHT, FLIGHT_STATES, True), (COEFFICIENTS, names, False), (BIASES, biases, False)]
+    )
     arrays = ModelArrays(
         k=k,
         axis=axis,
         regressor=regressor,
         coef_start=layout.block(COEFFICIENTS).start,
         n_dynamic=layout.n_dynamic,
+        bias_channel=np.array(s.bias_channels, dtype=np.int64),
+        bias_start=layout.block(BIASES).start,
     )
     return Model(layout=layout, arrays=arrays, names=names)
 

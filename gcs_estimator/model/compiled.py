@@ -14,7 +14,15 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.equations import ModelArrays
 
-for _fn in (eq.thrust, eq.aero_coefficients, eq.dynamics, eq.observe, eq.air_relative, eq.rk4_step):
+for _fn in (
+    eq.thrust,
+    eq.aero_coefficients,
+    eq.dynamics,
+    eq.sensor_placement,
+    eq.observe,
+    eq.air_relative,
+    eq.rk4_step,
+):
     register_jitable(_fn)
 
 

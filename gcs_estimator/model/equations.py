@@ -29,7 +29,8 @@ from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 # Packed airframe constants (see pack_constants in model.aircraft).
 MASS, AREA, CHORD, IYY, RHO, GRAV, V0, SIGMA_T, ARM = 0, 1, 2, 3, 4, 5, 6, 7, 8
 PROP_KIND, PROP_AREA, PROP_COEF, MOTOR_K = 9, 10, 11, 12
-N_CONST = 13
+VANE_X, VANE_Z, ACCEL_X, ACCEL_Z = 13, 14, 15, 16
+N_CONST = 17
 PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 
 N_STATE = N_FLIGHT
@@ -51,6 +52,10 @@ class ModelArrays(NamedTuple):
     """Index of the first coefficient in the augmented state."""
     n_dynamic: int
     """Leading elements of the augmented state with dynamics; F is zero below them."""
+    bias_channel: IntArray
+    """Observation channel of each estimated sensor bias."""
+    bias_start: int
+    """Index of the first sensor bias in the augmented state."""
 
 
 def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
@@ -209,7 +214,41 @@ def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArra
     # d(C_X)/d(alpha) and d(C_Z)/d(alpha) through sin and cos of alpha itself.
     H[5, 1] += qbar * A * (C[1] * ca + C[0] * sa)
     H[6, 1] += qbar * A * (C[1] * sa - C[0] * ca)
+    sensor_placement(x, k, h, H)
+    for i in range(model.bias_channel.shape[0]):
+        h[model.bias_channel[i]] += x[model.bias_start + i]
+        H[model.bias_channel[i], model.bias_start + i] = 1.0
     return h, H
+
+
+def sensor_placement(x: FloatArray, k: FloatArray, h: FloatArray, H: FloatArray) -> None:
+    """Move the alpha vane and the accelerometers from the CG to where they sit (in place).
+
+    A point r = (x, z) of the body (x forward, z down) moves with V_cg + omega x r, so a
+    vane there reads alpha_v = atan2(V sin(alpha) - q x, V cos(alpha) + q z), and
+    accelerometers there add qdot x r + omega x (omega x r):
+    a_x + qdot z - q^2 x and a_z - qdot x - q^2 z, qdot being h[4].
+    """
+    V, alpha, q = x[0], x[1], x[3]
+    xv, zv = k[VANE_X], k[VANE_Z]
+    if xv != 0.0 or zv != 0.0:
+        num = V * math.sin(alpha) - q * xv
+        den = V * math.cos(alpha) + q * zv
+        r2 = num * num + den * den
+        h[1] = math.atan2(num, den)
+        dnum = (math.sin(alpha), V * math.cos(alpha), -xv)
+        dden = (math.cos(alpha), -V * math.sin(alpha), zv)
+        for col, j in ((0, 0), (1, 1), (2, 3)):
+            H[1, j] = (den * dnum[col] - num * dden[col]) / r2
+    xa, za = k[ACCEL_X], k[ACCEL_Z]
+    if xa != 0.0 or za != 0.0:
+        h[5] += h[4] * za - q * q * xa
+        h[6] += -h[4] * xa - q * q * za
+        for j in range(H.shape[1]):
+            H[5, j] += H[4, j] * za
+            H[6, j] -= H[4, j] * xa
+        H[5, 3] -= 2.0 * q * xa
+        H[6, 3] -= 2.0 * q * za
 
 
 def air_relative(x: FloatArray, gust: FloatArray) -> FloatArray:

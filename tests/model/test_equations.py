@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import AircraftConfig
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 
@@ -54,16 +54,29 @@ def states(draw: st.DrawFn, model: Model) -> tuple[FloatArray, FloatArray]:
     de = draw(st.floats(-0.5, 0.5))
     propeller = model.k[eq.PROP_KIND] == eq.PROP_PROPELLER
     power = draw(st.floats(0.0, 1.0)) if propeller else draw(st.floats(0.0, 5e4))
-    return model.augment(np.array([V, alpha, theta, q]), beta), np.array([de, power])
+    x = model.augment(np.array([V, alpha, theta, q]), beta)
+    x[model.biases] = [draw(st.floats(-0.1, 0.1)) for _ in model.bias_names]
+    return x, np.array([de, power])
 
 
-@pytest.mark.parametrize("which", ["noc", "hfb"])
+PLACED = [
+    "sensors.vane_x_m=1.2",
+    "sensors.vane_z_m=-0.15",
+    "sensors.accel_x_m=-0.3",
+    "sensors.accel_z_m=0.08",
+    'sensors.bias_states=["alpha", "q", "a_x", "a_z"]',
+]
+"""The NOC UAV with its sensors away from the CG and four estimated biases."""
+
+
+@pytest.mark.parametrize("which", ["noc", "hfb", "placed"])
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_jacobians_match_numerical(
     which: str, data: st.DataObject, noc_config: AircraftConfig, hfb_config: AircraftConfig
 ) -> None:
-    model = build_model(noc_config if which == "noc" else hfb_config)
+    config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", PLACED)
+    model = build_model(config)
     x, u = data.draw(states(model))
     _, F = model.f(x, u)
     assert_jacobian_close(F, numerical_jacobian(lambda z: model.f(z, u), x))
@@ -92,3 +105,20 @@ def test_level_flight_specific_force_is_minus_g(noc_config: AircraftConfig) -> N
     # Body-axis gravity reaction in level flight: (g sin(theta), -g cos(theta)), theta = alpha.
     assert h[5] == pytest.approx(g * math.sin(alpha), abs=1e-9)
     assert h[6] == pytest.approx(-g * math.cos(alpha), abs=1e-9)
+
+
+def test_a_vane_ahead_of_the_cg_reads_the_local_flow(noc_config: AircraftConfig) -> None:
+    """Pitching nose-up moves a vane ahead of the CG upward: it reads alpha - q x / V to
+    first order (Klein and Morelli, eq. 4.14), and the accelerometers there see the
+    rotation's tangential and centripetal terms."""
+    model = build_model(load_config("noc_uav", PLACED[:4]))
+    at_cg = build_model(noc_config)
+    x = model.augment(np.array([24.0, 0.06, 0.06, 0.2]), np.array(noc_config.truth))
+    u = np.array([0.0, 0.4])
+    h, _ = model.h(x, u)
+    h0, _ = at_cg.h(x, u)
+    V, alpha, q = 24.0, 0.06, 0.2
+    assert h[1] == pytest.approx(alpha - q * 1.2 / V, abs=2e-4)
+    assert h[5] == pytest.approx(h0[5] + h0[4] * 0.08 + q * q * 0.3, rel=1e-12)
+    assert h[6] == pytest.approx(h0[6] + h0[4] * 0.3 - q * q * 0.08, rel=1e-12)
+    np.testing.assert_array_equal(h[[0, 2, 3, 4]], h0[[0, 2, 3, 4]])
