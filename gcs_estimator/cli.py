@@ -180,7 +180,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
-    path, rec = load_recording(args.data)
+    path, rec = load_recording(args.data, config.data)
     want = config.propulsion.input_name
     if rec.power != want:
         raise ConfigError(

@@ -15,6 +15,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
+from gcs_estimator import units
 from gcs_estimator.model import turbulence as gusts
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
 from gcs_estimator.schema import (
@@ -350,6 +351,69 @@ class FilterTuning:
             raise Invalid("restart_times_s", f"must be strictly increasing, got {r}")
 
 
+QUANTITY_KINDS: dict[str, str] = {
+    "time": "time",
+    "airspeed": "speed",
+    "alpha": "angle",
+    "theta": "angle",
+    "q": "rate",
+    "qdot": "acceleration_angular",
+    "a_x": "acceleration",
+    "a_z": "acceleration",
+    "elevator": "angle",
+    "throttle": "fraction",
+    "thrust": "force",
+}
+"""The quantities of a flight-data file and the kind of unit each takes (units.UNITS)."""
+
+
+def _column(default: str) -> Any:
+    return setting(default, doc="the file's column name")
+
+
+def _unit(quantity: str) -> Any:
+    kind = QUANTITY_KINDS[quantity]
+    return setting(units.choices(kind)[0], choices=units.choices(kind))
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Which CSV column holds each quantity (the defaults are the project's own layout)."""
+
+    time: str = _column("time_s")
+    airspeed: str = _column("airspeed_mps")
+    alpha: str = _column("alpha_rad")
+    theta: str = _column("theta_rad")
+    q: str = _column("q_radps")
+    qdot: str = _column("qdot_radps2")
+    a_x: str = _column("ax_mps2")
+    a_z: str = _column("az_mps2")
+    elevator: str = _column("elevator_rad")
+    throttle: str = _column("throttle")
+    thrust: str = _column("thrust_n")
+
+
+@dataclass(frozen=True)
+class Units:
+    """The unit of each CSV column (the defaults: SI, throttle 0..1)."""
+
+    time: str = _unit("time")
+    airspeed: str = _unit("airspeed")
+    alpha: str = _unit("alpha")
+    theta: str = _unit("theta")
+    q: str = _unit("q")
+    qdot: str = _unit("qdot")
+    a_x: str = _unit("a_x")
+    a_z: str = _unit("a_z")
+    elevator: str = _unit("elevator")
+    throttle: str = _unit("throttle")
+    thrust: str = _unit("thrust")
+
+    def factor(self, quantity: str) -> float:
+        """Multiplier from this file's unit of `quantity` to SI."""
+        return units.factor(QUANTITY_KINDS[quantity], getattr(self, quantity))
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """What the flight data are, whatever carries them (a link, a log, a file)."""
@@ -359,6 +423,8 @@ class DataConfig:
         choices=("linear", "previous"),
         doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
     )
+    columns: Columns = table(Columns)
+    units: Units = table(Units)
 
 
 @dataclass(frozen=True)

@@ -1,11 +1,13 @@
-"""Recorded flight data files: the HFB-320 ASCII record and a documented CSV layout.
+"""Recorded flight data files: the HFB-320 ASCII record and CSV.
 
-CSV layout (header row required, SI units, one row per sample, empty cell = missing):
+The project's own CSV layout (header row, SI units, one row per sample, empty cell =
+missing):
 
     time_s, airspeed_mps, alpha_rad, theta_rad, q_radps, qdot_radps2, ax_mps2, az_mps2,
     elevator_rad, and one of throttle (0..1) or thrust_n
 
-Column order is free; extra columns are ignored.
+Column order is free; extra columns are ignored. Any other CSV is read through the
+config's [data.columns] (which column holds which quantity) and [data.units].
 """
 
 from __future__ import annotations
@@ -18,18 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import POWER_COLUMNS, PowerInput
-
-CSV_OBSERVATIONS: tuple[str, ...] = (
-    "airspeed_mps",
-    "alpha_rad",
-    "theta_rad",
-    "q_radps",
-    "qdot_radps2",
-    "ax_mps2",
-    "az_mps2",
-)
-CSV_REQUIRED: tuple[str, ...] = ("time_s", *CSV_OBSERVATIONS, "elevator_rad")
+from gcs_estimator.config import POWER_COLUMNS, Columns, DataConfig, PowerInput
 
 
 class FlightDataError(ValueError):
@@ -95,10 +86,11 @@ def data_file(path: str | Path) -> Path:
     raise FlightDataError(f"{p}: a folder with several flight-data files ({names}); give one")
 
 
-def load_recording(path: str | Path) -> tuple[Path, Recording]:
-    """The flight data at path (see data_file): a CSV, else the HFB-320 ASCII format."""
+def load_recording(path: str | Path, data: DataConfig | None = None) -> tuple[Path, Recording]:
+    """The flight data at path (see data_file): a CSV (read as `data` says), else the
+    HFB-320 ASCII format."""
     file = data_file(path)
-    return file, load_csv(file) if file.suffix.lower() == ".csv" else load_hfb320(file)
+    return file, load_csv(file, data) if file.suffix.lower() == ".csv" else load_hfb320(file)
 
 
 def load_hfb320(path: str | Path) -> Recording:
@@ -117,37 +109,67 @@ def load_hfb320(path: str | Path) -> Recording:
     )
 
 
-def load_csv(path: str | Path) -> Recording:
-    """Read flight data in the documented CSV layout (module docstring)."""
+OBSERVED: tuple[str, ...] = ("airspeed", "alpha", "theta", "q", "qdot", "a_x", "a_z")
+"""The quantities of a CSV that are observations, in channel order."""
+
+
+def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
+    """Read flight data from a CSV: a header row, one row per sample, an empty cell for a
+    missing value. Which column holds which quantity, and in which unit, come from the
+    config's [data.columns] and [data.units] (default: the project's own SI layout, see
+    the module docstring). One of the throttle and thrust columns must be present."""
+    data = data or DataConfig()
+    cols, units = data.columns, data.units
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
-            header = reader.fieldnames or []
-            missing = [c for c in CSV_REQUIRED if c not in header]
-            if missing:
-                raise FlightDataError(f"{path}: missing column(s) {missing}; need {CSV_REQUIRED}")
-            power: PowerInput
-            if POWER_COLUMNS["thrust"] in header:
-                power = "thrust"
-            elif POWER_COLUMNS["throttle"] in header:
-                power = "throttle"
-            else:
-                raise FlightDataError(f"{path}: needs a 'throttle' or a 'thrust_n' column")
-            power_col = POWER_COLUMNS[power]
+            header = list(reader.fieldnames or [])
+            for quantity in ("time", *OBSERVED, "elevator"):
+                _require(path, header, quantity, getattr(cols, quantity))
+            power = _power_column(path, header, cols)
+            wanted = ("time", *OBSERVED, "elevator", power)
+            names = [getattr(cols, q) for q in wanted]
+            scale = np.array([units.factor(q) for q in wanted])
             rows: list[list[float]] = []
             for line, row in enumerate(reader, start=2):
                 try:
-                    rows.append([_cell(row[c]) for c in (*CSV_REQUIRED, power_col)])
+                    rows.append([_cell(row[c]) for c in names])
                 except ValueError as exc:
                     raise FlightDataError(f"{path}:{line}: {exc}") from exc
     except OSError as exc:
         raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
     if not rows:
         raise FlightDataError(f"{path}: no data rows")
-    arr = np.array(rows, float)
+    arr = np.array(rows, float) * scale
     if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
-        raise FlightDataError(f"{path}: time_s must be present and strictly increasing")
-    return Recording(t_s=arr[:, 0], inputs=arr[:, [8, 9]], measurements=arr[:, 1:8], power=power)
+        raise FlightDataError(f"{path}: {cols.time!r} (time) must be present and increasing")
+    return Recording(
+        t_s=arr[:, 0],
+        inputs=arr[:, [8, 9]],
+        measurements=arr[:, 1:8],
+        power="thrust" if power == "thrust" else "throttle",
+    )
+
+
+def _require(path: str | Path, header: list[str], quantity: str, column: str) -> None:
+    if column not in header:
+        raise FlightDataError(
+            f"{path}: no column {column!r} for {quantity}; name the file's column with "
+            f'[data.columns] {quantity} = "..." (or --set data.columns.{quantity}=NAME); '
+            f"the file has {header}"
+        )
+
+
+def _power_column(path: str | Path, header: list[str], cols: Columns) -> str:
+    """Which power input the file holds: thrust if its column is there, else throttle."""
+    if cols.thrust in header:
+        return "thrust"
+    if cols.throttle in header:
+        return "throttle"
+    raise FlightDataError(
+        f"{path}: no column {cols.throttle!r} (throttle) nor {cols.thrust!r} (thrust); name "
+        f"one with [data.columns] throttle or thrust; the file has {header}"
+    )
 
 
 def _cell(text: str | None) -> float:
@@ -161,7 +183,8 @@ def write_csv(path: str | Path, rec: Recording) -> None:
     power_col = POWER_COLUMNS[rec.power]
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow([*CSV_REQUIRED, power_col])
+        cols = Columns()
+        w.writerow([getattr(cols, q) for q in ("time", *OBSERVED, "elevator")] + [power_col])
         for i in range(len(rec)):
             w.writerow(
                 [repr(float(rec.t_s[i]))]

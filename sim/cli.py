@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
 def recordings(args: argparse.Namespace) -> list[Recording]:
     config = load_config(args.config, args.set)
     if args.playback:
-        return [load_recording(args.playback)[1]] * args.vehicles
+        return [load_recording(args.playback, config.data)[1]] * args.vehicles
     out = []
     base = config.simulation.seed if args.seed is None else args.seed
     for k in range(args.vehicles):

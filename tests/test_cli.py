@@ -78,7 +78,7 @@ def test_bad_inputs_give_one_clear_error(
     bad = tmp_path / "x.csv"
     bad.write_text("time_s,airspeed_mps\n0,1\n")
     assert main(["offline", str(bad), "--out", str(tmp_path)]) == 2
-    assert "missing column(s)" in capsys.readouterr().err
+    assert "no column 'alpha_rad' for alpha" in capsys.readouterr().err
     assert main(["simulate", "--config", str(tmp_path / "none.toml")]) == 2
     assert "cannot read" in capsys.readouterr().err
     rec = Recording(np.array([0.0, 1.0]), np.zeros((2, 2)), np.zeros((2, 7)), "throttle")

@@ -1,0 +1,30 @@
+"""Units a data file may use, and their factors to SI (value_SI = value * factor)."""
+
+from __future__ import annotations
+
+import math
+
+KNOT = 1852.0 / 3600.0
+FOOT = 0.3048
+G0 = 9.80665
+POUND_FORCE = 4.4482216152605
+
+UNITS: dict[str, dict[str, float]] = {
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6},
+    "speed": {"m/s": 1.0, "kt": KNOT, "km/h": 1.0 / 3.6, "ft/s": FOOT},
+    "angle": {"rad": 1.0, "deg": math.pi / 180.0},
+    "rate": {"rad/s": 1.0, "deg/s": math.pi / 180.0},
+    "acceleration_angular": {"rad/s^2": 1.0, "deg/s^2": math.pi / 180.0},
+    "acceleration": {"m/s^2": 1.0, "g": G0, "ft/s^2": FOOT},
+    "fraction": {"1": 1.0, "%": 0.01},
+    "force": {"N": 1.0, "kN": 1e3, "lbf": POUND_FORCE},
+}
+"""Unit name -> factor to SI, per kind of quantity."""
+
+
+def choices(kind: str) -> tuple[str, ...]:
+    return tuple(UNITS[kind])
+
+
+def factor(kind: str, unit: str) -> float:
+    return UNITS[kind][unit]

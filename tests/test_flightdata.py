@@ -1,0 +1,79 @@
+"""Any CSV: columns named and units given in the config, errors that name the key."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import load_config
+from gcs_estimator.flightdata import FlightDataError, Recording, load_csv
+from gcs_estimator.units import FOOT, G0, KNOT
+from sim.truth import simulate
+
+# A logger's own layout: its names, knots, degrees, g, percent throttle, milliseconds.
+FOREIGN = {
+    "time": ("t_ms", "ms", 1e3),
+    "airspeed": ("TAS", "kt", 1.0 / KNOT),
+    "alpha": ("AoA", "deg", 180.0 / math.pi),
+    "theta": ("Pitch", "deg", 180.0 / math.pi),
+    "q": ("GyrY", "deg/s", 180.0 / math.pi),
+    "qdot": ("dGyrY", "deg/s^2", 180.0 / math.pi),
+    "a_x": ("AccX", "g", 1.0 / G0),
+    "a_z": ("AccZ", "ft/s^2", 1.0 / FOOT),
+    "elevator": ("Elev", "deg", 180.0 / math.pi),
+    "throttle": ("Thr", "%", 100.0),
+}
+OVERRIDES = [f"data.columns.{q}={col}" for q, (col, _, _) in FOREIGN.items()] + [
+    f'data.units.{q}="{unit}"' for q, (_, unit, _) in FOREIGN.items()
+]
+
+
+def _write_foreign(path: Path, rec: Recording, drop: str = "") -> None:
+    values = {
+        "time": rec.t_s,
+        **{q: rec.measurements[:, i - 1] for i, q in enumerate(FOREIGN) if 0 < i < 8},
+        "elevator": rec.inputs[:, 0],
+        "throttle": rec.inputs[:, 1],
+    }
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        names = [q for q in FOREIGN if q != drop]
+        w.writerow(["Extra", *(FOREIGN[q][0] for q in names)])
+        for i in range(len(rec)):
+            w.writerow(["x", *(repr(float(values[q][i] * FOREIGN[q][2])) for q in names)])
+
+
+@pytest.fixture(scope="module")
+def flight() -> Recording:
+    fl = simulate(load_config("noc_uav", ["simulation.manoeuvre.duration_s=5"]), seed=3)
+    return Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+
+
+def test_a_foreign_csv_reads_back_in_si(tmp_path: Path, flight: Recording) -> None:
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight)
+    rec = load_csv(path, load_config("noc_uav", OVERRIDES).data)
+    assert rec.power == "throttle"
+    np.testing.assert_allclose(rec.t_s, flight.t_s, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rec.measurements, flight.measurements, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rec.inputs, flight.inputs, rtol=1e-12, atol=1e-12)
+
+
+def test_a_missing_column_names_the_key_to_set(tmp_path: Path, flight: Recording) -> None:
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight, drop="q")
+    with pytest.raises(FlightDataError, match=r"no column 'GyrY' for q; .*\[data.columns\] q"):
+        load_csv(path, load_config("noc_uav", OVERRIDES).data)
+    with pytest.raises(FlightDataError, match=r"no column 'time_s' for time"):
+        load_csv(path)  # the project's own layout expected
+
+
+def test_an_unknown_unit_is_refused_with_the_allowed_ones() -> None:
+    from gcs_estimator.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"\[data.units\] airspeed: must be one of 'm/s', 'kt'"):
+        load_config("noc_uav", ['data.units.airspeed="mph"'])
