@@ -1,0 +1,103 @@
+"""Data no filter here was tuned on: the JSBSim validation set and the HFB-320 flight test.
+
+    ./run bench realdata [--seed 1]
+
+Flies the validation set first (benchmarks/jsbsim_flights.py: two JSBSim aircraft, calm
+and in light turbulence, noisy sensors, a vane ahead of the CG, a gyro bias), then runs
+the estimator from zero on each record with its airframe file (no filter tuning: the
+project's defaults) and on HFB-320, and prints per coefficient: reference, estimate,
+sigma, error in percent and in sigmas; and per record: the worst error over the
+well-excited coefficients, the share within 3 sigma and the mean squared z (an honest
+sigma gives about 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import record  # benchmarks/record.py: the script's directory is on sys.path
+from jsbsim_flights import ROOT, generate
+
+from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.estimator import FILTER_KINDS, run_recording
+from gcs_estimator.flightdata import Recording, load_recording
+
+WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
+"""The coefficients the elevator manoeuvre excites well enough to be judged on."""
+NEAR_ZERO = 0.01
+"""A reference this close to zero has no meaningful percentage error: judged by z only."""
+
+
+def evaluate(name: str, config: AircraftConfig, rec: Recording) -> dict[str, float]:
+    """Print one record's table; return its summary per filter."""
+    res = run_recording(config, rec.t_s, rec.inputs, rec.measurements).result
+    ref = np.array(config.truth or ())
+    print(f"\n## {name} ({config.airframe.name})\n")
+    head = ["coefficient", config.truth_label]
+    for k in FILTER_KINDS:
+        head += [f"{k} estimate", f"{k} σ", f"{k} err %", f"{k} z"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    errs = {k: 100.0 * (res.filters[k].coefficients - ref) / np.abs(ref) for k in FILTER_KINDS}
+    zs = {k: (res.filters[k].coefficients - ref) / res.filters[k].sigma for k in FILTER_KINDS}
+    for i, n in enumerate(res.names):
+        row = [n, f"{ref[i]:.5g}"]
+        for k in FILTER_KINDS:
+            f = res.filters[k]
+            row += [f"{f.coefficients[i]:.5g}", f"{f.sigma[i]:.2g}"]
+            pct = "ref ≈ 0" if abs(ref[i]) <= NEAR_ZERO else f"{errs[k][i]:+.2f}"
+            row += [pct, f"{zs[k][i]:+.1f}"]
+        print("| " + " | ".join(row) + " |")
+    summary: dict[str, float] = {}
+    well = [i for i, n in enumerate(res.names) if n in WELL_EXCITED and abs(ref[i]) > NEAR_ZERO]
+    for k in FILTER_KINDS:
+        worst = int(np.argmax(np.abs(errs[k][well])))
+        within = float(np.mean(np.abs(zs[k]) < 3.0)) * 100
+        msz = float(np.mean(zs[k] ** 2))
+        summary[k] = float(np.abs(errs[k][well]).max())
+        biases = ", ".join(
+            f"{b:+.4f} ± {s:.1g}"
+            for b, s in zip(res.filters[k].biases, res.filters[k].bias_sigma, strict=True)
+        )
+        print(
+            f"\n{k}: worst well-excited |err| {summary[k]:.2f} % ({res.names[well[worst]]}), "
+            f"within 3σ {within:.0f} %, mean z² {msz:.1f}"
+            + (f", q bias {biases} rad/s" if biases else "")
+        )
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--seed", type=int, default=1, help="noise and turbulence seed")
+    ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
+    record.add_argument(ap, "realdata")
+    args = ap.parse_args(argv)
+    with record.recorded("realdata", args.record, "Real data: the JSBSim set and HFB-320"):
+        return run(args)
+
+
+def run(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    records = generate(Path(args.out), args.seed)
+    worst: dict[str, dict[str, float]] = {}
+    for config_path, csv_path in records:
+        config = load_config(config_path)
+        worst[csv_path.stem] = evaluate(csv_path.stem, config, load_recording(csv_path)[1])
+    hfb = load_config("hfb320")
+    worst["hfb320"] = evaluate("hfb320", hfb, load_recording("hfb320", hfb.data)[1])
+    print("\n## Summary: worst well-excited |error| in % of the reference\n")
+    print("| record | " + " | ".join(FILTER_KINDS) + " |")
+    print("|---|" + "---|" * len(FILTER_KINDS))
+    for name, by_kind in worst.items():
+        print(f"| {name} | " + " | ".join(f"{by_kind[k]:.2f}" for k in FILTER_KINDS) + " |")
+    print(f"\n({time.perf_counter() - start:.1f} s wall)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
