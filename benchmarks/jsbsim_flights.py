@@ -140,6 +140,10 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         "qbar": g("aero/qbar-psf"),
         "rho": g("atmosphere/rho-slugs_ft3") * SLUG / FOOT**3,
         "arm": g("moments/m-prop-lbsft") / thrust * FOOT if thrust > 0 else 0.0,
+        "mass": mass * SLUG,
+        "area": g("metrics/Sw-sqft") * FOOT**2,
+        "chord": g("metrics/cbarw-ft") * FOOT,
+        "iyy": g("inertia/iyy-slugs_ft2") * SLUG * FOOT**2,
         "incl": math.atan2(-g("forces/fbz-prop-lbs"), g("forces/fbx-prop-lbs")),
         # The alpha-dot terms' contributions (coefficients), and alpha-dot c / (2 V).
         "CLadot": _term(g, "aero/coefficient/CLadot") / qs,
@@ -202,24 +206,15 @@ def airframe_toml(
     ac: Aircraft, f: dict[str, FloatArray], ref: dict[str, tuple[float, float]]
 ) -> str:
     """The airframe file a user would write: geometry, structure, sensors; no tuning."""
-    import jsbsim
-
-    fdm = jsbsim.FGFDMExec(None)
-    fdm.set_debug_level(0)
-    fdm.load_model(ac.model)
-    fdm["ic/h-sl-ft"] = ac.altitude_ft
-    fdm["ic/vc-kts"] = ac.speed_kts
-    fdm.run_ic()
-    chord = fdm["metrics/cbarw-ft"] * FOOT
     lines = [
         f"# {ac.label}: JSBSim '{ac.model}', written by benchmarks/jsbsim_flights.py.",
         "",
         "[airframe]",
         f'name = "{ac.label}"',
-        f"mass_kg = {fdm['inertia/mass-slugs'] * SLUG:.6g}",
-        f"wing_area_m2 = {fdm['metrics/Sw-sqft'] * FOOT**2:.6g}",
-        f"mean_chord_m = {chord:.6g}",
-        f"inertia_yy_kgm2 = {fdm['inertia/iyy-slugs_ft2'] * SLUG * FOOT**2:.6g}",
+        f"mass_kg = {float(np.mean(f['mass'])):.6g}",
+        f"wing_area_m2 = {float(f['area'][0]):.6g}",
+        f"mean_chord_m = {float(f['chord'][0]):.6g}",
+        f"inertia_yy_kgm2 = {float(np.mean(f['iyy'])):.6g}",
         f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}",
         f"trim_airspeed_mps = {float(f['V'][0]):.6g}",
         f"thrust_inclination_rad = {float(np.median(f['incl'])):.6g}",
@@ -256,8 +251,7 @@ def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
         for turbulent in (False, True):
             f = fly(ac, turbulent, seed)
             v0 = float(f["V"][0])
-            chord = _chord(ac)
-            ref = reference(f, chord, v0)
+            ref = reference(f, float(f["chord"][0]), v0)
             rng = np.random.default_rng(seed)
             rec = Recording(
                 f["t"], np.column_stack([f["de"], f["thrust"]]), measurements(f, ac, rng), "thrust"
@@ -269,15 +263,6 @@ def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
             records.append((toml_path, csv_path))
             print(f"{name}: {len(rec)} samples -> {csv_path}", file=sys.stderr)
     return records
-
-
-def _chord(ac: Aircraft) -> float:
-    import jsbsim
-
-    fdm = jsbsim.FGFDMExec(None)
-    fdm.set_debug_level(0)
-    fdm.load_model(ac.model)
-    return float(fdm["metrics/cbarw-ft"]) * FOOT
 
 
 def main(argv: list[str] | None = None) -> int:
