@@ -363,12 +363,26 @@ QUANTITY_KINDS: dict[str, str] = {
     "elevator": "angle",
     "throttle": "fraction",
     "thrust": "force",
+    "air_density": "density",
+    "static_pressure": "pressure",
+    "pressure_altitude": "length",
+    "air_temperature": "temperature",
 }
 """The quantities of a flight-data file and the kind of unit each takes (units.UNITS)."""
+ATMOSPHERE_QUANTITIES: tuple[str, ...] = (
+    "air_density",
+    "static_pressure",
+    "pressure_altitude",
+    "air_temperature",
+)
+"""Optional columns the air density per sample comes from (first that the file has):
+air_density itself, else static_pressure or pressure_altitude with air_temperature
+(the standard temperature where that column is absent or empty)."""
 
 
-def _column(default: str) -> Any:
-    return setting(default, doc="the file's column name")
+def _column(default: str, optional: bool = False) -> Any:
+    doc = "the file's column name" + (" (optional: air density per sample)" if optional else "")
+    return setting(default, doc=doc)
 
 
 def _unit(quantity: str) -> Any:
@@ -391,6 +405,10 @@ class Columns:
     elevator: str = _column("elevator_rad")
     throttle: str = _column("throttle")
     thrust: str = _column("thrust_n")
+    air_density: str = _column("air_density_kgpm3", optional=True)
+    static_pressure: str = _column("static_pressure_pa", optional=True)
+    pressure_altitude: str = _column("pressure_altitude_m", optional=True)
+    air_temperature: str = _column("air_temperature_k", optional=True)
 
 
 @dataclass(frozen=True)
@@ -408,10 +426,18 @@ class Units:
     elevator: str = _unit("elevator")
     throttle: str = _unit("throttle")
     thrust: str = _unit("thrust")
+    air_density: str = _unit("air_density")
+    static_pressure: str = _unit("static_pressure")
+    pressure_altitude: str = _unit("pressure_altitude")
+    air_temperature: str = _unit("air_temperature")
 
     def factor(self, quantity: str) -> float:
         """Multiplier from this file's unit of `quantity` to SI."""
         return units.factor(QUANTITY_KINDS[quantity], getattr(self, quantity))
+
+    def offset(self, quantity: str) -> float:
+        """Added after the factor (temperatures in degC or degF)."""
+        return units.offset(getattr(self, quantity))
 
 
 @dataclass(frozen=True)
@@ -439,6 +465,11 @@ class LinkConfig:
     throttle_pwm_max_us: float = setting(2000.0, unit="us")
     qdot_name: str = setting("QDOT", doc="NAMED_VALUE_FLOAT name, 1..10 characters")
     thrust_name: str = setting("THRUST", doc="NAMED_VALUE_FLOAT name, 1..10 characters")
+    density_from_pressure: bool = setting(
+        False,
+        doc="air density per sample from SCALED_PRESSURE.press_abs at the standard "
+        "temperature (its temperature field is the sensor's own); false: the airframe's",
+    )
     frame_window_s: float = setting(0.005, gt=0, unit="s", doc="samples this close form one frame")
     max_wait_s: float = setting(0.2, gt=0, unit="s", doc="a partial frame waits at most this long")
     rates_hz: tuple[float, ...] = setting(

@@ -28,7 +28,7 @@ from gcs_estimator.filters.core import (
     Tuning,
 )
 from gcs_estimator.model.aircraft import Model, build_model
-from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.channels import N_INPUTS, N_OBS
 
 if TYPE_CHECKING:
     from gcs_estimator.session import VehicleResult
@@ -106,7 +106,7 @@ class Track:
     gust_sigma: FloatArray
     """Gust intensity the process noise assumed per frame [N], m/s."""
     u: FloatArray
-    """Inputs per frame [N x 2]."""
+    """Inputs per frame [N x 3]: elevator, throttle or thrust, air density."""
     y: FloatArray
     """Observations per frame [N x 7], NaN where missing."""
 
@@ -129,7 +129,7 @@ class Track:
                 -1, N_OBS
             ),
             gust_sigma=np.array([i.gust_sigma for i in infos], float),
-            u=np.array(h.u, float).reshape(-1, 2),
+            u=np.array(h.u, float).reshape(-1, N_INPUTS),
             y=np.array(h.y, float).reshape(-1, N_OBS),
         )
 
@@ -220,7 +220,7 @@ class Estimator:
         """
         if self.frames == 0:
             self._t0 = t
-        u = np.array(u, float)
+        u = self.model.inputs(u)
         y = np.array(y, float)
         if self.restarts_pending:
             self._buffer.append((t, u, y))

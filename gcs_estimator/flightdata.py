@@ -4,7 +4,9 @@ The project's own CSV layout (header row, SI units, one row per sample, empty ce
 missing):
 
     time_s, airspeed_mps, alpha_rad, theta_rad, q_radps, qdot_radps2, ax_mps2, az_mps2,
-    elevator_rad, and one of throttle (0..1) or thrust_n
+    elevator_rad, and one of throttle (0..1) or thrust_n;
+    optionally the air density per sample: air_density_kgpm3, or static_pressure_pa or
+    pressure_altitude_m with air_temperature_k (standard temperature without it)
 
 Column order is free; extra columns are ignored. Any other CSV is read through the
 config's [data.columns] (which column holds which quantity) and [data.units].
@@ -19,8 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
+from gcs_estimator import atmosphere
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import POWER_COLUMNS, Columns, DataConfig, PowerInput
+from gcs_estimator.config import (
+    ATMOSPHERE_QUANTITIES,
+    POWER_COLUMNS,
+    Columns,
+    DataConfig,
+    PowerInput,
+)
 
 
 class FlightDataError(ValueError):
@@ -29,7 +38,8 @@ class FlightDataError(ValueError):
 
 @dataclass(frozen=True)
 class Recording:
-    """Samples of one flight: t_s [N], inputs [N x 2] (elevator rad, throttle or thrust N),
+    """Samples of one flight: t_s [N], inputs [N x 2] (elevator rad, throttle or thrust N)
+    or [N x 3] with the air density [kg/m^3] (NaN where unknown: the airframe's),
     measurements [N x 7] (V, alpha, theta, q, qdot, a_x, a_z; NaN = missing)."""
 
     t_s: FloatArray
@@ -117,7 +127,8 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
     """Read flight data from a CSV: a header row, one row per sample, an empty cell for a
     missing value. Which column holds which quantity, and in which unit, come from the
     config's [data.columns] and [data.units] (default: the project's own SI layout, see
-    the module docstring). One of the throttle and thrust columns must be present."""
+    the module docstring). One of the throttle and thrust columns must be present; air
+    density comes from the atmosphere columns the file has (config.ATMOSPHERE_QUANTITIES)."""
     data = data or DataConfig()
     cols, units = data.columns, data.units
     try:
@@ -127,9 +138,11 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
             for quantity in ("time", *OBSERVED, "elevator"):
                 _require(path, header, quantity, getattr(cols, quantity))
             power = _power_column(path, header, cols)
-            wanted = ("time", *OBSERVED, "elevator", power)
+            air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
+            wanted = ("time", *OBSERVED, "elevator", power, *air)
             names = [getattr(cols, q) for q in wanted]
             scale = np.array([units.factor(q) for q in wanted])
+            shift = np.array([units.offset(q) for q in wanted])
             rows: list[list[float]] = []
             for line, row in enumerate(reader, start=2):
                 try:
@@ -140,15 +153,31 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
         raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
     if not rows:
         raise FlightDataError(f"{path}: no data rows")
-    arr = np.array(rows, float) * scale
+    arr = np.array(rows, float) * scale + shift
     if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
         raise FlightDataError(f"{path}: {cols.time!r} (time) must be present and increasing")
+    inputs = arr[:, [8, 9]]
+    rho = _density(dict(zip(air, arr[:, 10:].T, strict=True)))
+    if rho is not None:
+        inputs = np.column_stack([inputs, rho])
     return Recording(
         t_s=arr[:, 0],
-        inputs=arr[:, [8, 9]],
+        inputs=inputs,
         measurements=arr[:, 1:8],
         power="thrust" if power == "thrust" else "throttle",
     )
+
+
+def _density(air: dict[str, FloatArray]) -> FloatArray | None:
+    """Air density per sample [kg/m^3] from the atmosphere columns read (SI), or None."""
+    temp = air.get("air_temperature")
+    if "air_density" in air:
+        return air["air_density"]
+    if "static_pressure" in air:
+        return atmosphere.density(air["static_pressure"], temp)
+    if "pressure_altitude" in air:
+        return atmosphere.density(atmosphere.pressure(air["pressure_altitude"]), temp)
+    return None
 
 
 def _require(path: str | Path, header: list[str], quantity: str, column: str) -> None:
@@ -181,13 +210,21 @@ def _cell(text: str | None) -> float:
 def write_csv(path: str | Path, rec: Recording) -> None:
     """Write a recording in the documented CSV layout."""
     power_col = POWER_COLUMNS[rec.power]
+    cols = Columns()
+    head = [getattr(cols, q) for q in ("time", *OBSERVED, "elevator")] + [power_col]
+    n_in = min(rec.inputs.shape[1], 3)
+    if n_in == 3:
+        head.append(cols.air_density)
+
+    def cell(v: float) -> str:
+        return "" if not math.isfinite(v) else repr(float(v))
+
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        cols = Columns()
-        w.writerow([getattr(cols, q) for q in ("time", *OBSERVED, "elevator")] + [power_col])
+        w.writerow(head)
         for i in range(len(rec)):
             w.writerow(
                 [repr(float(rec.t_s[i]))]
-                + ["" if not math.isfinite(v) else repr(float(v)) for v in rec.measurements[i]]
-                + [repr(float(rec.inputs[i, 0])), repr(float(rec.inputs[i, 1]))]
+                + [cell(v) for v in rec.measurements[i]]
+                + [cell(v) for v in rec.inputs[i, :n_in]]
             )

@@ -211,7 +211,7 @@ def write_history_csv(path: Path, result: EstimatorResult) -> None:
             ["filter", "t_s"]
             + names
             + [f"sigma_{n}" for n in names]
-            + ["nis", "channels", "in_elevator_rad", f"in_{power}"]
+            + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
             + [f"meas_{n}" for n in OBS_NAMES]
         )
         for kind, fr in result.filters.items():

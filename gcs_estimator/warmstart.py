@@ -101,11 +101,15 @@ def equation_error(
     ax = y[:, 5] - qdot * k[eq.ACCEL_Z] + q * q * k[eq.ACCEL_X]
     az = y[:, 6] + qdot * k[eq.ACCEL_X] + q * q * k[eq.ACCEL_Z]
     de = inputs[:, 0]
+    rho = inputs[:, 2] if inputs.shape[1] > 2 else np.full(len(V), k[eq.RHO])
     Fe = np.array(
-        [eq.thrust(float(v), float(p), k)[0] for v, p in zip(V, inputs[:, 1], strict=True)]
+        [
+            eq.thrust(float(v), float(p), float(r), k)[0]
+            for v, p, r in zip(V, inputs[:, 1], rho, strict=True)
+        ]
     )
     m = k[eq.MASS]
-    qbar = 0.5 * k[eq.RHO] * V**2
+    qbar = 0.5 * rho * V**2
     force = qbar * k[eq.AREA] / m
     alpha_s = _smooth(t_s, alpha, SMOOTH_S)
     alpha = np.where(np.isfinite(alpha_s), alpha_s, alpha)  # also in the axis rotation

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,7 @@ from scipy.optimize import least_squares
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AXES, REGRESSORS, AircraftConfig
 from gcs_estimator.model import equations as eq
-from gcs_estimator.model.channels import FLIGHT_STATES
+from gcs_estimator.model.channels import FLIGHT_STATES, N_INPUTS, REQUIRED_INPUTS
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.model.state import StateLayout
 
@@ -65,6 +66,16 @@ class Model:
 
     def h(self, x: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
         return eq.observe(x, u, self.arrays)
+
+    def inputs(self, u: FloatArray | Sequence[float]) -> FloatArray:
+        """u as the equations take it: [elevator, throttle or thrust, air density], the
+        density being the airframe's wherever u has none (absent, NaN or not positive)."""
+        u = np.asarray(u, float)
+        out = np.empty(N_INPUTS)
+        out[:REQUIRED_INPUTS] = u[:REQUIRED_INPUTS]
+        rho = float(u[2]) if u.shape[0] > 2 else math.nan
+        out[2] = rho if math.isfinite(rho) and rho > 0.0 else float(self.k[eq.RHO])
+        return out
 
     def augment(self, state: FloatArray, beta: FloatArray) -> FloatArray:
         """The augmented state of flight states and coefficients (other blocks at 0)."""

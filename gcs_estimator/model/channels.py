@@ -28,8 +28,14 @@ class Channel(IntEnum):
     """Elevator deflection [rad], positive trailing edge down (input)."""
     POWER = 8
     """Throttle [0..1] or thrust [N] (input)."""
+    DENSITY = 9
+    """Air density [kg/m^3] (input; where the data carry none, the airframe's)."""
 
 
+N_INPUTS = 3
+"""Inputs per frame: elevator, throttle or thrust, air density (Channel.ELEVATOR ..)."""
+REQUIRED_INPUTS = 2
+"""The inputs a frame cannot do without (elevator and power); density falls back."""
 N_OBS = 7
 """Observation channels: Channel.V .. Channel.AZ."""
 OBS_NAMES: tuple[str, ...] = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")

@@ -15,6 +15,7 @@ from gcs_estimator.model import equations as eq
 from gcs_estimator.model.equations import ModelArrays
 
 for _fn in (
+    eq.density,
     eq.thrust,
     eq.aero_coefficients,
     eq.dynamics,

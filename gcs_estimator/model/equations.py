@@ -5,8 +5,10 @@ Source: Meng, Liu and Veres (2010), eq. 11-14, as corrected in docs/model.md.
 Augmented state x_a (model.state): the flight states [V, alpha, theta, q] first
 (airspeed [m/s], angle of attack [rad], pitch angle [rad], pitch rate [rad/s]), the
 aerodynamic coefficients from ``coef_start`` on, and whatever other blocks the layout
-declares. Input u = [de, throttle_or_thrust]: elevator [rad] (positive trailing edge
-down), and throttle [0..1] for the propeller model or thrust [N] when thrust is measured.
+declares. Input u = [de, throttle_or_thrust, rho]: elevator [rad] (positive trailing
+edge down), throttle [0..1] for the propeller model or thrust [N] when thrust is
+measured, and the air density [kg/m^3] at the sample; a two-element u flies at the
+airframe's constant density k[RHO].
 
 The functions take the aircraft as ModelArrays: the airframe packed into a float array
 ``k`` (indices below), the coefficient structure as two int arrays, ``axis[i]`` (0 = CD,
@@ -58,14 +60,21 @@ class ModelArrays(NamedTuple):
     """Index of the first sensor bias in the augmented state."""
 
 
-def thrust(V: float, u1: float, k: FloatArray) -> tuple[float, float]:
-    """Thrust Fe [N] and dFe/dV [N s/m].
+def density(u: FloatArray, k: FloatArray) -> float:
+    """Air density [kg/m^3]: the input's third element where given, else the airframe's."""
+    if u.shape[0] > 2:
+        return float(u[2])
+    return float(k[RHO])
+
+
+def thrust(V: float, u1: float, rho: float, k: FloatArray) -> tuple[float, float]:
+    """Thrust Fe [N] and dFe/dV [N s/m] at air density rho [kg/m^3].
 
     Propeller model (docs/model.md): Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2).
     Measured thrust: Fe = u1.
     """
     if k[PROP_KIND] == PROP_PROPELLER:
-        c = 0.5 * k[RHO] * k[PROP_AREA] * k[PROP_COEF]
+        c = 0.5 * rho * k[PROP_AREA] * k[PROP_COEF]
         vm = k[MOTOR_K] * u1
         return c * (vm * vm - V * V), -2.0 * c * V
     return u1, 0.0
@@ -130,9 +139,9 @@ def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArr
     m = k[MASS]
     A = k[AREA] / m
     g = k[GRAV]
-    rho = k[RHO]
+    rho = density(u, k)
     C, dC = aero_coefficients(x, u, model)
-    Fe, dFe = thrust(V, u[1], k)
+    Fe, dFe = thrust(V, u[1], rho, k)
     qbar = 0.5 * rho * V * V
     sat = math.sin(alpha - theta)
     cat = math.cos(alpha - theta)
@@ -180,9 +189,9 @@ def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArra
     alpha = x[1]
     m = k[MASS]
     A = k[AREA] / m
-    rho = k[RHO]
+    rho = density(u, k)
     C, dC = aero_coefficients(x, u, model)
-    Fe, dFe = thrust(V, u[1], k)
+    Fe, dFe = thrust(V, u[1], rho, k)
     qbar = 0.5 * rho * V * V
     sa = math.sin(alpha)
     ca = math.cos(alpha)

@@ -1,7 +1,8 @@
 """Decode at the edge: MAVLink packets -> SI samples stamped with both clocks, or link events.
 
 Channels are model.channels.Channel: the observations 0..6 in the order of the model's
-h(x), then the elevator [rad] and the throttle [0..1] or thrust [N]. Downstream code never
+h(x), then the elevator [rad], the throttle [0..1] or thrust [N] and, where asked for
+(link.density_from_pressure), the air density [kg/m^3]. Downstream code never
 sees a MAVLink object.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from gcs_estimator import atmosphere
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.telemetry import pwm
@@ -25,6 +27,7 @@ PLAUSIBLE: dict[Channel, tuple[float, float]] = {
     Channel.AZ: (-200.0, 200.0),
     Channel.ELEVATOR: (-1.0, 1.0),
     Channel.POWER: (-1e7, 1e7),
+    Channel.DENSITY: (0.01, 2.0),
 }
 """Physically possible ranges [SI]; a value outside is absurd and dropped (and counted)."""
 
@@ -132,6 +135,9 @@ def _values(
             thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
             vals.append((Channel.POWER, pwm.throttle(link, float(thr_us))))
         return msg.time_usec * 1e-6, vals
+    if kind == "SCALED_PRESSURE" and link.density_from_pressure:
+        rho = float(atmosphere.density(100.0 * float(msg.press_abs)))
+        return msg.time_boot_ms * 1e-3, [(Channel.DENSITY, rho)]
     if kind == "NAMED_VALUE_FLOAT":
         name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")
         channel = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}.get(

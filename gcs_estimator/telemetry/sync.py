@@ -18,7 +18,7 @@ import numpy as np
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
-from gcs_estimator.model.channels import N_OBS, Channel
+from gcs_estimator.model.channels import N_INPUTS, N_OBS, REQUIRED_INPUTS, Channel
 from gcs_estimator.telemetry.decode import Sample
 
 CLOCK_RESET_S = 1.0
@@ -53,14 +53,14 @@ class Synchronizer:
     stats: SyncStats = field(default_factory=SyncStats)
     _open: _Open | None = None
     _last_t: float = -math.inf
-    _inputs: list[float] = field(default_factory=lambda: [math.nan, math.nan])
+    _inputs: list[float] = field(default_factory=lambda: [math.nan] * N_INPUTS)
     _untimed: list[tuple[Channel, float]] = field(default_factory=list)
     _reset_pending: bool = False
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it completes (zero, one or two)."""
         for ch, v in sample.values:
-            if ch in (Channel.ELEVATOR, Channel.POWER):
+            if ch in (Channel.ELEVATOR, Channel.POWER, Channel.DENSITY):
                 self._inputs[ch - Channel.ELEVATOR] = v
         obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
         t = sample.t_vehicle_s
@@ -122,9 +122,13 @@ class Synchronizer:
 
     def _emit_if_complete(self) -> list[Frame]:
         assert self._open is not None
-        if np.all(np.isfinite(self._open.y)) and all(math.isfinite(v) for v in self._inputs):
+        if np.all(np.isfinite(self._open.y)) and self._have_inputs():
             return self._emit()
         return []
+
+    def _have_inputs(self) -> bool:
+        """Elevator and power have arrived (air density is optional)."""
+        return all(math.isfinite(v) for v in self._inputs[:REQUIRED_INPUTS])
 
     def _emit(self) -> list[Frame]:
         op = self._open
@@ -132,7 +136,7 @@ class Synchronizer:
             return []
         self._open = None
         self._last_t = op.t
-        if not all(math.isfinite(v) for v in self._inputs):
+        if not self._have_inputs():
             self.stats.waiting_for_inputs += 1
             return []
         self.stats.frames += 1

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gcs_estimator import atmosphere
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.telemetry import mavlink, pwm
@@ -81,6 +82,26 @@ def test_each_message_decodes_to_its_channels_in_si_units(vehicle: Codec) -> Non
     assert isinstance(qdot, Sample) and dict(qdot.values) == pytest.approx({Channel.QDOT: 1.5})
 
 
+def test_static_pressure_gives_the_air_density_where_asked_for(vehicle: Codec) -> None:
+    """SCALED_PRESSURE at 850 hPa: the standard atmosphere's density at that pressure when
+    link.density_from_pressure is set (its temperature field, the sensor's own, unused);
+    ignored otherwise, and the frame then carries no density."""
+    packet = vehicle.pack(vehicle.mav.scaled_pressure_encode(2500, 850.0, 0.1, 4000))
+    assert _decode(packet) == Ignored()
+    link = LinkConfig(density_from_pressure=True)
+    decoded = decode_packet(Decoder(), packet, 100.0, link, DecodeStats())
+    assert decoded is not None and isinstance(decoded.event, Sample)
+    assert decoded.event.t_vehicle_s == pytest.approx(2.5)
+    expected = float(atmosphere.density(85000.0))
+    assert dict(decoded.event.values) == pytest.approx({Channel.DENSITY: expected})
+    sync = Synchronizer(1, link)
+    sync.add(decoded.event)
+    sync.add(_sample(2.5, 10.0, elevator=0.01, power=0.3))
+    frames = [f for ch in OBS for f in sync.add(_sample(2.5, 10.0, **{ch: 1.0}))]
+    assert len(frames) == 1
+    np.testing.assert_allclose(frames[0].inputs, [0.01, 0.3, expected])
+
+
 def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
     mav = vehicle.mav
     stats = DecodeStats()
@@ -123,7 +144,8 @@ def test_a_frame_is_emitted_once_complete_with_the_inputs_held() -> None:
         out += sync.add(_sample(1.0, 10.0, **{k: v}))
     assert len(out) == 1
     frame = out[0]
-    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3])
+    # No air density came: NaN, and the estimator flies the airframe's constant.
+    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, np.nan])
     np.testing.assert_array_equal(frame.y, list(OBS.values()))
     assert frame.t_vehicle_s == 1.0 and not frame.clock_reset
     assert sync.stats.frames == 1 and sync.stats.partial_frames == 0
