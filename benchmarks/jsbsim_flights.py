@@ -4,21 +4,27 @@ elevator manoeuvre, written as noisy CSVs with an airframe file each.
     ./run bench jsbsim_flights [--out out/realdata]
 
 JSBSim (the `jsbsim` package) is a six-degree-of-freedom simulator with its own
-aerodynamic tables; nothing here was tuned on it. Each aircraft is trimmed in level
-flight, flies 3-2-1-1 multisteps and two pulses on the elevator (throttle fixed), calm
-and in light Dryden turbulence, and is sampled at 50 Hz. The CSVs carry sensor noise,
-an angle-of-attack vane ahead of the CG and a rate-gyro bias; the airframe files state
-the vane position and estimate the bias, and carry no filter tuning at all (the
-project's defaults). Reference coefficients come from JSBSim's own aerodynamic forces
-and moment over the flown samples, fitted by least squares to the estimator's
-coefficient structure: what the estimator should find if its model were exact. JSBSim's
-alpha-dot terms (CLadot, Cmadot), which the structure lacks, go into the q terms of that
-fit; the fit's residual is printed with each reference.
+aerodynamic tables, on a round rotating Earth; nothing here was tuned on it. Each
+aircraft is trimmed in level flight, flies 3-2-1-1 multisteps and two pulses on the
+elevator (throttle fixed) with the wings held level by aileron (as a test pilot does: a
+longitudinal manoeuvre flown in a bank is not longitudinal), calm and in light Dryden
+turbulence, and is sampled at 50 Hz. The CSVs carry sensor noise, an angle-of-attack vane
+ahead of the CG, a rate-gyro bias and the air density of each sample; the airframe files
+state the vane position and estimate the bias, and carry no filter tuning at all (the
+project's defaults).
+
+Reference coefficients: JSBSim's own aerodynamic force and moment coefficients over the
+flown samples, linearised by least squares on the estimator's coefficient structure
+(regressors 1, alpha, q c / (2 V), elevator): the structure's best fit to JSBSim's
+aerodynamics over the flown envelope. JSBSim also has alpha-dot terms (CLadot, Cmadot),
+which the structure lacks; the fit takes their contribution as it comes (mostly into
+the q terms), and the airframe file notes their size next to the references.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from collections.abc import Callable
@@ -27,19 +33,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from best_fit import best_fit  # benchmarks/: the script's directory is on sys.path
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording, write_csv
-from gcs_estimator.units import FOOT, POUND_FORCE
+from gcs_estimator.units import FOOT, POUND_FORCE, SLUG
 
 ROOT = Path(__file__).resolve().parent.parent
-SLUG = 14.593903
 RATE_HZ = 50.0
 STEPS_PER_SAMPLE = 4  # JSBSim at 200 Hz
 DURATION_S = 60.0
 NOISE = (0.3, math.radians(0.3), math.radians(0.2), math.radians(0.1), 0.05, 0.2, 0.2)
 """Sensor noise 1 sigma (V, alpha, theta, q, qdot, a_x, a_z): the project's defaults."""
 GYRO_BIAS = 0.003
+CLEAN = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")
+"""The noise-free observations at the CG, in channel order."""
 STRUCTURE = {"CD": ["1", "alpha"], "CL": ["1", "alpha", "qhat", "elevator"]}
 STRUCTURE["Cm"] = ["1", "alpha", "qhat", "elevator"]
 
@@ -49,6 +58,7 @@ class Aircraft:
     model: str
     label: str
     altitude_ft: float
+    """MIL-F-8785C light turbulence fades out above about 8,000 ft: both fly below."""
     speed_kts: float
     amplitude_deg: float
     """Elevator multistep amplitude."""
@@ -58,7 +68,7 @@ class Aircraft:
 
 AIRCRAFT = (
     Aircraft("c172p", "Cessna 172 (light single)", 3000.0, 95.0, 2.0, 1.5),
-    Aircraft("737", "Boeing 737 (jet transport)", 15000.0, 250.0, 1.0, 13.0),
+    Aircraft("737", "Boeing 737 (jet transport)", 5000.0, 250.0, 1.0, 13.0),
 )
 
 
@@ -104,12 +114,17 @@ def fly(ac: Aircraft, turbulence: bool, seed: int) -> dict[str, FloatArray]:
     fdm.run_ic()
     fdm["propulsion/set-running"] = -1
     fdm["simulation/do_simple_trim"] = 1
+    aileron0 = fdm["fcs/aileron-cmd-norm"]
     out: dict[str, list[float]] = {}
     n = int(DURATION_S * RATE_HZ) + 1
     for i in range(n):
         t = i / RATE_HZ
         cmd = math.radians(elevator_offset_deg(t, ac.amplitude_deg)) / per_norm
         fdm["fcs/elevator-cmd-norm"] = trim_cmd + cmd
+        # Wings level: bank and roll rate fed back to the aileron.
+        fdm["fcs/aileron-cmd-norm"] = aileron0 - (
+            2.0 * fdm["attitude/phi-rad"] + 0.5 * fdm["velocities/p-rad_sec"]
+        )
         _sample(fdm, t, out)
         for _ in range(STEPS_PER_SAMPLE):
             fdm.run()
@@ -140,6 +155,7 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         "qbar": g("aero/qbar-psf"),
         "rho": g("atmosphere/rho-slugs_ft3") * SLUG / FOOT**3,
         "arm": g("moments/m-prop-lbsft") / thrust * FOOT if thrust > 0 else 0.0,
+        "phi": g("attitude/phi-rad"),
         "mass": mass * SLUG,
         "area": g("metrics/Sw-sqft") * FOOT**2,
         "chord": g("metrics/cbarw-ft") * FOOT,
@@ -162,36 +178,34 @@ def _term(g: Callable[[str], float], prop: str) -> float:
         return 0.0
 
 
-def reference(
-    f: dict[str, FloatArray], chord_m: float, v0: float
-) -> dict[str, tuple[float, float]]:
-    """JSBSim's aerodynamics fitted to the structure: name -> (value, fit residual RMS).
-
-    The structure has no alpha-dot terms, and from a short-period response only the sums
-    Cmq + Cmadot and CLq + CLadot are identifiable (alpha-dot moves with q). So the
-    alpha-dot contributions are taken out of the fitted forces, their derivatives found
-    from alpha-dot itself, and added to the q derivatives of the reference."""
+def reference(f: dict[str, FloatArray], chord_m: float) -> dict[str, tuple[float, float]]:
+    """JSBSim's aerodynamic coefficients over the flown samples, linearised by least
+    squares on the structure's regressors: name -> (value, fit residual RMS)."""
     regressors = {
         "1": np.ones_like(f["t"]),
         "alpha": f["alpha"],
-        "qhat": f["q"] * chord_m / (2.0 * v0),
+        "qhat": f["q"] * chord_m / (2.0 * f["V"]),
         "elevator": f["de"],
     }
     suffix = {"1": "0", "alpha": "a", "qhat": "q", "elevator": "de"}
     out: dict[str, tuple[float, float]] = {}
-    adot = {"CL": f["CLadot"], "Cm": f["Cmadot"], "CD": np.zeros_like(f["t"])}
-    moving = np.abs(f["adhat"]) > 0.1 * np.max(np.abs(f["adhat"]))
     for axis, regs in STRUCTURE.items():
         X = np.column_stack([regressors[r] for r in regs])
-        target = f[axis] - adot[axis]
-        beta, *_ = np.linalg.lstsq(X, target, rcond=None)
-        rms = float(np.sqrt(np.mean((target - X @ beta) ** 2)))
-        derivative = (
-            float(np.median(adot[axis][moving] / f["adhat"][moving])) if moving.any() else 0.0
-        )
+        beta, *_ = np.linalg.lstsq(X, f[axis], rcond=None)
+        rms = float(np.sqrt(np.mean((f[axis] - X @ beta) ** 2)))
         for r, b in zip(regs, beta, strict=True):
-            out[axis + suffix[r]] = (float(b) + (derivative if r == "qhat" else 0.0), rms)
+            out[axis + suffix[r]] = (float(b), rms)
     return out
+
+
+def alpha_dot_terms(f: dict[str, FloatArray]) -> dict[str, float]:
+    """JSBSim's alpha-dot derivatives (CLadot, Cmadot per alpha-dot c / (2 V)), which the
+    structure lacks: their contributions divided by alpha-dot c / (2 V) where it moves."""
+    moving = np.abs(f["adhat"]) > 0.1 * np.max(np.abs(f["adhat"]))
+    return {
+        name: float(np.median(f[name][moving] / f["adhat"][moving])) if moving.any() else 0.0
+        for name in ("CLadot", "Cmadot")
+    }
 
 
 def measurements(f: dict[str, FloatArray], ac: Aircraft, rng: np.random.Generator) -> FloatArray:
@@ -203,7 +217,10 @@ def measurements(f: dict[str, FloatArray], ac: Aircraft, rng: np.random.Generato
 
 
 def airframe_toml(
-    ac: Aircraft, f: dict[str, FloatArray], ref: dict[str, tuple[float, float]]
+    ac: Aircraft,
+    f: dict[str, FloatArray],
+    ref: dict[str, tuple[float, float]],
+    adot: dict[str, float],
 ) -> str:
     """The airframe file a user would write: geometry, structure, sensors; no tuning."""
     lines = [
@@ -215,7 +232,7 @@ def airframe_toml(
         f"wing_area_m2 = {float(f['area'][0]):.6g}",
         f"mean_chord_m = {float(f['chord'][0]):.6g}",
         f"inertia_yy_kgm2 = {float(np.mean(f['iyy'])):.6g}",
-        f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}",
+        f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}  # the CSV has it per sample",
         f"trim_airspeed_mps = {float(f['V'][0]):.6g}",
         f"thrust_inclination_rad = {float(np.median(f['incl'])):.6g}",
         f"thrust_moment_arm_m = {float(np.median(f['arm'])):.6g}",
@@ -233,8 +250,11 @@ def airframe_toml(
         "[link]",
         "throttle_servo = 0",
         "",
-        "# JSBSim's own aerodynamics over the flown samples, fitted to the structure above",
-        "# (fit residual RMS per axis in the comments).",
+        "# JSBSim's own aerodynamics over the flown samples, linearised on the structure above",
+        "# (fit residual RMS per axis in the comments). JSBSim's alpha-dot terms, which the",
+        "# structure lacks and the fit takes in as they come: "
+        + ", ".join(f"{n} = {v:.4g}" for n, v in adot.items())
+        + ".",
         "[truth]",
         'label = "JSBSim"',
         *(f"{n} = {v:.6g}  # residual {r:.2g}" for n, (v, r) in ref.items()),
@@ -244,24 +264,36 @@ def airframe_toml(
 
 
 def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
-    """Fly every aircraft calm and in light turbulence; (config, csv) per record."""
+    """Fly every aircraft calm and in light turbulence; (config, csv) per record. Next to
+    each, NAME.best_fit.json: the structure's best fit to the noise-free flight
+    (benchmarks/best_fit.py) of the calm flight, which serves the turbulent one too."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for ac in AIRCRAFT:
-        for turbulent in (False, True):
+        best: list[float] = []
+        for turbulent in (False, True):  # calm first: its best fit serves both
             f = fly(ac, turbulent, seed)
-            v0 = float(f["V"][0])
-            ref = reference(f, float(f["chord"][0]), v0)
+            ref = reference(f, float(f["chord"][0]))
             rng = np.random.default_rng(seed)
-            rec = Recording(
-                f["t"], np.column_stack([f["de"], f["thrust"]]), measurements(f, ac, rng), "thrust"
-            )
+            inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
+            rec = Recording(f["t"], inputs, measurements(f, ac, rng), "thrust")
             name = f"{ac.model}_{'light' if turbulent else 'calm'}"
             csv_path, toml_path = out / f"{name}.csv", out / f"{name}.toml"
             write_csv(csv_path, rec)
-            toml_path.write_text(airframe_toml(ac, f, ref), encoding="utf-8")
+            toml = airframe_toml(ac, f, ref, alpha_dot_terms(f))
+            toml_path.write_text(toml, encoding="utf-8")
+            config = load_config(toml_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
+            if not best:  # gusts are not in the structure: the fit is of the calm flight
+                clean = np.column_stack([f[k] for k in CLEAN])
+                best = best_fit(config, f["t"], inputs, clean, np.array(config.truth)).tolist()
+            fit = dict(zip(config.coefficient_names, best, strict=True))
+            csv_path.with_suffix(".best_fit.json").write_text(json.dumps(fit), encoding="utf-8")
             records.append((toml_path, csv_path))
-            print(f"{name}: {len(rec)} samples -> {csv_path}", file=sys.stderr)
+            print(
+                f"{name}: {len(rec)} samples, largest bank {np.degrees(np.abs(f['phi']).max()):.2f}"
+                f" deg -> {csv_path}",
+                file=sys.stderr,
+            )
     return records
 
 

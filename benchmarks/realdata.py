@@ -8,12 +8,15 @@ the estimator from zero on each record with its airframe file (no filter tuning:
 project's defaults) and on HFB-320, and prints per coefficient: reference, estimate,
 sigma, error in percent and in sigmas; and per record: the worst error over the
 well-excited coefficients, the share within 3 sigma and the mean squared z (an honest
-sigma gives about 1).
+sigma gives about 1). For the JSBSim records the table also holds the structure's best
+fit to the noise-free flight (benchmarks/best_fit.py): the errors and z against it show
+the filter, its distance from JSBSim's linearised aerodynamics what the structure misses.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -22,6 +25,7 @@ import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 from jsbsim_flights import ROOT, generate
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, run_recording
 from gcs_estimator.flightdata import Recording, load_recording
@@ -32,41 +36,66 @@ NEAR_ZERO = 0.01
 """A reference this close to zero has no meaningful percentage error: judged by z only."""
 
 
-def evaluate(name: str, config: AircraftConfig, rec: Recording) -> dict[str, float]:
-    """Print one record's table; return its summary per filter."""
+def evaluate(
+    name: str, config: AircraftConfig, rec: Recording, best: dict[str, float] | None = None
+) -> dict[str, float]:
+    """Print one record's table; return its worst well-excited error per filter (against
+    the best fit where there is one, which is what a filter can reach)."""
     res = run_recording(config, rec.t_s, rec.inputs, rec.measurements).result
     ref = np.array(config.truth or ())
+    fit = None if best is None else np.array([best[n] for n in res.names])
     print(f"\n## {name} ({config.airframe.name})\n")
-    head = ["coefficient", config.truth_label]
+    head = ["coefficient", config.truth_label] + ([] if fit is None else ["best fit"])
     for k in FILTER_KINDS:
-        head += [f"{k} estimate", f"{k} σ", f"{k} err %", f"{k} z"]
+        head += [f"{k} estimate", f"{k} σ", f"{k} err %"]
+        head += [f"{k} z"] if fit is None else [f"{k} err % (fit)", f"{k} z (fit)"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
-    errs = {k: 100.0 * (res.filters[k].coefficients - ref) / np.abs(ref) for k in FILTER_KINDS}
-    zs = {k: (res.filters[k].coefficients - ref) / res.filters[k].sigma for k in FILTER_KINDS}
+    goal = ref if fit is None else fit
+
+    def pct(v: FloatArray, r: FloatArray) -> FloatArray:
+        return np.asarray(100.0 * (v - r) / np.abs(r))
+
+    def cell(p: float, r: float) -> str:
+        return "ref ≈ 0" if abs(r) <= NEAR_ZERO else f"{p:+.2f}"
+
+    est = {k: res.filters[k].coefficients for k in FILTER_KINDS}
+    zs = {k: (est[k] - goal) / res.filters[k].sigma for k in FILTER_KINDS}
     for i, n in enumerate(res.names):
-        row = [n, f"{ref[i]:.5g}"]
+        row = [n, f"{ref[i]:.5g}"] + ([] if fit is None else [f"{fit[i]:.5g}"])
         for k in FILTER_KINDS:
             f = res.filters[k]
             row += [f"{f.coefficients[i]:.5g}", f"{f.sigma[i]:.2g}"]
-            pct = "ref ≈ 0" if abs(ref[i]) <= NEAR_ZERO else f"{errs[k][i]:+.2f}"
-            row += [pct, f"{zs[k][i]:+.1f}"]
+            row += [cell(pct(est[k], ref)[i], ref[i])]
+            if fit is not None:
+                row += [cell(pct(est[k], fit)[i], fit[i])]
+            row += [f"{zs[k][i]:+.1f}"]
         print("| " + " | ".join(row) + " |")
+    if fit is not None:
+        gap = pct(fit, ref)
+        print(
+            "\nbest fit against the reference (what the structure misses): "
+            + ", ".join(f"{n} {cell(gap[i], ref[i])}" for i, n in enumerate(res.names))
+        )
     summary: dict[str, float] = {}
-    well = [i for i, n in enumerate(res.names) if n in WELL_EXCITED and abs(ref[i]) > NEAR_ZERO]
+    well = [i for i, n in enumerate(res.names) if n in WELL_EXCITED and abs(goal[i]) > NEAR_ZERO]
     for k in FILTER_KINDS:
-        worst = int(np.argmax(np.abs(errs[k][well])))
+        err = np.abs(pct(est[k], goal)[well])
         within = float(np.mean(np.abs(zs[k]) < 3.0)) * 100
         msz = float(np.mean(zs[k] ** 2))
-        summary[k] = float(np.abs(errs[k][well]).max())
+        summary[k] = float(err.max())
+        worst_ref = float(np.abs(pct(est[k], ref)[well]).max())
         biases = ", ".join(
             f"{b:+.4f} ± {s:.1g}"
             for b, s in zip(res.filters[k].biases, res.filters[k].bias_sigma, strict=True)
         )
+        against = "the reference" if fit is None else "the best fit"
         print(
-            f"\n{k}: worst well-excited |err| {summary[k]:.2f} % ({res.names[well[worst]]}), "
-            f"within 3σ {within:.0f} %, mean z² {msz:.1f}"
-            + (f", q bias {biases} rad/s" if biases else "")
+            f"\n{k}: against {against}: worst well-excited |err| {summary[k]:.2f} % "
+            f"({res.names[well[int(np.argmax(err))]]}), within 3σ {within:.0f} %, "
+            f"mean z² {msz:.1f}"
+            + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
+            + (f"; q bias {biases} rad/s" if biases else "")
         )
     return summary
 
@@ -87,10 +116,15 @@ def run(args: argparse.Namespace) -> int:
     worst: dict[str, dict[str, float]] = {}
     for config_path, csv_path in records:
         config = load_config(config_path)
-        worst[csv_path.stem] = evaluate(csv_path.stem, config, load_recording(csv_path)[1])
+        best = json.loads(csv_path.with_suffix(".best_fit.json").read_text(encoding="utf-8"))
+        rec = load_recording(csv_path)[1]
+        worst[csv_path.stem] = evaluate(csv_path.stem, config, rec, best)
     hfb = load_config("hfb320")
     worst["hfb320"] = evaluate("hfb320", hfb, load_recording("hfb320", hfb.data)[1])
-    print("\n## Summary: worst well-excited |error| in % of the reference\n")
+    print(
+        "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "
+        "the reference (HFB-320)\n"
+    )
     print("| record | " + " | ".join(FILTER_KINDS) + " |")
     print("|---|" + "---|" * len(FILTER_KINDS))
     for name, by_kind in worst.items():
