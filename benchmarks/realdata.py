@@ -11,6 +11,9 @@ well-excited coefficients, the share within 3 sigma and the mean squared z (an h
 sigma gives about 1). For the JSBSim records the table also holds the structure's best
 fit to the noise-free flight (benchmarks/best_fit.py): the errors and z against it show
 the filter, its distance from JSBSim's linearised aerodynamics what the structure misses.
+Beside the filters: `refine` (output error over the whole record, from the IEKF's
+estimate) with its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's
+identifiability mark.
 """
 
 from __future__ import annotations
@@ -27,8 +30,11 @@ from jsbsim_flights import ROOT, generate
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import FILTER_KINDS, run_recording
+from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, run_recording
 from gcs_estimator.flightdata import Recording, load_recording
+from gcs_estimator.metrics import correlation_of, identifiability
+from gcs_estimator.refine import Refined, RefineError, refine_run
+from gcs_estimator.report import channel_text
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
 """The coefficients the elevator manoeuvre excites well enough to be judged on."""
@@ -42,13 +48,11 @@ def evaluate(
     """Print one record's table; return its worst well-excited error per filter (against
     the best fit where there is one, which is what a filter can reach)."""
     res = run_recording(config, rec.t_s, rec.inputs, rec.measurements).result
+    oe = _refine(name, res)
     ref = np.array(config.truth or ())
     fit = None if best is None else np.array([best[n] for n in res.names])
     print(f"\n## {name} ({config.airframe.name})\n")
-    head = ["coefficient", config.truth_label] + ([] if fit is None else ["best fit"])
-    for k in FILTER_KINDS:
-        head += [f"{k} estimate", f"{k} σ", f"{k} err %"]
-        head += [f"{k} z"] if fit is None else [f"{k} err % (fit)", f"{k} z (fit)"]
+    head = _head(config.truth_label, fit is not None, oe is not None)
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     goal = ref if fit is None else fit
@@ -61,8 +65,16 @@ def evaluate(
 
     est = {k: res.filters[k].coefficients for k in FILTER_KINDS}
     zs = {k: (est[k] - goal) / res.filters[k].sigma for k in FILTER_KINDS}
+    iekf = res.filters["IEKF"]
+    marks = identifiability(
+        iekf.coefficients,
+        iekf.sigma,
+        correlation_of(iekf.covariance),
+        np.asarray(config.filter.initial_sigma.coefficients),
+    )
     for i, n in enumerate(res.names):
         row = [n, f"{ref[i]:.5g}"] + ([] if fit is None else [f"{fit[i]:.5g}"])
+        row += [marks[i] if oe is None else oe.identifiability[i]]
         for k in FILTER_KINDS:
             f = res.filters[k]
             row += [f"{f.coefficients[i]:.5g}", f"{f.sigma[i]:.2g}"]
@@ -70,6 +82,10 @@ def evaluate(
             if fit is not None:
                 row += [cell(pct(est[k], fit)[i], fit[i])]
             row += [f"{zs[k][i]:+.1f}"]
+        if oe is not None:
+            row += [f"{oe.coefficients[i]:.5g}", f"{oe.sigma[i]:.2g}", f"{oe.crb_sigma[i]:.2g}"]
+            row += [cell(pct(oe.coefficients, goal)[i], goal[i])]
+            row += [f"{(oe.coefficients[i] - goal[i]) / oe.sigma[i]:+.1f}"]
         print("| " + " | ".join(row) + " |")
     if fit is not None:
         gap = pct(fit, ref)
@@ -97,7 +113,43 @@ def evaluate(
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
         )
+    if oe is not None:
+        summary["OE"] = _oe_summary(oe, goal, well)
     return summary
+
+
+def _head(label: str, fit: bool, oe: bool) -> list[str]:
+    head = ["coefficient", label] + (["best fit"] if fit else []) + ["identified?"]
+    for k in FILTER_KINDS:
+        head += [f"{k} estimate", f"{k} σ", f"{k} err %"]
+        head += [f"{k} err % (fit)", f"{k} z (fit)"] if fit else [f"{k} z"]
+    if oe:
+        head += ["OE estimate", "OE σ (corrected)", "OE σ (Cramer-Rao)", "OE err %", "OE z"]
+    return head
+
+
+def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
+    """Print the refinement's summary line; return its worst well-excited error [%]."""
+    z = (oe.coefficients - goal) / oe.sigma
+    zc = (oe.coefficients - goal) / oe.crb_sigma
+    err = np.abs(100.0 * (oe.coefficients - goal) / np.abs(goal))[well]
+    worst = float(err.max())
+    within = float(np.mean(np.abs(z) < 3)) * 100
+    print(
+        f"\nOE ({oe.method}, {oe.message}): worst well-excited |err| {worst:.2f} % "
+        f"({oe.names[well[int(np.argmax(err))]]}), within 3σ {within:.0f} %, "
+        f"mean z² {np.mean(z**2):.1f} with the corrected σ, {np.mean(zc**2):.1f} with "
+        f"Cramer-Rao's; residual colour: {channel_text(oe.residual_colour)}"
+    )
+    return worst
+
+
+def _refine(name: str, res: EstimatorResult) -> Refined | None:
+    try:
+        return refine_run(res, "output-error")
+    except RefineError as exc:
+        print(f"\n(refine failed on {name}: {exc})")
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,10 +177,12 @@ def run(args: argparse.Namespace) -> int:
         "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "
         "the reference (HFB-320)\n"
     )
-    print("| record | " + " | ".join(FILTER_KINDS) + " |")
-    print("|---|" + "---|" * len(FILTER_KINDS))
+    kinds = [*FILTER_KINDS, "OE"]
+    print("| record | " + " | ".join(kinds) + " |")
+    print("|---|" + "---|" * len(kinds))
     for name, by_kind in worst.items():
-        print(f"| {name} | " + " | ".join(f"{by_kind[k]:.2f}" for k in FILTER_KINDS) + " |")
+        cells = [f"{by_kind[k]:.2f}" if k in by_kind else "-" for k in kinds]
+        print(f"| {name} | " + " | ".join(cells) + " |")
     print(f"\n({time.perf_counter() - start:.1f} s wall)")
     return 0
 

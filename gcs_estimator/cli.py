@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gcs_estimator.config import (
+    REFINE_METHODS,
     VIEW_OUTPUTS,
     AircraftConfig,
     ConfigError,
@@ -26,19 +28,22 @@ from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 
+if TYPE_CHECKING:
+    from gcs_estimator.refine import Refined
+
 DEFAULT_CONFIG = "noc_uav"
 
 
-def _config_arg(p: argparse.ArgumentParser, default: str) -> None:
+def _config_arg(p: argparse.ArgumentParser, default: str | None) -> None:
     p.add_argument(
         "--config",
         default=default,
-        help="aircraft config: a shipped name (noc_uav, hfb320) or a TOML path "
-        "(default: %(default)s)",
+        help="aircraft config: a shipped name (noc_uav, hfb320) or a TOML path (default: "
+        + ("%(default)s)" if default else f"hfb320 for the HFB-320 record, else {DEFAULT_CONFIG})"),
     )
 
 
-def _common(p: argparse.ArgumentParser, config_default: str = DEFAULT_CONFIG) -> None:
+def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CONFIG) -> None:
     _config_arg(p, config_default)
     p.add_argument(
         "--set",
@@ -48,6 +53,19 @@ def _common(p: argparse.ArgumentParser, config_default: str = DEFAULT_CONFIG) ->
         help="override a config value, e.g. --set filter.iterations=3 (repeatable)",
     )
     p.add_argument("--out", default="out", help="directory for results (default: %(default)s)")
+    p.add_argument(
+        "--refine",
+        choices=REFINE_METHODS,
+        default=None,
+        help="at the end, also fit the whole record by maximum likelihood (output error, or "
+        "filter error with process noise) from the IEKF's estimate; see `refine`",
+    )
+    p.add_argument(
+        "--window",
+        default=None,
+        metavar="FROM:TO",
+        help="seconds after the first frame the refinement fits (either side may be empty)",
+    )
     p.add_argument(
         "--backend",
         choices=("fast", "reference"),
@@ -130,6 +148,43 @@ def _view_sink(
     return ViewSink(view, None if link is None else (lambda: link.t_first_recv))
 
 
+def _window(text: str | None) -> tuple[float | None, float | None]:
+    if not text:
+        return None, None
+    lo, sep, hi = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError(text)
+        return (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
+    except ValueError:
+        raise ConfigError(f"--window {text!r}: expected FROM:TO in seconds, e.g. 0:60") from None
+
+
+def _refiner(args: argparse.Namespace) -> Callable[[VehicleResult], Refined | None] | None:
+    """The whole-record fit the command line asked for (None: not asked)."""
+    method = getattr(args, "refine", None)
+    if method is None:
+        return None
+    window = _window(args.window)
+
+    def run(vehicle: VehicleResult) -> Refined | None:
+        from gcs_estimator.refine import RefineError, refine_run
+
+        print(
+            f"refining: {method} over {vehicle.result.frames} frames of vehicle "
+            f"{vehicle.system_id} ...",
+            file=sys.stderr,
+            flush=True,
+        )
+        try:
+            return refine_run(vehicle.result, method, window_s=window)
+        except RefineError as exc:
+            print(f"refine: {exc}", file=sys.stderr)
+            return None
+
+    return run
+
+
 def _run(session: Session, source: Source, stop: Stop) -> int:
     """Drive the session; a source that fails still leaves the results of what it gave."""
     try:
@@ -159,7 +214,13 @@ def _recording_session(
         )
 
     session.add_sink(
-        ResultsSink(Path(args.out), heading, lambda sid: "results", lambda: session.elapsed_s)
+        ResultsSink(
+            Path(args.out),
+            heading,
+            lambda sid: "results",
+            lambda: session.elapsed_s,
+            refine=_refiner(args),
+        )
     )
     return _run(session, source, stop)
 
@@ -235,7 +296,11 @@ def _link_session(
 
     session.add_sink(
         ResultsSink(
-            Path(args.out), heading, lambda sid: f"results_sys{sid}", lambda: session.elapsed_s
+            Path(args.out),
+            heading,
+            lambda sid: f"results_sys{sid}",
+            lambda: session.elapsed_s,
+            refine=_refiner(args),
         )
     )
     return session, link
@@ -299,6 +364,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if vehicle.poll() is None:
             vehicle.terminate()
         vehicle.wait(timeout=10)
+
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    """Both filters over a recorded flight, then the whole-record fit from their estimate."""
+    if args.config is None:
+        args.config = "hfb320" if args.flight == "hfb320" else DEFAULT_CONFIG
+    args.refine = args.refine or args.method
+    if Path(args.flight).suffix.lower() == ".tlog":
+        args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
+        return cmd_replay(args)
+    args.data = args.flight
+    return cmd_offline(args)
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
@@ -385,6 +462,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="flight data: the HFB-320 ASCII record or a CSV (see README), or a folder holding one",
     )
     p.set_defaults(func=cmd_offline)
+
+    p = sub.add_parser(
+        "refine",
+        help="fit a recorded flight (CSV, HFB-320 record or .tlog) by maximum likelihood "
+        "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
+    )
+    _common(p, None)
+    p.add_argument("flight", help="a CSV, the HFB-320 record (or 'hfb320'), or a .tlog")
+    p.add_argument(
+        "--method",
+        choices=REFINE_METHODS,
+        default=REFINE_METHODS[0],
+        help="output-error (calm air; default) or filter-error (process noise estimated too)",
+    )
+    p.set_defaults(func=cmd_refine)
 
     p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
     _config_arg(p, DEFAULT_CONFIG)

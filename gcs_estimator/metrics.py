@@ -13,6 +13,58 @@ from gcs_estimator.estimator import EstimatorResult, FilterKind
 CONVERGENCE_BAND = 0.05
 """Convergence: the estimate stays within 5 % (docs/model.md)."""
 
+IDENTIFIED, WEAK, NOT_IDENTIFIED = "identified", "weak", "not identified"
+"""How well the data determine a coefficient (identifiability())."""
+RELATIVE_SIGMA_IDENTIFIED = 0.10
+"""sigma / |estimate| at or below which a coefficient counts as identified."""
+RELATIVE_SIGMA_WEAK = 0.5
+"""sigma / |estimate| above which it is not identified (the data barely fix its sign)."""
+CORRELATION_LIMIT = 0.95
+"""|correlation| with another coefficient above which the two are not told apart."""
+PRIOR_SHRINK_LIMIT = 0.5
+"""A filter's sigma still above this share of its prior sigma: the data added little."""
+
+
+def correlation_of(cov: FloatArray) -> FloatArray:
+    """Correlation matrix of a covariance."""
+    s = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    return np.asarray(cov / np.outer(s, s))
+
+
+def identifiability(
+    estimate: FloatArray,
+    sigma: FloatArray,
+    correlation: FloatArray,
+    prior_sigma: FloatArray | None = None,
+) -> tuple[str, ...]:
+    """IDENTIFIED / WEAK / NOT_IDENTIFIED per coefficient. Not identified: the sigma is
+    above half the estimate's magnitude (the data barely fix its sign), or, for a
+    filter, still above half the prior's (the manoeuvre added little information). Weak:
+    the sigma is above a tenth of the magnitude, or the coefficient correlates above
+    0.95 with another (the data do not tell the two apart). Else identified."""
+    out = []
+    p = len(estimate)
+    for i in range(p):
+        rel = sigma[i] / max(abs(float(estimate[i])), 1e-300)
+        corr = max((abs(float(correlation[i, j])) for j in range(p) if j != i), default=0.0)
+        shrink = 0.0 if prior_sigma is None else sigma[i] / prior_sigma[i]
+        if rel > RELATIVE_SIGMA_WEAK or shrink > PRIOR_SHRINK_LIMIT:
+            out.append(NOT_IDENTIFIED)
+        elif rel > RELATIVE_SIGMA_IDENTIFIED or corr > CORRELATION_LIMIT:
+            out.append(WEAK)
+        else:
+            out.append(IDENTIFIED)
+    return tuple(out)
+
+
+def most_correlated(correlation: FloatArray, names: tuple[str, ...], i: int) -> tuple[str, float]:
+    """The coefficient most correlated with coefficient i, and that correlation."""
+    best, value = "", 0.0
+    for j, n in enumerate(names):
+        if j != i and abs(float(correlation[i, j])) > abs(value):
+            best, value = n, float(correlation[i, j])
+    return best, value
+
 
 @dataclass(frozen=True)
 class CoefficientSummary:
@@ -30,6 +82,12 @@ class CoefficientSummary:
     """Time after which the estimate stays within 5 % of its final value [s] (NaN: never)."""
     converged_truth_s: float | None
     """Time after which it stays within 5 % of truth [s] (NaN: never; None: no truth)."""
+    identifiability: str = IDENTIFIED
+    """IDENTIFIED, WEAK or NOT_IDENTIFIED (identifiability())."""
+    correlated_with: str = ""
+    """The coefficient it correlates with most."""
+    correlation: float = 0.0
+    """That correlation."""
 
 
 @dataclass(frozen=True)
@@ -47,6 +105,8 @@ class FilterSummary:
     steps: int
     gust_sigma: float = 0.0
     """Turbulence level (vertical gust sigma) the filter ended with [m/s]."""
+    gust_on_share: float = 0.0
+    """Share of the second half of the run in which the turbulence level was applied."""
 
 
 def percent_error(estimate: float, reference: float) -> float | None:
@@ -78,6 +138,10 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
             continue
         x = fr.coefficients
         t0 = float(track.t[0])
+        corr = correlation_of(fr.covariance)
+        marks = identifiability(
+            x, fr.sigma, corr, np.asarray(result.config.filter.initial_sigma.coefficients)
+        )
         coeffs = []
         for i, name in enumerate(result.names):
             series = track.coefficients[:, i]
@@ -97,6 +161,9 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
                     converged_truth_s=None
                     if tru is None
                     else stay_within_time(track.t, series, tru, CONVERGENCE_BAND) - t0,
+                    identifiability=marks[i],
+                    correlated_with=most_correlated(corr, result.names, i)[0],
+                    correlation=most_correlated(corr, result.names, i)[1],
                 )
             )
         used = track.n_used > 0
@@ -114,5 +181,6 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
             nees=nees,
             steps=len(track.t),
             gust_sigma=fr.gust_sigma,
+            gust_on_share=float(np.mean(track.gust_sigma[len(track.t) // 2 :] > 0.0)),
         )
     return out

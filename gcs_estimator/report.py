@@ -7,15 +7,27 @@ import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import POWER_COLUMNS
 from gcs_estimator.estimator import FILTER_KINDS, Estimator, EstimatorResult, FilterKind
-from gcs_estimator.metrics import FilterSummary, percent_error
+from gcs_estimator.metrics import (
+    CORRELATION_LIMIT,
+    NOT_IDENTIFIED,
+    WEAK,
+    CoefficientSummary,
+    FilterSummary,
+    identifiability,
+    percent_error,
+)
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
 from gcs_estimator.session import VehicleResult
+
+if TYPE_CHECKING:
+    from gcs_estimator.refine import Refined
 
 
 def _fmt(v: float | None, digits: int = 4) -> str:
@@ -29,34 +41,107 @@ def _time(v: float | None) -> str:
 
 
 def markdown_table(
-    summaries: Mapping[FilterKind, FilterSummary], truth_label: str = "truth"
+    summaries: Mapping[FilterKind, FilterSummary],
+    truth_label: str = "truth",
+    refined: Refined | None = None,
 ) -> str:
     """Table I layout: one row per coefficient, estimate and sigma per filter, plus the
-    true (or reference) value, error in percent and in sigmas when it is known."""
+    true (or reference) value, error in percent and in sigmas when it is known, how well
+    the data identify each coefficient, and the whole-record refinement when there is one."""
     kinds: list[FilterKind] = [k for k in FILTER_KINDS if k in summaries]
     if not kinds:
         return "(no estimates yet)\n"
     first = summaries[kinds[0]]
     has_truth = any(c.truth is not None for c in first.coefficients)
     head = ["coefficient"] + ([truth_label] if has_truth else [])
+    settle = f"within 5 % of {truth_label} from s" if has_truth else "steady from s"
     for k in kinds:
         head += [f"{k} estimate", f"{k} σ"]
         if has_truth:
             head += [f"{k} error %", f"{k} error/σ"]
-        head += [f"{k} settled by s"]
+        head += [f"{k} {settle}"]
+    head += ["identified?"]
+    if refined is not None:
+        head += ["OE estimate", "OE σ", "OE Cramer-Rao σ"]
+        if has_truth:
+            head += ["OE error %", "OE error/σ"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    marks_from = summaries.get("IEKF", first)
     for i, c0 in enumerate(first.coefficients):
         row = [c0.name] + ([_fmt(c0.truth)] if has_truth else [])
         for k in kinds:
-            c = summaries[k].coefficients[i]
-            row += [_fmt(c.estimate), f"{c.sigma:.2g}"]
-            if has_truth:
-                row += [
-                    "-" if c.error_pct is None else f"{c.error_pct:+.2f}",
-                    "-" if c.z is None else f"{c.z:+.1f}",
-                ]
-            row += [_time(c.converged_final_s)]
+            row += _filter_cells(summaries[k].coefficients[i], has_truth)
+        row += [_identified_cell(marks_from.coefficients[i], refined, i)]
+        if refined is not None:
+            row += _refined_cells(refined, i, c0.truth, has_truth)
         lines.append("| " + " | ".join(row) + " |")
+    lines.append("")
+    lines.append(_legend(truth_label, has_truth, refined is not None))
+    lines += [f"- {n}" for n in _run_notes(summaries, kinds, refined)]
+    return "\n".join(lines) + "\n"
+
+
+def _filter_cells(c: CoefficientSummary, has_truth: bool) -> list[str]:
+    row = [_fmt(c.estimate), f"{c.sigma:.2g}"]
+    if has_truth:
+        row += [
+            "-" if c.error_pct is None else f"{c.error_pct:+.2f}",
+            "-" if c.z is None else f"{c.z:+.1f}",
+            _time(c.converged_truth_s),
+        ]
+    else:
+        steady = c.identifiability != NOT_IDENTIFIED
+        row += [_time(c.converged_final_s) if steady else "-"]
+    return row
+
+
+def _identified_cell(mark: CoefficientSummary, refined: Refined | None, i: int) -> str:
+    ident = mark.identifiability if refined is None else refined.identifiability[i]
+    if ident == WEAK and abs(mark.correlation) > CORRELATION_LIMIT:
+        ident += f" (ρ {mark.correlation:+.2f} with {mark.correlated_with})"
+    return ident
+
+
+def _refined_cells(refined: Refined, i: int, truth: float | None, has_truth: bool) -> list[str]:
+    est = float(refined.coefficients[i])
+    row = [_fmt(est), f"{refined.sigma[i]:.2g}", f"{refined.crb_sigma[i]:.2g}"]
+    if has_truth and truth is not None:
+        err = percent_error(est, truth)
+        row += ["-" if err is None else f"{err:+.2f}", f"{(est - truth) / refined.sigma[i]:+.1f}"]
+    elif has_truth:
+        row += ["-", "-"]
+    return row
+
+
+def _legend(truth_label: str, has_truth: bool, refined: bool) -> str:
+    text = "σ: one standard deviation from the filter covariance"
+    if refined:
+        text += (
+            "; OE σ: the output-error fit's Cramer-Rao bound corrected for the colour of its "
+            "residuals (Morelli-Klein), the one to trust on real data"
+        )
+    if has_truth:
+        text += (
+            f". Within 5 % of {truth_label} from: the time after which the estimate stays "
+            f"within 5 % of the {truth_label} value."
+        )
+    else:
+        text += (
+            ". Steady from: the time after which the estimate stays within 5 % of its own "
+            "final value (not a measure of accuracy; '-' where the data do not identify it)."
+        )
+    return text + (
+        " Identified?: σ/|estimate| at most 0.1 and no correlation above 0.95 with another "
+        "coefficient; weak: σ/|estimate| up to 0.5 or such a correlation; not identified: "
+        "beyond that, or the filter's σ still above half its prior."
+    )
+
+
+def _run_notes(
+    summaries: Mapping[FilterKind, FilterSummary],
+    kinds: list[FilterKind],
+    refined: Refined | None,
+) -> list[str]:
     notes = []
     for k in kinds:
         s = summaries[k]
@@ -67,13 +152,21 @@ def markdown_table(
             note += f", coefficient NEES {s.nees:.1f} (dof {len(s.coefficients)})"
         note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
         notes.append(note)
-    lines.append("")
-    lines.append(
-        "σ: one standard deviation from the filter covariance. Settled by: time after which "
-        "the estimate stays within 5 % of its final value."
+    if refined is not None:
+        notes.append(
+            f"OE ({refined.method}, {refined.frames} frames, {refined.message}): noise σ "
+            + channel_text(refined.noise_sigma)
+            + "; residual colour (1 = white) "
+            + channel_text(refined.residual_colour)
+        )
+    return notes
+
+
+def channel_text(values: FloatArray) -> str:
+    """'V 0.13, alpha 0.001, ...' for the channels with a value."""
+    return ", ".join(
+        f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, values, strict=True) if math.isfinite(v)
     )
-    lines += [f"- {n}" for n in notes]
-    return "\n".join(lines) + "\n"
 
 
 def live_table(estimator: Estimator) -> str:
@@ -86,7 +179,11 @@ def live_table(estimator: Estimator) -> str:
     head = ["coefficient"] + ([estimator.config.truth_label] if truth else [])
     for k in kinds:
         head += [f"{k} estimate", f"{k} ±2σ"] + ([f"{k} error %"] if truth else [])
+    head += ["identified?"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    last = current[kinds[-1]]
+    prior = np.asarray(estimator.config.filter.initial_sigma.coefficients, float)
+    marks = identifiability(last.coefficients, last.sigma, np.eye(len(prior)), prior)
     for i, name in enumerate(estimator.names):
         row = [name] + ([_fmt(truth[i])] if truth else [])
         for k in kinds:
@@ -96,12 +193,72 @@ def live_table(estimator: Estimator) -> str:
             if truth:
                 err = percent_error(x, truth[i])
                 row.append("-" if err is None else f"{err:+.2f}")
-        lines.append("| " + " | ".join(row) + " |")
+        lines.append("| " + " | ".join([*row, marks[i]]) + " |")
     gusts = ", ".join(f"{k} {current[k].gust_sigma:.2f}" for k in kinds)
     return f"{estimator.frames} frames; turbulence σ_w [m/s]: {gusts}\n\n" + "\n".join(lines) + "\n"
 
 
-def final_table(vehicle: VehicleResult) -> str:
+NIS_RATIO_LIMIT = 3.0
+"""Mean NIS this many times the channel count (or a third of it): the noise model is off."""
+COLOUR_LIMIT = 5.0
+"""Residual colour above this on a channel: the model misses something the data hold."""
+
+
+def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
+    """What a user should know before trusting the numbers: a noise model that does not
+    fit (NIS far from the channel count), a warm start that fitted few frames, a
+    turbulence level switched on and off, coefficients the data do not identify, and
+    residuals far from white in the whole-record fit."""
+    out: list[str] = []
+    result = vehicle.result
+    for kind, s in vehicle.summaries.items():
+        if s.mean_channels > 0 and math.isfinite(s.mean_nis):
+            ratio = s.mean_nis / s.mean_channels
+            if ratio > NIS_RATIO_LIMIT or ratio < 1.0 / NIS_RATIO_LIMIT:
+                out.append(
+                    f"{kind}: mean NIS {s.mean_nis:.1f} over {s.mean_channels:.1f} channels: "
+                    "the noise model does not fit these data, so its sigmas do not either "
+                    "(check [filter.measurement_sigma] against the sensors)"
+                )
+        if 0.1 < s.gust_on_share < 0.9:
+            out.append(
+                f"{kind}: the turbulence level was applied in {100 * s.gust_on_share:.0f} % of "
+                "the second half of the run: unsteady or near the detection limit"
+            )
+        weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
+        if weak:
+            out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+    if result.warm_start_samples is not None and result.warm_start_frames > 0:
+        least = min(result.warm_start_samples)
+        if least < 0.5 * result.warm_start_frames:
+            cd, cl, cm = result.warm_start_samples
+            out.append(
+                f"the equation-error warm start fitted CD, CL, Cm on only {cd}, {cl}, {cm} of "
+                f"{result.warm_start_frames} frames (gaps or missing channels)"
+            )
+    if refined is not None:
+        out += _refined_warnings(refined)
+    return out
+
+
+def _refined_warnings(refined: Refined) -> list[str]:
+    out = []
+    coloured = [
+        f"{n} {v:.0f}"
+        for n, v in zip(OBS_NAMES, refined.residual_colour, strict=True)
+        if math.isfinite(v) and v > COLOUR_LIMIT
+    ]
+    if coloured:
+        out.append(
+            "OE residuals far from white (" + ", ".join(coloured) + "): the model misses "
+            "something (turbulence, unmodelled aerodynamics); trust OE σ, not Cramer-Rao's"
+        )
+    if not refined.converged:
+        out.append(f"OE: {refined.message}")
+    return out
+
+
+def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
     """The finished run's Table I (with convergence times), as in results.md, and what
     the run estimated beside the coefficients or fitted to start them."""
     result = vehicle.result
@@ -119,11 +276,19 @@ def final_table(vehicle: VehicleResult) -> str:
             f"equation-error warm start: fitted CD, CL, Cm on {cd}, {cl}, {cm} of "
             f"{result.warm_start_frames} frames"
         )
-    table = markdown_table(vehicle.summaries, result.config.truth_label)
-    return table + "".join(f"- {n}\n" for n in notes)
+    table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
+    text = table + "".join(f"- {n}\n" for n in notes)
+    warnings = trust_warnings(vehicle, refined)
+    if warnings:
+        text += "\n**Before trusting these numbers:**\n\n" + "".join(f"- {w}\n" for w in warnings)
+    return text
 
 
-def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def results_dict(
+    vehicle: VehicleResult,
+    extra: Mapping[str, Any] | None = None,
+    refined: Refined | None = None,
+) -> dict[str, Any]:
     """Everything a script needs: estimates, sigmas, convergence, NIS, config used."""
     result = vehicle.result
     config = result.config
@@ -145,6 +310,8 @@ def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None)
                 k: f.health.covariance_repairs for k, f in result.filters.items()
             },
         },
+        "warnings": trust_warnings(vehicle, refined),
+        "refined": None if refined is None else refined_dict(refined, vehicle.truth),
         "config": _jsonable(config.raw),
     }
     for kind, s in vehicle.summaries.items():
@@ -164,6 +331,10 @@ def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None)
                     "error_sigmas": _num(c.z),
                     "settled_s": _num(c.converged_final_s),
                     "within_5pct_of_truth_s": _num(c.converged_truth_s),
+                    "identifiability": c.identifiability,
+                    "relative_sigma": _num(c.sigma / abs(c.estimate) if c.estimate else None),
+                    "most_correlated_with": c.correlated_with or None,
+                    "correlation": c.correlation,
                 }
                 for c in s.coefficients
             },
@@ -180,6 +351,44 @@ def results_dict(vehicle: VehicleResult, extra: Mapping[str, Any] | None = None)
     if extra:
         out.update(extra)
     return out
+
+
+def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
+    """The whole-record fit as JSON."""
+    return {
+        "method": refined.method,
+        "frames": refined.frames,
+        "converged": refined.converged,
+        "message": refined.message,
+        "noise_sigma": {
+            n: _num(float(v)) for n, v in zip(OBS_NAMES, refined.noise_sigma, strict=True)
+        },
+        "process_noise_density": {
+            n: float(v) for n, v in zip(FLIGHT_STATES, refined.process_noise, strict=True)
+        },
+        "residual_colour": {
+            n: _num(float(v)) for n, v in zip(OBS_NAMES, refined.residual_colour, strict=True)
+        },
+        "initial_state": dict(zip(FLIGHT_STATES, map(float, refined.state0), strict=True)),
+        "estimates": {
+            n: {
+                "estimate": float(refined.coefficients[i]),
+                "sigma": _num(float(refined.sigma[i])),
+                "cramer_rao_sigma": _num(float(refined.crb_sigma[i])),
+                "identifiability": refined.identifiability[i],
+                "truth": None if truth is None else float(truth[i]),
+                "error_pct": None
+                if truth is None
+                else _num(percent_error(float(refined.coefficients[i]), float(truth[i]))),
+            }
+            for i, n in enumerate(refined.names)
+        },
+        "correlation": refined.correlation.tolist(),
+        "sensor_biases": {
+            n: {"estimate": float(b), "sigma": _num(float(s))}
+            for n, b, s in zip(refined.bias_names, refined.biases, refined.bias_sigma, strict=True)
+        },
+    }
 
 
 def _num(v: float | None) -> float | None:
@@ -233,10 +442,11 @@ def write_results(
     vehicle: VehicleResult,
     extra: Mapping[str, Any] | None = None,
     stem: str = "results",
+    refined: Refined | None = None,
 ) -> dict[str, Path]:
     """Write <stem>.json, <stem>.md and <stem>_history.csv into out_dir; return their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = results_dict(vehicle, extra)
+    data = results_dict(vehicle, extra, refined)
     paths = {
         "json": out_dir / f"{stem}.json",
         "markdown": out_dir / f"{stem}.md",
@@ -244,6 +454,6 @@ def write_results(
     }
     paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     title = f"# {vehicle.result.config.airframe.name}: estimated aerodynamic coefficients\n\n"
-    paths["markdown"].write_text(title + final_table(vehicle), encoding="utf-8")
+    paths["markdown"].write_text(title + final_table(vehicle, refined), encoding="utf-8")
     write_history_csv(paths["csv"], vehicle.result)
     return paths

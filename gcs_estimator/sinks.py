@@ -7,12 +7,15 @@ import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.report import markdown_table, write_results
+from gcs_estimator.report import final_table, write_results
 from gcs_estimator.session import VehicleResult
+
+if TYPE_CHECKING:
+    from gcs_estimator.refine import Refined
 
 
 class ResultsSink:
@@ -25,7 +28,9 @@ class ResultsSink:
         stem: Callable[[int], str],
         elapsed: Callable[[], float],
         out: TextIO | None = None,
+        refine: Callable[[VehicleResult], Refined | None] | None = None,
     ) -> None:
+        self.refine = refine
         self.out_dir = out_dir
         self.heading = heading
         self.stem = stem
@@ -42,12 +47,12 @@ class ResultsSink:
         if not results:
             print("no vehicle data received", file=sys.stderr)
         for sid, vehicle in results.items():
-            print(f"\n{self.heading(vehicle, self.elapsed())}\n", file=self.out)
-            print(
-                markdown_table(vehicle.summaries, vehicle.result.config.truth_label), file=self.out
-            )
+            heading = self.heading(vehicle, self.elapsed())
+            refined = None if self.refine is None else self.refine(vehicle)
+            print(f"\n{heading}\n", file=self.out)
+            print(final_table(vehicle, refined), file=self.out)
             extra = None if link is None else {"link": dict(link), "system_id": sid}
-            paths = write_results(self.out_dir, vehicle, extra, stem=self.stem(sid))
+            paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined)
             print("results: " + ", ".join(str(p) for p in paths.values()), file=self.out)
         if link is not None:
             counts = ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")

@@ -1,0 +1,127 @@
+"""`refine`: maximum likelihood over the whole record, its sigmas and the trust marks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcs_estimator import cli
+from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.estimator import run_recording
+from gcs_estimator.flightdata import Recording
+from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
+from gcs_estimator.refine import RefineError, refine_run
+from gcs_estimator.report import trust_warnings
+from gcs_estimator.telemetry.mavlink import read_tlog
+from sim.reference import output_error
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+
+
+def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig) -> None:
+    """On a calm simulated flight (the model exact, the noise white) refine ends where
+    the simulator's output-error yardstick does (its own integrator, finite-difference
+    sensitivities), the residuals come out white, so the corrected sigma is the
+    Cramer-Rao one, and the noise levels are those the simulator used."""
+    flight = simulate(noc_config, seed=3)
+    run = run_recording(noc_config, flight.t_s, flight.inputs, flight.measurements)
+    refined = refine_run(run.result, "output-error")
+    yardstick = output_error(noc_config, flight)
+    assert refined.converged
+    assert np.all(np.abs(refined.coefficients - yardstick.coefficients) < 0.2 * yardstick.sigma)
+    np.testing.assert_allclose(refined.crb_sigma, yardstick.sigma, rtol=0.15)
+    np.testing.assert_allclose(refined.sigma, refined.crb_sigma, rtol=0.25)
+    assert np.all(refined.residual_colour < 2.0)
+    simulated = np.array(noc_config.simulation.sensors.noise_sigma)
+    np.testing.assert_allclose(refined.noise_sigma[:4], simulated[:4], rtol=0.1)
+    truth = np.array(noc_config.truth)
+    z = (refined.coefficients - truth) / refined.sigma
+    assert np.mean(z**2) < 4.0
+
+
+def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftConfig) -> None:
+    """HFB-320 flew in turbulence: output error leaves coloured residuals, and the
+    Morelli-Klein sigma is wider than the Cramer-Rao bound on every coefficient."""
+    from gcs_estimator.flightdata import load_recording
+
+    rec = load_recording("hfb320", hfb_config.data)[1]
+    run = run_recording(hfb_config, rec.t_s, rec.inputs, rec.measurements)
+    refined = refine_run(run.result, "output-error")
+    assert np.all(refined.sigma >= refined.crb_sigma)
+    assert np.median(refined.sigma / refined.crb_sigma) > 1.5
+    assert np.nanmax(refined.residual_colour) > 5.0
+    assert any("far from white" in w for w in trust_warnings(run, refined))
+    # A window with too few frames is refused with the reason.
+    with pytest.raises(RefineError, match="frames in the window"):
+        refine_run(run.result, window_s=(10.0, 10.5))
+
+
+def test_identifiability_marks() -> None:
+    corr = np.eye(3)
+    corr[0, 1] = corr[1, 0] = 0.99
+    marks = identifiability(
+        np.array([1.0, 2.0, 0.01]), np.array([0.05, 0.05, 0.02]), corr, np.array([10, 10, 10])
+    )
+    assert marks == (WEAK, WEAK, NOT_IDENTIFIED)
+    assert identifiability(np.array([1.0]), np.array([0.05]), np.eye(1)) == (IDENTIFIED,)
+    # A filter whose sigma barely shrank from its prior learnt nothing from the data.
+    assert identifiability(np.array([1.0]), np.array([0.05]), np.eye(1), np.array([0.08])) == (
+        NOT_IDENTIFIED,
+    )
+
+
+def test_noise_model_that_does_not_fit_is_named(hfb_config: AircraftConfig) -> None:
+    """Measurement sigmas ten times too small: NIS far above the channel count, and the
+    run says so."""
+    from gcs_estimator.flightdata import load_recording
+
+    small = tuple(s / 10 for s in hfb_config.filter.measurement_sigma)
+    config = load_config(
+        "hfb320",
+        [
+            f"filter.measurement_sigma.{n}={v}"
+            for n, v in zip(("V", "alpha", "theta", "q", "qdot", "a_x", "a_z"), small, strict=True)
+        ],
+    )
+    rec = load_recording("hfb320", config.data)[1]
+    run = run_recording(config, rec.t_s, rec.inputs, rec.measurements)
+    assert any("noise model does not fit" in w for w in trust_warnings(run))
+
+
+def test_refine_command_on_hfb320_and_on_a_tlog(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], noc_config: AircraftConfig
+) -> None:
+    """`refine` on the bundled record and on a real .tlog the simulated vehicle wrote:
+    the table holds the OE column, the JSON the fit with both sigmas, the marks and the
+    warnings."""
+    out = tmp_path / "hfb"
+    assert cli.main(["refine", "hfb320", "--out", str(out), "--view", "off"]) == 0
+    text = capsys.readouterr().out
+    assert "OE estimate" in text and "Before trusting these numbers" in text
+    data = json.loads((out / "results.json").read_text())
+    fit = data["refined"]
+    assert fit["method"] == "output error" and fit["frames"] == 601
+    for name, e in fit["estimates"].items():
+        assert e["sigma"] >= e["cramer_rao_sigma"], name
+    marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
+    assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
+    assert data["warnings"]
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=20"])
+    fl = simulate(config, seed=2)
+    tlog = tmp_path / "flight.tlog"
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=tlog).run()
+    assert sum(1 for _ in read_tlog(tlog)) > 1000
+    out = tmp_path / "tlog"
+    argv = ["refine", str(tlog), "--config", "noc_uav", "--out", str(out), "--view", "off"]
+    assert cli.main(argv) == 0
+    data = json.loads((out / "results_sys1.json").read_text())
+    fit = data["refined"]
+    truth = np.array(config.truth)
+    est = np.array([fit["estimates"][n]["estimate"] for n in data["coefficients"]])
+    sig = np.array([fit["estimates"][n]["sigma"] for n in data["coefficients"]])
+    assert fit["converged"] and np.mean(((est - truth) / sig) ** 2) < 4.0
