@@ -3,13 +3,14 @@
 The filters give an estimate and a covariance online. Once the flight is over, the
 record can be fitted as a whole: the initial state, the coefficients and the sensor
 biases that make the model, flown through the record's inputs from its first frame,
-reproduce the observations best. With the noise covariance R unknown, the maximum-
-likelihood estimate alternates a Gauss-Newton fit at fixed R with R set to the
-residuals' covariance (the relaxation method; Jategaonkar 2015, ch. 4). The model is
-integrated exactly as the filters predict (one Runge-Kutta step per sample interval,
-inputs linear between samples, air density per sample), and the output sensitivities
-come from the same analytic Jacobians (the transition of each Runge-Kutta step), so the
-fit needs no finite differences.
+reproduce the observations best. Output error: with the noise covariance R unknown, each
+Gauss-Newton iteration first sets R to the residuals' covariance (the relaxation method;
+Jategaonkar 2015, ch. 4). Filter error: a Kalman filter on the flight states runs inside
+the fit, and the process noise densities are estimated with R by maximising the
+likelihood between Gauss-Newton passes. Both run through one kernel (`innovations`; with
+no process noise its innovations are the output errors), which integrates the model as
+the filters predict (Runge-Kutta steps of at most max_step_s, the configured input hold,
+air density per sample, sensor placement); the sensitivities are forward differences.
 
 Uncertainty, two ways:
 - the Cramer-Rao bound, M^-1 with M = sum S^T R^-1 S: right when the residuals are
@@ -39,7 +40,7 @@ from gcs_estimator.metrics import correlation_of, identifiability
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
-from gcs_estimator.model.channels import N_FLIGHT, N_OBS, OBS_NAMES
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 
 
 @njit(cache=True)
@@ -488,11 +489,6 @@ def refine(
         converged=converged,
         message=f"{msg} ({prob.runs} filter runs)",
     )
-
-
-def channel_names(values: FloatArray) -> str:
-    """'V 0.13, alpha 0.001, ...' for the observed channels."""
-    return ", ".join(f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, values, strict=True) if v == v)
 
 
 def refine_run(
