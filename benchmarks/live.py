@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     got = sum(v.result.frames for v in results.values())
     lat = np.array(latency.complete) * 1e3
     partial = latency.partial
-    h = link.health
+    h = link.health.total()
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
         f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s"

@@ -192,7 +192,7 @@ def _run(session: Session, source: Source, stop: Stop) -> int:
     except SourceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return 0
+    return 2 if getattr(source, "errors", None) else 0
 
 
 def _recording_session(
@@ -253,7 +253,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
 
 
 def _status_line(link: MavlinkLink, session: Session, elapsed_s: float) -> str:
-    h = link.health
+    h = link.health.total()
     parts = [
         f"{elapsed_s:6.1f} s",
         f"pkts {h.received}",
@@ -284,7 +284,11 @@ def _link_session(
     status line)."""
     warm_up(config, args.backend)
     session = Session(config, backend=args.backend)
-    link = MavlinkLink(config.link, recorder=TlogWriter(record) if record else None)
+    link = MavlinkLink(
+        config.link,
+        recorder=TlogWriter(record) if record else None,
+        linear_inputs=config.data.input_hold == "linear",
+    )
     view = _view_sink(config, args, name, session, link)
     if view is not None:
         session.add_sink(view)
@@ -317,8 +321,9 @@ def cmd_listen(args: argparse.Namespace) -> int:
         if args.record
         else Path(args.out) / (time.strftime("live_%Y%m%d_%H%M%S") + ".tlog")
     )
-    session, link = _link_session(config, args, record.stem, record)
+    # Bound before anything is opened for writing: a busy port leaves a recording as it was.
     sock = open_udp(host or "0.0.0.0", int(port))
+    session, link = _link_session(config, args, record.stem, record)
     bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
     print(
         f"listening on udp {host or '0.0.0.0'}:{bound}, recording to {record} (Ctrl-C to stop)",

@@ -331,6 +331,13 @@ class FilterTuning:
         1.0, ge=0, doc="keep the iterations only if they move some component this many sigmas"
     )
     max_step_s: float = setting(0.02, gt=0, unit="s", doc="longest Runge-Kutta prediction step")
+    max_gap_s: float = setting(
+        2.0,
+        gt=0,
+        unit="s",
+        doc="longest prediction; after a longer gap the flight states start afresh "
+        "(the coefficients are kept)",
+    )
     restart_times_s: tuple[float, ...] = setting(
         (5.0, 10.0), ge=0, unit="s", doc="re-run all frames so far from the start at these times"
     )
@@ -474,7 +481,15 @@ class LinkConfig:
         "temperature (its temperature field is the sensor's own); false: the airframe's",
     )
     frame_window_s: float = setting(0.005, gt=0, unit="s", doc="samples this close form one frame")
-    max_wait_s: float = setting(0.2, gt=0, unit="s", doc="a partial frame waits at most this long")
+    reorder_window_s: float = setting(
+        0.2,
+        gt=0,
+        unit="s",
+        doc="a frame missing a channel waits until the vehicle's clock is this far past it",
+    )
+    max_vehicles: int = setting(
+        16, ge=1, doc="system ids estimated per session; packets of more are counted only"
+    )
     rates_hz: tuple[float, ...] = setting(
         (50.0,) * 6, keys=STREAMED_MESSAGES, fill=50.0, ge=0, unit="Hz", doc="SET_MESSAGE_INTERVAL"
     )

@@ -167,6 +167,10 @@ class EstimatorResult(NamedTuple):
     warm_start_samples: tuple[int, int, int] | None = None
     """Frames the warm start fitted per axis (CD, CL, Cm), of `warm_start_frames`."""
     warm_start_frames: int = 0
+    gaps: int = 0
+    """Frames after which the flight states started afresh (filter.max_gap_s)."""
+    frames_out_of_order: int = 0
+    """Frames skipped because they were not after the previous one."""
 
 
 class _Start(NamedTuple):
@@ -200,8 +204,14 @@ class Estimator:
         self.warm_start: FloatArray | None = None
         self._warm_samples: tuple[int, int, int] | None = None
         self._warm_frames = 0
-        self._buffer: list[tuple[float, FloatArray, FloatArray]] = []
+        self._buffer: list[tuple[float, FloatArray, FloatArray, bool]] = []
         self._t0 = math.nan
+        self._t_last = -math.inf
+        self.gaps = 0
+        """Frames after more than filter.max_gap_s without one: the flight states
+        started afresh there."""
+        self.out_of_order = 0
+        """Frames at or before the previous frame's time: skipped."""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -211,8 +221,29 @@ class Estimator:
     def restarts_pending(self) -> bool:
         return self.restarts_done < len(self.config.filter.restart_times_s)
 
-    def step(self, t: float, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+    def admit(self, t: float, y: FloatArray) -> bool:
+        """Whether a frame at vehicle time t can be processed next. A frame not after the
+        last one is skipped; one after a gap longer than filter.max_gap_s rebases the
+        flight states there, so no prediction spans more than max_gap_s (a far-future
+        time never makes the filters integrate for hours)."""
+        if not t > self._t_last:
+            self.out_of_order += 1
+            return False
+        if self.frames and t - self._t_last > self.config.filter.max_gap_s:
+            self.gaps += 1
+            self.rebase(t, y)
+        return True
+
+    def step(
+        self, t: float, u: FloatArray, y: FloatArray, inputs_known: bool = True
+    ) -> dict[FilterKind, StepOutput]:
         """Advance both filters to vehicle time t [s] with inputs u and observations y.
+
+        inputs_known=False: the input of this frame (or of the one before) is a guess (its
+        sample was lost while the input changed). The state predicted with it is not
+        trusted: the flight states start again from this frame's measurements, the
+        coefficients and their uncertainty are kept, and the observations are not used
+        for an update (they already gave the flight states).
 
         At each configured restart time both filters re-run the buffered frames from the
         start; the outputs returned are then those of the re-run's last frame, and the
@@ -220,11 +251,12 @@ class Estimator:
         """
         if self.frames == 0:
             self._t0 = t
+        self._t_last = t
         u = self.model.inputs(u)
         y = np.array(y, float)
         if self.restarts_pending:
-            self._buffer.append((t, u, y))
-        outs = self._advance(t, u, y)
+            self._buffer.append((t, u, y, inputs_known))
+        outs = self._advance(t, u, y, inputs_known)
         self.frames += 1
         if self.keep_history:
             for kind, out in outs.items():
@@ -237,15 +269,20 @@ class Estimator:
                     self.histories[kind].out[-1] = out
         return outs
 
-    def _advance(self, t: float, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+    def _advance(
+        self, t: float, u: FloatArray, y: FloatArray, inputs_known: bool = True
+    ) -> dict[FilterKind, StepOutput]:
         outs: dict[FilterKind, StepOutput] = {}
+        y_used = y if inputs_known else np.full_like(y, np.nan)
         for kind in FILTER_KINDS:
             tuning = self.tunings[kind]
             state = self.states[kind]
             if state is None:
                 start = self._starts[kind]
                 state = core.initial_state(self.model, tuning, t, u, y, *start)
-            state, info = self._step(state, t, u, y, tuning, self.model)
+            elif not inputs_known:
+                state = core.rebase(state, self.model, tuning, t, y)
+            state, info = self._step(state, t, u, y_used, tuning, self.model)
             self.states[kind] = state
             self.health[kind].count(info)
             outs[kind] = StepOutput(state.x, info)
@@ -254,6 +291,7 @@ class Estimator:
     def rebase(self, t: float, y: FloatArray) -> None:
         """The vehicle clock restarted: continue the coefficient estimates on a new time
         base. Restarts still pending are dropped (their frames span two time bases)."""
+        self._t_last = -math.inf
         for kind, state in self.states.items():
             if state is not None:
                 self.states[kind] = core.rebase(state, self.model, self.tunings[kind], t, y)
@@ -268,7 +306,7 @@ class Estimator:
         if self.restarts_done == 0 and tuning.warm_start == "equation-error":
             from gcs_estimator.warmstart import equation_error
 
-            t_b, u_b, y_b = (np.array(col) for col in zip(*self._buffer, strict=True))
+            t_b, u_b, y_b, _ = (np.array(col) for col in zip(*self._buffer, strict=True))
             ws = equation_error(
                 self.model,
                 t_b,
@@ -306,8 +344,8 @@ class Estimator:
             )
             self.states[kind] = None
         outs: dict[FilterKind, StepOutput] = {}
-        for t, u, y in self._buffer:
-            outs = self._advance(t, u, y)
+        for t, u, y, known in self._buffer:
+            outs = self._advance(t, u, y, known)
         self.restarts_done += 1
         if not self.restarts_pending:
             self._buffer = []
@@ -355,6 +393,8 @@ class Estimator:
             self.model.bias_names,
             self._warm_samples,
             self._warm_frames,
+            self.gaps,
+            self.out_of_order,
         )
 
 

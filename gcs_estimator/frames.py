@@ -23,3 +23,6 @@ class Frame:
     """Observations [7] (model.channels), NaN where the channel is missing."""
     clock_reset: bool = False
     """First frame after the vehicle clock went back (the filters rebase their time)."""
+    inputs_known: bool = True
+    """False when an input sample of this frame was lost while the input changed: its
+    value is a guess, and so is the state predicted with it."""

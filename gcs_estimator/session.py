@@ -141,7 +141,9 @@ class Session:
         est = self.estimator(frame.system_id)
         if frame.clock_reset:
             est.rebase(frame.t_vehicle_s, frame.y)
-        outs = est.step(frame.t_vehicle_s, frame.inputs, frame.y)
+        if not est.admit(frame.t_vehicle_s, frame.y):
+            return {}
+        outs = est.step(frame.t_vehicle_s, frame.inputs, frame.y, frame.inputs_known)
         for sink in self.sinks:
             sink.on_frame(frame, outs)
         return outs

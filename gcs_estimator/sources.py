@@ -26,6 +26,8 @@ RCVBUF_BYTES = 8 * 1024 * 1024
 
 POLL_S = 0.02
 """Longest wait for a datagram before the sinks get an idle tick [s]."""
+SLEEP_SLICE_S = 0.05
+"""A paced replay sleeps in slices this long, checking for a stop request between them."""
 
 
 class SourceError(RuntimeError):
@@ -70,10 +72,10 @@ class UdpSource:
             if ready:
                 yield from self._drain()
             now = time.time()
-            yield from self.link.poll(now)
             if now - last_ground >= 1.0:
                 last_ground = now
                 self._send_ground(now)
+                self.link.flush_recording()
             yield None
         yield from self.link.flush()
 
@@ -125,6 +127,8 @@ class TlogSource:
         self.log = sys.stderr if log is None else log
         self.done = 0
         self.total = 0
+        self.errors: list[str] = []
+        """Files that could not be replayed (the others' frames are processed)."""
 
     def _records(self, path: Path) -> list[TlogRecord]:
         stats = TlogStats()
@@ -146,7 +150,12 @@ class TlogSource:
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         t0_rec = t0_wall = None
         for path in self.paths:
-            records = self._records(path)
+            try:
+                records = self._records(path)
+            except SourceError as exc:
+                self.errors.append(str(exc))
+                print(f"error: {exc}; skipped", file=self.log)
+                continue
             self.done, self.total = 0, len(records)
             for rec in records:
                 if stop.requested:
@@ -155,12 +164,21 @@ class TlogSource:
                 if self.speed > 0:
                     if t0_rec is None or t0_wall is None:
                         t0_rec, t0_wall = t, time.time()
-                    delay = (t - t0_rec) / self.speed - (time.time() - t0_wall)
-                    if delay > 0:
-                        time.sleep(delay)
+                    yield from self._wait((t - t0_rec) / self.speed + t0_wall, stop)
                 self.done += 1
                 yield from self.link.packet(rec.packet, t)
         yield from self.link.flush()
+
+    @staticmethod
+    def _wait(until: float, stop: Stop) -> Iterator[None]:
+        """Sleep until the wall-clock time `until`, in slices, ticking the sinks and
+        giving up as soon as a stop is requested."""
+        while not stop.requested:
+            left = until - time.time()
+            if left <= 0:
+                return
+            time.sleep(min(left, SLEEP_SLICE_S))
+            yield None
 
     def progress(self) -> tuple[int, int]:
         """(packets done, packets in the current file)."""

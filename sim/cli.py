@@ -13,7 +13,7 @@ import numpy as np
 from gcs_estimator.config import ConfigError, load_config
 from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
 from sim.truth import simulate
-from sim.vehicle import SimulatedVehicle
+from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
 
 
 def _target(text: str) -> tuple[str, int]:
@@ -30,6 +30,7 @@ def command(
     overrides: Sequence[str] = (),
     vehicles: int = 1,
     seed: int | None = None,
+    boot_s: float | None = None,
 ) -> list[str]:
     """The command line that runs the simulated vehicle(s) as a process of their own with
     this Python, streaming to target HOST:PORT."""
@@ -39,6 +40,8 @@ def command(
         cmd += ["--set", item]
     if seed is not None:
         cmd += ["--seed", str(seed)]
+    if boot_s is not None:
+        cmd += ["--boot-s", str(boot_s)]
     return cmd
 
 
@@ -66,6 +69,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="vehicle k>1 flies true coefficients scaled by 1 +- PERTURB",
+    )
+    ap.add_argument(
+        "--boot-s",
+        type=float,
+        default=BOOT_OFFSET_S,
+        help="the vehicle's uptime when the flight starts (default %(default)s s; past 4295 s "
+        "its 32-bit servo clock has wrapped)",
     )
     ap.add_argument("--tlog", default=None, help="write each vehicle's own .tlog (prefix)")
     ap.add_argument(
@@ -108,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.target,
             system_id=k + 1,
             speed=args.speed,
+            boot_s=args.boot_s,
             tlog=Path(f"{args.tlog}_{k + 1}.tlog") if args.tlog else None,
         )
         for k, rec in enumerate(recs)

@@ -45,6 +45,9 @@ class SimulatedVehicle:
     speed: float = 1.0
     """Multiple of real time; 0 = as fast as possible."""
     tlog: Path | None = None
+    boot_s: float = BOOT_OFFSET_S
+    """How long the vehicle has been up when the flight starts [s] (its clock's origin);
+    beyond 4,295 s its 32-bit SERVO_OUTPUT_RAW.time_usec has wrapped."""
     stats: VehicleStats = field(default_factory=VehicleStats)
     rates: dict[str, float] = field(default_factory=dict)
 
@@ -107,8 +110,9 @@ class SimulatedVehicle:
                 break
             self._pace(t - t_first, start_wall)
             self._serve()
-            tv = t - t_first + BOOT_OFFSET_S
-            us, ms = int(round(tv * 1e6)), int(round(tv * 1e3))
+            tv = t - t_first + self.boot_s
+            # time_boot_ms is 32-bit (wraps after 49.7 days), servo time_usec too (71.6 min).
+            us, ms = int(round(tv * 1e6)), int(round(tv * 1e3)) & 0xFFFFFFFF
             if t >= next_hb - 1e-9:
                 next_hb += 1.0
                 self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))

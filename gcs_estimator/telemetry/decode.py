@@ -15,7 +15,13 @@ from gcs_estimator import atmosphere
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.telemetry import pwm
-from gcs_estimator.telemetry.mavlink import MAV_TYPE_GCS, Decoder, MAVLinkMessage
+from gcs_estimator.telemetry.mavlink import (
+    MAV_TYPE_FIXED_WING,
+    MAV_TYPE_GCS,
+    Decoder,
+    MAVLinkMessage,
+    header,
+)
 
 PLAUSIBLE: dict[Channel, tuple[float, float]] = {
     Channel.V: (0.5, 400.0),
@@ -43,6 +49,8 @@ class Sample:
     t_recv_s: float
     """Ground receive time [s since the Unix epoch]."""
     values: tuple[tuple[Channel, float], ...]
+    wrap_s: float | None = None
+    """Where the time field wraps [s] (a 32-bit field), None for 64-bit ones."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +58,8 @@ class Heartbeat:
     """A HEARTBEAT: presence of a vehicle (or of another ground station)."""
 
     ground_station: bool
+    mav_type: int = MAV_TYPE_FIXED_WING
+    """What the sender says it is (MAV_TYPE)."""
 
 
 @dataclass(frozen=True)
@@ -98,18 +108,40 @@ def decode_packet(
     msg = decoder.decode(packet)
     if msg is None:
         return None
+    return decoded_message(msg, packet, t_recv_s, link, stats)
+
+
+def decoded_message(
+    msg: MAVLinkMessage, packet: bytes, t_recv_s: float, link: LinkConfig, stats: DecodeStats
+) -> Decoded:
+    """What a packet that decoded means."""
     kind = msg.get_type()
     event: Event
     if kind.startswith("UNKNOWN"):
-        event = Unknown(kind)
-    elif kind == "HEARTBEAT":
-        event = Heartbeat(int(msg.type) == MAV_TYPE_GCS)
+        # pymavlink gives an unknown message no header; the packet has one.
+        seq, sysid, compid = header(packet)
+        return Decoded(sysid, compid, seq, Unknown(kind))
+    if kind == "HEARTBEAT":
+        event = Heartbeat(int(msg.type) == MAV_TYPE_GCS, int(msg.type))
     elif kind == "COMMAND_ACK":
         event = CommandAck(int(msg.command), int(msg.result))
     else:
         sample = decode_message(msg, t_recv_s, link, stats)
         event = Ignored() if sample is None else sample
     return Decoded(int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq()), event)
+
+
+WRAP_US32_S = 2**32 * 1e-6
+"""A 32-bit time_usec wraps after 71.6 minutes [s]."""
+WRAP_MS32_S = 2**32 * 1e-3
+"""A 32-bit time_boot_ms wraps after 49.7 days [s]."""
+TIME_WRAP_S: dict[str, float] = {
+    "SERVO_OUTPUT_RAW": WRAP_US32_S,
+    "ATTITUDE": WRAP_MS32_S,
+    "SCALED_PRESSURE": WRAP_MS32_S,
+    "NAMED_VALUE_FLOAT": WRAP_MS32_S,
+}
+"""Messages whose vehicle time is a 32-bit field (HIGHRES_IMU and AOA_SSA have 64 bits)."""
 
 
 def _values(
@@ -167,4 +199,4 @@ def decode_message(
             stats.invalid_values += 1
     if not good:
         return None
-    return Sample(int(msg.get_srcSystem()), kind, t, t_recv_s, tuple(good))
+    return Sample(int(msg.get_srcSystem()), kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind))

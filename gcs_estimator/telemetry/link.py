@@ -18,18 +18,24 @@ from typing import Any, TextIO
 from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry.counters import LinkHealth
 from gcs_estimator.telemetry.decode import (
     CommandAck,
     DecodeStats,
     Heartbeat,
     Sample,
     Unknown,
-    decode_packet,
+    decoded_message,
 )
 from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
-from gcs_estimator.telemetry.sync import LinkHealth, Synchronizer
+from gcs_estimator.telemetry.sync import Synchronizer
 
 Address = tuple[str, int]
+
+FIXED_WING_TYPES = frozenset(
+    {mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_TYPE_GENERIC, *mavlink.MAV_TYPE_VTOL}
+)
+"""HEARTBEAT types the model fits (VTOLs fly as fixed wings in forward flight)."""
 
 RATE_REQUEST_EVERY_S = 5.0
 """Until a vehicle acknowledges the rates asked for, ask again this often [s]."""
@@ -47,20 +53,36 @@ class VehicleLink:
     last_rate_request: float = -math.inf
 
 
+def link_name(address: Address | None) -> str:
+    """The name a link's counters go under: the peer's address, or "recording"."""
+    return "recording" if address is None else f"{address[0]}:{address[1]}"
+
+
+COUNTER_TIME_WRAP_S = 86_400.0
+"""Vehicle times that wrap sooner than this (32-bit microseconds) do not go to the
+sequence counters; time_boot_ms (49.7 days) does."""
+
+
 class MavlinkLink:
     """Decoder, link health and vehicles of one session."""
 
     def __init__(
-        self, config: LinkConfig, recorder: TlogWriter | None = None, log: TextIO | None = None
+        self,
+        config: LinkConfig,
+        recorder: TlogWriter | None = None,
+        log: TextIO | None = None,
+        linear_inputs: bool = True,
     ) -> None:
         self.config = config
         self.recorder = recorder
         self.log = sys.stderr if log is None else log
+        self.linear_inputs = linear_inputs
         self.decoder = mavlink.Decoder()
         self.health = LinkHealth()
         self.decode_stats = DecodeStats()
         self.vehicles: dict[int, VehicleLink] = {}
-        self.unknown_messages = 0
+        self.refused_vehicles: dict[int, int] = {}
+        """Packets per system id beyond the vehicle cap (counted, not estimated)."""
         self.t_first_recv = math.nan
         self.t_last_recv = math.nan
         self._reported: set[str] = set()
@@ -71,88 +93,137 @@ class MavlinkLink:
             self._reported.add(key)
             print(f"note: {text}", file=self.log)
 
-    def vehicle(self, system_id: int) -> VehicleLink:
+    def vehicle(self, system_id: int) -> VehicleLink | None:
+        """The vehicle of a system id, new at first contact; None beyond the cap."""
         v = self.vehicles.get(system_id)
-        if v is None:
-            if self.vehicles:
-                self.report_once(
-                    f"vehicle-{system_id}",
-                    f"another vehicle on the link: system id {system_id} (estimated separately)",
-                )
-            v = self.vehicles[system_id] = VehicleLink(
-                system_id, Synchronizer(system_id, self.config)
+        if v is not None:
+            return v
+        if len(self.vehicles) >= self.config.max_vehicles:
+            self.refused_vehicles[system_id] = self.refused_vehicles.get(system_id, 0) + 1
+            self.report_once(
+                f"cap-{system_id}",
+                f"system id {system_id} not estimated: already {len(self.vehicles)} vehicles "
+                "(link.max_vehicles); its packets are counted",
             )
+            return None
+        if self.vehicles:
+            self.report_once(
+                f"vehicle-{system_id}",
+                f"another vehicle on the link: system id {system_id} (estimated separately)",
+            )
+        sync = Synchronizer(system_id, self.config, self.linear_inputs)
+        v = self.vehicles[system_id] = VehicleLink(system_id, sync)
         return v
 
     def datagram(
         self, data: bytes, t_recv_s: float, address: Address | None = None
     ) -> Iterator[Frame]:
-        """Frames completed by one received datagram (one or more packets)."""
-        packets, junk = mavlink.split_packets(data)
-        if junk:
-            self.health.junk_bytes += junk
-            self.health.corrupt += 1
-            self.report_once("junk", "bytes that are no MAVLink packet: skipped")
-        for pkt in packets:
-            yield from self.packet(pkt, t_recv_s, address)
+        """Frames completed by one received datagram (one or more packets, found by
+        mavlink.scan; each run of junk between them counts as one corrupt packet)."""
+        name = link_name(address)
+        for item in mavlink.scan(data, self.decoder):
+            if isinstance(item, int):
+                self._junk(name, item)
+            else:
+                yield from self._decoded(item[0], item[1], t_recv_s, address)
+
+    def _junk(self, name: str, n_bytes: int) -> None:
+        counts = self.health.counts(name)
+        counts.junk_bytes += n_bytes
+        counts.corrupt += 1
+        self.report_once("corrupt", "corrupt packet(s) or junk bytes (CRC or framing): skipped")
 
     def packet(
         self, packet: bytes, t_recv_s: float, address: Address | None = None
     ) -> Iterator[Frame]:
-        """Record, decode and synchronise one packet received at t_recv_s [s since epoch];
-        yields the frames it completes (and partial ones that waited long enough)."""
+        """Record, decode and synchronise one packet received at t_recv_s [s since epoch]
+        (a tlog record); yields the frames it lets go."""
+        msg = self.decoder.decode(packet)
+        if msg is None:
+            if self.recorder is not None:
+                self.recorder.write(int(round(t_recv_s * 1e6)), packet)
+            self._junk(link_name(address), len(packet))
+            return
+        yield from self._decoded(packet, msg, t_recv_s, address)
+
+    def _decoded(
+        self, packet: bytes, msg: object, t_recv_s: float, address: Address | None
+    ) -> Iterator[Frame]:
         if self.recorder is not None:
             self.recorder.write(int(round(t_recv_s * 1e6)), packet)
         if math.isnan(self.t_first_recv):
             self.t_first_recv = t_recv_s
         self.t_last_recv = t_recv_s
-        yield from self.poll(t_recv_s)
-        decoded = decode_packet(self.decoder, packet, t_recv_s, self.config, self.decode_stats)
-        if decoded is None:
-            self.health.corrupt += 1
-            self.report_once("corrupt", "corrupt packet(s) (CRC or framing): counted, skipped")
-            return
+        decoded = decoded_message(msg, packet, t_recv_s, self.config, self.decode_stats)
+        event = decoded.event
+        name = link_name(address)
+        t_vehicle = None
+        if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
+            t_vehicle = event.t_vehicle_s
         sysid = decoded.system_id
-        if not self.health.on_packet(sysid, decoded.component_id, decoded.seq):
-            self.report_once("dup", "duplicated packet(s): counted, dropped")
+        if not self.health.on_packet(
+            name, sysid, decoded.component_id, decoded.seq, packet, t_vehicle
+        ):
+            self.report_once(
+                "dup", "copies of packets, or packets long behind the vehicle's time: dropped"
+            )
             return
-        yield from self._event(sysid, decoded.event, address)
+        yield from self._event(sysid, event, address, name)
 
-    def _event(self, sysid: int, event: object, address: Address | None) -> Iterator[Frame]:
+    def _event(
+        self, sysid: int, event: object, address: Address | None, name: str
+    ) -> Iterator[Frame]:
         if isinstance(event, Unknown):
-            self.unknown_messages += 1
+            self.health.counts(name).unknown += 1
             self.report_once("unknown", f"message unknown to the dialect ({event.name}): skipped")
         elif isinstance(event, Heartbeat):
             if not event.ground_station:
-                self._seen(sysid, address)
+                self._heartbeat(sysid, event, address)
         elif isinstance(event, CommandAck):
             if event.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and sysid in self.vehicles:
                 self.vehicles[sysid].acked.add(event.result)
         elif isinstance(event, Sample) and sysid != mavlink.GCS_SYSTEM_ID:
-            yield from self._sample(self._seen(sysid, address), event)
+            v = self._seen(sysid, address)
+            if v is not None:
+                yield from self._sample(v, event)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
 
-    def _seen(self, sysid: int, address: Address | None) -> VehicleLink:
+    def _heartbeat(self, sysid: int, event: Heartbeat, address: Address | None) -> None:
+        if self._seen(sysid, address) is None:
+            return
+        if event.mav_type not in FIXED_WING_TYPES:
+            kind = mavlink.MAV_TYPE_NAMES.get(event.mav_type, str(event.mav_type))
+            self.report_once(
+                f"type-{sysid}",
+                f"system id {sysid} says it is {kind} (HEARTBEAT type); the estimator's model "
+                "is a fixed-wing aircraft's longitudinal motion: check the numbers it gives",
+            )
+
+    def _seen(self, sysid: int, address: Address | None) -> VehicleLink | None:
         v = self.vehicle(sysid)
-        if address is not None:
+        if v is not None and address is not None:
             v.address = address
         return v
 
     def _sample(self, v: VehicleLink, sample: Sample) -> Iterator[Frame]:
         yield from v.sync.add(sample)
         if v.sync.stats.late_samples:
-            self.report_once("late", "sample(s) older than the last frame: counted, dropped")
-
-    def poll(self, t_recv_s: float) -> Iterator[Frame]:
-        """Partial frames that have waited long enough (receive time)."""
-        for v in self.vehicles.values():
-            yield from v.sync.poll(t_recv_s)
+            self.report_once("late", "sample(s) for a frame already processed: counted, dropped")
+        if v.sync.stats.implausible_times:
+            self.report_once(
+                "time", "sample(s) with a vehicle time no later sample confirmed: dropped"
+            )
 
     def flush(self) -> Iterator[Frame]:
         """End of stream: whatever is open."""
         for v in self.vehicles.values():
-            yield from v.sync.flush()
+            yield from v.sync.finish()
+
+    def flush_recording(self) -> None:
+        """Write what was recorded through to the file (the link may go quiet)."""
+        if self.recorder is not None:
+            self.recorder.flush()
 
     def close(self) -> None:
         if self.recorder is not None:
@@ -183,17 +254,9 @@ class MavlinkLink:
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = dict(self.health.as_dict())
-        out["unknown_messages"] = self.unknown_messages
         out["invalid_values"] = self.decode_stats.invalid_values
         out["ignored_messages"] = self.decode_stats.ignored_messages
-        out["vehicles"] = {
-            str(v.system_id): {
-                "frames": v.sync.stats.frames,
-                "partial_frames": v.sync.stats.partial_frames,
-                "late_samples": v.sync.stats.late_samples,
-                "clock_resets": v.sync.stats.clock_resets,
-                "frames_before_inputs": v.sync.stats.waiting_for_inputs,
-            }
-            for v in self.vehicles.values()
-        }
+        if self.refused_vehicles:
+            out["refused_vehicles"] = {str(k): n for k, n in self.refused_vehicles.items()}
+        out["vehicles"] = {str(v.system_id): v.sync.stats.as_dict() for v in self.vehicles.values()}
         return out

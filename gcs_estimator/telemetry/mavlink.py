@@ -9,6 +9,7 @@ followed by one raw MAVLink packet.
 from __future__ import annotations
 
 import struct
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +37,13 @@ MSG_ID = {
 MESSAGE_NAME = {v: k for k, v in MSG_ID.items()}
 MAV_TYPE_FIXED_WING = dialect.MAV_TYPE_FIXED_WING
 MAV_TYPE_GCS = dialect.MAV_TYPE_GCS
+MAV_TYPE_GENERIC = dialect.MAV_TYPE_GENERIC
+MAV_TYPE_VTOL = tuple(
+    v for k, v in vars(dialect).items() if k.startswith("MAV_TYPE_VTOL") and isinstance(v, int)
+)
+MAV_TYPE_NAMES: dict[int, str] = {
+    k: v.name for k, v in dialect.enums["MAV_TYPE"].items() if isinstance(k, int)
+}
 MAV_CMD_SET_MESSAGE_INTERVAL = dialect.MAV_CMD_SET_MESSAGE_INTERVAL
 MAV_RESULT_ACCEPTED = dialect.MAV_RESULT_ACCEPTED
 MAV_RESULT_DENIED = dialect.MAV_RESULT_DENIED
@@ -118,23 +126,42 @@ def packet_length(buf: bytes | bytearray, start: int = 0) -> int:
     return 0
 
 
-def split_packets(datagram: bytes) -> tuple[list[bytes], int]:
-    """Split a datagram into packets by their headers; returns (packets, junk bytes)."""
-    packets: list[bytes] = []
-    i = junk = 0
-    while i < len(datagram):
-        n = packet_length(datagram, i)
-        if n == 0 or i + n > len(datagram):
-            # Resynchronise on the next start marker.
-            j = i + 1
-            while j < len(datagram) and datagram[j] not in (STX_V1, STX_V2):
-                j += 1
-            junk += j - i
-            i = j
-            continue
-        packets.append(datagram[i : i + n])
-        i += n
-    return packets, junk
+MAX_PAYLOAD: dict[int, int] = {k: v.unpacker.size for k, v in dialect.mavlink_map.items()}
+"""Longest payload of each known message id [bytes] (MAVLink 2 trims trailing zeros)."""
+
+
+def could_be_packet(buf: bytes | bytearray, i: int) -> bool:
+    """Cheap header checks before a candidate's CRC is computed: MAVLink 2's only
+    incompatibility flag is signing, and a known message's payload has at most its full
+    length (at least one byte)."""
+    if buf[i] == STX_V2:
+        if buf[i + 2] & ~SIGNED_FLAG:
+            return False
+        msgid = buf[i + 7] | buf[i + 8] << 8 | buf[i + 9] << 16
+    else:
+        msgid = buf[i + 5]
+    longest = MAX_PAYLOAD.get(msgid)
+    return longest is None or 0 < buf[i + 1] <= longest
+
+
+def header(packet: bytes) -> tuple[int, int, int]:
+    """(sequence, system id, component id) from a packet's header."""
+    if packet[0] == STX_V2:
+        return packet[4], packet[5], packet[6]
+    return packet[2], packet[3], packet[4]
+
+
+def is_unknown(msg: MAVLinkMessage) -> bool:
+    """A message the dialect does not know: framed, but its checksum cannot be checked."""
+    return str(msg.get_type()).startswith("UNKNOWN")
+
+
+def next_marker(buf: bytes | bytearray, start: int) -> int:
+    """Index of the first start marker at or after start (len(buf) if none)."""
+    v2 = buf.find(STX_V2, start)
+    v1 = buf.find(STX_V1, start)
+    found = [i for i in (v1, v2) if i >= 0]
+    return min(found) if found else len(buf)
 
 
 class Decoder:
@@ -151,6 +178,61 @@ class Decoder:
         if msg is None or msg.get_type() == "BAD_DATA":
             return None
         return msg
+
+
+def scan(data: bytes, decoder: Decoder) -> Iterator[tuple[bytes, MAVLinkMessage] | int]:
+    """The packets in a buffer that pass their CRC, with the length of each run of bytes
+    between them that does not (an int). Where a candidate fails, the search goes on from
+    the next start marker, so junk (even junk full of start markers) never costs a valid
+    packet after it. A message the dialect does not know cannot be checked: it is taken
+    only where no valid packet starts inside it and a valid one or the end follows it."""
+    i = run = 0
+    n = len(data)
+    while i < n:
+        size = packet_length(data, i)
+        if size and i + size <= n and could_be_packet(data, i):
+            pkt = data[i : i + size]
+            msg = decoder.decode(pkt)
+            if msg is not None and _framed(data, i, size, msg, decoder):
+                if run:
+                    yield run
+                    run = 0
+                yield pkt, msg
+                i += size
+                continue
+        j = next_marker(data, i + 1)
+        run += j - i
+        i = j
+    if run:
+        yield run
+
+
+def _known_at(data: bytes, i: int, decoder: Decoder) -> bool:
+    size = packet_length(data, i)
+    if not size or i + size > len(data) or not could_be_packet(data, i):
+        return False
+    msg = decoder.decode(data[i : i + size])
+    return msg is not None and not is_unknown(msg)
+
+
+def _framed(data: bytes, i: int, size: int, msg: MAVLinkMessage, decoder: Decoder) -> bool:
+    """Whether a candidate that decoded is a packet of its own. A packet cut short just
+    before a packet that starts with the byte its CRC lacked decodes too: the packet
+    that starts at its last byte wins."""
+    if is_unknown(msg):
+        return _unknown_framed(data, i, size, decoder)
+    last = i + size - 1
+    return data[last] not in (STX_V1, STX_V2) or not _known_at(data, last, decoder)
+
+
+def _unknown_framed(data: bytes, i: int, size: int, decoder: Decoder) -> bool:
+    end = i + size
+    k = next_marker(data, i + 1)
+    while k < end:
+        if _known_at(data, k, decoder):
+            return False
+        k = next_marker(data, k + 1)
+    return end == len(data) or _known_at(data, end, decoder)
 
 
 # ------------------------------------------------------------------------------ tlog
@@ -172,18 +254,28 @@ def tlog_record(t_recv_us: int, packet: bytes) -> bytes:
     return struct.pack(">Q", t_recv_us) + packet
 
 
+TLOG_FLUSH_S = 1.0
+"""A recording reaches the file at least this often [s]: a killed process loses at most
+the last second."""
+
+
 class TlogWriter:
-    """Appends records; flushed on close (and by the caller at will)."""
+    """Appends records; written through to the file every TLOG_FLUSH_S and on close."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - owned until close()
         self.records = 0
+        self._flushed = time.monotonic()
 
     def write(self, t_recv_us: int, packet: bytes) -> None:
         self._fh.write(tlog_record(t_recv_us, packet))
         self.records += 1
+        now = time.monotonic()
+        if now - self._flushed >= TLOG_FLUSH_S:
+            self._flushed = now
+            self._fh.flush()
 
     def flush(self) -> None:
         self._fh.flush()
@@ -200,18 +292,27 @@ class TlogStats:
     truncated_tail: bool = False
 
 
-RESYNC_WINDOW_US = 86_400_000_000
-"""After garbage, a candidate record's time must lie within a day of the last good one."""
+FORWARD_US = 86_400_000_000
+"""A record's time lies within a day after the last good record's ..."""
+BACK_US = 60_000_000
+"""... and at most a minute before it."""
 
 
-def _plausible_record(data: bytes, i: int, n: int, t_us: int, last_t: int | None) -> bool:
-    """Whether a record found while resynchronising is real: any 0xFD or 0xFE byte looks
-    like a packet start (timestamps hold them too), so its time must follow the last
-    good record's and the next record, if any, must start where this one ends."""
-    if last_t is not None and abs(t_us - last_t) > RESYNC_WINDOW_US:
+def _plausible_record(
+    data: bytes, i: int, n: int, t_us: int, last_t: int | None, checked: bool, decoder: Decoder
+) -> bool:
+    """Whether a record is real. Any 0xFD or 0xFE byte looks like a packet start
+    (timestamps and payloads hold them too), so its time must follow the last good
+    record's; then a record is taken if the next record's header starts where it ends,
+    and otherwise, or after garbage (checked), only if its packet passes its CRC."""
+    if last_t is not None and not last_t - BACK_US <= t_us <= last_t + FORWARD_US:
         return False
     end = i + 8 + n
-    return end == len(data) or packet_length(data, end + 8) > 0
+    framed = end == len(data) or packet_length(data, end + 8) > 0
+    if framed and not checked:
+        return True
+    msg = decoder.decode(data[i + 8 : end])
+    return msg is not None and (framed or not is_unknown(msg))
 
 
 def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
@@ -221,6 +322,7 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
     """
     data = Path(path).read_bytes()
     st = stats if stats is not None else TlogStats()
+    decoder = Decoder()
     i = 0
     first = True
     resyncing = False
@@ -229,7 +331,7 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
         n = packet_length(data, i + 8)
         if n and i + 8 + n <= len(data):
             (t_us,) = struct.unpack_from(">Q", data, i)
-            if not resyncing or _plausible_record(data, i, n, t_us, last_t):
+            if _plausible_record(data, i, n, t_us, last_t, resyncing, decoder):
                 first = resyncing = False
                 last_t = t_us
                 st.records += 1

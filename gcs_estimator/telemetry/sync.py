@@ -1,16 +1,32 @@
-"""Synchronise samples into frames by vehicle time, and count link health.
+"""Synchronise one vehicle's samples into frames by the vehicle's own clock.
 
-A frame gathers the samples whose vehicle times lie within the frame window. It is
-processed as soon as it holds every observation channel, else when a later sample opens
-the next frame, else when it has waited `max_wait_s` in receive time: a lost packet
-never stalls the filter. Inputs are held between samples. Waiting is measured in receive
-time, never wall-clock time, so that a replay of the recorded packets makes the same
-frames as the live run did.
+Every timed observation joins the frame its vehicle time belongs to (samples within
+`frame_window_s` of each other form one frame), however late it arrives, as long as that
+frame is still open. Inputs are not part of a frame: each input sample keeps its own
+time, and a frame's inputs are the input streams interpolated at the frame's time (or the
+earlier sample held, `data.input_hold = "previous"`). So a lost, late or duplicated
+input sample changes no other frame than the one it belonged to, and a lost observation
+leaves its channel missing in its own frame and nothing else.
+
+Frames leave in time order: a frame goes as soon as it holds every channel the vehicle
+streams and its inputs are known at its time, else once the vehicle's clock (from any
+later sample) is `reorder_window_s` past it. Nothing here reads a wall clock: a stall of
+the ground station, or a replay at any speed, makes the same frames.
+
+The vehicle clock itself is checked:
+- 32-bit time fields (SERVO_OUTPUT_RAW.time_usec wraps after 71.6 minutes, every
+  time_boot_ms after 49.7 days) are unwrapped against the vehicle's other clocks;
+- a sample more than JUMP_S ahead of the newest time, or more than CLOCK_RESET_S behind,
+  is held until CONFIRM_SAMPLES samples agree on the new time base (a reboot, or a real
+  gap in the data); a single packet with an absurd time never moves the frames. Samples
+  no later sample confirmed are dropped and counted.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,24 +38,131 @@ from gcs_estimator.model.channels import N_INPUTS, N_OBS, REQUIRED_INPUTS, Chann
 from gcs_estimator.telemetry.decode import Sample
 
 CLOCK_RESET_S = 1.0
-"""A vehicle time this far behind the last frame is a clock reset (reboot), not lateness."""
+"""A vehicle time this far behind the newest is a clock reset (reboot) once confirmed."""
+JUMP_S = 1.0
+"""A vehicle time this far ahead of the newest is a gap in the data once confirmed."""
+CONFIRM_SAMPLES = 3
+"""Timed samples that must agree on a new time base before it is taken."""
+WRAP_MATCH_S = 10.0
+"""A 32-bit time that went back is a wrap when, unwrapped, it lies this close to the
+vehicle's newest time, or when it went from this close below the wrap to this close to 0."""
+HOLE_PERIODS = 1.5
+"""A frame this many frame periods after the last one processed waits (up to the reorder
+window) for the frame between, whose samples may all be late."""
+PERIOD_SPACINGS = 15
+"""Recent frame spacings whose median is the frame period."""
+EXPECT_PRESENCE = 0.75
+"""A channel is expected in every frame when it was in this share of recent frames."""
+PRESENCE_GAIN = 0.1
 
 
 @dataclass
 class SyncStats:
     frames: int = 0
     partial_frames: int = 0
+    """Frames processed with a channel the vehicle streams missing."""
     late_samples: int = 0
-    """Samples older than the last processed frame: dropped."""
+    """Samples whose frame had already been processed, or stale copies: dropped."""
     clock_resets: int = 0
+    clock_wraps: int = 0
+    """32-bit vehicle time fields unwrapped."""
+    time_jumps: int = 0
+    """Confirmed forward jumps of the vehicle clock (gaps in the data)."""
+    implausible_times: int = 0
+    """Samples with a time ahead of the vehicle's that no later sample confirmed: dropped."""
     waiting_for_inputs: int = 0
     """Frames dropped before any elevator and power sample had arrived."""
+    inputs_guessed: int = 0
+    """Frames whose input sample was lost while the input changed (Frame.inputs_known)."""
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class VehicleClock:
+    """Unwraps the vehicle's 32-bit time fields, per message (each has its own field)."""
+
+    _last: dict[str, float] = field(default_factory=dict)
+    _offset: dict[str, float] = field(default_factory=dict)
+    wraps: int = 0
+
+    def unwrap(self, message: str, t: float, wrap_s: float | None, newest: float) -> float:
+        if wrap_s is None:
+            return t
+        last = self._last.get(message)
+        offset = self._offset.get(message, 0.0)
+        if last is not None and t < last - wrap_s / 2:
+            near_newest = math.isfinite(newest) and abs(t + offset + wrap_s - newest) < WRAP_MATCH_S
+            at_edge = last > wrap_s - WRAP_MATCH_S and t < WRAP_MATCH_S
+            if near_newest or at_edge:
+                offset += wrap_s
+                self._offset[message] = offset
+                self.wraps += 1
+        self._last[message] = t
+        return t + offset
+
+    def reset(self) -> None:
+        self._last.clear()
+        self._offset.clear()
+
+
+@dataclass
+class InputTrack:
+    """One input's samples by vehicle time (kept from just before the oldest open frame)."""
+
+    t: list[float] = field(default_factory=list)
+    v: list[float] = field(default_factory=list)
+
+    def add(self, t: float, v: float) -> None:
+        i = bisect.bisect_left(self.t, t)
+        if i < len(self.t) and self.t[i] == t:
+            self.v[i] = v  # a copy of the same sample
+            return
+        self.t.insert(i, t)
+        self.v.insert(i, v)
+
+    def known_at(self, t: float, window: float) -> bool:
+        """Whether a sample at t, or one after it, has arrived (the value at t is final)."""
+        return bool(self.t) and self.t[-1] >= t - window
+
+    def at(self, t: float, window: float, linear: bool) -> float:
+        """The value at t: the sample at t, else interpolated between the samples around
+        it (or the earlier held), else the last before it held; NaN before any."""
+        i = bisect.bisect_left(self.t, t - window)
+        if i < len(self.t) and self.t[i] <= t + window:
+            return self.v[i]
+        if i == 0:
+            return math.nan
+        if i == len(self.t) or not linear:
+            return self.v[i - 1]
+        t0, t1 = self.t[i - 1], self.t[i]
+        w = (t - t0) / (t1 - t0)
+        return self.v[i - 1] + w * (self.v[i] - self.v[i - 1])
+
+    def uncertain_at(self, t: float, window: float) -> bool:
+        """Whether no sample at t arrived and the samples around it differ (the value at
+        t is then a guess: a step may lie anywhere between them)."""
+        i = bisect.bisect_left(self.t, t - window)
+        if i < len(self.t) and self.t[i] <= t + window:
+            return False
+        return 0 < i < len(self.t) and self.v[i - 1] != self.v[i]
+
+    def prune(self, before: float) -> None:
+        """Forget samples before `before` but the last one (the hold needs it)."""
+        i = bisect.bisect_left(self.t, before)
+        if i > 1:
+            del self.t[: i - 1]
+            del self.v[: i - 1]
+
+    def clear(self) -> None:
+        self.t.clear()
+        self.v.clear()
 
 
 @dataclass
 class _Open:
     t: float
-    t_first_recv: float
     t_last_recv: float
     y: FloatArray
 
@@ -50,144 +173,187 @@ class Synchronizer:
 
     system_id: int
     link: LinkConfig
+    linear_inputs: bool = True
     stats: SyncStats = field(default_factory=SyncStats)
-    _open: _Open | None = None
-    _last_t: float = -math.inf
-    _inputs: list[float] = field(default_factory=lambda: [math.nan] * N_INPUTS)
+    clock: VehicleClock = field(default_factory=VehicleClock)
+    _open: list[_Open] = field(default_factory=list)
+    """Open frames in time order."""
+    _newest: float = -math.inf
+    """Newest vehicle time on the current time base."""
+    _last_emitted: float = -math.inf
+    _inputs: list[InputTrack] = field(
+        default_factory=lambda: [InputTrack() for _ in range(N_INPUTS)]
+    )
     _untimed: list[tuple[Channel, float]] = field(default_factory=list)
+    _pending: list[tuple[float | None, Sample]] = field(default_factory=list)
+    """Samples off the current time base, waiting for confirmation (timed ones' times)."""
+    _presence: FloatArray = field(default_factory=lambda: np.ones(N_OBS))
+    _spacings: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_SPACINGS))
+    _period: float = math.inf
+    """Median spacing of recent frames (inf until known)."""
     _reset_pending: bool = False
 
     def add(self, sample: Sample) -> list[Frame]:
-        """Take one sample; return the frames it completes (zero, one or two)."""
-        for ch, v in sample.values:
-            if ch in (Channel.ELEVATOR, Channel.POWER, Channel.DENSITY):
-                self._inputs[ch - Channel.ELEVATOR] = v
-        obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
-        t = sample.t_vehicle_s
-        if t is None:
-            return self._add_untimed(obs, sample.t_recv_s)
-        out = self._close_before(t)
-        if self._open is None:
-            if t <= self._last_t:
-                self.stats.late_samples += 1
-                return out
-            y = np.full(N_OBS, np.nan)
-            self._open = _Open(t, sample.t_recv_s, sample.t_recv_s, y)
-            for ch, v in self._untimed:
-                y[ch] = v
-            self._untimed = []
-        elif t < self._open.t - self.link.frame_window_s:
-            self.stats.late_samples += 1
-            return out
-        return out + self._fill(obs, sample.t_recv_s)
+        """Take one sample; return the frames it lets go (in time order)."""
+        if sample.t_vehicle_s is None:
+            if self._pending:
+                self._pending.append((None, sample))
+                return []
+            return self._add_untimed(sample)
+        t = self.clock.unwrap(sample.message, sample.t_vehicle_s, sample.wrap_s, self._newest)
+        self.stats.clock_wraps = self.clock.wraps
+        if self._on_base(t):
+            out = self._drop_pending()
+            return out + self._accept(t, sample)
+        return self._off_base(t, sample)
 
-    def _add_untimed(self, obs: list[tuple[Channel, float]], t_recv_s: float) -> list[Frame]:
-        """A sample without a timestamp (VFR_HUD) belongs with the frame being filled."""
-        if self._open is None:
-            self._untimed += obs
-            return []
-        return self._fill(obs, t_recv_s)
+    def _on_base(self, t: float) -> bool:
+        newest = self._newest
+        return newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S
 
-    def _fill(self, obs: list[tuple[Channel, float]], t_recv_s: float) -> list[Frame]:
-        assert self._open is not None
-        for ch, v in obs:
-            self._open.y[ch] = v
-        self._open.t_last_recv = t_recv_s
-        return self._emit_if_complete()
-
-    def _close_before(self, t: float) -> list[Frame]:
-        """Frames that a sample at vehicle time t closes: the open one if t starts a new
-        frame, and, when t went back by more than CLOCK_RESET_S, everything before it."""
+    def _drop_pending(self) -> list[Frame]:
+        """The vehicle went on at its old time base: what waited was stale (behind) or
+        implausible (ahead); its untimed samples belong to the current frames."""
         out: list[Frame] = []
-        if t < self._last_t - CLOCK_RESET_S or (
-            self._open is not None and t < self._open.t - CLOCK_RESET_S
-        ):
-            self.stats.clock_resets += 1
-            out += self._emit()
-            self._last_t = -math.inf
-            self._reset_pending = True
-        if self._open is not None and t > self._open.t + self.link.frame_window_s:
-            out += self._emit()
+        pending, self._pending = self._pending, []
+        for t, sample in pending:
+            if t is None:
+                out += self._add_untimed(sample)
+            elif t < self._newest:
+                self.stats.late_samples += 1
+            else:
+                self.stats.implausible_times += 1
         return out
 
-    def poll(self, t_recv_s: float) -> list[Frame]:
-        """Process a partial frame that has waited longer than max_wait_s."""
-        if self._open is not None and t_recv_s - self._open.t_first_recv > self.link.max_wait_s:
-            return self._emit()
+    def _off_base(self, t: float, sample: Sample) -> list[Frame]:
+        timed = [tp for tp, _ in self._pending if tp is not None]
+        if timed and abs(t - timed[-1]) > JUMP_S:
+            self._drop_pending()  # an earlier candidate that nothing confirmed
+            timed = []
+        self._pending.append((t, sample))
+        if len(timed) + 1 < CONFIRM_SAMPLES:
+            return []
+        return self._new_base(t < self._newest)
+
+    def _new_base(self, backward: bool) -> list[Frame]:
+        """Confirmed: the vehicle clock went back (reboot) or jumped ahead (a gap).
+        Whatever is open goes now; inputs from the old base are forgotten."""
+        out = self.flush()
+        if backward:
+            self.stats.clock_resets += 1
+            self._reset_pending = True
+            self.clock.reset()
+        else:
+            self.stats.time_jumps += 1
+        self._newest = self._last_emitted = -math.inf
+        self._spacings.clear()
+        self._period = math.inf
+        for track in self._inputs:
+            track.clear()
+        pending, self._pending = self._pending, []
+        for _, sample in pending:
+            out += self.add(sample)
+        return out
+
+    def _accept(self, t: float, sample: Sample) -> list[Frame]:
+        self._newest = max(self._newest, t)
+        window = self.link.frame_window_s
+        obs = []
+        for ch, v in sample.values:
+            if ch >= N_OBS:
+                self._inputs[ch - Channel.ELEVATOR].add(t, v)
+            else:
+                obs.append((ch, v))
+        if obs:
+            if t <= self._last_emitted + window:
+                self.stats.late_samples += 1
+            else:
+                frame = self._frame_at(t, sample.t_recv_s)
+                for ch, v in obs:
+                    frame.y[ch] = v
+        return self._emit_ready()
+
+    def _frame_at(self, t: float, t_recv_s: float) -> _Open:
+        """The open frame that time t belongs to (a new one if none)."""
+        window = self.link.frame_window_s
+        times = [f.t for f in self._open]
+        i = bisect.bisect_left(times, t - window)
+        if i < len(times) and times[i] <= t + window:
+            frame = self._open[i]
+            frame.t_last_recv = max(frame.t_last_recv, t_recv_s)
+            return frame
+        frame = _Open(t, t_recv_s, np.full(N_OBS, np.nan))
+        self._open.insert(i, frame)
+        if self._untimed and i == len(self._open) - 1:
+            for ch, v in self._untimed:
+                frame.y[ch] = v
+            self._untimed = []
+        return frame
+
+    def _add_untimed(self, sample: Sample) -> list[Frame]:
+        """A sample without a timestamp (VFR_HUD) belongs with the newest open frame, or
+        with the next one if that has gone."""
+        obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
+        if self._open and self._open[-1].t >= self._newest - self.link.frame_window_s:
+            frame = self._open[-1]
+            for ch, v in obs:
+                frame.y[ch] = v
+            frame.t_last_recv = max(frame.t_last_recv, sample.t_recv_s)
+            return self._emit_ready()
+        self._untimed = obs
         return []
+
+    def _ready(self, frame: _Open) -> bool:
+        if self._newest > frame.t + self.link.reorder_window_s:
+            return True
+        expected = self._presence >= EXPECT_PRESENCE
+        if not np.all(np.isfinite(frame.y[expected])):
+            return False
+        if frame.t - self._last_emitted > HOLE_PERIODS * self._period:
+            return False
+        window = self.link.frame_window_s
+        return all(tr.known_at(frame.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
+
+    def _emit_ready(self) -> list[Frame]:
+        out: list[Frame] = []
+        while self._open and self._ready(self._open[0]):
+            out += self._emit(self._open.pop(0))
+        return out
 
     def flush(self) -> list[Frame]:
-        """Process whatever is open (end of stream)."""
-        return self._emit()
+        """Process whatever is open (end of stream, or a new time base)."""
+        out: list[Frame] = []
+        while self._open:
+            out += self._emit(self._open.pop(0))
+        return out
 
-    def _emit_if_complete(self) -> list[Frame]:
-        assert self._open is not None
-        if np.all(np.isfinite(self._open.y)) and self._have_inputs():
-            return self._emit()
-        return []
+    def finish(self) -> list[Frame]:
+        """End of stream: what is open goes; samples still unconfirmed are dropped."""
+        out = self._drop_pending()
+        return out + self.flush()
 
-    def _have_inputs(self) -> bool:
-        """Elevator and power have arrived (air density is optional)."""
-        return all(math.isfinite(v) for v in self._inputs[:REQUIRED_INPUTS])
-
-    def _emit(self) -> list[Frame]:
-        op = self._open
-        if op is None:
-            return []
-        self._open = None
-        self._last_t = op.t
-        if not self._have_inputs():
+    def _emit(self, op: _Open) -> list[Frame]:
+        if math.isfinite(self._last_emitted):
+            self._spacings.append(op.t - self._last_emitted)
+            if len(self._spacings) >= 3:
+                self._period = float(np.median(self._spacings))
+        self._last_emitted = op.t
+        have = np.isfinite(op.y)
+        complete = bool(np.all(have[self._presence >= EXPECT_PRESENCE]))
+        self._presence += PRESENCE_GAIN * (have - self._presence)
+        window = self.link.frame_window_s
+        u = np.array([tr.at(op.t, window, self.linear_inputs) for tr in self._inputs])
+        guessed = any(tr.uncertain_at(op.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
+        for tr in self._inputs:
+            tr.prune(op.t - window)
+        if not np.all(np.isfinite(u[:REQUIRED_INPUTS])):
             self.stats.waiting_for_inputs += 1
             return []
         self.stats.frames += 1
-        if not np.all(np.isfinite(op.y)):
+        if not complete:
             self.stats.partial_frames += 1
         reset = self._reset_pending
         self._reset_pending = False
-        return [Frame(self.system_id, op.t, op.t_last_recv, np.array(self._inputs), op.y, reset)]
-
-
-@dataclass
-class LinkHealth:
-    """Packet counts per link, from 8-bit sequence numbers per (system, component)."""
-
-    received: int = 0
-    lost: int = 0
-    duplicates: int = 0
-    out_of_order: int = 0
-    corrupt: int = 0
-    """Packets that failed the CRC or could not be framed."""
-    junk_bytes: int = 0
-    _last_seq: dict[tuple[int, int], int] = field(default_factory=dict)
-
-    def on_packet(self, system_id: int, component_id: int, seq: int) -> bool:
-        """Count a packet; False if it is a duplicate to be dropped."""
-        key = (system_id, component_id)
-        last = self._last_seq.get(key)
-        self.received += 1
-        if last is None:
-            self._last_seq[key] = seq
-            return True
-        d = (seq - last) & 0xFF
-        if d == 0:
-            self.duplicates += 1
-            self.received -= 1
-            return False
-        if d < 128:
-            self.lost += d - 1
-            self._last_seq[key] = seq
-            return True
-        # Behind the newest: a packet counted lost has arrived after all.
-        self.out_of_order += 1
-        self.lost = max(0, self.lost - 1)
-        return True
-
-    def as_dict(self) -> dict[str, int]:
-        return {
-            "received": self.received,
-            "lost": self.lost,
-            "duplicates": self.duplicates,
-            "out_of_order": self.out_of_order,
-            "corrupt": self.corrupt,
-            "junk_bytes": self.junk_bytes,
-        }
+        if guessed:
+            self.stats.inputs_guessed += 1
+        return [Frame(self.system_id, op.t, op.t_last_recv, u, op.y, reset, not guessed)]

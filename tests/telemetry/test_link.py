@@ -90,7 +90,7 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
     assert "GCS heartbeats" in err and " 0 GCS heartbeats" not in err
     assert " 0 rate changes" not in err
     assert station.frames() == 601  # 12 s at 50 Hz, every frame
-    assert station.link.health.lost == 0 and station.link.health.corrupt == 0
+    assert station.link.health.total().lost == 0 and station.link.health.total().corrupt == 0
     # COMMAND_ACK MAV_RESULT_ACCEPTED for SET_MESSAGE_INTERVAL
     assert 0 in station.link.vehicles[1].acked
     live = station.final()
@@ -145,11 +145,14 @@ def test_two_vehicles_on_one_port(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ bad input
 
 
-def recorded_flight(tmp_path: Path) -> tuple[AircraftConfig, list[tuple[int, bytes]]]:
+def recorded_flight(
+    tmp_path: Path, seed: int = 3
+) -> tuple[AircraftConfig, list[tuple[int, bytes]]]:
     config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     from sim.truth import simulate
 
-    fl = simulate(config, seed=3)
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    fl = simulate(config, seed=seed)
     rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
     v = SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=tmp_path / "v.tlog")
     v.run()
@@ -202,7 +205,7 @@ def test_bad_packets_are_counted_and_skipped(tmp_path: Path) -> None:
         if i == 300:
             bad.append((t, pkt))  # duplicated
     station = run_records(config, bad)
-    h = station.link.health
+    h = station.link.health.total()
     assert h.corrupt == 2 and h.duplicates == 1 and h.lost == 2
     assert station.frames() == n_frames  # partial frames, nothing stalls
     assert np.all(np.isfinite(station.final()["IEKF"]))
@@ -229,15 +232,16 @@ def test_nan_absurd_values_reorder_clock_reset_unknown_and_second_vehicle(
     seq.insert(70, (seq[70][0], hb7))
     seq.insert(80, (seq[80][0], bytes(unknown)))
     seq[400], seq[401] = seq[401], seq[400]  # reordered
-    # The vehicle reboots: the rest of the flight again, with its clock from the start.
-    seq += recs[: len(recs) // 2]
+    # The vehicle reboots and flies again, its clock and sequence numbers from the start.
+    _, again = recorded_flight(tmp_path / "again", seed=4)
+    seq += again[: len(again) // 2]
     station = run_records(config, seq)
     link = station.link
     assert link.decode_stats.invalid_values == 2
     assert 7 in link.vehicles  # second vehicle known, estimated separately
     assert link.vehicles[1].sync.stats.clock_resets == 1
-    assert link.health.out_of_order >= 1
-    assert link.unknown_messages == 1  # decoded as UNKNOWN_60000, skipped
+    assert link.health.total().out_of_order >= 1
+    assert link.health.total().unknown == 1  # decoded as UNKNOWN_60000, skipped
     beta = station.final()["IEKF"]
     assert np.all(np.isfinite(beta))
     # The estimates known before the reboot are kept (not reset to zero).

@@ -1,4 +1,5 @@
-"""The telemetry edge piece by piece: decode, synchroniser, link health, tlog framing.
+"""The telemetry edge piece by piece: decode and tlog framing (the synchroniser:
+test_sync.py; link health: test_counters.py).
 
 Real pymavlink encoding (MAVLink 2, ardupilotmega) throughout; no sockets here (the link
 end to end is test_link.py).
@@ -11,8 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from gcs_estimator import atmosphere
 from gcs_estimator.config import LinkConfig
@@ -32,12 +31,17 @@ from gcs_estimator.telemetry.mavlink import (
     TlogError,
     TlogStats,
     read_tlog,
-    split_packets,
+    scan,
     tlog_record,
 )
-from gcs_estimator.telemetry.sync import LinkHealth, Synchronizer
+from gcs_estimator.telemetry.sync import Synchronizer
 
 LINK = LinkConfig()
+OBS = ("v", "alpha", "theta", "q", "qdot", "ax", "az")
+
+
+def _sample(t: float, t_recv: float, **values: float) -> Sample:
+    return Sample(1, "test", t, t_recv, tuple((Channel[k.upper()], v) for k, v in values.items()))
 
 
 def _decode(packet: bytes, stats: DecodeStats | None = None) -> object:
@@ -106,7 +110,9 @@ def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
     mav = vehicle.mav
     stats = DecodeStats()
     assert _decode(vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING)) == Heartbeat(False)
-    assert _decode(Codec(255, 190).heartbeat(mavlink.MAV_TYPE_GCS)) == Heartbeat(True)
+    assert _decode(Codec(255, 190).heartbeat(mavlink.MAV_TYPE_GCS)) == Heartbeat(
+        True, mavlink.MAV_TYPE_GCS
+    )
     ack = vehicle.command_ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED)
     assert _decode(ack) == CommandAck(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0)
     assert _decode(vehicle.pack(mav.named_value_float_encode(1, b"OTHER", 1.0)), stats) == Ignored()
@@ -129,103 +135,14 @@ def test_bad_values_are_counted_and_dropped_bad_packets_are_none(vehicle: Codec)
 # ------------------------------------------------------------------ synchroniser
 
 
-def _sample(t: float | None, t_recv: float, **values: float) -> Sample:
-    return Sample(1, "test", t, t_recv, tuple((Channel[k.upper()], v) for k, v in values.items()))
-
-
-OBS = {"v": 24.0, "alpha": 0.05, "theta": 0.05, "q": 0.0, "qdot": 0.0, "ax": 0.1, "az": -9.8}
-
-
-def test_a_frame_is_emitted_once_complete_with_the_inputs_held() -> None:
-    sync = Synchronizer(1, LINK)
-    assert sync.add(_sample(1.0, 10.0, elevator=0.01, power=0.3)) == []
-    out = []
-    for k, v in OBS.items():
-        out += sync.add(_sample(1.0, 10.0, **{k: v}))
-    assert len(out) == 1
-    frame = out[0]
-    # No air density came: NaN, and the estimator flies the airframe's constant.
-    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, np.nan])
-    np.testing.assert_array_equal(frame.y, list(OBS.values()))
-    assert frame.t_vehicle_s == 1.0 and not frame.clock_reset
-    assert sync.stats.frames == 1 and sync.stats.partial_frames == 0
-
-
-def test_partial_frames_close_on_the_next_time_or_after_the_wait() -> None:
-    sync = Synchronizer(1, LINK)
-    sync.add(_sample(1.0, 10.0, elevator=0.0, power=0.3))
-    assert sync.add(_sample(1.0, 10.0, v=24.0)) == []
-    closed = sync.add(_sample(1.02, 10.02, theta=0.05))  # a later vehicle time
-    assert len(closed) == 1 and np.isnan(closed[0].y[Channel.ALPHA])
-    assert sync.poll(10.02 + LINK.max_wait_s / 2) == []
-    waited = sync.poll(10.02 + LINK.max_wait_s * 1.01)
-    assert len(waited) == 1 and waited[0].y[Channel.THETA] == 0.05
-    assert sync.stats.partial_frames == 2
-
-
-def test_late_untimed_reset_and_frames_before_inputs() -> None:
-    sync = Synchronizer(1, LINK)
-    assert sync.add(_sample(1.0, 10.0, v=24.0)) == []
-    assert sync.flush() == []  # no inputs yet: nothing to estimate with
-    assert sync.stats.waiting_for_inputs == 1
-    sync.add(_sample(2.0, 11.0, elevator=0.0, power=0.3))
-    sync.add(_sample(None, 11.0, v=25.0))  # untimed: joins the open frame
-    (frame,) = sync.flush()
-    assert frame.y[Channel.V] == 25.0
-    assert sync.add(_sample(1.999, 11.1, alpha=0.1)) == []  # older than the last frame
-    assert sync.stats.late_samples == 1
-    sync.add(_sample(0.1, 12.0, alpha=0.1))  # the clock went back: a reboot
-    (after,) = sync.flush()
-    assert after.clock_reset and sync.stats.clock_resets == 1
-
-
-# ------------------------------------------------------------------ link health
-
-
-def test_sequence_numbers_wrap_at_256() -> None:
-    h = LinkHealth()
-    for seq in [*range(250, 256), *range(0, 5)]:
-        assert h.on_packet(1, 1, seq)
-    assert h.lost == 0 and h.received == 11
-    assert h.on_packet(1, 1, 8)  # 5, 6, 7 lost
-    assert h.lost == 3
-    assert not h.on_packet(1, 1, 8)  # duplicate, dropped
-    assert h.duplicates == 1 and h.received == 12
-    assert h.on_packet(1, 1, 6)  # one counted lost arrived late
-    assert h.out_of_order == 1 and h.lost == 2
-
-
-@settings(max_examples=200, deadline=None)
-@given(
-    start=st.integers(0, 255),
-    gaps=st.lists(st.integers(1, 127), min_size=1, max_size=300),
-    other=st.booleans(),
-)
-def test_losses_counted_exactly_for_any_gaps_below_half_the_sequence_space(
-    start: int, gaps: list[int], other: bool
-) -> None:
-    """Gaps of 1..127 (0..126 packets lost at a time), across any number of wraps, per
-    (system, component): the count equals the packets not seen."""
-    h = LinkHealth()
-    seq = start
-    h.on_packet(1, 1, seq)
-    if other:
-        h.on_packet(2, 1, 0)  # another vehicle's numbering is its own
-    for gap in gaps:
-        seq = (seq + gap) % 256
-        assert h.on_packet(1, 1, seq)
-    assert h.lost == sum(g - 1 for g in gaps)
-    assert h.received == 1 + len(gaps) + other
-
-
 # ------------------------------------------------------------------ tlog framing
 
 
 def test_a_datagram_splits_into_packets_skipping_junk(vehicle: Codec) -> None:
     a = vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING)
     b = vehicle.pack(vehicle.mav.attitude_encode(1, 0, 0.05, 0, 0, 0, 0))
-    packets, junk = split_packets(a + b"\x01\x02\x03" + b)
-    assert packets == [a, b] and junk == 3
+    items = list(scan(a + b"\x01\xfd\x03" + b, Decoder()))
+    assert [x if isinstance(x, int) else x[0] for x in items] == [a, 3, b]
 
 
 def test_tlog_resynchronises_over_garbage_and_stops_at_a_cut(

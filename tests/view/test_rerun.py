@@ -234,7 +234,7 @@ def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path:
             v[:, 3], tracks(run)["IEKF"].coefficients[:, run.result.names.index("Cmq")]
         )
     t, counts = read_scalars(rrd, lay.LINK_COUNTS)
-    assert counts[-1, 0] == link.health.lost
+    assert counts[-1, 0] == link.health.total().lost
     _, rate = read_scalars(rrd, lay.LINK_RATE)
     assert np.all(rate >= 0)
 
