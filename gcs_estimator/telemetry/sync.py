@@ -164,7 +164,7 @@ class InputTrack:
 class _Open:
     t: float
     t_last_recv: float
-    y: FloatArray
+    y: list[float]
 
 
 @dataclass
@@ -189,6 +189,8 @@ class Synchronizer:
     """Samples off the current time base, waiting for confirmation (timed ones' times)."""
     _presence: FloatArray = field(default_factory=lambda: np.ones(N_OBS))
     _spacings: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_SPACINGS))
+    _expected: list[int] = field(default_factory=lambda: list(range(N_OBS)))
+    """Channels the vehicle sends in (nearly) every frame."""
     _period: float = math.inf
     """Median spacing of recent frames (inf until known)."""
     _reset_pending: bool = False
@@ -282,7 +284,7 @@ class Synchronizer:
             frame = self._open[i]
             frame.t_last_recv = max(frame.t_last_recv, t_recv_s)
             return frame
-        frame = _Open(t, t_recv_s, np.full(N_OBS, np.nan))
+        frame = _Open(t, t_recv_s, [math.nan] * N_OBS)
         self._open.insert(i, frame)
         if self._untimed and i == len(self._open) - 1:
             for ch, v in self._untimed:
@@ -306,8 +308,8 @@ class Synchronizer:
     def _ready(self, frame: _Open) -> bool:
         if self._newest > frame.t + self.link.reorder_window_s:
             return True
-        expected = self._presence >= EXPECT_PRESENCE
-        if not np.all(np.isfinite(frame.y[expected])):
+        y = frame.y
+        if any(y[c] != y[c] for c in self._expected):  # NaN: not arrived
             return False
         if frame.t - self._last_emitted > HOLE_PERIODS * self._period:
             return False
@@ -336,11 +338,14 @@ class Synchronizer:
         if math.isfinite(self._last_emitted):
             self._spacings.append(op.t - self._last_emitted)
             if len(self._spacings) >= 3:
-                self._period = float(np.median(self._spacings))
+                ordered = sorted(self._spacings)
+                self._period = ordered[len(ordered) // 2]
         self._last_emitted = op.t
-        have = np.isfinite(op.y)
-        complete = bool(np.all(have[self._presence >= EXPECT_PRESENCE]))
+        y = np.array(op.y)
+        have = np.isfinite(y)
+        complete = bool(np.all(have[self._expected]))
         self._presence += PRESENCE_GAIN * (have - self._presence)
+        self._expected = [c for c in range(N_OBS) if self._presence[c] >= EXPECT_PRESENCE]
         window = self.link.frame_window_s
         u = np.array([tr.at(op.t, window, self.linear_inputs) for tr in self._inputs])
         guessed = any(tr.uncertain_at(op.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
@@ -356,4 +361,4 @@ class Synchronizer:
         self._reset_pending = False
         if guessed:
             self.stats.inputs_guessed += 1
-        return [Frame(self.system_id, op.t, op.t_last_recv, u, op.y, reset, not guessed)]
+        return [Frame(self.system_id, op.t, op.t_last_recv, u, y, reset, not guessed)]
