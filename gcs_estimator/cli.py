@@ -21,9 +21,10 @@ from gcs_estimator.config import (
 )
 from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
-from gcs_estimator.session import RecordingSource, Session, Source, Stop, VehicleResult, warm_up
+from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
 from gcs_estimator.sources import SourceError, TlogSource, UdpSource, open_udp
+from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
@@ -198,7 +199,7 @@ def _run(session: Session, source: Source, stop: Stop) -> int:
 def _recording_session(
     config: AircraftConfig, args: argparse.Namespace, source: RecordingSource, label: str, name: str
 ) -> int:
-    stop = Stop().install()
+    stop = PROCESS_STOP.install()
     session = Session(config, backend=args.backend)
     view = _view_sink(config, args, name, session)
     if view is not None:
@@ -311,7 +312,7 @@ def _link_session(
 
 
 def cmd_listen(args: argparse.Namespace) -> int:
-    stop = Stop().install()
+    stop = PROCESS_STOP.install()
     config = _config(args)
     host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
     if not port.isdigit():
@@ -334,7 +335,7 @@ def cmd_listen(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    stop = Stop().install()
+    stop = PROCESS_STOP.install()
     config = _config(args)
     session, link = _link_session(config, args, Path(args.tlogs[0]).stem, status=False)
     source = TlogSource(args.tlogs, link, speed=args.speed)
@@ -347,7 +348,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """The simulated UAV and the ground station as two processes talking UDP."""
     import subprocess
 
-    stop = Stop().install()
+    stop = PROCESS_STOP.install()
     config = _config(args)
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
@@ -500,7 +501,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def entrypoint() -> None:
-    sys.exit(main())
+    from gcs_estimator.__main__ import entrypoint as first_handlers_then_main
+
+    first_handlers_then_main()
 
 
 if __name__ == "__main__":

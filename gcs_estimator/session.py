@@ -10,11 +10,9 @@ what was processed.
 
 from __future__ import annotations
 
-import signal
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from types import FrameType
 from typing import Any, Protocol
 
 import numpy as np
@@ -24,21 +22,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimator import Backend, Estimator, EstimatorResult, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.metrics import FilterSummary, summarise
-
-
-class Stop:
-    """Set by SIGINT/SIGTERM (once installed); sources check it and end cleanly."""
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def install(self) -> Stop:
-        def handler(signum: int, frame: FrameType | None) -> None:
-            self.requested = True
-
-        signal.signal(signal.SIGINT, handler)
-        signal.signal(signal.SIGTERM, handler)
-        return self
+from gcs_estimator.stop import Stop
 
 
 class Source(Protocol):

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Stop
+from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import Codec, TlogError, TlogRecord, TlogStats, read_tlog

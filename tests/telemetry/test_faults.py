@@ -22,8 +22,9 @@ from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Stop, VehicleResult
+from gcs_estimator.session import VehicleResult
 from gcs_estimator.sources import UdpSource, open_udp
+from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.decode import WRAP_US32_S
 from gcs_estimator.telemetry.mavlink import Decoder, TlogWriter, read_tlog
 from sim.truth import simulate

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -18,8 +19,9 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_hfb320
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Session, Stop
+from gcs_estimator.session import Session
 from gcs_estimator.sources import TlogSource, UdpSource, open_udp
+from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
 from sim.cli import command as vehicle_command
@@ -302,3 +304,38 @@ def test_sigterm_stops_cleanly_with_results(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     assert "no vehicle data received" in err
     assert (tmp_path / "x.tlog").exists()
+
+
+def _catches_sigterm(pid: int) -> bool:
+    """Whether the process has installed a SIGTERM handler (Linux: SigCgt in /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signal.SIGTERM - 1) & 1)
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
+def test_a_signal_during_start_up_ends_the_run_cleanly(tmp_path: Path) -> None:
+    """The handlers come before the estimator is imported and its kernels loaded: a
+    SIGTERM as soon as they are in place (long before the station listens) still ends
+    with exit 0 and the results of what there was."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gcs_estimator",
+            "listen",
+            "udpin:127.0.0.1:0",
+            "--out",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    while proc.poll() is None and not _catches_sigterm(proc.pid):
+        pass
+    proc.terminate()
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "listening on" not in err or "no vehicle data received" in err
