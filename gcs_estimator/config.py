@@ -331,6 +331,12 @@ class FilterTuning:
         1.0, ge=0, doc="keep the iterations only if they move some component this many sigmas"
     )
     max_step_s: float = setting(0.02, gt=0, unit="s", doc="longest Runge-Kutta prediction step")
+    restart_frames_per_step: int = setting(
+        25,
+        ge=0,
+        doc="frames of a restart's re-run done per new frame (it catches up beside the live "
+        "pass); 0: all at once",
+    )
     max_gap_s: float = setting(
         2.0,
         gt=0,

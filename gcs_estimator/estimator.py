@@ -207,6 +207,9 @@ class Estimator:
         self._buffer: list[tuple[float, FloatArray, FloatArray, bool]] = []
         self._t0 = math.nan
         self._t_last = -math.inf
+        self._rerun: dict[FilterKind, FilterState | None] | None = None
+        """The re-run of a restart while it catches up (None: none under way)."""
+        self._rerun_pos = 0
         self.gaps = 0
         """Frames after more than filter.max_gap_s without one: the flight states
         started afresh there."""
@@ -245,9 +248,13 @@ class Estimator:
         coefficients and their uncertainty are kept, and the observations are not used
         for an update (they already gave the flight states).
 
-        At each configured restart time both filters re-run the buffered frames from the
-        start; the outputs returned are then those of the re-run's last frame, and the
-        history keeps what was known live at each time but for that frame.
+        At each configured restart time both filters begin a re-run of the buffered frames
+        from the start (_begin_restart). The re-run goes on beside the live pass,
+        filter.restart_frames_per_step frames per new frame, so that no frame's call
+        waits for the whole re-run; when it has caught up, it takes the live pass's
+        place, and the outputs returned are those of the re-run at this frame. Every
+        step is the same as a re-run done at once would make, so the estimates are too.
+        The history keeps what was known live at each time but for the frame of the swap.
         """
         if self.frames == 0:
             self._t0 = t
@@ -256,34 +263,55 @@ class Estimator:
         y = np.array(y, float)
         if self.restarts_pending:
             self._buffer.append((t, u, y, inputs_known))
-        outs = self._advance(t, u, y, inputs_known)
+        outs = self._advance(self.states, t, u, y, inputs_known)
         self.frames += 1
         if self.keep_history:
             for kind, out in outs.items():
                 self.histories[kind].append(t, u, y, out)
         restarts = self.config.filter.restart_times_s
-        if self.restarts_pending and t - self._t0 >= restarts[self.restarts_done]:
-            outs = self._restart()
-            if self.keep_history:
-                for kind, out in outs.items():
-                    self.histories[kind].out[-1] = out
+        if (
+            self._rerun is None
+            and self.restarts_pending
+            and t - self._t0 >= restarts[self.restarts_done]
+        ):
+            self._begin_restart()
+        if self._rerun is not None:
+            swapped = self._catch_up(self.config.filter.restart_frames_per_step)
+            if swapped is not None:
+                outs = swapped
+                if self.keep_history:
+                    for kind, out in outs.items():
+                        self.histories[kind].out[-1] = out
         return outs
 
+    def finish_restarts(self) -> None:
+        """Complete a re-run still under way (the end of the data came first)."""
+        if self._rerun is not None:
+            swapped = self._catch_up(0)
+            if swapped is not None and self.keep_history:
+                for kind, out in swapped.items():
+                    self.histories[kind].out[-1] = out
+
     def _advance(
-        self, t: float, u: FloatArray, y: FloatArray, inputs_known: bool = True
+        self,
+        states: dict[FilterKind, FilterState | None],
+        t: float,
+        u: FloatArray,
+        y: FloatArray,
+        inputs_known: bool = True,
     ) -> dict[FilterKind, StepOutput]:
         outs: dict[FilterKind, StepOutput] = {}
         y_used = y if inputs_known else np.full_like(y, np.nan)
         for kind in FILTER_KINDS:
             tuning = self.tunings[kind]
-            state = self.states[kind]
+            state = states[kind]
             if state is None:
                 start = self._starts[kind]
                 state = core.initial_state(self.model, tuning, t, u, y, *start)
             elif not inputs_known:
                 state = core.rebase(state, self.model, tuning, t, y)
             state, info = self._step(state, t, u, y_used, tuning, self.model)
-            self.states[kind] = state
+            states[kind] = state
             self.health[kind].count(info)
             outs[kind] = StepOutput(state.x, info)
         return outs
@@ -298,9 +326,30 @@ class Estimator:
         if self.restarts_pending:
             self.restarts_done = len(self.config.filter.restart_times_s)
             self._buffer = []
+            self._rerun = None
 
-    def _restart(self) -> dict[FilterKind, StepOutput]:
-        """Re-run the buffered frames from a new linearisation point (see FilterTuning)."""
+    def _catch_up(self, limit: int) -> dict[FilterKind, StepOutput] | None:
+        """Advance the re-run by up to `limit` buffered frames (0: all); when it has
+        caught up with the newest frame, it becomes the live pass: its outputs there."""
+        rerun = self._rerun
+        assert rerun is not None
+        end = len(self._buffer) if limit <= 0 else min(len(self._buffer), self._rerun_pos + limit)
+        outs: dict[FilterKind, StepOutput] = {}
+        for t, u, y, known in self._buffer[self._rerun_pos : end]:
+            outs = self._advance(rerun, t, u, y, known)
+        self._rerun_pos = end
+        if end < len(self._buffer):
+            return None
+        self.states = rerun
+        self._rerun = None
+        self.restarts_done += 1
+        if not self.restarts_pending:
+            self._buffer = []
+        return outs
+
+    def _begin_restart(self) -> None:
+        """Start a re-run of the buffered frames from a new linearisation point (see
+        FilterTuning)."""
         tuning = self.config.filter
         coef = self.model.coefficients
         if self.restarts_done == 0 and tuning.warm_start == "equation-error":
@@ -342,14 +391,8 @@ class Estimator:
             self._starts[kind] = _Start(
                 beta, np.minimum(p0, tuning.restart_sigma_inflation * sigma), gust_var
             )
-            self.states[kind] = None
-        outs: dict[FilterKind, StepOutput] = {}
-        for t, u, y, known in self._buffer:
-            outs = self._advance(t, u, y, known)
-        self.restarts_done += 1
-        if not self.restarts_pending:
-            self._buffer = []
-        return outs
+        self._rerun = dict.fromkeys(FILTER_KINDS)
+        self._rerun_pos = 0
 
     def snapshot(self) -> dict[FilterKind, Snapshot]:
         """Current coefficient estimates and sigmas per filter (empty before data)."""

@@ -111,6 +111,8 @@ class Session:
                 for sink in self.sinks:
                     sink.tick()
         finally:
+            for est in self.estimators.values():
+                est.finish_restarts()
             self.elapsed_s = time.perf_counter() - self.started
             try:
                 results = self._results = self.results()
