@@ -35,9 +35,7 @@ def _run(config: AircraftConfig) -> tuple[Estimator, list[int]]:
 
 def test_an_incremental_re_run_ends_where_one_at_once_does() -> None:
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
-    at_once, heavy = _run(
-        replace(config, filter=replace(config.filter, restart_frames_per_step=0)), 0
-    )
+    at_once, heavy = _run(replace(config, filter=replace(config.filter, restart_frames_per_step=0)))
     spread, light = _run(config)
     assert at_once.restarts_done == spread.restarts_done == 2
     for kind, s in at_once.states.items():
