@@ -178,14 +178,19 @@ class RecordingSource:
 
 
 def warm_up(config: AircraftConfig, backend: Backend = "fast") -> None:
-    """Compile (or load) the filter kernels and import what a restart needs now, not while
-    packets queue up."""
+    """Compile (or load) the filter kernels and import what a restart needs (the
+    equation-error warm start, first used at the first restart: over half a second in a
+    fresh process) now, not while packets queue up."""
     if backend != "fast":
         return
+    from dataclasses import replace
+
     from gcs_estimator.model.aircraft import trim
 
-    est = Estimator(config, keep_history=False)
+    filt = replace(config.filter, restart_times_s=(0.1,), restart_frames_per_step=0)
+    est = Estimator(replace(config, filter=filt), keep_history=False)
     t = trim(est.model, np.zeros(est.model.n_coefficients) + 0.1)
     y = np.concatenate([t.state, np.zeros(3)])
-    est.step(0.0, t.inputs, y)
-    est.step(0.02, t.inputs, y)
+    for k in range(12):
+        u = t.inputs + np.array([0.01 * (k % 3), 0.0])  # a little excitation
+        est.step(0.02 * k, u, y)
