@@ -13,10 +13,13 @@ live flight, scaled to one hour.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import record  # benchmarks/record.py: the script's directory is on sys.path
 
@@ -79,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         results = session.run(TlogSource([path], MavlinkLink(config.link)))
         t_all = time.perf_counter() - t0
 
+        base_mb, replay_mb = _in_child(_replay_memory, config, path)
         if args.view:
             t_view, size = replay_with_view(config, path, Path(tmp) / "replay.rrd", live=False)
             _, size_live = replay_with_view(config, path, Path(tmp) / "live.rrd", live=True)
@@ -88,6 +92,12 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"full replay : {t_all:.2f} s, {n / t_all:,.0f} messages/s, {frames / t_all:,.0f} "
         f"frames/s, {seconds / t_all:.0f}x real time (target >= 100x)"
+    )
+    hours = seconds / 3600
+    print(
+        f"memory      : resident {base_mb:.0f} MB with the kernels loaded, at most "
+        f"{replay_mb:.0f} MB replaying (the tlog read whole, every history kept): "
+        f"{(replay_mb - base_mb) / hours:.0f} MB per vehicle-hour above the base (target <= 50)"
     )
     if args.view:
         print(
@@ -101,6 +111,47 @@ def run(args: argparse.Namespace) -> int:
             f"-> {hour / 1e6:.0f} MB per hour of flight"
         )
     return 0
+
+
+def _rss_mb() -> float:
+    """Resident memory of this process now [MB] (Linux /proc)."""
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _replay_memory(config: AircraftConfig, tlog: Path) -> tuple[float, float]:
+    """(resident memory with the kernels loaded, highest resident memory while replaying
+    the tlog and writing nothing) [MB], sampled every 20 ms in a fresh process: the
+    compilers' own peak at warm-up is not the replay's."""
+    import threading
+
+    warm_up(config)
+    base = _rss_mb()
+    peak = [base]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.02):
+            peak[0] = max(peak[0], _rss_mb())
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    session = Session(config)
+    session.run(TlogSource([tlog], MavlinkLink(config.link)))
+    session.results()  # the end of a run reads every history
+    peak[0] = max(peak[0], _rss_mb())
+    done.set()
+    sampler.join()
+    return base, peak[0]
+
+
+def _in_child(fn: Callable[..., tuple[float, float]], *args: Any) -> tuple[float, float]:
+    """fn(*args) in a fresh process (its own memory)."""
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        out: tuple[float, float] = pool.apply(fn, args)
+        return out
 
 
 def replay_with_view(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -69,20 +69,75 @@ class Health:
         self.divergences += info.diverged
 
 
-@dataclass
-class History:
-    """Per-frame outputs of one filter, in frame order."""
+class Rows:
+    """Rows appended to a 2-D array that grows by half when full: no Python object per
+    row, so a long flight's history costs its numbers only."""
 
-    t: list[float] = field(default_factory=list)
-    u: list[FloatArray] = field(default_factory=list)
-    y: list[FloatArray] = field(default_factory=list)
-    out: list[StepOutput] = field(default_factory=list)
+    def __init__(self, width: int, dtype: type = np.float64) -> None:
+        self._a: np.ndarray = np.empty((1024, width), dtype)
+        self.n = 0
 
-    def append(self, t: float, u: FloatArray, y: FloatArray, out: StepOutput) -> None:
-        self.t.append(t)
+    def append(self, row: FloatArray | Sequence[float]) -> None:
+        if self.n == len(self._a):
+            grown = np.empty((len(self._a) * 3 // 2, self._a.shape[1]), self._a.dtype)
+            grown[: self.n] = self._a
+            self._a = grown
+        self._a[self.n] = row
+        self.n += 1
+
+    def set_last(self, row: FloatArray | Sequence[float]) -> None:
+        self._a[self.n - 1] = row
+
+    def array(self) -> FloatArray:
+        """A copy of the rows so far, as float64."""
+        return np.array(self._a[: self.n], dtype=float)
+
+
+HISTORY_DTYPE = np.float32
+"""Sigmas, innovations and NIS in the history (plots and convergence times need no more);
+states, inputs, observations and times stay float64."""
+
+
+class FrameHistory:
+    """Per-frame times, inputs and observations, shared by both filters."""
+
+    def __init__(self) -> None:
+        self.t = Rows(1)
+        self.u = Rows(N_INPUTS)
+        self.y = Rows(N_OBS)
+
+    def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
+        self.t.append((t,))
         self.u.append(u)
         self.y.append(y)
-        self.out.append(out)
+
+
+class History:
+    """Per-frame outputs of one filter, in frame order, columnar."""
+
+    def __init__(self, n: int) -> None:
+        self.x = Rows(n)
+        self.sigma = Rows(n, HISTORY_DTYPE)
+        self.scalars = Rows(3, HISTORY_DTYPE)
+        """NIS, channels used, gust sigma."""
+        self.innovation = Rows(N_OBS, HISTORY_DTYPE)
+        self.innovation_sigma = Rows(N_OBS, HISTORY_DTYPE)
+
+    def append(self, out: StepOutput) -> None:
+        i = out.info
+        self.x.append(out.x)
+        self.sigma.append(i.sigma)
+        self.scalars.append((i.nis, i.n_used, i.gust_sigma))
+        self.innovation.append(i.innovation)
+        self.innovation_sigma.append(i.innovation_sigma)
+
+    def set_last(self, out: StepOutput) -> None:
+        i = out.info
+        self.x.set_last(out.x)
+        self.sigma.set_last(i.sigma)
+        self.scalars.set_last((i.nis, i.n_used, i.gust_sigma))
+        self.innovation.set_last(i.innovation)
+        self.innovation_sigma.set_last(i.innovation_sigma)
 
 
 @dataclass(frozen=True)
@@ -111,26 +166,23 @@ class Track:
     """Observations per frame [N x 7], NaN where missing."""
 
     @staticmethod
-    def of(h: History, model: Model) -> Track:
-        n = model.n
-        x = np.array([o.x for o in h.out], float).reshape(-1, n)
-        infos = [o.info for o in h.out]
-        sigma = np.array([i.sigma for i in infos], float).reshape(-1, n)
+    def of(h: History, frames: FrameHistory, model: Model) -> Track:
+        x = h.x.array()
+        sigma = h.sigma.array()
+        scalars = h.scalars.array()
         return Track(
-            t=np.array(h.t, float),
+            t=frames.t.array()[:, 0],
             x=x,
             sigma=sigma,
             coefficients=x[:, model.coefficients],
             coefficient_sigma=sigma[:, model.coefficients],
-            nis=np.array([i.nis for i in infos], float),
-            n_used=np.array([i.n_used for i in infos], float),
-            innovation=np.array([i.innovation for i in infos], float).reshape(-1, N_OBS),
-            innovation_sigma=np.array([i.innovation_sigma for i in infos], float).reshape(
-                -1, N_OBS
-            ),
-            gust_sigma=np.array([i.gust_sigma for i in infos], float),
-            u=np.array(h.u, float).reshape(-1, N_INPUTS),
-            y=np.array(h.y, float).reshape(-1, N_OBS),
+            nis=scalars[:, 0],
+            n_used=scalars[:, 1],
+            innovation=h.innovation.array(),
+            innovation_sigma=h.innovation_sigma.array(),
+            gust_sigma=scalars[:, 2],
+            u=frames.u.array(),
+            y=frames.y.array(),
         )
 
 
@@ -197,7 +249,8 @@ class Estimator:
         }
         self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
-        self.histories = {k: History() for k in FILTER_KINDS}
+        self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
+        self.frame_history = FrameHistory()
         self._starts = {k: _Start() for k in FILTER_KINDS}
         self.frames = 0
         self.restarts_done = 0
@@ -266,8 +319,9 @@ class Estimator:
         outs = self._advance(self.states, t, u, y, inputs_known)
         self.frames += 1
         if self.keep_history:
+            self.frame_history.append(t, u, y)
             for kind, out in outs.items():
-                self.histories[kind].append(t, u, y, out)
+                self.histories[kind].append(out)
         restarts = self.config.filter.restart_times_s
         if (
             self._rerun is None
@@ -281,7 +335,7 @@ class Estimator:
                 outs = swapped
                 if self.keep_history:
                     for kind, out in outs.items():
-                        self.histories[kind].out[-1] = out
+                        self.histories[kind].set_last(out)
         return outs
 
     def finish_restarts(self) -> None:
@@ -290,7 +344,7 @@ class Estimator:
             swapped = self._catch_up(0)
             if swapped is not None and self.keep_history:
                 for kind, out in swapped.items():
-                    self.histories[kind].out[-1] = out
+                    self.histories[kind].set_last(out)
 
     def _advance(
         self,
@@ -414,7 +468,11 @@ class Estimator:
             cov = s.P[coef, coef]
             biases = self.model.biases
             gust = s.gust.applied(self.tunings[kind].detection2)
-            track = Track.of(self.histories[kind], self.model) if self.keep_history else None
+            track = (
+                Track.of(self.histories[kind], self.frame_history, self.model)
+                if self.keep_history
+                else None
+            )
             filters[kind] = FilterResult(
                 kind,
                 s.x[coef].copy(),

@@ -125,15 +125,16 @@ class TlogSource:
         self.link = link
         self.speed = speed
         self.log = sys.stderr if log is None else log
-        self.done = 0
         self.total = 0
+        self._stats = TlogStats()
         self.errors: list[str] = []
         """Files that could not be replayed (the others' frames are processed)."""
 
-    def _records(self, path: Path) -> list[TlogRecord]:
-        stats = TlogStats()
+    def _records(self, path: Path, stats: TlogStats) -> Iterator[TlogRecord]:
+        """The file's records as they are read (a piece at a time)."""
         try:
-            records = list(read_tlog(path, stats))
+            self.total = path.stat().st_size
+            yield from read_tlog(path, stats)
         except TlogError as exc:
             raise SourceError(str(exc)) from exc
         except OSError as exc:
@@ -145,28 +146,24 @@ class TlogSource:
                 f"note: {path}: truncated at the end; the last partial record is ignored",
                 file=self.log,
             )
-        return records
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         t0_rec = t0_wall = None
         for path in self.paths:
+            self._stats = stats = TlogStats()
             try:
-                records = self._records(path)
+                for rec in self._records(path, stats):
+                    if stop.requested:
+                        break
+                    t = rec.t_recv_us * 1e-6
+                    if self.speed > 0:
+                        if t0_rec is None or t0_wall is None:
+                            t0_rec, t0_wall = t, time.time()
+                        yield from self._wait((t - t0_rec) / self.speed + t0_wall, stop)
+                    yield from self.link.packet(rec.packet, t)
             except SourceError as exc:
                 self.errors.append(str(exc))
                 print(f"error: {exc}; skipped", file=self.log)
-                continue
-            self.done, self.total = 0, len(records)
-            for rec in records:
-                if stop.requested:
-                    break
-                t = rec.t_recv_us * 1e-6
-                if self.speed > 0:
-                    if t0_rec is None or t0_wall is None:
-                        t0_rec, t0_wall = t, time.time()
-                    yield from self._wait((t - t0_rec) / self.speed + t0_wall, stop)
-                self.done += 1
-                yield from self.link.packet(rec.packet, t)
         yield from self.link.flush()
 
     @staticmethod
@@ -181,8 +178,13 @@ class TlogSource:
             yield None
 
     def progress(self) -> tuple[int, int]:
-        """(packets done, packets in the current file)."""
-        return self.done, self.total
+        """(bytes read, bytes in the current file)."""
+        return self._stats.position, self.total
+
+    @property
+    def done(self) -> int:
+        """Records of the current file replayed so far."""
+        return self._stats.records
 
     def link_stats(self) -> dict[str, Any]:
         return self.link.stats()

@@ -290,6 +290,8 @@ class TlogStats:
     records: int = 0
     junk_bytes: int = 0
     truncated_tail: bool = False
+    position: int = 0
+    """Bytes of the file read so far."""
 
 
 FORWARD_US = 86_400_000_000
@@ -315,37 +317,57 @@ def _plausible_record(
     return msg is not None and (framed or not is_unknown(msg))
 
 
+READ_CHUNK = 1 << 20
+"""A tlog is read in pieces this large [bytes]: memory does not grow with the file."""
+LOOKAHEAD = 8 + 280 + 8 + 3
+"""Bytes a record's checks may look at: the record (8-byte time, a packet of at most 280
+bytes) and the next record's header."""
+
+
 def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
-    """Records of a .tlog, resynchronising over garbage and stopping at a truncated tail.
+    """Records of a .tlog, resynchronising over garbage and stopping at a truncated tail;
+    read a piece at a time (stats.position says how far).
 
     Raises TlogError if the start of the file holds no valid record at all.
     """
-    data = Path(path).read_bytes()
     st = stats if stats is not None else TlogStats()
     decoder = Decoder()
-    i = 0
     first = True
     resyncing = False
     last_t: int | None = None
-    while i + 8 < len(data):
-        n = packet_length(data, i + 8)
-        if n and i + 8 + n <= len(data):
-            (t_us,) = struct.unpack_from(">Q", data, i)
-            if _plausible_record(data, i, n, t_us, last_t, resyncing, decoder):
-                first = resyncing = False
-                last_t = t_us
-                st.records += 1
-                yield TlogRecord(t_us, data[i + 8 : i + 8 + n])
-                i += 8 + n
+    data = b""
+    offset = i = 0  # data[0] is the file's byte `offset`
+    eof = False
+    with open(path, "rb") as fh:
+        while True:
+            st.position = offset + i
+            if not eof and len(data) - i < LOOKAHEAD:
+                chunk = fh.read(READ_CHUNK)
+                eof = not chunk
+                offset += i
+                data = data[i:] + chunk
+                i = 0
                 continue
-        elif n and i + 8 + n > len(data):
-            st.truncated_tail = True
-            return
-        if first and i >= 4096:
-            raise TlogError(f"{path}: not a tlog (no MAVLink record in the first 4 KiB)")
-        st.junk_bytes += 1
-        resyncing = True
-        i += 1
+            if i + 8 >= len(data):
+                break
+            n = packet_length(data, i + 8)
+            if n and i + 8 + n <= len(data):
+                (t_us,) = struct.unpack_from(">Q", data, i)
+                if _plausible_record(data, i, n, t_us, last_t, resyncing, decoder):
+                    first = resyncing = False
+                    last_t = t_us
+                    st.records += 1
+                    yield TlogRecord(t_us, data[i + 8 : i + 8 + n])
+                    i += 8 + n
+                    continue
+            elif n:  # the record runs past the end of the file
+                st.truncated_tail = True
+                return
+            if first and offset + i >= 4096:
+                raise TlogError(f"{path}: not a tlog (no MAVLink record in the first 4 KiB)")
+            st.junk_bytes += 1
+            resyncing = True
+            i += 1
     if first and len(data) > 0:
         raise TlogError(f"{path}: not a tlog (no MAVLink record found)")
     if i < len(data):
