@@ -10,9 +10,11 @@ the view, the report and the metrics read.
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 
 import numpy as np
 
@@ -70,32 +72,52 @@ class Health:
 
 
 class Rows:
-    """Rows appended to a 2-D array that grows by half when full: no Python object per
-    row, so a long flight's history costs its numbers only."""
+    """Rows appended to a 2-D array kept on disk: the newest HISTORY_CHUNK rows in memory,
+    the rest written to an unnamed temporary file (gone with the process), so a long
+    flight's history costs disk, not memory. array() maps the file (read-only)."""
 
     def __init__(self, width: int, dtype: type = np.float64) -> None:
-        self._a: np.ndarray = np.empty((1024, width), dtype)
-        self.n = 0
+        self._buf: np.ndarray = np.empty((HISTORY_CHUNK, width), dtype)
+        self._row_bytes = self._buf[0].nbytes
+        self._nbuf = 0
+        self._flushed = 0
+        self._file: BinaryIO | None = None
+
+    @property
+    def n(self) -> int:
+        return self._flushed + self._nbuf
 
     def append(self, row: FloatArray | Sequence[float]) -> None:
-        if self.n == len(self._a):
-            grown = np.empty((len(self._a) * 3 // 2, self._a.shape[1]), self._a.dtype)
-            grown[: self.n] = self._a
-            self._a = grown
-        self._a[self.n] = row
-        self.n += 1
+        if self._nbuf == HISTORY_CHUNK:
+            self._write(self._nbuf)
+            self._flushed += self._nbuf
+            self._nbuf = 0
+        self._buf[self._nbuf] = row
+        self._nbuf += 1
 
     def set_last(self, row: FloatArray | Sequence[float]) -> None:
-        self._a[self.n - 1] = row
+        """Replace the newest row (always still in memory)."""
+        self._buf[self._nbuf - 1] = row
 
-    def array(self) -> FloatArray:
-        """A copy of the rows so far, as float64."""
-        return np.array(self._a[: self.n], dtype=float)
+    def _write(self, rows: int) -> None:
+        """The rows in memory to the file, after the rows already there."""
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="gcs-history-")  # noqa: SIM115
+        os.pwrite(self._file.fileno(), self._buf[:rows].tobytes(), self._flushed * self._row_bytes)
+
+    def array(self) -> np.ndarray:
+        """The rows so far: a copy while they fit in memory, else the file mapped
+        read-only (the rows in memory written to it first)."""
+        if self._flushed == 0:
+            return self._buf[: self._nbuf].copy()
+        self._write(self._nbuf)
+        assert self._file is not None
+        shape = (self.n, self._buf.shape[1])
+        return np.memmap(self._file, self._buf.dtype, mode="r", shape=shape)
 
 
-HISTORY_DTYPE = np.float32
-"""Sigmas, innovations and NIS in the history (plots and convergence times need no more);
-states, inputs, observations and times stay float64."""
+HISTORY_CHUNK = 4096
+"""Rows of a history kept in memory before they go to disk."""
 
 
 class FrameHistory:
@@ -117,11 +139,11 @@ class History:
 
     def __init__(self, n: int) -> None:
         self.x = Rows(n)
-        self.sigma = Rows(n, HISTORY_DTYPE)
-        self.scalars = Rows(3, HISTORY_DTYPE)
+        self.sigma = Rows(n)
+        self.scalars = Rows(3)
         """NIS, channels used, gust sigma."""
-        self.innovation = Rows(N_OBS, HISTORY_DTYPE)
-        self.innovation_sigma = Rows(N_OBS, HISTORY_DTYPE)
+        self.innovation = Rows(N_OBS)
+        self.innovation_sigma = Rows(N_OBS)
 
     def append(self, out: StepOutput) -> None:
         i = out.info
@@ -171,7 +193,7 @@ class Track:
         sigma = h.sigma.array()
         scalars = h.scalars.array()
         return Track(
-            t=frames.t.array()[:, 0],
+            t=np.asarray(frames.t.array()[:, 0]),
             x=x,
             sigma=sigma,
             coefficients=x[:, model.coefficients],
