@@ -25,6 +25,7 @@ from gcs_estimator.session import RecordingSource, Session, Source, VehicleResul
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
 from gcs_estimator.sources import SourceError, TlogSource, UdpSource, open_udp
 from gcs_estimator.stop import PROCESS_STOP, Stop
+from gcs_estimator.telemetry.decode import ranges_of
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
@@ -289,6 +290,7 @@ def _link_session(
         config.link,
         recorder=TlogWriter(record) if record else None,
         linear_inputs=config.data.input_hold == "linear",
+        ranges=ranges_of(config.data),
     )
     view = _view_sink(config, args, name, session, link)
     if view is not None:

@@ -456,6 +456,21 @@ class Units:
         return units.offset(getattr(self, quantity))
 
 
+PLAUSIBLE_QUANTITIES: tuple[str, ...] = (
+    "airspeed",
+    "alpha",
+    "theta",
+    "q",
+    "qdot",
+    "a_x",
+    "a_z",
+    "elevator",
+)
+PLAUSIBLE_MAX: tuple[float, ...] = (300.0, 0.8, 1.6, 5.0, 50.0, 100.0, 100.0, 0.8)
+"""Largest magnitudes a fixed-wing aircraft's signals reach [SI: m/s, rad (46 deg for
+alpha and the elevator, 92 deg for theta), rad/s, rad/s^2, m/s^2]."""
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """What the flight data are, whatever carries them (a link, a log, a file)."""
@@ -465,8 +480,20 @@ class DataConfig:
         choices=("linear", "previous"),
         doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
     )
+    plausible_max: tuple[float, ...] = setting(
+        PLAUSIBLE_MAX,
+        keys=PLAUSIBLE_QUANTITIES,
+        fill=PLAUSIBLE_MAX,
+        gt=0,
+        unit="SI",
+        doc="largest magnitude a signal can have: beyond it a link's value is dropped and "
+        "counted, a file refused with the unit it is likely in",
+    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
+
+    def plausible(self, quantity: str) -> float:
+        return self.plausible_max[PLAUSIBLE_QUANTITIES.index(quantity)]
 
 
 @dataclass(frozen=True)
@@ -516,6 +543,19 @@ class LinkConfig:
         )
 
 
+def _is_host(text: str) -> bool:
+    """An IP address (v4 or v6) or a host name (RFC 1123 labels)."""
+    import ipaddress
+    import re
+
+    try:
+        ipaddress.ip_address(text)
+        return True
+    except ValueError:
+        label = r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)"
+        return len(text) <= 253 and re.fullmatch(rf"{label}(\.{label})*", text) is not None
+
+
 @dataclass(frozen=True)
 class ViewConfig:
     """The live Rerun view: where it goes (save an .rrd, serve over gRPC, spawn a viewer,
@@ -536,6 +576,12 @@ class ViewConfig:
     shutdown_timeout_s: float = setting(3.0, gt=0, unit="s", doc="a viewer's time to drain at exit")
 
     def check(self) -> None:
+        if not _is_host(self.serve_bind):
+            raise Invalid(
+                "serve_bind",
+                f"{self.serve_bind!r} is no address to listen on: an IP address such as "
+                '"127.0.0.1" (this machine only) or "0.0.0.0" (every interface), or a host name',
+            )
         if not self.connect_url.startswith(("rerun://", "rerun+http://", "rerun+https://")):
             raise Invalid(
                 "connect_url",

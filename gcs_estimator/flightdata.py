@@ -21,11 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator import atmosphere
+from gcs_estimator import atmosphere, units
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
+    PLAUSIBLE_QUANTITIES,
     POWER_COLUMNS,
+    QUANTITY_KINDS,
     Columns,
     DataConfig,
     PowerInput,
@@ -130,9 +132,19 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
     the module docstring). One of the throttle and thrust columns must be present; air
     density comes from the atmosphere columns the file has (config.ATMOSPHERE_QUANTITIES)."""
     data = data or DataConfig()
-    cols, units = data.columns, data.units
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        return _load_csv(path, data, "utf-8-sig")
+    except UnicodeDecodeError:
+        # Not UTF-8: a byte such as a degree sign from a Windows program. Latin-1 reads
+        # every byte; the numbers are ASCII either way.
+        return _load_csv(path, data, "latin-1")
+
+
+def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
+    cols, units = data.columns, data.units
+    line = 1
+    try:
+        with open(path, newline="", encoding=encoding) as fh:
             reader = csv.DictReader(fh)
             header = list(reader.fieldnames or [])
             for quantity in ("time", *OBSERVED, "elevator"):
@@ -151,11 +163,14 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
                     raise FlightDataError(f"{path}:{line}: {exc}") from exc
     except OSError as exc:
         raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+    except csv.Error as exc:
+        raise FlightDataError(f"{path}:{line + 1}: not a CSV row: {exc}") from exc
     if not rows:
         raise FlightDataError(f"{path}: no data rows")
     arr = np.array(rows, float) * scale + shift
     if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
         raise FlightDataError(f"{path}: {cols.time!r} (time) must be present and increasing")
+    check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
     inputs = arr[:, [8, 9]]
     rho = _density(dict(zip(air, arr[:, 10:].T, strict=True)))
     if rho is not None:
@@ -166,6 +181,56 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
         measurements=arr[:, 1:8],
         power="thrust" if power == "thrust" else "throttle",
     )
+
+
+LIKELY_UNITS: dict[str, tuple[str, ...]] = {
+    "time": ("ms", "us"),
+    "airspeed": ("km/h", "kt", "ft/s"),
+    "alpha": ("deg",),
+    "theta": ("deg",),
+    "elevator": ("deg",),
+    "q": ("deg/s",),
+    "qdot": ("deg/s^2",),
+    "a_x": ("ft/s^2",),
+    "a_z": ("ft/s^2",),
+}
+"""Units a column in the wrong unit is likely in, tried in order."""
+
+
+def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -> None:
+    """Refuse a file whose values, read in the configured units, cannot be a fixed-wing
+    aircraft's (data.plausible_max), naming the unit they are likely in. The time
+    steps of a flight record are below a second."""
+    t = si["time"]
+    if len(t) > 2 and float(np.median(np.diff(t))) >= 1.0:
+        step = float(np.median(np.diff(t)))
+        raise FlightDataError(
+            f"{path}: time steps of {step:g} s; a flight record's are below a second: if the "
+            f'column is in milliseconds, set [data.units] time = "ms" '
+            f"(or --set data.units.time=ms)"
+        )
+    limits = dict(zip(PLAUSIBLE_QUANTITIES, data.plausible_max, strict=True))
+    for quantity, limit in limits.items():
+        values = si.get(quantity)
+        if values is None or not np.any(np.isfinite(values)):
+            continue
+        worst = float(np.nanmax(np.abs(values)))
+        if worst <= limit:
+            continue
+        now = getattr(data.units, quantity)
+        kind = QUANTITY_KINDS[quantity]
+        hint = ""
+        for unit in LIKELY_UNITS.get(quantity, ()):
+            if unit != now and worst / units.factor(kind, now) * units.factor(kind, unit) <= limit:
+                hint = (
+                    f"; if the column is in {unit}, set [data.units] {quantity} = "
+                    f'"{unit}" (or --set data.units.{quantity}={unit})'
+                )
+                break
+        raise FlightDataError(
+            f"{path}: {quantity} reaches {worst:g} (SI, read as {now}), beyond "
+            f"data.plausible_max.{quantity} = {limit:g}{hint}"
+        )
 
 
 def _density(air: dict[str, FloatArray]) -> FloatArray | None:

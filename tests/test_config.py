@@ -242,3 +242,9 @@ def test_the_configuration_reference_is_generated_from_the_schema() -> None:
     `./run gcs keys > docs/configuration.md` after changing a key."""
     text = (ROOT / "docs" / "configuration.md").read_text()
     assert text == config_reference(NOC_NAMES)
+
+
+@pytest.mark.parametrize("bind", ["0.0.0.0:9877", "bad host", ""])
+def test_a_serve_bind_that_is_no_address_names_the_key(bind: str) -> None:
+    with pytest.raises(ConfigError, match=r"\[view\] serve_bind: .* is no address to listen on"):
+        load_config("noc_uav", [f'view.serve_bind="{bind}"'])

@@ -77,3 +77,59 @@ def test_an_unknown_unit_is_refused_with_the_allowed_ones() -> None:
 
     with pytest.raises(ConfigError, match=r"\[data.units\] airspeed: must be one of 'm/s', 'kt'"):
         load_config("noc_uav", ['data.units.airspeed="mph"'])
+
+
+def _overrides_without(quantity: str) -> list[str]:
+    """The foreign layout's overrides but for one quantity's unit (left at SI)."""
+    return [o for o in OVERRIDES if not o.startswith(f"data.units.{quantity}=")]
+
+
+@pytest.mark.parametrize(
+    ("quantity", "unit"),
+    [("alpha", "deg"), ("theta", "deg"), ("q", "deg/s"), ("elevator", "deg"), ("time", "ms")],
+)
+def test_a_column_in_the_wrong_unit_is_refused_naming_the_likely_one(
+    tmp_path: Path, flight: Recording, quantity: str, unit: str
+) -> None:
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight)
+    with pytest.raises(FlightDataError, match=rf"data\.units\.{quantity}={unit}\b"):
+        load_csv(path, load_config("noc_uav", _overrides_without(quantity)).data)
+
+
+def test_absurd_values_are_refused_and_the_limit_is_configurable(
+    tmp_path: Path, flight: Recording
+) -> None:
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight)
+    tight = [*OVERRIDES, "data.plausible_max.airspeed=10"]
+    with pytest.raises(
+        FlightDataError, match=r"airspeed reaches .*data\.plausible_max\.airspeed = 10"
+    ):
+        load_csv(path, load_config("noc_uav", tight).data)
+
+
+def test_a_bom_a_latin1_byte_and_an_oversized_field(tmp_path: Path, flight: Recording) -> None:
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight)
+    text = path.read_bytes().replace(b"Extra", "Temp \u00b0C".encode("latin-1"), 1)
+    (tmp_path / "latin1.csv").write_bytes(text)
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    data = load_config("noc_uav", OVERRIDES).data
+    for name in ("latin1.csv", "bom.csv"):
+        rec = load_csv(tmp_path / name, data)
+        np.testing.assert_allclose(rec.measurements, flight.measurements, rtol=1e-12)
+    lines = path.read_text().splitlines()
+    lines[5] = "x" * 200_000 + lines[5]
+    (tmp_path / "huge.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(FlightDataError, match=r"huge\.csv:6: not a CSV row"):
+        load_csv(tmp_path / "huge.csv", data)
+
+
+def test_a_config_that_is_not_utf8_names_the_line(tmp_path: Path) -> None:
+    from gcs_estimator.config import ConfigError
+
+    path = tmp_path / "plane.toml"
+    path.write_bytes(b'base = "noc_uav"\n[airframe]\nname = "Caf\xe9"\n')
+    with pytest.raises(ConfigError, match=r"plane\.toml:3: not UTF-8 text \(byte 0xe9\)"):
+        load_config(path)

@@ -9,10 +9,11 @@ sees a MAVLink object.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from gcs_estimator import atmosphere
-from gcs_estimator.config import LinkConfig
+from gcs_estimator.config import DataConfig, LinkConfig
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.telemetry import pwm
 from gcs_estimator.telemetry.mavlink import (
@@ -23,19 +24,32 @@ from gcs_estimator.telemetry.mavlink import (
     header,
 )
 
-PLAUSIBLE: dict[Channel, tuple[float, float]] = {
-    Channel.V: (0.5, 400.0),
-    Channel.ALPHA: (-math.pi / 2, math.pi / 2),
-    Channel.THETA: (-math.pi / 2, math.pi / 2),
-    Channel.Q: (-10.0, 10.0),
-    Channel.QDOT: (-100.0, 100.0),
-    Channel.AX: (-200.0, 200.0),
-    Channel.AZ: (-200.0, 200.0),
-    Channel.ELEVATOR: (-1.0, 1.0),
-    Channel.POWER: (-1e7, 1e7),
-    Channel.DENSITY: (0.01, 2.0),
-}
-"""Physically possible ranges [SI]; a value outside is absurd and dropped (and counted)."""
+Ranges = Mapping[Channel, tuple[float, float]]
+
+
+def ranges_of(data: DataConfig) -> dict[Channel, tuple[float, float]]:
+    """The values a fixed-wing aircraft's signals can take [SI] (data.plausible_max); a
+    value outside is absurd and dropped (and counted)."""
+    out = {
+        ch: (-data.plausible(q), data.plausible(q))
+        for ch, q in (
+            (Channel.ALPHA, "alpha"),
+            (Channel.THETA, "theta"),
+            (Channel.Q, "q"),
+            (Channel.QDOT, "qdot"),
+            (Channel.AX, "a_x"),
+            (Channel.AZ, "a_z"),
+            (Channel.ELEVATOR, "elevator"),
+        )
+    }
+    out[Channel.V] = (0.5, data.plausible("airspeed"))
+    out[Channel.POWER] = (-1e7, 1e7)
+    out[Channel.DENSITY] = (0.01, 2.0)
+    return out
+
+
+PLAUSIBLE = ranges_of(DataConfig())
+"""The default ranges."""
 
 
 @dataclass(frozen=True)
@@ -102,17 +116,27 @@ class DecodeStats:
 
 
 def decode_packet(
-    decoder: Decoder, packet: bytes, t_recv_s: float, link: LinkConfig, stats: DecodeStats
+    decoder: Decoder,
+    packet: bytes,
+    t_recv_s: float,
+    link: LinkConfig,
+    stats: DecodeStats,
+    ranges: Ranges = PLAUSIBLE,
 ) -> Decoded | None:
     """What one packet means; None if it fails its CRC or framing."""
     msg = decoder.decode(packet)
     if msg is None:
         return None
-    return decoded_message(msg, packet, t_recv_s, link, stats)
+    return decoded_message(msg, packet, t_recv_s, link, stats, ranges)
 
 
 def decoded_message(
-    msg: MAVLinkMessage, packet: bytes, t_recv_s: float, link: LinkConfig, stats: DecodeStats
+    msg: MAVLinkMessage,
+    packet: bytes,
+    t_recv_s: float,
+    link: LinkConfig,
+    stats: DecodeStats,
+    ranges: Ranges = PLAUSIBLE,
 ) -> Decoded:
     """What a packet that decoded means."""
     kind = msg.get_type()
@@ -126,7 +150,7 @@ def decoded_message(
     elif kind == "COMMAND_ACK":
         event = CommandAck(int(msg.command), int(msg.result))
     else:
-        sample = decode_message(msg, t_recv_s, link, stats)
+        sample = decode_message(msg, t_recv_s, link, stats, ranges)
         event = Ignored() if sample is None else sample
     return Decoded(int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq()), event)
 
@@ -180,7 +204,11 @@ def _values(
 
 
 def decode_message(
-    msg: MAVLinkMessage, t_recv_s: float, link: LinkConfig, stats: DecodeStats
+    msg: MAVLinkMessage,
+    t_recv_s: float,
+    link: LinkConfig,
+    stats: DecodeStats,
+    ranges: Ranges = PLAUSIBLE,
 ) -> Sample | None:
     """The sample a message carries, or None if it carries none."""
     kind = msg.get_type()
@@ -191,7 +219,7 @@ def decode_message(
     t, vals = found
     good: list[tuple[Channel, float]] = []
     for ch, v in vals:
-        lo, hi = PLAUSIBLE[ch]
+        lo, hi = ranges[ch]
         fv = float(v)
         if math.isfinite(fv) and lo <= fv <= hi:
             good.append((ch, fv))

@@ -20,9 +20,11 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.counters import LinkHealth
 from gcs_estimator.telemetry.decode import (
+    PLAUSIBLE,
     CommandAck,
     DecodeStats,
     Heartbeat,
+    Ranges,
     Sample,
     Unknown,
     decoded_message,
@@ -72,11 +74,13 @@ class MavlinkLink:
         recorder: TlogWriter | None = None,
         log: TextIO | None = None,
         linear_inputs: bool = True,
+        ranges: Ranges = PLAUSIBLE,
     ) -> None:
         self.config = config
         self.recorder = recorder
         self.log = sys.stderr if log is None else log
         self.linear_inputs = linear_inputs
+        self.ranges = ranges
         self.decoder = mavlink.Decoder()
         self.health = LinkHealth()
         self.decode_stats = DecodeStats()
@@ -154,7 +158,9 @@ class MavlinkLink:
         if math.isnan(self.t_first_recv):
             self.t_first_recv = t_recv_s
         self.t_last_recv = t_recv_s
-        decoded = decoded_message(msg, packet, t_recv_s, self.config, self.decode_stats)
+        decoded = decoded_message(
+            msg, packet, t_recv_s, self.config, self.decode_stats, self.ranges
+        )
         event = decoded.event
         name = link_name(address)
         t_vehicle = None

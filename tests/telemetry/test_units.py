@@ -168,3 +168,16 @@ def test_tlog_resynchronises_over_garbage_and_stops_at_a_cut(
     (tmp_path / "text.tlog").write_bytes(b"not a tlog at all\n" * 400)
     with pytest.raises(TlogError):
         list(read_tlog(tmp_path / "text.tlog"))
+
+
+def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle: Codec) -> None:
+    """An 80 deg angle of attack is a number a float holds and no fixed wing flies."""
+    from gcs_estimator.config import load_config
+    from gcs_estimator.telemetry.decode import ranges_of
+
+    packet = vehicle.pack(vehicle.mav.aoa_ssa_encode(1, 80.0, 0.0))
+    stats = DecodeStats()
+    assert _decode(packet, stats) == Ignored() and stats.invalid_values == 1
+    wide = ranges_of(load_config("noc_uav", ["data.plausible_max.alpha=1.5"]).data)
+    decoded = decode_packet(Decoder(), packet, 1.0, LINK, DecodeStats(), wide)
+    assert decoded is not None and isinstance(decoded.event, Sample)
