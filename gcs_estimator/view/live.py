@@ -110,6 +110,7 @@ class RerunView:
         self.clock = clock
         self.rate = config.view.display_rate_hz
         self.rows: dict[int, _Rows] = {}
+        self._layout_due = False
         self._chi2 = _chi2_bounds()
         self._last_flush = clock()
         self._last_table = -math.inf
@@ -162,10 +163,20 @@ class RerunView:
         ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
         ops.append(Style(lay.turbulence_path(system_id), lay.TURBULENCE_STYLE))
         ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
-        truth = None if self.truth is None else tuple(float(v) for v in self.truth)
-        ops.append(Layout(tuple(sorted(self.rows)), self.names, self.axes, self.power_input, truth))
         for op in ops:
             self._send(op)
+        if len(self.rows) == 1:
+            self._send_layout()  # the first vehicle is laid out at once
+        else:
+            self._layout_due = True  # the others with the next batch: one layout per burst
+
+    def _send_layout(self) -> None:
+        """The viewer's layout for every vehicle so far. It is a whole blueprint each
+        time, so it goes at most once per batch: vehicles that appear together (a fleet
+        coming up) cost one layout, not one per vehicle with all the vehicles before."""
+        truth = None if self.truth is None else tuple(float(v) for v in self.truth)
+        self._send(Layout(tuple(sorted(self.rows)), self.names, self.axes, self.power_input, truth))
+        self._layout_due = False
 
     # ------------------------------------------------------------ sending
     def _send(self, op: Op) -> None:
@@ -176,6 +187,8 @@ class RerunView:
         """Send every buffered row; update the link entities and, now and then, the
         results tables."""
         self._last_flush = self.clock()
+        if self._layout_due:
+            self._send_layout()
         for sid, rows in self.rows.items():
             if rows.t:
                 self._send_rows(sid, rows)

@@ -181,3 +181,22 @@ def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle
     wide = ranges_of(load_config("noc_uav", ["data.plausible_max.alpha=1.5"]).data)
     decoded = decode_packet(Decoder(), packet, 1.0, LINK, DecodeStats(), wide)
     assert decoded is not None and isinstance(decoded.event, Sample)
+
+
+def test_a_quadrotor_is_warned_about_and_system_ids_beyond_the_cap_are_counted() -> None:
+    import io
+
+    from gcs_estimator.telemetry.link import MavlinkLink
+
+    log = io.StringIO()
+    link = MavlinkLink(LinkConfig(max_vehicles=2), log=log)
+    for sysid, mav_type in ((1, mavlink.MAV_TYPE_FIXED_WING), (2, 2), (3, 1), (4, 1)):
+        codec = Codec(sysid, 1)
+        assert (
+            list(link.datagram(codec.heartbeat(mav_type), 1.0, ("127.0.0.1", 5000 + sysid))) == []
+        )
+    text = log.getvalue()
+    assert "system id 2 says it is MAV_TYPE_QUADROTOR" in text
+    assert "system id 1 says" not in text
+    assert sorted(link.vehicles) == [1, 2]
+    assert link.stats()["refused_vehicles"] == {"3": 1, "4": 1}
