@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from gcs_estimator.config import (
     REFINE_METHODS,
@@ -34,6 +38,65 @@ if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
 
 DEFAULT_CONFIG = "noc_uav"
+VIEW_FILE = "view.rrd"
+TLOG_FILE = "telemetry.tlog"
+"""The same file names from every command, in the run's own folder."""
+
+
+def results_stem(system_id: int) -> str:
+    return f"results_sys{system_id}"
+
+
+OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE)
+"""What in a folder says a run wrote it."""
+
+
+def run_folder(args: argparse.Namespace, started: datetime) -> Path:
+    """The run's folder: --out exactly (refused if it holds a run's outputs, unless
+    --force), else out/<command>_<UTC time> (with _2, _3 ... if taken)."""
+    if args.out is not None:
+        out = Path(args.out)
+        taken = [p.name for g in OUTPUT_GLOBS for p in out.glob(g)] if out.is_dir() else []
+        if taken and not args.force:
+            raise ConfigError(
+                f"--out {out}: holds a run's outputs already ({', '.join(sorted(taken))}); "
+                "choose another folder, or --force to overwrite them"
+            )
+        return out
+    base = Path("out") / f"{args.command}_{started:%Y%m%dT%H%M%SZ}"
+    out, k = base, 1
+    while out.exists():
+        k += 1
+        out = base.with_name(f"{base.name}_{k}")
+    return out
+
+
+def run_info(
+    args: argparse.Namespace, config: AircraftConfig, source: str | None
+) -> dict[str, Any]:
+    """What the JSON says of the run: version, command line, source (a file's path and
+    hash), config and its hash, start and end times (UTC)."""
+    config_text = json.dumps(config.raw, sort_keys=True, default=str)
+    started: datetime = args.started
+    info: dict[str, Any] = {
+        "version": _version(),
+        "command": args.command,
+        "command_line": sys.argv[:] if args.argv is None else ["gcs-estimator", *args.argv],
+        "config": config.source,
+        "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
+        "source": None,
+        "source_sha256": None,
+        "started_utc": started.isoformat(timespec="seconds"),
+        "ended_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    info["source"] = source
+    if source is not None and Path(source).is_file():
+        digest = hashlib.sha256()
+        with open(source, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+        info["source_sha256"] = digest.hexdigest()
+    return info
 
 
 def _config_arg(p: argparse.ArgumentParser, default: str | None) -> None:
@@ -54,7 +117,13 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         metavar="KEY=VALUE",
         help="override a config value, e.g. --set filter.iterations=3 (repeatable)",
     )
-    p.add_argument("--out", default="out", help="directory for results (default: %(default)s)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="this run's folder (default: out/COMMAND_UTCTIME); one that holds a run's "
+        "outputs already is refused unless --force",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
     p.add_argument(
         "--refine",
         choices=REFINE_METHODS,
@@ -90,7 +159,7 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         "local viewer), connect (a running viewer), off, auto (spawn+save with a display, "
         "else save). Default: [view] outputs of the config, normally auto",
     )
-    v.add_argument("--rrd", default=None, help="the .rrd to save (default: OUT/<session>.rrd)")
+    v.add_argument("--rrd", default=None, help=f"the .rrd to save (default: OUT/{VIEW_FILE})")
     v.add_argument(
         "--serve-port", type=int, default=None, help="port of the served view (default 9877)"
     )
@@ -132,12 +201,11 @@ def _config(args: argparse.Namespace) -> AircraftConfig:
 def _view_sink(
     config: AircraftConfig,
     args: argparse.Namespace,
-    name: str,
     session: Session,
     link: MavlinkLink | None = None,
 ) -> ViewSink | None:
     """The live view as chosen on the command line or in the config (None: no view)."""
-    choice = resolve_outputs(config, config.view.outputs, Path(args.out) / f"{name}.rrd")
+    choice = resolve_outputs(config, config.view.outputs, Path(args.out) / VIEW_FILE)
     outlets = open_outlets(config, choice)
     if not outlets:
         return None
@@ -187,22 +255,52 @@ def _refiner(args: argparse.Namespace) -> Callable[[VehicleResult], Refined | No
     return run
 
 
+EXIT_NOTHING_ESTIMATED = 1
+"""The run ended without a usable frame, or no frame's observations matched the config."""
+
+
 def _run(session: Session, source: Source, stop: Stop) -> int:
-    """Drive the session; a source that fails still leaves the results of what it gave."""
+    """Drive the session; a source that fails still leaves the results of what it gave.
+    Exit status: 0, or 2 when a source failed, or EXIT_NOTHING_ESTIMATED with the reason."""
     try:
-        session.run(source, stop)
+        results = session.run(source, stop)
     except SourceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return 2 if getattr(source, "errors", None) else 0
+    if getattr(source, "errors", None):
+        return 2
+    if not results or all(v.result.frames == 0 for v in results.values()):
+        print("error: no usable frame arrived: nothing was estimated", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
+    unmatched = [sid for sid, v in results.items() if _no_update(v)]
+    if len(unmatched) == len(results):
+        print(
+            "error: no frame's observations could be used (every update had no channel): "
+            "check that the data match the config (its [link] mapping and [data] units)",
+            file=sys.stderr,
+        )
+        return EXIT_NOTHING_ESTIMATED
+    return 0
+
+
+def _no_update(vehicle: VehicleResult) -> bool:
+    """No frame of this vehicle updated either filter with any channel."""
+    for f in vehicle.result.filters.values():
+        if f.track is None or bool(np.any(f.track.n_used > 0)):
+            return False
+    return True
 
 
 def _recording_session(
-    config: AircraftConfig, args: argparse.Namespace, source: RecordingSource, label: str, name: str
+    config: AircraftConfig,
+    args: argparse.Namespace,
+    source: RecordingSource,
+    label: str,
+    origin: str | None,
 ) -> int:
     stop = PROCESS_STOP.install()
     session = Session(config, backend=args.backend)
-    view = _view_sink(config, args, name, session)
+    view = _view_sink(config, args, session)
     if view is not None:
         session.add_sink(view)
     if sys.stderr.isatty():
@@ -219,9 +317,10 @@ def _recording_session(
         ResultsSink(
             Path(args.out),
             heading,
-            lambda sid: "results",
+            results_stem,
             lambda: session.elapsed_s,
             refine=_refiner(args),
+            run=lambda: run_info(args, config, origin),
         )
     )
     return _run(session, source, stop)
@@ -236,9 +335,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     seed = args.seed if args.seed is not None else config.simulation.seed
     flight = simulate(config, seed=seed)
     source = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
-    return _recording_session(
-        config, args, source, f"simulated flight, seed {seed}", f"simulate_seed{seed}"
-    )
+    return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
 
 def cmd_offline(args: argparse.Namespace) -> int:
@@ -251,7 +348,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
             f"in the data, but {path} has {rec.power}"
         )
     source = RecordingSource(rec.t_s, rec.inputs, rec.measurements)
-    return _recording_session(config, args, source, f"offline {path.name}", f"offline_{path.stem}")
+    return _recording_session(config, args, source, f"offline {path.name}", str(path))
 
 
 def _status_line(link: MavlinkLink, session: Session, elapsed_s: float) -> str:
@@ -278,7 +375,7 @@ def _status_line(link: MavlinkLink, session: Session, elapsed_s: float) -> str:
 def _link_session(
     config: AircraftConfig,
     args: argparse.Namespace,
-    name: str,
+    origin: str | None,
     record: Path | None = None,
     status: bool = True,
 ) -> tuple[Session, MavlinkLink]:
@@ -292,7 +389,7 @@ def _link_session(
         linear_inputs=config.data.input_hold == "linear",
         ranges=ranges_of(config.data),
     )
-    view = _view_sink(config, args, name, session, link)
+    view = _view_sink(config, args, session, link)
     if view is not None:
         session.add_sink(view)
     if status:
@@ -305,9 +402,10 @@ def _link_session(
         ResultsSink(
             Path(args.out),
             heading,
-            lambda sid: f"results_sys{sid}",
+            results_stem,
             lambda: session.elapsed_s,
             refine=_refiner(args),
+            run=lambda: run_info(args, config, origin),
         )
     )
     return session, link
@@ -319,14 +417,12 @@ def cmd_listen(args: argparse.Namespace) -> int:
     host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
     if not port.isdigit():
         raise ConfigError(f"endpoint {args.endpoint!r}: expected udpin:HOST:PORT")
-    record = (
-        Path(args.record)
-        if args.record
-        else Path(args.out) / (time.strftime("live_%Y%m%d_%H%M%S") + ".tlog")
-    )
+    record = Path(args.record) if args.record else Path(args.out) / TLOG_FILE
+    if args.record and record.exists() and not args.force:
+        raise ConfigError(f"--record {record}: the file exists; --force to overwrite it")
     # Bound before anything is opened for writing: a busy port leaves a recording as it was.
     sock = open_udp(host or "0.0.0.0", int(port))
-    session, link = _link_session(config, args, record.stem, record)
+    session, link = _link_session(config, args, args.endpoint, record)
     bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
     print(
         f"listening on udp {host or '0.0.0.0'}:{bound}, recording to {record} (Ctrl-C to stop)",
@@ -339,7 +435,8 @@ def cmd_listen(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     config = _config(args)
-    session, link = _link_session(config, args, Path(args.tlogs[0]).stem, status=False)
+    origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
+    session, link = _link_session(config, args, origin, status=False)
     source = TlogSource(args.tlogs, link, speed=args.speed)
     if sys.stderr.isatty() or args.progress:
         session.add_sink(ProgressSink(source.progress, "replay"))
@@ -354,8 +451,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     config = _config(args)
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
-    record = Path(args.out) / "demo.tlog"
-    session, link = _link_session(config, args, "demo", record)
+    record = Path(args.out) / TLOG_FILE
+    session, link = _link_session(config, args, "the simulated vehicle over udp", record)
     from sim.cli import command as vehicle_command
 
     cmd = vehicle_command(args.config, f"127.0.0.1:{port}", args.speed, args.set, seed=args.seed)
@@ -434,13 +531,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "endpoint",
         nargs="?",
-        default="udpin:0.0.0.0:14550",
-        help="udpin:HOST:PORT to bind (default: %(default)s)",
+        default="udpin:127.0.0.1:14550",
+        help="udpin:HOST:PORT to bind (default: %(default)s, this machine only; "
+        "udpin:0.0.0.0:14550 for a vehicle on the network)",
     )
     p.add_argument(
         "--record",
         default=None,
-        help=".tlog to record every packet to (default: OUT/live_<time>.tlog)",
+        help=f".tlog to record every packet to (default: OUT/{TLOG_FILE}; an existing file "
+        "only with --force)",
     )
     p.add_argument(
         "--idle-exit",
@@ -494,7 +593,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = None if argv is None else list(argv)
+    started = datetime.now(UTC)
     try:
+        if hasattr(args, "out"):
+            args.out = str(run_folder(args, started))
+            args.started = started
         status: int = args.func(args)
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -29,8 +29,11 @@ class ResultsSink:
         elapsed: Callable[[], float],
         out: TextIO | None = None,
         refine: Callable[[VehicleResult], Refined | None] | None = None,
+        run: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         self.refine = refine
+        self.run = run
+        """What the JSON says of the run (version, command line, source, times)."""
         self.out_dir = out_dir
         self.heading = heading
         self.stem = stem
@@ -51,7 +54,11 @@ class ResultsSink:
             refined = None if self.refine is None else self.refine(vehicle)
             print(f"\n{heading}\n", file=self.out)
             print(final_table(vehicle, refined), file=self.out)
-            extra = None if link is None else {"link": dict(link), "system_id": sid}
+            extra: dict[str, Any] = {"system_id": sid}
+            if link is not None:
+                extra["link"] = dict(link)
+            if self.run is not None:
+                extra["run"] = self.run()
             paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined)
             print("results: " + ", ".join(str(p) for p in paths.values()), file=self.out)
         if link is not None:

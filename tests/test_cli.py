@@ -35,7 +35,7 @@ def test_simulate_writes_table_json_and_csv(
     assert status == 0
     out = capsys.readouterr().out
     assert "| CLa | 6.5858 |" in out  # truth column, Table I layout
-    data = json.loads((tmp_path / "results.json").read_text())
+    data = json.loads((tmp_path / "results_sys1.json").read_text())
     assert data["coefficients"][4] == "CLa"
 
     # Same run by hand: the JSON holds exactly what the estimator returned.
@@ -49,9 +49,9 @@ def test_simulate_writes_table_json_and_csv(
             got = data["filters"][kind]["estimates"][name]
             assert got["estimate"] == f.coefficients[i] and got["sigma"] == f.sigma[i]
     assert data["config"]["simulation"]["manoeuvre"]["duration_s"] == 20
-    history = (tmp_path / "results_history.csv").read_text().splitlines()
+    history = (tmp_path / "results_sys1_history.csv").read_text().splitlines()
     assert len(history) == 1 + 2 * len(flight.t_s)
-    assert (tmp_path / "results.md").read_text().startswith("# NOC UAV")
+    assert (tmp_path / "results_sys1.md").read_text().startswith("# NOC UAV")
 
 
 def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_path: Path) -> None:
@@ -66,9 +66,9 @@ def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_
     # bundled record's name for its folder.
     assert main(["offline", str(hfb_data_path.parent), "--out", str(tmp_path / "b")]) == 0
     assert main(["offline", "hfb320", "--out", str(tmp_path / "c")]) == 0
-    a = json.loads((tmp_path / "a/results.json").read_text())["filters"]
-    b = json.loads((tmp_path / "b/results.json").read_text())["filters"]
-    c = json.loads((tmp_path / "c/results.json").read_text())["filters"]
+    a = json.loads((tmp_path / "a/results_sys1.json").read_text())["filters"]
+    b = json.loads((tmp_path / "b/results_sys1.json").read_text())["filters"]
+    c = json.loads((tmp_path / "c/results_sys1.json").read_text())["filters"]
     assert a == b == c
 
 
@@ -94,3 +94,29 @@ def test_bad_inputs_give_one_clear_error(
     assert "no flight data in it" in capsys.readouterr().err
     assert main(["offline", "hfb321", "--out", str(tmp_path / "o")]) == 2
     assert "bundled records: hfb320" in capsys.readouterr().err
+
+
+def test_the_json_says_which_run_made_it(tmp_path: Path) -> None:
+    data_file = ROOT / "gcs_estimator/data/hfb320/hfb320_1_10.asc"
+    argv = ["offline", str(data_file), "--config", "hfb320", "--out", str(tmp_path)]
+    assert main([*argv, "--view", "off"]) == 0
+    run = json.loads((tmp_path / "results_sys1.json").read_text())["run"]
+    import hashlib
+
+    assert run["command"] == "offline" and run["command_line"][1:] == [*argv, "--view", "off"]
+    assert run["source"] == str(data_file)
+    assert run["source_sha256"] == hashlib.sha256(data_file.read_bytes()).hexdigest()
+    assert len(run["config_sha256"]) == 64 and run["config"].endswith("hfb320.toml")
+    assert run["started_utc"] <= run["ended_utc"]
+
+
+def test_observations_that_never_match_the_config_exit_1_with_the_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fl = load_hfb320(ROOT / "gcs_estimator/data/hfb320/hfb320_1_10.asc")
+    blank = Recording(fl.t_s, fl.inputs, np.full_like(fl.measurements, np.nan), fl.power)
+    path = tmp_path / "blank.csv"
+    write_csv(path, blank)
+    status = main(["offline", str(path), "--config", "hfb320", "--out", str(tmp_path / "o")])
+    assert status == 1
+    assert "no frame's observations could be used" in capsys.readouterr().err

@@ -101,7 +101,7 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert cli.main(["refine", "hfb320", "--out", str(out), "--view", "off"]) == 0
     text = capsys.readouterr().out
     assert "OE estimate" in text and "Before trusting these numbers" in text
-    data = json.loads((out / "results.json").read_text())
+    data = json.loads((out / "results_sys1.json").read_text())
     fit = data["refined"]
     assert fit["method"] == "output error" and fit["frames"] == 601
     for name, e in fit["estimates"].items():

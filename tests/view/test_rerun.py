@@ -372,9 +372,9 @@ def test_run_completes_normally_when_the_viewer_is_unreachable(
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr
     assert expect in proc.stderr
-    data = json.loads((tmp_path / "results.json").read_text())
+    data = json.loads((tmp_path / "results_sys1.json").read_text())
     assert set(data["filters"]) == set(FILTER_KINDS)
-    t, _ = read_scalars(tmp_path / "simulate_seed1.rrd", lay.coefficient_path(1, "CLa", "CL"))
+    t, _ = read_scalars(tmp_path / "view.rrd", lay.coefficient_path(1, "CLa", "CL"))
     assert len(t) == 601
 
 
@@ -390,13 +390,15 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
 
     def offline(*view: str) -> int:
         cmd = ["offline", str(hfb_data_path), "--config", str(ROOT / "configs/hfb320.toml")]
-        return main([*cmd, "--reference", str(ref), "--out", str(tmp_path), "--view", *view])
+        return main(
+            [*cmd, "--reference", str(ref), "--out", str(tmp_path), "--force", "--view", *view]
+        )
 
     assert offline("save") == 0
-    data = json.loads((tmp_path / "results.json").read_text())
+    data = json.loads((tmp_path / "results_sys1.json").read_text())
     assert data["truth_label"] == "book"
     assert data["filters"]["IEKF"]["estimates"]["Cma"]["truth"] == names.index("Cma") + 1.5
-    _, v = read_scalars(tmp_path / "offline_hfb320_1_10.rrd", lay.coefficient_path(1, "Cma", "Cm"))
+    _, v = read_scalars(tmp_path / "view.rrd", lay.coefficient_path(1, "Cma", "Cm"))
     assert np.all(v[:, 6] == names.index("Cma") + 1.5)
     # A reference that misses a coefficient names the file and the key.
     ref.write_text("[truth]\nCD0 = 1.0\n")
