@@ -145,21 +145,19 @@ class History:
         self.innovation = Rows(N_OBS)
         self.innovation_sigma = Rows(N_OBS)
 
-    def append(self, out: StepOutput) -> None:
+    def _columns(self, out: StepOutput) -> zip[tuple[Rows, FloatArray | tuple[float, ...]]]:
         i = out.info
-        self.x.append(out.x)
-        self.sigma.append(i.sigma)
-        self.scalars.append((i.nis, i.n_used, i.gust_sigma))
-        self.innovation.append(i.innovation)
-        self.innovation_sigma.append(i.innovation_sigma)
+        values = (out.x, i.sigma, (i.nis, i.n_used, i.gust_sigma), i.innovation, i.innovation_sigma)
+        rows = (self.x, self.sigma, self.scalars, self.innovation, self.innovation_sigma)
+        return zip(rows, values, strict=True)
+
+    def append(self, out: StepOutput) -> None:
+        for rows, value in self._columns(out):
+            rows.append(value)
 
     def set_last(self, out: StepOutput) -> None:
-        i = out.info
-        self.x.set_last(out.x)
-        self.sigma.set_last(i.sigma)
-        self.scalars.set_last((i.nis, i.n_used, i.gust_sigma))
-        self.innovation.set_last(i.innovation)
-        self.innovation_sigma.set_last(i.innovation_sigma)
+        for rows, value in self._columns(out):
+            rows.set_last(value)
 
 
 @dataclass(frozen=True)

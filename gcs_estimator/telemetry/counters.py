@@ -37,7 +37,6 @@ class Verdict:
     NEW = "new"
     LATE = "late"
     """Arrived after packets sent after it (it had been counted lost)."""
-    COPY = "copy"
     STALE = "stale"
 
 
