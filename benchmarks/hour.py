@@ -1,5 +1,7 @@
-"""A long flight end to end: the simulated vehicle over UDP into `listen`, then `replay` of
-what `listen` recorded; the two must give the same estimates.
+"""A long flight over UDP into `listen`, then `replay` of its recording: same estimates?
+
+The simulated vehicle streams to `listen`; `replay` of what `listen` recorded must give
+the same estimates.
 
     python benchmarks/hour.py [--minutes 60] [--speed 20] [--boot-s 4000]
 
