@@ -291,6 +291,24 @@ def _no_update(vehicle: VehicleResult) -> bool:
     return True
 
 
+def _results_sink(
+    args: argparse.Namespace,
+    config: AircraftConfig,
+    session: Session,
+    heading: Callable[[VehicleResult, float], str],
+    origin: str | None,
+) -> ResultsSink:
+    """The table on stdout and the result files in the run's folder, with the run's record."""
+    return ResultsSink(
+        Path(args.out),
+        heading,
+        results_stem,
+        lambda: session.elapsed_s,
+        refine=_refiner(args),
+        run=lambda: run_info(args, config, origin),
+    )
+
+
 def _recording_session(
     config: AircraftConfig,
     args: argparse.Namespace,
@@ -313,16 +331,7 @@ def _recording_session(
             f"({n / max(elapsed, 1e-9):,.0f} frames/s, both filters)"
         )
 
-    session.add_sink(
-        ResultsSink(
-            Path(args.out),
-            heading,
-            results_stem,
-            lambda: session.elapsed_s,
-            refine=_refiner(args),
-            run=lambda: run_info(args, config, origin),
-        )
-    )
+    session.add_sink(_results_sink(args, config, session, heading, origin))
     return _run(session, source, stop)
 
 
@@ -398,16 +407,7 @@ def _link_session(
     def heading(v: VehicleResult, elapsed: float) -> str:
         return f"vehicle {v.system_id}: {v.result.frames} frames in {elapsed:.2f} s"
 
-    session.add_sink(
-        ResultsSink(
-            Path(args.out),
-            heading,
-            results_stem,
-            lambda: session.elapsed_s,
-            refine=_refiner(args),
-            run=lambda: run_info(args, config, origin),
-        )
-    )
+    session.add_sink(_results_sink(args, config, session, heading, origin))
     return session, link
 
 
