@@ -8,6 +8,7 @@ followed by one raw MAVLink packet.
 
 from __future__ import annotations
 
+import operator
 import struct
 import time
 from collections.abc import Iterator
@@ -16,6 +17,18 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from pymavlink.generator import mavcrc
+
+
+def _x25_slow(data: bytes, crc: int) -> int:
+    acc = mavcrc.x25crc_slow()
+    acc.crc = crc
+    acc.accumulate(data)
+    return int(acc.crc)
+
+
+_mcrf4xx: Any = mavcrc.mcrf4xx or _x25_slow
+"""MAVLink's CRC (CRC-16/MCRF4XX): fastcrc's, as pymavlink uses it, where installed."""
 
 MAVLinkMessage = Any
 """A pymavlink message object; never leaves the telemetry package."""
@@ -164,13 +177,94 @@ def next_marker(buf: bytes | bytearray, start: int) -> int:
     return min(found) if found else len(buf)
 
 
+class _Light(tuple):  # type: ignore[type-arg]
+    """A decoded message of a type the station reads, as a tuple: (seq, system id,
+    component id, then the fields in pymavlink's order). Answers the accessors the
+    station uses of a pymavlink message, field names included."""
+
+    __slots__ = ()
+    msgname = ""
+
+    def get_type(self) -> str:
+        return self.msgname
+
+    def get_seq(self) -> int:
+        return int(self[0])
+
+    def get_srcSystem(self) -> int:
+        return int(self[1])
+
+    def get_srcComponent(self) -> int:
+        return int(self[2])
+
+
+def _text(raw: bytes) -> str:
+    """A char[] field as pymavlink gives it: up to the first NUL, ASCII."""
+    return raw.split(b"\x00", 1)[0].decode("ascii", errors="replace")
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """How to read one message type straight from its packet."""
+
+    cls: type[_Light]
+    unpacker: struct.Struct
+    crc_extra: bytes
+    pick: Any
+    """itemgetter: the unpacked payload in field order."""
+    text_fields: tuple[int, ...]
+    """Positions (in field order) of char[] fields."""
+
+
+def _layout(msgid: int) -> _Layout:
+    t = dialect.mavlink_map[msgid]
+    if any(n != 1 for n in t.lengths) or len(t.fieldnames) < 2:
+        raise ValueError(f"{t.msgname}: arrays are left to pymavlink")
+    attrs: dict[str, Any] = {"__slots__": (), "msgname": t.msgname}
+    for i, name in enumerate(t.fieldnames):
+        attrs[name] = property(operator.itemgetter(3 + i))
+    cls = type(f"Light_{t.msgname}", (_Light,), attrs)
+    text = tuple(i for i, ft in enumerate(t.fieldtypes) if ft == "char")
+    return _Layout(cls, t.unpacker, bytes([t.crc_extra]), operator.itemgetter(*t.orders), text)
+
+
+FAST_MESSAGES = (
+    "HEARTBEAT",
+    "COMMAND_ACK",
+    "ATTITUDE",
+    "HIGHRES_IMU",
+    "VFR_HUD",
+    "SERVO_OUTPUT_RAW",
+    "AOA_SSA",
+    "NAMED_VALUE_FLOAT",
+    "SCALED_PRESSURE",
+    "SYSTEM_TIME",
+)
+"""The messages the station reads (and the vehicles send most): decoded without a
+pymavlink object per packet; tested field by field against pymavlink."""
+_FAST: dict[int, _Layout] = {
+    getattr(dialect, f"MAVLINK_MSG_ID_{name}"): _layout(getattr(dialect, f"MAVLINK_MSG_ID_{name}"))
+    for name in FAST_MESSAGES
+}
+
+
+def _crc(data: bytes, extra: bytes) -> int:
+    return int(_mcrf4xx(extra, _mcrf4xx(data, 0xFFFF)))
+
+
 class Decoder:
-    """Decodes single packets; bad ones come back as None with the reason counted."""
+    """Decodes single packets; a packet that fails its CRC or framing comes back None.
+
+    Unsigned packets of the types in FAST_MESSAGES are read with one struct call; every
+    other packet (signed ones, other types) goes through pymavlink."""
 
     def __init__(self) -> None:
         self._mav = new_codec(GCS_SYSTEM_ID, GCS_COMPONENT_ID)
 
     def decode(self, packet: bytes) -> MAVLinkMessage | None:
+        fast = self._fast(packet)
+        if fast is not None:
+            return None if fast is False else fast
         try:
             msg = self._mav.decode(bytearray(packet))
         except Exception:  # pymavlink raises its own MAVError and struct.error alike
@@ -178,6 +272,37 @@ class Decoder:
         if msg is None or msg.get_type() == "BAD_DATA":
             return None
         return msg
+
+    @staticmethod
+    def _fast(packet: bytes) -> _Light | bool | None:
+        """The message, False if it fails its CRC, None if it is not for the fast path."""
+        n = len(packet)
+        if n < 8:
+            return None
+        if packet[0] == STX_V2:
+            if n < 12 or packet[2]:
+                return None
+            layout = _FAST.get(packet[7] | packet[8] << 8 | packet[9] << 16)
+            head = 10
+            seq, sysid, compid = packet[4], packet[5], packet[6]
+        elif packet[0] == STX_V1:
+            layout = _FAST.get(packet[5])
+            head = 6
+            seq, sysid, compid = packet[2], packet[3], packet[4]
+        else:
+            return None
+        if layout is None or packet[1] != n - head - 2:
+            return None
+        if _crc(packet[1 : n - 2], layout.crc_extra) != packet[n - 2] | packet[n - 1] << 8:
+            return False
+        payload = packet[head : n - 2]
+        size = layout.unpacker.size
+        if len(payload) != size:
+            payload = (payload + bytes(size))[:size]
+        fields = layout.pick(layout.unpacker.unpack(payload))
+        if layout.text_fields:
+            fields = tuple(_text(v) if i in layout.text_fields else v for i, v in enumerate(fields))
+        return layout.cls((seq, sysid, compid, *fields))
 
 
 def scan(data: bytes, decoder: Decoder) -> Iterator[tuple[bytes, MAVLinkMessage] | int]:
