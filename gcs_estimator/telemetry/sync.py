@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.model.channels import N_INPUTS, N_OBS, REQUIRED_INPUTS, Channel
@@ -187,7 +186,7 @@ class Synchronizer:
     _untimed: list[tuple[Channel, float]] = field(default_factory=list)
     _pending: list[tuple[float | None, Sample]] = field(default_factory=list)
     """Samples off the current time base, waiting for confirmation (timed ones' times)."""
-    _presence: FloatArray = field(default_factory=lambda: np.ones(N_OBS))
+    _presence: list[float] = field(default_factory=lambda: [1.0] * N_OBS)
     _spacings: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_SPACINGS))
     _expected: list[int] = field(default_factory=lambda: list(range(N_OBS)))
     """Channels the vehicle sends in (nearly) every frame."""
@@ -341,17 +340,18 @@ class Synchronizer:
                 ordered = sorted(self._spacings)
                 self._period = ordered[len(ordered) // 2]
         self._last_emitted = op.t
-        y = np.array(op.y)
-        have = np.isfinite(y)
-        complete = bool(np.all(have[self._expected]))
-        self._presence += PRESENCE_GAIN * (have - self._presence)
-        self._expected = [c for c in range(N_OBS) if self._presence[c] >= EXPECT_PRESENCE]
+        have = [math.isfinite(v) for v in op.y]
+        complete = all(have[c] for c in self._expected)
+        presence = self._presence
+        for c in range(N_OBS):
+            presence[c] += PRESENCE_GAIN * (have[c] - presence[c])
+        self._expected = [c for c in range(N_OBS) if presence[c] >= EXPECT_PRESENCE]
         window = self.link.frame_window_s
-        u = np.array([tr.at(op.t, window, self.linear_inputs) for tr in self._inputs])
+        u = [tr.at(op.t, window, self.linear_inputs) for tr in self._inputs]
         guessed = any(tr.uncertain_at(op.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
         for tr in self._inputs:
             tr.prune(op.t - window)
-        if not np.all(np.isfinite(u[:REQUIRED_INPUTS])):
+        if not all(math.isfinite(v) for v in u[:REQUIRED_INPUTS]):
             self.stats.waiting_for_inputs += 1
             return []
         self.stats.frames += 1
@@ -361,4 +361,5 @@ class Synchronizer:
         self._reset_pending = False
         if guessed:
             self.stats.inputs_guessed += 1
-        return [Frame(self.system_id, op.t, op.t_last_recv, u, y, reset, not guessed)]
+        y = np.array(op.y)
+        return [Frame(self.system_id, op.t, op.t_last_recv, np.array(u), y, reset, not guessed)]

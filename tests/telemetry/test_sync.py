@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 from hypothesis import given, settings
@@ -121,7 +120,7 @@ def test_receive_times_and_stalls_never_change_the_frames(stalls: list[float], l
 
     def frames(recv: Sequence[float]) -> list[list[float]]:
         sync = Synchronizer(1, LINK)
-        received = [replace(s, t_recv_s=r) for s, r in zip(samples, recv, strict=True)]
+        received = [s._replace(t_recv_s=r) for s, r in zip(samples, recv, strict=True)]
         out = _feed(sync, received)
         out += sync.finish()
         return [[f.t_vehicle_s, *f.inputs, *f.y] for f in out]
