@@ -9,7 +9,7 @@ sees a MAVLink object.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -141,17 +141,21 @@ def decoded_message(
     """What a packet that decoded means."""
     kind = msg.get_type()
     event: Event
-    if kind.startswith("UNKNOWN"):
-        # pymavlink gives an unknown message no header; the packet has one.
-        seq, sysid, compid = header(packet)
-        return Decoded(sysid, compid, seq, Unknown(kind))
-    if kind == "HEARTBEAT":
+    extract = _EXTRACT.get(kind)
+    if extract is not None:
+        sample = _sample(msg, kind, extract(msg, link), t_recv_s, stats, ranges)
+        event = Ignored() if sample is None else sample
+    elif kind == "HEARTBEAT":
         event = Heartbeat(int(msg.type) == MAV_TYPE_GCS, int(msg.type))
     elif kind == "COMMAND_ACK":
         event = CommandAck(int(msg.command), int(msg.result))
+    elif kind.startswith("UNKNOWN"):
+        # pymavlink gives an unknown message no header; the packet has one.
+        seq, sysid, compid = header(packet)
+        return Decoded(sysid, compid, seq, Unknown(kind))
     else:
-        sample = decode_message(msg, t_recv_s, link, stats, ranges)
-        event = Ignored() if sample is None else sample
+        stats.ignored_messages += 1
+        event = Ignored()
     return Decoded(int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq()), event)
 
 
@@ -168,39 +172,64 @@ TIME_WRAP_S: dict[str, float] = {
 """Messages whose vehicle time is a 32-bit field (HIGHRES_IMU and AOA_SSA have 64 bits)."""
 
 
-def _values(
-    msg: MAVLinkMessage, kind: str, link: LinkConfig
-) -> tuple[float | None, list[tuple[Channel, float]]] | None:
-    """(vehicle time [s] or None, channel values) of a message we use, else None."""
-    if kind == "HIGHRES_IMU":
-        return msg.time_usec * 1e-6, [
-            (Channel.AX, msg.xacc),
-            (Channel.AZ, msg.zacc),
-            (Channel.Q, msg.ygyro),
-        ]
-    if kind == "ATTITUDE":
-        return msg.time_boot_ms * 1e-3, [(Channel.THETA, msg.pitch)]
-    if kind == "AOA_SSA":
-        return msg.time_usec * 1e-6, [(Channel.ALPHA, math.radians(msg.AOA))]
-    if kind == "VFR_HUD":
-        return None, [(Channel.V, msg.airspeed)]
-    if kind == "SERVO_OUTPUT_RAW":
-        elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
-        vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(elev_us)))]
-        if link.throttle_servo > 0:
-            thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
-            vals.append((Channel.POWER, pwm.throttle(link, float(thr_us))))
-        return msg.time_usec * 1e-6, vals
-    if kind == "SCALED_PRESSURE" and link.density_from_pressure:
-        rho = float(atmosphere.density(100.0 * float(msg.press_abs)))
-        return msg.time_boot_ms * 1e-3, [(Channel.DENSITY, rho)]
-    if kind == "NAMED_VALUE_FLOAT":
-        name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")
-        channel = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}.get(
-            name.rstrip("\x00")
-        )
-        return None if channel is None else (msg.time_boot_ms * 1e-3, [(channel, msg.value)])
-    return None
+Found = tuple[float | None, list[tuple[Channel, float]]] | None
+"""(vehicle time [s] or None, channel values) of a message, None if it carries none."""
+
+
+def _highres_imu(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    return msg.time_usec * 1e-6, [
+        (Channel.AX, msg.xacc),
+        (Channel.AZ, msg.zacc),
+        (Channel.Q, msg.ygyro),
+    ]
+
+
+def _attitude(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    return msg.time_boot_ms * 1e-3, [(Channel.THETA, msg.pitch)]
+
+
+def _aoa_ssa(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    return msg.time_usec * 1e-6, [(Channel.ALPHA, math.radians(msg.AOA))]
+
+
+def _vfr_hud(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    return None, [(Channel.V, msg.airspeed)]
+
+
+def _servo_output_raw(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
+    vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(elev_us)))]
+    if link.throttle_servo > 0:
+        thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
+        vals.append((Channel.POWER, pwm.throttle(link, float(thr_us))))
+    return msg.time_usec * 1e-6, vals
+
+
+def _scaled_pressure(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    if not link.density_from_pressure:
+        return None
+    rho = float(atmosphere.density(100.0 * float(msg.press_abs)))
+    return msg.time_boot_ms * 1e-3, [(Channel.DENSITY, rho)]
+
+
+def _named_value_float(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")
+    channel = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}.get(
+        name.rstrip("\x00")
+    )
+    return None if channel is None else (msg.time_boot_ms * 1e-3, [(channel, msg.value)])
+
+
+_EXTRACT: dict[str, Callable[[MAVLinkMessage, LinkConfig], Found]] = {
+    "HIGHRES_IMU": _highres_imu,
+    "ATTITUDE": _attitude,
+    "AOA_SSA": _aoa_ssa,
+    "VFR_HUD": _vfr_hud,
+    "SERVO_OUTPUT_RAW": _servo_output_raw,
+    "SCALED_PRESSURE": _scaled_pressure,
+    "NAMED_VALUE_FLOAT": _named_value_float,
+}
+"""The messages that carry channels, each with what reads them."""
 
 
 def decode_message(
@@ -212,7 +241,22 @@ def decode_message(
 ) -> Sample | None:
     """The sample a message carries, or None if it carries none."""
     kind = msg.get_type()
-    found = _values(msg, kind, link)
+    extract = _EXTRACT.get(kind)
+    if extract is None:
+        stats.ignored_messages += 1
+        return None
+    return _sample(msg, kind, extract(msg, link), t_recv_s, stats, ranges)
+
+
+def _sample(
+    msg: MAVLinkMessage,
+    kind: str,
+    found: Found,
+    t_recv_s: float,
+    stats: DecodeStats,
+    ranges: Ranges,
+) -> Sample | None:
+    """The sample of a message's channel values that are finite and in range."""
     if found is None:
         stats.ignored_messages += 1
         return None

@@ -119,17 +119,17 @@ class MavlinkLink:
         v = self.vehicles[system_id] = VehicleLink(system_id, sync)
         return v
 
-    def datagram(
-        self, data: bytes, t_recv_s: float, address: Address | None = None
-    ) -> Iterator[Frame]:
+    def datagram(self, data: bytes, t_recv_s: float, address: Address | None = None) -> list[Frame]:
         """Frames completed by one received datagram (one or more packets, found by
         mavlink.scan; each run of junk between them counts as one corrupt packet)."""
         name = link_name(address)
+        out: list[Frame] = []
         for item in mavlink.scan(data, self.decoder):
             if isinstance(item, int):
                 self._junk(name, item)
             else:
-                yield from self._decoded(item[0], item[1], t_recv_s, address)
+                out += self._decoded(item[0], item[1], t_recv_s, address)
+        return out
 
     def _junk(self, name: str, n_bytes: int) -> None:
         counts = self.health.counts(name)
@@ -137,22 +137,21 @@ class MavlinkLink:
         counts.corrupt += 1
         self.report_once("corrupt", "corrupt packet(s) or junk bytes (CRC or framing): skipped")
 
-    def packet(
-        self, packet: bytes, t_recv_s: float, address: Address | None = None
-    ) -> Iterator[Frame]:
+    def packet(self, packet: bytes, t_recv_s: float, address: Address | None = None) -> list[Frame]:
         """Record, decode and synchronise one packet received at t_recv_s [s since epoch]
-        (a tlog record); yields the frames it lets go."""
+        (a tlog record); returns the frames it lets go (lists, not generators: this runs
+        once per packet)."""
         msg = self.decoder.decode(packet)
         if msg is None:
             if self.recorder is not None:
                 self.recorder.write(int(round(t_recv_s * 1e6)), packet)
             self._junk(link_name(address), len(packet))
-            return
-        yield from self._decoded(packet, msg, t_recv_s, address)
+            return []
+        return self._decoded(packet, msg, t_recv_s, address)
 
     def _decoded(
         self, packet: bytes, msg: object, t_recv_s: float, address: Address | None
-    ) -> Iterator[Frame]:
+    ) -> list[Frame]:
         if self.recorder is not None:
             self.recorder.write(int(round(t_recv_s * 1e6)), packet)
         if math.isnan(self.t_first_recv):
@@ -173,27 +172,31 @@ class MavlinkLink:
             self.report_once(
                 "dup", "copies of packets, or packets long behind the vehicle's time: dropped"
             )
-            return
-        yield from self._event(sysid, event, address, name)
+            return []
+        return self._event(sysid, event, address, name)
 
-    def _event(
-        self, sysid: int, event: object, address: Address | None, name: str
-    ) -> Iterator[Frame]:
-        if isinstance(event, Unknown):
+    def _event(self, sysid: int, event: object, address: Address | None, name: str) -> list[Frame]:
+        out: list[Frame] = []
+        if isinstance(event, Sample):
+            if sysid != mavlink.GCS_SYSTEM_ID:
+                v = self._seen(sysid, address)
+                if v is not None:
+                    out = self._sample(v, event)
+        elif isinstance(event, Unknown):
             self.health.counts(name).unknown += 1
             self.report_once("unknown", f"message unknown to the dialect ({event.name}): skipped")
         elif isinstance(event, Heartbeat):
             if not event.ground_station:
                 self._heartbeat(sysid, event, address)
-        elif isinstance(event, CommandAck):
-            if event.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and sysid in self.vehicles:
-                self.vehicles[sysid].acked.add(event.result)
-        elif isinstance(event, Sample) and sysid != mavlink.GCS_SYSTEM_ID:
-            v = self._seen(sysid, address)
-            if v is not None:
-                yield from self._sample(v, event)
+        elif (
+            isinstance(event, CommandAck)
+            and event.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+            and sysid in self.vehicles
+        ):
+            self.vehicles[sysid].acked.add(event.result)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
+        return out
 
     def _heartbeat(self, sysid: int, event: Heartbeat, address: Address | None) -> None:
         if self._seen(sysid, address) is None:
@@ -212,14 +215,15 @@ class MavlinkLink:
             v.address = address
         return v
 
-    def _sample(self, v: VehicleLink, sample: Sample) -> Iterator[Frame]:
-        yield from v.sync.add(sample)
+    def _sample(self, v: VehicleLink, sample: Sample) -> list[Frame]:
+        out = v.sync.add(sample)
         if v.sync.stats.late_samples:
             self.report_once("late", "sample(s) for a frame already processed: counted, dropped")
         if v.sync.stats.implausible_times:
             self.report_once(
                 "time", "sample(s) with a vehicle time no later sample confirmed: dropped"
             )
+        return out
 
     def flush(self) -> Iterator[Frame]:
         """End of stream: whatever is open."""
