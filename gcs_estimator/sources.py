@@ -7,6 +7,7 @@ live session's recording makes the same frames as the live run did.
 
 from __future__ import annotations
 
+import os
 import select
 import socket
 import sys
@@ -15,6 +16,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from gcs_estimator.decode_worker import DecodeWorker, LinkArgs
 from gcs_estimator.frames import Frame
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
@@ -120,6 +122,7 @@ class TlogSource:
         link: MavlinkLink,
         speed: float = 0.0,
         log: TextIO | None = None,
+        workers: bool | None = None,
     ) -> None:
         self.paths = [Path(p) for p in paths]
         self.link = link
@@ -129,6 +132,14 @@ class TlogSource:
         self._stats = TlogStats()
         self.errors: list[str] = []
         """Files that could not be replayed (the others' frames are processed)."""
+        self.workers = (
+            workers
+            if workers is not None
+            else speed <= 0 and (os.cpu_count() or 1) > 1 and link.recorder is None
+        )
+        """Decode in a worker process while this one runs the filters (as fast as
+        possible, on more than one core); the frames are the same."""
+        self._worker: DecodeWorker | None = None
 
     def _records(self, path: Path, stats: TlogStats) -> Iterator[TlogRecord]:
         """The file's records as they are read (a piece at a time)."""
@@ -148,6 +159,27 @@ class TlogSource:
             )
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        if not self.workers:
+            yield from self._frames(stop)
+            return
+        link = self.link
+        args = LinkArgs(link.config, link.linear_inputs, link.ranges)
+        worker = self._worker = DecodeWorker(self.paths, args, self.log)
+        mirrored = None
+        for frame in worker.frames(stop):
+            progress = worker.progress
+            if progress is not mirrored and progress is not None:
+                # The view reads the link's clock and counters as the replay goes.
+                mirrored = progress
+                link.t_first_recv = progress.t_first_recv
+                link.t_last_recv = progress.t_last_recv
+                link.health.links = progress.links
+            yield frame
+        self.errors = worker.errors
+        for error in self.errors:
+            print(f"error: {error}; skipped", file=self.log)
+
+    def _frames(self, stop: Stop) -> Iterator[Frame | None]:
         t0_rec = t0_wall = None
         for path in self.paths:
             self._stats = stats = TlogStats()
@@ -179,15 +211,27 @@ class TlogSource:
 
     def progress(self) -> tuple[int, int]:
         """(bytes read, bytes in the current file)."""
+        if self._worker is not None:
+            p = self._worker.progress
+            return (0, 0) if p is None else (p.position, p.total)
         return self._stats.position, self.total
 
     @property
     def done(self) -> int:
         """Records of the current file replayed so far."""
+        if self._worker is not None:
+            p = self._worker.progress
+            return 0 if p is None else p.records
         return self._stats.records
 
     def link_stats(self) -> dict[str, Any]:
+        if self._worker is not None:
+            self._worker.close()
+            if self._worker.stats is not None:
+                return self._worker.stats
         return self.link.stats()
 
     def close(self) -> None:
+        if self._worker is not None:
+            self._worker.close()
         self.link.close()

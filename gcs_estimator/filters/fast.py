@@ -329,7 +329,7 @@ def _step(
     return new, info, healthy
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _kernel(
     x: FloatArray,
     P: FloatArray,

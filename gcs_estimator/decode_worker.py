@@ -1,0 +1,294 @@
+"""Replay on two cores: a worker process reads, decodes and synchronises a tlog while
+this process runs the filters.
+
+Decoding is per-packet Python and the filters are compiled; in one process they take
+turns, and threads would too (they share the GIL). The worker runs exactly the code a
+replay in one process runs (TlogSource over a MavlinkLink) and sends its frames over a
+pipe in batches, with the link's counters and the read position, so the frames, and so
+the estimates, are the same; the link's notes are printed by this process.
+
+The worker is `python -m gcs_estimator.decode_worker`, not a multiprocessing child: a
+spawned child would import the caller's main module again, so every script that
+replays would need a `__main__` guard.
+"""
+
+from __future__ import annotations
+
+import pickle
+import queue
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import LinkConfig
+from gcs_estimator.frames import Frame
+from gcs_estimator.stop import Stop
+from gcs_estimator.telemetry.counters import LinkCounts
+from gcs_estimator.telemetry.decode import Ranges
+
+BATCH_FRAMES = 512
+"""Frames sent at a time (a batch also goes after BATCH_S without a full one)."""
+BATCH_S = 0.1
+QUEUE_BATCHES = 32
+"""Batches the worker may be ahead of the filters (bounds memory)."""
+POLL_S = 0.1
+"""Longest wait for a batch before the sinks get a tick and the worker is checked [s]."""
+CLOSE_S = 5.0
+"""How long a worker told to stop has to end before it is killed [s]."""
+
+
+@dataclass(frozen=True)
+class LinkArgs:
+    """What the worker builds its MavlinkLink from."""
+
+    config: LinkConfig
+    linear_inputs: bool
+    ranges: Ranges
+
+
+@dataclass(frozen=True)
+class Progress:
+    """The worker's position and its link's state when it sent a batch."""
+
+    position: int
+    total: int
+    records: int
+    t_first_recv: float
+    t_last_recv: float
+    links: dict[str, LinkCounts]
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Frames, column by column (one pickle of a few arrays, not one per frame)."""
+
+    system_id: np.ndarray[Any, np.dtype[np.int64]]
+    t: FloatArray
+    """[t_vehicle_s, t_recv_s] per frame."""
+    inputs: FloatArray
+    y: FloatArray
+    flags: np.ndarray[Any, np.dtype[np.bool_]]
+    """[clock_reset, inputs_known] per frame."""
+
+    @staticmethod
+    def of(frames: Sequence[Frame]) -> Batch:
+        return Batch(
+            np.array([f.system_id for f in frames], np.int64),
+            np.array([(f.t_vehicle_s, f.t_recv_s) for f in frames], float),
+            np.array([f.inputs for f in frames], float),
+            np.array([f.y for f in frames], float),
+            np.array([(f.clock_reset, f.inputs_known) for f in frames], bool),
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        for i in range(len(self.system_id)):
+            yield Frame(
+                int(self.system_id[i]),
+                float(self.t[i, 0]),
+                float(self.t[i, 1]),
+                self.inputs[i].copy(),
+                self.y[i].copy(),
+                bool(self.flags[i, 0]),
+                bool(self.flags[i, 1]),
+            )
+
+
+class _Lines:
+    """A text stream whose lines go to the parent (the link's and the source's notes)."""
+
+    def __init__(self, send: Any) -> None:
+        self._send = send
+        self._buf = ""
+
+    def write(self, text: str) -> int:
+        self._buf += text
+        while "\n" in self._buf:
+            line, self._buf = self._buf.split("\n", 1)
+            self._send(("log", line))
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
+_LENGTH = struct.Struct("<I")
+
+
+def _writer(stream: Any) -> Any:
+    def send(msg: tuple[Any, ...]) -> None:
+        data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+        stream.write(_LENGTH.pack(len(data)) + data)
+        stream.flush()
+
+    return send
+
+
+def _read_message(stream: Any) -> tuple[Any, ...] | None:
+    """The next message on the pipe; None at its end."""
+    head = stream.read(_LENGTH.size)
+    if len(head) < _LENGTH.size:
+        return None
+    (n,) = _LENGTH.unpack(head)
+    data = stream.read(n)
+    if len(data) < n:
+        return None
+    msg: tuple[Any, ...] = pickle.loads(data)
+    return msg
+
+
+def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
+    """The worker: replay the files through a link, send the frames in batches, then
+    ("end", link stats, errors, progress). SIGINT and SIGTERM end it cleanly."""
+    from gcs_estimator.sources import SourceError, TlogSource
+    from gcs_estimator.telemetry.link import MavlinkLink
+
+    stop = Stop().install()
+    log: Any = _Lines(send)
+    link = MavlinkLink(args.config, log=log, linear_inputs=args.linear_inputs, ranges=args.ranges)
+    source = TlogSource(paths, link, log=log, workers=False)
+
+    def progress() -> Progress:
+        position, total = source.progress()
+        return Progress(
+            position, total, source.done, link.t_first_recv, link.t_last_recv, link.health.links
+        )
+
+    batch: list[Frame] = []
+    sent = time.monotonic()
+    try:
+        for frame in source.frames(stop):
+            if frame is not None:
+                batch.append(frame)
+            if len(batch) >= BATCH_FRAMES or (batch and time.monotonic() - sent > BATCH_S):
+                send(("frames", Batch.of(batch), progress()))
+                batch, sent = [], time.monotonic()
+        if batch:
+            send(("frames", Batch.of(batch), progress()))
+        send(("end", link.stats(), source.errors, progress()))
+    except SourceError as exc:
+        send(("failed", str(exc), True))
+    except BrokenPipeError:
+        pass  # the parent has gone: nobody to tell
+    except Exception as exc:  # reported by the parent, which keeps what it had
+        send(("failed", f"{type(exc).__name__}: {exc}", False))
+
+
+def main() -> None:
+    """The worker process: its job (paths, LinkArgs) pickled on stdin, its messages on
+    stdout."""
+    paths, args = pickle.load(sys.stdin.buffer)
+    _work(paths, args, _writer(sys.stdout.buffer))
+
+
+class DecodeWorker:
+    """The parent's end: starts the worker and yields its frames in order."""
+
+    def __init__(self, paths: Sequence[Path], args: LinkArgs, log: TextIO | None = None) -> None:
+        self.log = sys.stderr if log is None else log
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "gcs_estimator.decode_worker"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
+        assert self._process.stdin is not None and self._process.stdout is not None
+        self._process.stdin.write(pickle.dumps(([str(p) for p in paths], args)))
+        self._process.stdin.close()
+        self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(QUEUE_BATCHES)
+        self._reader = threading.Thread(
+            target=self._read, args=(self._process.stdout,), name="decode-worker", daemon=True
+        )
+        self._reader.start()
+        self.progress: Progress | None = None
+        self.stats: dict[str, Any] | None = None
+        self.errors: list[str] = []
+
+    def _read(self, stream: Any) -> None:
+        """Messages from the pipe onto the queue (a thread: its reads wait without the
+        GIL); None at the end."""
+        while True:
+            try:
+                msg = _read_message(stream)
+            except Exception as exc:  # a message that does not unpickle: the worker's end
+                msg = ("failed", f"unreadable message from the worker: {exc}", False)
+                self._queue.put(msg)
+                msg = None
+            self._queue.put(msg)
+            if msg is None:
+                return
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        """Frames in order; None while waiting (a tick for the sinks). Raises
+        SourceError if the worker could not read its files or died."""
+        from gcs_estimator.sources import SourceError
+
+        told = False
+        try:
+            while True:
+                if stop.requested and not told:
+                    told = True  # it ends as on its own signal: the rest still comes
+                    self._signal(signal.SIGTERM)
+                try:
+                    msg = self._queue.get(timeout=POLL_S)
+                except queue.Empty:
+                    yield None
+                    continue
+                if msg is None:
+                    code = self._process.wait()
+                    if told:
+                        return  # stopped before it could say so (a signal during its start)
+                    raise SourceError(f"the decoding process ended early (exit code {code})")
+                kind = msg[0]
+                if kind == "log":
+                    print(msg[1], file=self.log)
+                elif kind == "frames":
+                    self.progress = msg[2]
+                    yield from msg[1].frames()
+                    yield None
+                elif kind == "end":
+                    self.stats, self.errors, self.progress = msg[1], msg[2], msg[3]
+                    return
+                elif msg[2]:  # failed: the files
+                    raise SourceError(msg[1])
+                else:
+                    raise RuntimeError(f"decoding process: {msg[1]}")
+        finally:
+            self.close()
+
+    def _signal(self, signum: int) -> None:
+        if self._process.poll() is None:
+            self._process.send_signal(signum)
+
+    def close(self) -> None:
+        """End the worker (if it is still running) and wait for it; what it still sends
+        is read and dropped, so that it never waits on a full pipe."""
+        self._signal(signal.SIGTERM)
+        deadline = time.monotonic() + CLOSE_S
+        while self._reader.is_alive() and time.monotonic() < deadline:
+            try:
+                self._queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+        if self._process.poll() is None:
+            try:
+                self._process.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait()
+
+
+if __name__ == "__main__":
+    # Through the package's module, not __main__: the classes it pickles must be the
+    # ones the parent unpickles.
+    from gcs_estimator import decode_worker
+
+    decode_worker.main()

@@ -1,0 +1,139 @@
+"""Replay on two cores: the worker process makes exactly the frames, counters and notes
+a replay in one process makes; a stop, a bad file and a dead worker end the replay with
+what was processed and a clear message."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import AircraftConfig
+from gcs_estimator.frames import Frame
+from gcs_estimator.session import Session, warm_up
+from gcs_estimator.sources import SourceError, TlogSource
+from gcs_estimator.stop import Stop
+from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.telemetry.mavlink import TlogWriter
+from tests.telemetry.test_link import recorded_flight
+
+
+def _damaged_tlog(tmp_path: Path) -> tuple[AircraftConfig, Path]:
+    """A recorded flight with garbage between records, a duplicated and a lost packet,
+    a corrupted one, and a truncated tail."""
+    config, recs = recorded_flight(tmp_path)
+    path = tmp_path / "damaged.tlog"
+    w = TlogWriter(path)
+    for i, (t, pkt) in enumerate(recs):
+        if i == 300:
+            continue  # lost
+        if i == 400:
+            pkt = pkt[:-1] + bytes([pkt[-1] ^ 0xFF])  # CRC fails
+        w.write(t, pkt)
+        if i == 500:
+            w.write(t, pkt)  # a copy
+        if i == 1000:
+            w._fh.write(b"\xfd\x00\xfe" * 40)  # garbage full of start markers
+    w._fh.write(b"\x00\x05\xfd\x00")  # a record cut short
+    w.close()
+    return config, path
+
+
+def _replay(
+    config: AircraftConfig, paths: list[Path], workers: bool
+) -> tuple[list[Frame], dict[str, Any], str, TlogSource]:
+    log = io.StringIO()
+    link = MavlinkLink(config.link, log=log)
+    source = TlogSource(paths, link, log=log, workers=workers)
+    frames = [f for f in source.frames(Stop()) if f is not None]
+    stats = source.link_stats()
+    source.close()
+    return frames, stats, log.getvalue(), source
+
+
+def _rows(frames: list[Frame]) -> np.ndarray:
+    return np.array(
+        [
+            [f.system_id, f.t_vehicle_s, f.t_recv_s, *f.inputs, *f.y, f.clock_reset, f.inputs_known]
+            for f in frames
+        ]
+    )
+
+
+def test_worker_makes_the_same_frames_counters_and_notes(tmp_path: Path) -> None:
+    config, path = _damaged_tlog(tmp_path)
+    one, stats_one, notes_one, _ = _replay(config, [path], workers=False)
+    two, stats_two, notes_two, _ = _replay(config, [path], workers=True)
+    assert len(one) > 500
+    np.testing.assert_array_equal(_rows(one), _rows(two))  # NaN where NaN, bit for bit
+    assert stats_one == stats_two
+    counts = stats_two
+    assert counts["corrupt"] == 1 and counts["duplicates"] == 1 and counts["lost"] >= 1
+    assert notes_one == notes_two
+    assert "garbage bytes skipped" in notes_two and "truncated at the end" in notes_two
+
+
+def test_worker_estimates_equal_one_process_estimates(tmp_path: Path) -> None:
+    config, path = _damaged_tlog(tmp_path)
+    warm_up(config)
+    finals = []
+    for workers in (False, True):
+        link = MavlinkLink(config.link, log=io.StringIO())
+        session = Session(config)
+        results = session.run(TlogSource([path], link, log=io.StringIO(), workers=workers))
+        est = results[1].result
+        finals.append({k: np.r_[f.coefficients, f.sigma] for k, f in est.filters.items()})
+    for kind in finals[0]:
+        np.testing.assert_array_equal(finals[0][kind], finals[1][kind])
+
+
+def test_a_bad_file_is_reported_and_the_good_ones_replayed(tmp_path: Path) -> None:
+    config, path = _damaged_tlog(tmp_path)
+    bad = tmp_path / "not_a.tlog"
+    bad.write_bytes(b"hello, this is not a tlog\n" * 400)
+    frames, _, notes, source = _replay(config, [path, bad, path], workers=True)
+    one, _, _, _ = _replay(config, [path], workers=True)
+    assert len(source.errors) == 1 and "not_a.tlog" in source.errors[0]
+    assert "error:" in notes and "skipped" in notes
+    assert len(frames) > len(one)  # both good files' frames arrived
+
+
+def test_a_stop_ends_the_worker_and_keeps_what_arrived(tmp_path: Path) -> None:
+    config, path = _damaged_tlog(tmp_path)
+    full, _, _, _ = _replay(config, [path], workers=False)
+    stop = Stop()
+    source = TlogSource([path], MavlinkLink(config.link, log=io.StringIO()), workers=True)
+    got = []
+    for f in source.frames(stop):
+        if f is not None:
+            got.append(f)
+            if len(got) == 20:
+                stop.requested = True
+    stats = source.link_stats()
+    source.close()
+    assert 20 <= len(got) < len(full)
+    # Up to the frames still open at the stop (they go as they are, partial), the
+    # frames are the ones of the whole replay.
+    settled = [f for f in got if f.t_vehicle_s < got[-1].t_vehicle_s - 0.5]
+    assert len(settled) >= 10
+    np.testing.assert_array_equal(_rows(settled), _rows(full[: len(settled)]))
+    assert stats["received"] > 0
+    worker = source._worker
+    assert worker is not None and worker._process.poll() is not None  # reaped
+
+
+def test_a_killed_worker_is_an_error_that_names_it(tmp_path: Path) -> None:
+    config, path = _damaged_tlog(tmp_path)
+    source = TlogSource([path], MavlinkLink(config.link, log=io.StringIO()), workers=True)
+    got = 0
+    with pytest.raises(SourceError, match="decoding process ended early"):
+        for f in source.frames(Stop()):
+            if got == 0 and source._worker is not None:
+                os.kill(source._worker._process.pid, signal.SIGKILL)
+            got += f is not None
+    source.close()
