@@ -134,16 +134,22 @@ class FrameHistory:
         self.y.append(y)
 
 
+HISTORY_DTYPE = np.float32
+"""A filter's per-frame outputs are kept to 7 significant digits: they are for plots,
+convergence times and the history file, never fed back (the filter's own state is
+float64). Half the disk, and half the pages the end of a run maps to summarise them."""
+
+
 class History:
     """Per-frame outputs of one filter, in frame order, columnar."""
 
     def __init__(self, n: int) -> None:
-        self.x = Rows(n)
-        self.sigma = Rows(n)
-        self.scalars = Rows(3)
+        self.x = Rows(n, HISTORY_DTYPE)
+        self.sigma = Rows(n, HISTORY_DTYPE)
+        self.scalars = Rows(3, HISTORY_DTYPE)
         """NIS, channels used, gust sigma."""
-        self.innovation = Rows(N_OBS)
-        self.innovation_sigma = Rows(N_OBS)
+        self.innovation = Rows(N_OBS, HISTORY_DTYPE)
+        self.innovation_sigma = Rows(N_OBS, HISTORY_DTYPE)
 
     def _columns(self, out: StepOutput) -> zip[tuple[Rows, FloatArray | tuple[float, ...]]]:
         i = out.info
