@@ -322,7 +322,7 @@ def _recording_session(
     if view is not None:
         session.add_sink(view)
     if sys.stderr.isatty():
-        session.add_sink(ProgressSink(source.progress, label))
+        session.add_sink(ProgressSink(source.progress, label, unit="frames"))
 
     def heading(v: VehicleResult, elapsed: float) -> str:
         n = v.result.frames
@@ -360,25 +360,33 @@ def cmd_offline(args: argparse.Namespace) -> int:
     return _recording_session(config, args, source, f"offline {path.name}", str(path))
 
 
-def _status_line(link: MavlinkLink, session: Session, elapsed_s: float) -> str:
+STATUS_VEHICLES = 12
+"""Vehicles the status shows a line each for (the rest are counted in one line)."""
+STATUS_COEFFICIENTS = ("CLa", "Cma", "Cmq", "Cmde")
+
+
+def _status_lines(link: MavlinkLink, session: Session, elapsed_s: float) -> list[str]:
+    """The link's counters, then one line per vehicle (frames, key coefficients)."""
     h = link.health.total()
-    parts = [
-        f"{elapsed_s:6.1f} s",
-        f"pkts {h.received}",
-        f"lost {h.lost}",
-        f"dup {h.duplicates}",
-        f"ooo {h.out_of_order}",
-        f"bad {h.corrupt}",
+    lines = [
+        f"{elapsed_s:7.1f} s  packets {h.received}  lost {h.lost}  dup {h.duplicates}  "
+        f"late {h.out_of_order}  bad {h.corrupt}  vehicles {len(session.estimators)}"
     ]
-    for sid, est in session.estimators.items():
+    for sid, est in list(session.estimators.items())[:STATUS_VEHICLES]:
+        line = f"  sys {sid:3d}: {est.frames:7d} frames"
         cur = est.snapshot().get("IEKF")
-        shown = ""
         if cur is not None:
             names = est.names
-            show = [n for n in ("CLa", "Cma", "Cmq", "Cmde") if n in names]
-            shown = " ".join(f"{n} {cur.coefficients[names.index(n)]:+.3g}" for n in show)
-        parts.append(f"[sys {sid}: {est.frames} frames {shown}]")
-    return " | ".join(parts)
+            line += "  " + "  ".join(
+                f"{n} {cur.coefficients[names.index(n)]:+.3g}"
+                for n in STATUS_COEFFICIENTS
+                if n in names
+            )
+        lines.append(line)
+    more = len(session.estimators) - STATUS_VEHICLES
+    if more > 0:
+        lines.append(f"  ... and {more} more vehicle{'s' if more > 1 else ''}")
+    return lines
 
 
 def _link_session(
@@ -402,7 +410,7 @@ def _link_session(
     if view is not None:
         session.add_sink(view)
     if status:
-        session.add_sink(StatusSink(lambda elapsed: _status_line(link, session, elapsed)))
+        session.add_sink(StatusSink(lambda elapsed: _status_lines(link, session, elapsed)))
 
     def heading(v: VehicleResult, elapsed: float) -> str:
         return f"vehicle {v.system_id}: {v.result.frames} frames in {elapsed:.2f} s"

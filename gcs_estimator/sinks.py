@@ -3,6 +3,7 @@ progress bar (session.Sink)."""
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -66,19 +67,29 @@ class ResultsSink:
             print("link: " + counts, file=self.out)
 
 
+STATUS_WIDTH = 100
+"""Columns a status line may take."""
+
+
 class StatusSink:
-    """A status line every `every_s` seconds: in place on a terminal, else one line each
-    ten times as rarely."""
+    """Status lines every `every_s` seconds (a header, then a line per vehicle, each at
+    most STATUS_WIDTH columns): redrawn in place on a terminal, else printed ten times
+    as rarely."""
 
     def __init__(
-        self, line: Callable[[float], str], out: TextIO | None = None, every_s: float = 1.0
+        self,
+        lines: Callable[[float], list[str]],
+        out: TextIO | None = None,
+        every_s: float = 1.0,
     ) -> None:
-        self.line = line
+        self.lines = lines
         self.out = sys.stderr if out is None else out
         self.tty = self.out.isatty()
         self.every_s = every_s if self.tty else 10 * every_s
         self.start = time.time()
         self.last = 0.0
+        self._drawn = 0
+        """Lines on the terminal from the last draw."""
 
     def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
         pass
@@ -88,44 +99,88 @@ class StatusSink:
         if now - self.last < self.every_s:
             return
         self.last = now
-        text = self.line(now - self.start)
-        if self.tty:
-            print("\r\033[K" + text, end="", file=self.out, flush=True)
-        else:
-            print(text, file=self.out, flush=True)
+        lines = [line[:STATUS_WIDTH] for line in self.lines(now - self.start)]
+        if not self.tty:
+            print("\n".join(lines), file=self.out, flush=True)
+            return
+        # Back to the start of the last draw, write the lines over it, clear what is
+        # left of a longer one, and stay at the end of the last line.
+        text = "\r" + (f"\033[{self._drawn - 1}A" if self._drawn > 1 else "")
+        text += "\n".join("\033[K" + line for line in lines)
+        extra = self._drawn - len(lines)
+        if extra > 0:
+            text += "\n\033[K" * extra + f"\033[{extra}A"
+        print(text, end="", file=self.out, flush=True)
+        self._drawn = len(lines)
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
-        if self.tty:
+        if self.tty and self._drawn:
             print(file=self.out)
 
 
+def _size(n: float, unit: str) -> str:
+    if unit == "bytes":
+        return f"{n / 1e6:.1f}"
+    return f"{n:,.0f}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    if seconds < 3600:
+        return f"{seconds // 60:.0f} min {seconds % 60:02.0f} s"
+    return f"{seconds // 3600:.0f} h {seconds % 3600 // 60:02.0f} min"
+
+
 class ProgressSink:
-    """A progress bar over a source that knows its length (a recording, a tlog)."""
+    """A progress bar over a source that knows its length (a recording, a tlog), with
+    its rate and the time left."""
 
     def __init__(
-        self, progress: Callable[[], tuple[int, int]], label: str, out: TextIO | None = None
+        self,
+        progress: Callable[[], tuple[int, int]],
+        label: str,
+        out: TextIO | None = None,
+        unit: str = "bytes",
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.progress = progress
         self.label = label
         self.out = sys.stderr if out is None else out
+        self.unit = unit
+        """What progress() counts: "bytes" (shown in MB) or a name such as "frames"."""
+        self.clock = clock
+        self.start = clock()
         self.shown = -1
+        self._last_draw = -math.inf
 
     def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
         pass
 
+    def line(self) -> str:
+        """The bar, the amount done, the rate and the time left."""
+        done, total = self.progress()
+        pct = int(100 * done / total) if total else 0
+        bar = "#" * (pct // 4)
+        unit = "MB" if self.unit == "bytes" else self.unit
+        amount = f"{_size(done, self.unit)}/{_size(total, self.unit)} {unit}"
+        text = f"{self.label} [{bar:<25}] {pct:3d} % {amount}"
+        elapsed = self.clock() - self.start
+        if done > 0 and elapsed > 0:
+            rate = done / elapsed
+            text += f", {_size(rate, self.unit)} {unit}/s"
+            if total > done:
+                text += f", {_duration((total - done) / rate)} left"
+        return text[:STATUS_WIDTH]
+
     def tick(self) -> None:
         done, total = self.progress()
         pct = int(100 * done / total) if total else 0
-        if pct == self.shown:
+        now = self.clock()
+        if pct == self.shown and now - self._last_draw < 1.0:
             return
-        self.shown = pct
-        bar = "#" * (pct // 4)
-        print(
-            f"\r{self.label} [{bar:<25}] {pct:3d} % ({done}/{total})",
-            end="",
-            file=self.out,
-            flush=True,
-        )
+        self.shown, self._last_draw = pct, now
+        print("\r\033[K" + self.line(), end="", file=self.out, flush=True)
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
         if self.shown >= 0:
