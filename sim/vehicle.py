@@ -82,20 +82,32 @@ class SimulatedVehicle:
                 kind = msg.get_type()
                 if kind == "HEARTBEAT":
                     self.stats.gcs_heartbeats += 1
-                elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-                    self._set_interval(msg.command, int(msg.param1), float(msg.param2))
+                elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+                    self._command(msg)
 
-    def _set_interval(self, command: int, message_id: int, interval_us: float) -> None:
+    def _command(self, msg: Any) -> None:
+        """A command for this vehicle (or for every vehicle): acknowledged to its sender;
+        UNSUPPORTED unless it is SET_MESSAGE_INTERVAL."""
+        if int(msg.target_system) not in (0, self.system_id):
+            return
+        result = mavlink.MAV_RESULT_UNSUPPORTED
+        if msg.get_type() == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = self._set_interval(int(msg.param1), float(msg.param2))
+        ack = self.codec.command_ack(
+            int(msg.command), result, msg.get_srcSystem(), msg.get_srcComponent()
+        )
+        self._send_packet(ack)
+
+    def _set_interval(self, message_id: int, interval_us: float) -> int:
         """SET_MESSAGE_INTERVAL: stream the message at 1e6 / interval_us Hz (-1: stop; 0: the
-        default rate); acknowledged, DENIED for a message this vehicle does not stream."""
+        default rate); DENIED for a message this vehicle does not stream."""
         name = mavlink.MESSAGE_NAME.get(message_id)
         ok = name in STREAMED_MESSAGES
         if name is not None and ok:
             rate = 1e6 / interval_us if interval_us > 0 else self.link.rate(name)
             self.rates[name] = 0.0 if interval_us < 0 else rate
             self.stats.rate_changes += 1
-        result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
-        self._send_packet(self.codec.command_ack(command, result))
+        return int(mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED)
 
     def run(self, stop_after_s: float | None = None) -> VehicleStats:
         """Stream the whole recording (or until stop_after_s of vehicle time)."""

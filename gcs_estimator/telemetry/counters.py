@@ -54,6 +54,8 @@ class LinkCounts:
     junk_bytes: int = 0
     unknown: int = 0
     """Messages the dialect does not know (framed, their checksum cannot be checked)."""
+    foreign: int = 0
+    """Packets under a known vehicle's system id from another address: dropped."""
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

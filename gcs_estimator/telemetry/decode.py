@@ -81,6 +81,8 @@ class Heartbeat:
 class CommandAck:
     command: int
     result: int
+    target_system: int = 0
+    """Whom it answers (0: everyone)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +150,7 @@ def decoded_message(
     elif kind == "HEARTBEAT":
         event = Heartbeat(int(msg.type) == MAV_TYPE_GCS, int(msg.type))
     elif kind == "COMMAND_ACK":
-        event = CommandAck(int(msg.command), int(msg.result))
+        event = CommandAck(int(msg.command), int(msg.result), int(msg.target_system))
     elif kind.startswith("UNKNOWN"):
         # pymavlink gives an unknown message no header; the packet has one.
         seq, sysid, compid = header(packet)

@@ -40,6 +40,8 @@ FIXED_WING_TYPES = frozenset(
 """HEARTBEAT types the model fits (VTOLs fly as fixed wings in forward flight)."""
 
 RATE_REQUEST_EVERY_S = 5.0
+PIN_MOVE_S = 5.0
+"""A vehicle's pinned address may move once it has been silent this long [s]."""
 """Until a vehicle acknowledges the rates asked for, ask again this often [s]."""
 
 
@@ -50,6 +52,9 @@ class VehicleLink:
     system_id: int
     sync: Synchronizer
     address: Address | None = None
+    """Where it speaks from: pinned at first contact (see MavlinkLink.pinned)."""
+    last_heard: float = -math.inf
+    """Receive time of its newest packet from that address [s since epoch]."""
     acked: set[int] = field(default_factory=set)
     """Results of its acknowledgements of our rate requests."""
     last_rate_request: float = -math.inf
@@ -166,6 +171,8 @@ class MavlinkLink:
         if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
             t_vehicle = event.t_vehicle_s
         sysid = decoded.system_id
+        if address is not None and not self.pinned(sysid, address, t_recv_s, name):
+            return []
         if not self.health.on_packet(
             name, sysid, decoded.component_id, decoded.seq, packet, t_vehicle
         ):
@@ -188,15 +195,51 @@ class MavlinkLink:
         elif isinstance(event, Heartbeat):
             if not event.ground_station:
                 self._heartbeat(sysid, event, address)
-        elif (
-            isinstance(event, CommandAck)
-            and event.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
-            and sysid in self.vehicles
-        ):
-            self.vehicles[sysid].acked.add(event.result)
+        elif isinstance(event, CommandAck):
+            self._ack(sysid, event)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
         return out
+
+    def pinned(self, sysid: int, address: Address, t_recv_s: float, name: str) -> bool:
+        """Whether a packet comes from where its system id speaks from. A vehicle's
+        address is pinned at first contact: packets under its id from anywhere else are
+        counted (`foreign`) and dropped, and nothing is sent there, unless its own
+        address has been silent for PIN_MOVE_S (a vehicle that moved, say after a
+        router's restart): then the pin moves, and says so."""
+        v = self.vehicles.get(sysid)
+        if v is None or v.address is None:
+            return True  # first contact: _seen pins it
+        if v.address == address:
+            v.last_heard = t_recv_s
+            return True
+        if t_recv_s - v.last_heard > PIN_MOVE_S:
+            print(
+                f"note: system id {sysid} now speaks from {name}; its address "
+                f"{link_name(v.address)} was silent {t_recv_s - v.last_heard:.1f} s",
+                file=self.log,
+            )
+            v.address, v.last_heard = address, t_recv_s
+            return True
+        self.health.counts(name).foreign += 1
+        self.report_once(
+            f"foreign-{sysid}-{name}",
+            f"packets as system id {sysid} from {name}, not from its address "
+            f"{link_name(v.address)}: dropped (a second sender with its id?)",
+        )
+        return False
+
+    def _ack(self, sysid: int, ack: CommandAck) -> None:
+        """An acknowledgement counts only for a command we sent to that vehicle, and
+        only if addressed to us (or to everyone, as some autopilots do)."""
+        v = self.vehicles.get(sysid)
+        if (
+            v is not None
+            and ack.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+            and ack.target_system in (mavlink.GCS_SYSTEM_ID, 0)
+            and v.last_rate_request > -math.inf
+        ):
+            v.acked.add(ack.result)
 
     def _heartbeat(self, sysid: int, event: Heartbeat, address: Address | None) -> None:
         if self._seen(sysid, address) is None:
@@ -211,8 +254,8 @@ class MavlinkLink:
 
     def _seen(self, sysid: int, address: Address | None) -> VehicleLink | None:
         v = self.vehicle(sysid)
-        if v is not None and address is not None:
-            v.address = address
+        if v is not None and address is not None and v.address is None:
+            v.address, v.last_heard = address, self.t_last_recv  # pinned (see pinned)
         return v
 
     def _sample(self, v: VehicleLink, sample: Sample) -> list[Frame]:

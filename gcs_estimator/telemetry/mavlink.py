@@ -60,6 +60,7 @@ MAV_TYPE_NAMES: dict[int, str] = {
 MAV_CMD_SET_MESSAGE_INTERVAL = dialect.MAV_CMD_SET_MESSAGE_INTERVAL
 MAV_RESULT_ACCEPTED = dialect.MAV_RESULT_ACCEPTED
 MAV_RESULT_DENIED = dialect.MAV_RESULT_DENIED
+MAV_RESULT_UNSUPPORTED = dialect.MAV_RESULT_UNSUPPORTED
 
 
 def new_codec(system_id: int, component_id: int) -> Any:
@@ -112,8 +113,14 @@ class Codec:
         )
         return self.pack(msg)
 
-    def command_ack(self, command: int, result: int) -> bytes:
-        return self.pack(self.mav.command_ack_encode(command, result))
+    def command_ack(
+        self, command: int, result: int, target_system: int = 0, target_component: int = 0
+    ) -> bytes:
+        return self.pack(
+            self.mav.command_ack_encode(
+                command, result, target_system=target_system, target_component=target_component
+            )
+        )
 
     def parse(self, data: bytes) -> list[MAVLinkMessage]:
         """The messages in a received datagram (bad packets are skipped)."""

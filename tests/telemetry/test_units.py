@@ -113,8 +113,10 @@ def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
     assert _decode(Codec(255, 190).heartbeat(mavlink.MAV_TYPE_GCS)) == Heartbeat(
         True, mavlink.MAV_TYPE_GCS
     )
-    ack = vehicle.command_ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED)
-    assert _decode(ack) == CommandAck(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0)
+    ack = vehicle.command_ack(
+        mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED, 255, 190
+    )
+    assert _decode(ack) == CommandAck(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 255)
     assert _decode(vehicle.pack(mav.named_value_float_encode(1, b"OTHER", 1.0)), stats) == Ignored()
     assert _decode(vehicle.pack(mav.system_time_encode(1, 1)), stats) == Ignored()
     assert stats.ignored_messages == 2
