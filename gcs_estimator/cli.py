@@ -22,6 +22,7 @@ from gcs_estimator.config import (
     config_reference,
     load_config,
     load_reference,
+    load_truths,
 )
 from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
@@ -213,7 +214,8 @@ def _view_sink(
         outlets,
         config,
         link_source=None if link is None else lambda: (link.session_time(), link.health.as_dict()),
-        table_source=lambda sid: live_table(session.estimator(sid)),
+        table_source=lambda sid: live_table(session.estimator(sid), session.truth_of(sid)),
+        truth_of=session.truth_of,
     )
     return ViewSink(view, None if link is None else (lambda: link.t_first_recv))
 
@@ -399,7 +401,9 @@ def _link_session(
     """A session over a MAVLink link, with its view and result sinks (and, live, its
     status line)."""
     warm_up(config, args.backend)
-    session = Session(config, backend=args.backend)
+    truth_file = getattr(args, "truth", None)
+    truths = None if truth_file is None else load_truths(truth_file, config.coefficient_names)
+    session = Session(config, backend=args.backend, truths=truths)
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record else None,
@@ -556,6 +560,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop after this many seconds without data (once data came)",
     )
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument(
+        "--truth",
+        default=None,
+        metavar="FILE",
+        help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
+        "without it only the first vehicle heard is scored, against the config's [truth]",
+    )
     p.set_defaults(func=cmd_listen)
 
     p = sub.add_parser("replay", help="estimate from recorded .tlog files")
@@ -568,6 +579,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="0 = as fast as possible (default), else a multiple of real time",
     )
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument(
+        "--truth",
+        default=None,
+        metavar="FILE",
+        help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
+        "without it only the first vehicle heard is scored, against the config's [truth]",
+    )
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")

@@ -31,7 +31,7 @@ from gcs_estimator.schema import (
     table,
 )
 
-__all__ = ["AircraftConfig", "ConfigError", "load_config", "load_reference"]
+__all__ = ["AircraftConfig", "ConfigError", "load_config", "load_reference", "load_truths"]
 
 REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0")
 """Regressors a coefficient may have, in kernel order (see model.equations)."""
@@ -711,3 +711,36 @@ def load_reference(path: str | Path, names: tuple[str, ...]) -> tuple[tuple[floa
             raise Where(str(path)).error("truth", "must be a table")
     ref = build(Reference, data, where, {COEFFICIENT: names})
     return ref.values, ref.label
+
+
+def load_truths(path: str | Path, names: tuple[str, ...]) -> dict[int, tuple[float, ...]]:
+    """Each vehicle's true coefficients, by system id, from a truth file (as
+    `gcs-sim --truth` writes): a [vehicle.N] table per system id N, each like the aircraft
+    config's [truth]."""
+    data = read_toml(path)
+    where = Where(str(path))
+    unknown = sorted(set(data) - {"vehicle"})
+    if unknown:
+        raise where.error(unknown[0], "unknown key; known keys here: ['vehicle']")
+    vehicles = data.get("vehicle")
+    if not isinstance(vehicles, Mapping) or not vehicles:
+        raise where.error("vehicle", "missing: add a [vehicle.N] table per system id N")
+    out: dict[int, tuple[float, ...]] = {}
+    for key, values in vehicles.items():
+        if not (key.isdigit() and 1 <= int(key) <= 255):
+            raise where.sub("vehicle").error(key, "a system id 1..255 is expected here")
+        if not isinstance(values, Mapping):
+            raise where.sub("vehicle").error(key, "must be a table of coefficients")
+        out[int(key)] = build(
+            Reference, values, where.sub(f"vehicle.{key}"), {COEFFICIENT: names}
+        ).values
+    return out
+
+
+def truths_text(truths: Mapping[int, tuple[float, ...]], names: tuple[str, ...]) -> str:
+    """A truth file (load_truths reads it back exactly: floats written by repr)."""
+    lines = ["# True coefficients each vehicle flies, by system id (gcs-sim --truth)."]
+    for sid, values in sorted(truths.items()):
+        lines.append(f"\n[vehicle.{sid}]")
+        lines += [f"{n} = {float(v)!r}" for n, v in zip(names, values, strict=True)]
+    return "\n".join(lines) + "\n"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -169,28 +169,30 @@ def channel_text(values: FloatArray) -> str:
     )
 
 
-def live_table(estimator: Estimator) -> str:
-    """The current estimates as a Markdown table (cheap: no history is read)."""
+def live_table(estimator: Estimator, truth: Sequence[float] | FloatArray | None = ()) -> str:
+    """The current estimates as a Markdown table (cheap: no history is read), against
+    truth (None: none; by default the config's)."""
     current = estimator.snapshot()
     if not current:
         return "(waiting for data)\n"
-    truth = estimator.config.truth
+    if truth is not None and len(truth) == 0:
+        truth = estimator.config.truth
     kinds = [k for k in FILTER_KINDS if k in current]
-    head = ["coefficient"] + ([estimator.config.truth_label] if truth else [])
+    head = ["coefficient"] + ([estimator.config.truth_label] if truth is not None else [])
     for k in kinds:
-        head += [f"{k} estimate", f"{k} ±2σ"] + ([f"{k} error %"] if truth else [])
+        head += [f"{k} estimate", f"{k} ±2σ"] + ([f"{k} error %"] if truth is not None else [])
     head += ["identified?"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     last = current[kinds[-1]]
     prior = np.asarray(estimator.config.filter.initial_sigma.coefficients, float)
     marks = identifiability(last.coefficients, last.sigma, np.eye(len(prior)), prior)
     for i, name in enumerate(estimator.names):
-        row = [name] + ([_fmt(truth[i])] if truth else [])
+        row = [name] + ([_fmt(truth[i])] if truth is not None else [])
         for k in kinds:
             snap = current[k]
             x = float(snap.coefficients[i])
             row += [_fmt(x), f"{2 * snap.sigma[i]:.2g}"]
-            if truth:
+            if truth is not None:
                 err = percent_error(x, truth[i])
                 row.append("-" if err is None else f"{err:+.2f}")
         lines.append("| " + " | ".join([*row, marks[i]]) + " |")

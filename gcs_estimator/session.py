@@ -76,8 +76,12 @@ class Session:
         sinks: Sequence[Sink] = (),
         backend: Backend = "fast",
         keep_history: bool = True,
+        truths: Mapping[int, Sequence[float]] | None = None,
     ) -> None:
         self.config = config
+        self.truths = truths
+        """Each vehicle's true coefficients by system id (a truth file); None: the
+        config's [truth] describes one vehicle, the first heard (see truth_of)."""
         self.sinks = list(sinks)
         self.backend = backend
         self.keep_history = keep_history
@@ -139,12 +143,23 @@ class Session:
         things stand now (reads every history: not for every frame)."""
         if self._results is not None:
             return self._results
-        truth = config_truth(self.config)
         out = {}
         for sid, est in self.estimators.items():
             result = est.result()
+            truth = self.truth_of(sid)
             out[sid] = VehicleResult(sid, result, summarise(result, truth), truth)
         return out
+
+    def truth_of(self, system_id: int) -> FloatArray | None:
+        """What a vehicle is scored against: its entry of the truth file; without one,
+        the config's [truth] for the first vehicle heard only (a config describes one
+        aircraft: a second vehicle on the link is another, whose values it does not
+        know)."""
+        if self.truths is not None:
+            values = self.truths.get(system_id)
+            return None if values is None else np.array(values, float)
+        first = next(iter(self.estimators), system_id)
+        return config_truth(self.config) if system_id == first else None
 
 
 class RecordingSource:

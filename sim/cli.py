@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator.config import ConfigError, load_config
+from gcs_estimator.config import ConfigError, load_config, truths_text
 from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
 from sim.truth import simulate
 from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
@@ -79,6 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--tlog", default=None, help="write each vehicle's own .tlog (prefix)")
     ap.add_argument(
+        "--truth",
+        default=None,
+        metavar="FILE",
+        help="write each vehicle's true coefficients by system id, for "
+        "`gcs-estimator listen --truth FILE`",
+    )
+    ap.add_argument(
         "--playback",
         default=None,
         help="stream flight data instead: a bundled record's name (hfb320), an HFB-320 .asc "
@@ -88,10 +95,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def recordings(args: argparse.Namespace) -> list[Recording]:
+    """What each vehicle flies (and, with --truth, the file of their true coefficients)."""
     config = load_config(args.config, args.set)
     if args.playback:
+        if args.truth:
+            raise ConfigError("--truth: played-back data has no true coefficients to write")
         return [load_recording(args.playback, config.data)[1]] * args.vehicles
     out = []
+    truths: dict[int, tuple[float, ...]] = {}
     base = config.simulation.seed if args.seed is None else args.seed
     for k in range(args.vehicles):
         c = config
@@ -100,6 +111,9 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
             c = config.with_truth(tuple(np.array(config.truth) * (1 + args.perturb * signs)))
         fl = simulate(c, seed=base + k)
         out.append(Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"))
+        truths[k + 1] = tuple(float(v) for v in fl.truth)
+    if args.truth:
+        Path(args.truth).write_text(truths_text(truths, config.coefficient_names))
     return out
 
 

@@ -94,6 +94,7 @@ class RerunView:
         link_source: LinkSource | None = None,
         table_source: TableSource | None = None,
         clock: Callable[[], float] = time.monotonic,
+        truth_of: Callable[[int], FloatArray | None] | None = None,
     ) -> None:
         self.outlets = list(outlets)
         self.config = config
@@ -103,6 +104,9 @@ class RerunView:
         self.flight = model.flight
         self.coefficients = model.coefficients
         self.truth = None if config.truth is None else np.array(config.truth, float)
+        """The config's [truth]: the viewer's layout draws a truth line when it is set."""
+        self.truth_of = truth_of if truth_of is not None else (lambda sid: self.truth)
+        """Each vehicle's own truth (Session.truth_of); NaN where a vehicle has none."""
         self.truth_label = config.truth_label
         self.power_input = config.propulsion.input_name
         self.link_source = link_source
@@ -214,7 +218,8 @@ class RerunView:
                 est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
                 cols += [est, est - s2, est + s2]
             if self.truth is not None:
-                cols.append(np.full(n, self.truth[i]))
+                own = self.truth_of(sid)
+                cols.append(np.full(n, math.nan if own is None else own[i]))
             path = lay.coefficient_path(sid, name, self.axes[i])
             self._send(Columns(path, times, np.column_stack(cols)))
         self.frames_sent += n
