@@ -526,6 +526,13 @@ class LinkConfig:
     rates_hz: tuple[float, ...] = setting(
         (50.0,) * 6, keys=STREAMED_MESSAGES, fill=50.0, ge=0, unit="Hz", doc="SET_MESSAGE_INTERVAL"
     )
+    signing_key_file: str = setting(
+        "",
+        doc="MAVLink 2 signing: a file holding the 32-byte key as 64 hex digits, or a "
+        "passphrase (its SHA-256 is the key, as in MAVProxy); a path relative to the working "
+        "directory. Set: only correctly signed packets are taken, and the station signs "
+        "what it sends. Empty: no signing",
+    )
 
     def check(self) -> None:
         if self.elevator_us_per_rad == 0:

@@ -64,6 +64,7 @@ class UdpSource:
         self.idle_exit_s = idle_exit_s
         self.max_seconds = max_seconds
         self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
+        link.sign(self.codec, time.time())
         self._last_data: float | None = None
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:

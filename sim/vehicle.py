@@ -18,10 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
+from gcs_estimator.config import STREAMED_MESSAGES, ConfigError, LinkConfig
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.telemetry import mavlink, pwm
 from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
+from gcs_estimator.telemetry.signing import load_key, sign_outgoing
 
 BOOT_OFFSET_S = 5.0
 """The vehicle has been up this long when the recording starts [s]."""
@@ -55,6 +56,13 @@ class SimulatedVehicle:
         self.rates = {m: self.link.rate(m) for m in STREAMED_MESSAGES}
         self.codec = Codec(self.system_id, 1)
         self.mav = self.codec.mav
+        if self.link.signing_key_file:
+            # Signs what it sends, and its parser refuses unsigned or wrongly signed packets.
+            try:
+                key = load_key(self.link.signing_key_file)
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"link.signing_key_file: {exc}") from exc
+            sign_outgoing(self.mav, key, time.time())
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1" if self.target[0].startswith("127.") else "0.0.0.0", 0))
         self.sock.setblocking(False)

@@ -56,6 +56,12 @@ class LinkCounts:
     """Messages the dialect does not know (framed, their checksum cannot be checked)."""
     foreign: int = 0
     """Packets under a known vehicle's system id from another address: dropped."""
+    unsigned: int = 0
+    """With signing on: packets without a signature, dropped."""
+    bad_signature: int = 0
+    """With signing on: packets whose signature is wrong (forged, or another key)."""
+    replayed: int = 0
+    """With signing on: signed packets whose timestamp is not newer than their stream's."""
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

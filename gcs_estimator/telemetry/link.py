@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
-from gcs_estimator.config import STREAMED_MESSAGES, LinkConfig
+from gcs_estimator.config import STREAMED_MESSAGES, ConfigError, LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.counters import LinkHealth
@@ -30,6 +30,7 @@ from gcs_estimator.telemetry.decode import (
     decoded_message,
 )
 from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
+from gcs_estimator.telemetry.signing import SignatureCheck, Verdict, load_key, sign_outgoing
 from gcs_estimator.telemetry.sync import Synchronizer
 
 Address = tuple[str, int]
@@ -95,6 +96,20 @@ class MavlinkLink:
         self.t_first_recv = math.nan
         self.t_last_recv = math.nan
         self._reported: set[str] = set()
+        self._key: bytes | None = None
+        self.signatures: SignatureCheck | None = None
+        """With link.signing_key_file: the check every packet must pass."""
+        if config.signing_key_file:
+            try:
+                self._key = load_key(config.signing_key_file)
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"link.signing_key_file: {exc}") from exc
+            self.signatures = SignatureCheck(self._key)
+
+    def sign(self, codec: Codec, t_unix_s: float) -> None:
+        """Make the station's codec sign what it sends (with signing on)."""
+        if self._key is not None:
+            sign_outgoing(codec.mav, self._key, t_unix_s)
 
     def report_once(self, key: str, text: str) -> None:
         """Say a problem once (it is counted every time)."""
@@ -171,6 +186,8 @@ class MavlinkLink:
         if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
             t_vehicle = event.t_vehicle_s
         sysid = decoded.system_id
+        if self.signatures is not None and not self._signed(packet, t_recv_s, name):
+            return []
         if address is not None and not self.pinned(sysid, address, t_recv_s, name):
             return []
         if not self.health.on_packet(
@@ -200,6 +217,22 @@ class MavlinkLink:
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
         return out
+
+    def _signed(self, packet: bytes, t_recv_s: float, name: str) -> bool:
+        """Whether a packet passes the signature check; else it is counted by why, and
+        dropped (the recording keeps every packet as received, and a replay checks them
+        again with their receive times, so it drops the same ones)."""
+        assert self.signatures is not None
+        verdict = self.signatures.check(packet, t_recv_s)
+        if verdict == Verdict.SIGNED:
+            return True
+        counts = self.health.counts(name)
+        setattr(counts, verdict.value, getattr(counts, verdict.value) + 1)
+        self.report_once(
+            f"sign-{verdict.value}",
+            f"{verdict.value.replace('_', ' ')} packet(s) with signing on: dropped",
+        )
+        return False
 
     def pinned(self, sysid: int, address: Address, t_recv_s: float, name: str) -> bool:
         """Whether a packet comes from where its system id speaks from. A vehicle's
