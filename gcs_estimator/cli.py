@@ -173,6 +173,16 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
     )
 
 
+def _truth_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--truth",
+        default=None,
+        metavar="FILE",
+        help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
+        "without it only the first vehicle heard is scored, against the config's [truth]",
+    )
+
+
 def _config(args: argparse.Namespace) -> AircraftConfig:
     """The config with --set overrides, --reference values and view options applied."""
     config = load_config(args.config, args.set)
@@ -560,13 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop after this many seconds without data (once data came)",
     )
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument(
-        "--truth",
-        default=None,
-        metavar="FILE",
-        help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
-        "without it only the first vehicle heard is scored, against the config's [truth]",
-    )
+    _truth_option(p)
     p.set_defaults(func=cmd_listen)
 
     p = sub.add_parser("replay", help="estimate from recorded .tlog files")
@@ -579,13 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="0 = as fast as possible (default), else a multiple of real time",
     )
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
-    p.add_argument(
-        "--truth",
-        default=None,
-        metavar="FILE",
-        help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
-        "without it only the first vehicle heard is scored, against the config's [truth]",
-    )
+    _truth_option(p)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")

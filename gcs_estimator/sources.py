@@ -176,9 +176,7 @@ class TlogSource:
                 link.t_last_recv = progress.t_last_recv
                 link.health.links = progress.links
             yield frame
-        self.errors = worker.errors
-        for error in self.errors:
-            print(f"error: {error}; skipped", file=self.log)
+        self.errors = worker.errors  # each already said by the worker, through self.log
 
     def _frames(self, stop: Stop) -> Iterator[Frame | None]:
         t0_rec = t0_wall = None
