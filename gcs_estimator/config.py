@@ -523,6 +523,13 @@ class LinkConfig:
     max_vehicles: int = setting(
         16, ge=1, doc="system ids estimated per session; packets of more are counted only"
     )
+    allowed_system_ids: tuple[int, ...] = setting(
+        (),
+        ge=1,
+        le=255,
+        doc="the only system ids estimated and sent to (empty: any); packets of others are "
+        "counted only",
+    )
     rates_hz: tuple[float, ...] = setting(
         (50.0,) * 6, keys=STREAMED_MESSAGES, fill=50.0, ge=0, unit="Hz", doc="SET_MESSAGE_INTERVAL"
     )

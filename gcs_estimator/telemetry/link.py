@@ -122,6 +122,15 @@ class MavlinkLink:
         v = self.vehicles.get(system_id)
         if v is not None:
             return v
+        allowed = self.config.allowed_system_ids
+        if allowed and system_id not in allowed:
+            self.refused_vehicles[system_id] = self.refused_vehicles.get(system_id, 0) + 1
+            self.report_once(
+                f"allowed-{system_id}",
+                f"system id {system_id} not estimated: not in link.allowed_system_ids "
+                f"{list(allowed)}; its packets are counted",
+            )
+            return None
         if len(self.vehicles) >= self.config.max_vehicles:
             self.refused_vehicles[system_id] = self.refused_vehicles.get(system_id, 0) + 1
             self.report_once(

@@ -120,3 +120,19 @@ def test_the_pin_moves_once_the_vehicles_address_is_silent() -> None:
     list(link.datagram(codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING), t_moved, new))
     assert link.vehicles[1].address == new
     assert "now speaks from 127.0.0.1:6000" in log.getvalue()
+
+
+def test_only_allowed_system_ids_are_estimated_and_sent_to() -> None:
+    config = load_config("noc_uav", ["link.allowed_system_ids=[1, 3]"])
+    log = io.StringIO()
+    link = MavlinkLink(config.link, log=log)
+    codecs = {sysid: mavlink.Codec(sysid, 1) for sysid in (1, 2, 3)}
+    for sysid in (1, 2, 3, 2):
+        beat = codecs[sysid].heartbeat(mavlink.MAV_TYPE_FIXED_WING)
+        list(link.datagram(beat, 1.0, ("::1", sysid)))
+    assert sorted(link.vehicles) == [1, 3]
+    assert link.refused_vehicles == {2: 2}
+    sent_to = {address for _, address in link.ground_messages(mavlink.Codec(255, 190), 2.0)}
+    assert sent_to == {("::1", 1), ("::1", 3)}
+    assert "system id 2 not estimated: not in link.allowed_system_ids" in log.getvalue()
+    assert link.stats()["refused_vehicles"] == {"2": 2}
