@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gcs_estimator import endpoints
 from gcs_estimator.config import (
     REFINE_METHODS,
     VIEW_OUTPUTS,
@@ -28,7 +29,7 @@ from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
 from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
-from gcs_estimator.sources import SourceError, TlogSource, UdpSource, open_udp
+from gcs_estimator.sources import RCVBUF_BYTES, SourceError, TlogSource, UdpSource, open_udp
 from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.telemetry.decode import ranges_of
 from gcs_estimator.telemetry.link import MavlinkLink
@@ -436,21 +437,28 @@ def _link_session(
 def cmd_listen(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     config = _config(args)
-    host, _, port = args.endpoint.removeprefix("udpin:").rpartition(":")
-    if not port.isdigit():
-        raise ConfigError(f"endpoint {args.endpoint!r}: expected udpin:HOST:PORT")
+    endpoint = endpoints.parse(args.endpoint, default_listen=True)
     record = Path(args.record) if args.record else Path(args.out) / TLOG_FILE
     if args.record and record.exists() and not args.force:
         raise ConfigError(f"--record {record}: the file exists; --force to overwrite it")
     # Bound before anything is opened for writing: a busy port leaves a recording as it was.
-    sock = open_udp(host or "0.0.0.0", int(port))
+    sock = endpoints.open_socket(endpoint, RCVBUF_BYTES)
     session, link = _link_session(config, args, args.endpoint, record)
     bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
-    print(
-        f"listening on udp {host or '0.0.0.0'}:{bound}, recording to {record} (Ctrl-C to stop)",
-        file=sys.stderr,
+    host = f"[{endpoint.host}]" if ":" in endpoint.host else endpoint.host
+    where = (
+        f"listening on udp {host}:{bound}"
+        if endpoint.listen
+        else f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
     )
-    source = UdpSource(sock, link, idle_exit_s=args.idle_exit, max_seconds=args.duration)
+    print(f"{where}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
+    source = UdpSource(
+        sock,
+        link,
+        idle_exit_s=args.idle_exit,
+        max_seconds=args.duration,
+        peer=None if endpoint.listen else endpoint.address,
+    )
     return _run(session, source, stop)
 
 
@@ -554,7 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
         "endpoint",
         nargs="?",
         default="udpin:127.0.0.1:14550",
-        help="udpin:HOST:PORT to bind (default: %(default)s, this machine only; "
+        help="udpin:HOST:PORT (or udp:) to bind and wait for the vehicle, udpout:HOST:PORT to "
+        "send to it first; IPv6 as [ADDR]:PORT (default: %(default)s, this machine only; "
         "udpin:0.0.0.0:14550 for a vehicle on the network)",
     )
     p.add_argument(

@@ -58,7 +58,10 @@ class UdpSource:
         link: MavlinkLink,
         idle_exit_s: float | None = None,
         max_seconds: float | None = None,
+        peer: tuple[str, int] | None = None,
     ) -> None:
+        self.peer = peer
+        """udpout: where the station speaks first (heartbeats) until a vehicle answers."""
         self.sock = sock
         self.link = link
         self.idle_exit_s = idle_exit_s
@@ -99,7 +102,10 @@ class UdpSource:
             yield from self.link.datagram(data, t, addr)
 
     def _send_ground(self, now: float) -> None:
-        for packet, address in self.link.ground_messages(self.codec, now):
+        out = list(self.link.ground_messages(self.codec, now))
+        if self.peer is not None and all(a[:2] != self.peer for _, a in out):
+            out.append((self.codec.heartbeat(mavlink.MAV_TYPE_GCS), self.peer))
+        for packet, address in out:
             try:
                 self.sock.sendto(packet, address)
             except OSError:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gcs_estimator import endpoints
 from gcs_estimator.config import ConfigError, load_config, truths_text
 from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
 from sim.truth import simulate
@@ -17,10 +18,18 @@ from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
 
 
 def _target(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
-    return host, int(port)
+    """Where the vehicle sends: udpout:HOST:PORT, udp:HOST:PORT or HOST:PORT (IPv6 as
+    [ADDR]:PORT), resolved now so that a bad host is an error here, not a hang later."""
+    try:
+        endpoint = endpoints.parse(text, default_listen=False)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if endpoint.listen:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the simulated vehicle sends to the station: give udpout:HOST:PORT "
+            "(and listen on udpin: at the station)"
+        )
+    return endpoint.address
 
 
 def command(
@@ -57,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--target",
         type=_target,
         default=("127.0.0.1", 14550),
-        help="ground station HOST:PORT (default 127.0.0.1:14550)",
+        help="ground station: [udpout:]HOST:PORT, IPv6 as [ADDR]:PORT (default 127.0.0.1:14550)",
     )
     ap.add_argument(
         "--speed", type=float, default=1.0, help="multiple of real time; 0 = as fast as possible"

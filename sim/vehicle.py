@@ -63,8 +63,13 @@ class SimulatedVehicle:
             except (OSError, ValueError) as exc:
                 raise ConfigError(f"link.signing_key_file: {exc}") from exc
             sign_outgoing(self.mav, key, time.time())
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1" if self.target[0].startswith("127.") else "0.0.0.0", 0))
+        family = socket.getaddrinfo(self.target[0], self.target[1], type=socket.SOCK_DGRAM)[0][0]
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        loopback = self.target[0].startswith("127.") or self.target[0] == "::1"
+        if family == socket.AF_INET6:
+            self.sock.bind(("::1" if loopback else "::", 0))
+        else:
+            self.sock.bind(("127.0.0.1" if loopback else "0.0.0.0", 0))
         self.sock.setblocking(False)
         self._tlog = TlogWriter(self.tlog) if self.tlog else None
 

@@ -1,0 +1,127 @@
+"""Connection strings: udpin:, udp:, udpout:, bare HOST:PORT and IPv6 work on loopback
+with real sockets; a bad, busy or unresolvable endpoint, and TCP or serial (not opened by
+the station itself), give one clear line and exit 2."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from gcs_estimator import endpoints
+from gcs_estimator.cli import main
+from gcs_estimator.config import ConfigError, load_config
+from gcs_estimator.flightdata import Recording
+from gcs_estimator.sources import RCVBUF_BYTES, UdpSource
+from gcs_estimator.stop import Stop
+from gcs_estimator.telemetry import mavlink
+from gcs_estimator.telemetry.link import MavlinkLink
+from sim.cli import _target
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+from tests.telemetry.test_link import SHORT
+
+DEADLINE_S = 30.0
+
+
+@pytest.mark.parametrize(
+    ("text", "listen", "host", "port"),
+    [
+        ("udpin:127.0.0.1:14550", True, "127.0.0.1", 14550),
+        ("udp:127.0.0.1:14551", True, "127.0.0.1", 14551),
+        ("udpout:127.0.0.1:14552", False, "127.0.0.1", 14552),
+        ("127.0.0.1:14553", True, "127.0.0.1", 14553),
+        ("udpin:[::1]:0", True, "::1", 0),
+        ("udpin::14554", True, "0.0.0.0", 14554),
+        ("udpout:localhost:14555", False, None, 14555),
+    ],
+)
+def test_connection_strings(text: str, listen: bool, host: str | None, port: int) -> None:
+    e = endpoints.parse(text, default_listen=True)
+    assert (e.listen, e.port) == (listen, port)
+    if host is not None:
+        assert e.host == host
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("udpin:127.0.0.1:70000", "port 0..65535"),
+        ("udpin:127.0.0.1", "port 0..65535"),
+        ("udpout:127.0.0.1:0", "a port to send to"),
+        ("udpout:no-such-host.invalid:14550", "cannot resolve"),
+        ("tcp:127.0.0.1:5760", "mavproxy.py --master=127.0.0.1:5760"),
+        ("/dev/ttyACM0,57600", "route them to UDP"),
+    ],
+)
+def test_bad_endpoints_say_what_is_wrong(text: str, says: str) -> None:
+    with pytest.raises(ConfigError, match=says.replace(".", r"\.")):
+        endpoints.parse(text, default_listen=True)
+
+
+def test_a_busy_port_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    port = busy.getsockname()[1]
+    code = main(
+        ["listen", f"udpin:127.0.0.1:{port}", "--view", "off", "--out", str(tmp_path / "o")]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith("error: endpoint udpin:127.0.0.1:") and "cannot bind" in err[-1]
+    assert not (tmp_path / "o" / "telemetry.tlog").exists()  # nothing opened for writing
+    busy.close()
+
+
+def test_a_vehicle_over_ipv6_loopback(tmp_path: Path) -> None:
+    config = load_config("noc_uav", SHORT)
+    station = endpoints.open_socket(endpoints.parse("udpin:[::1]:0", True), RCVBUF_BYTES)
+    port = station.getsockname()[1]
+    fl = simulate(config, seed=5)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    vehicle = SimulatedVehicle(rec, config.link, _target(f"udpout:[::1]:{port}"), speed=0.0)
+    vehicle.run()
+    link = MavlinkLink(config.link, log=io.StringIO())
+    frames = [f for f in UdpSource(station, link, idle_exit_s=0.5).frames(Stop()) if f]
+    assert len(frames) == len(fl.t_s)
+    address = link.vehicles[1].address
+    assert address is not None and address[0] == "::1"
+    station.close()
+
+
+def test_udpout_speaks_first_then_takes_the_vehicle_that_answers() -> None:
+    config = load_config("noc_uav")
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", 0))
+    vehicle.settimeout(DEADLINE_S)
+    endpoint = endpoints.parse(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}", True)
+    station = endpoints.open_socket(endpoint, RCVBUF_BYTES)
+    link = MavlinkLink(config.link, log=io.StringIO())
+    frames = UdpSource(station, link, peer=endpoint.address).frames(Stop())
+    next(frames)  # the first idle tick sends the station's heartbeat to the peer
+    data, station_address = vehicle.recvfrom(65535)
+    assert [m.get_type() for m in mavlink.Codec(1, 1).parse(data)] == ["HEARTBEAT"]
+    vehicle.sendto(mavlink.Codec(1, 1).heartbeat(mavlink.MAV_TYPE_FIXED_WING), station_address)
+    end = time.monotonic() + DEADLINE_S
+    while 1 not in link.vehicles:
+        assert time.monotonic() < end
+        next(frames)
+    assert link.vehicles[1].address == vehicle.getsockname()
+    vehicle.close()
+    station.close()
+
+
+def test_the_simulated_vehicle_takes_the_same_strings() -> None:
+    assert _target("udpout:127.0.0.1:14550") == ("127.0.0.1", 14550)
+    assert _target("127.0.0.1:14550") == ("127.0.0.1", 14550)
+    assert _target("[::1]:14550") == ("::1", 14550)
+    with pytest.raises(argparse.ArgumentTypeError, match="give udpout"):
+        _target("udpin:127.0.0.1:14550")
+    with pytest.raises(argparse.ArgumentTypeError, match="cannot resolve"):
+        _target("udpout:no-such-host.invalid:14550")
