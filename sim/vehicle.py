@@ -51,6 +51,8 @@ class SimulatedVehicle:
     beyond 4,295 s its 32-bit SERVO_OUTPUT_RAW.time_usec has wrapped."""
     stats: VehicleStats = field(default_factory=VehicleStats)
     rates: dict[str, float] = field(default_factory=dict)
+    requested: set[str] = field(default_factory=set)
+    """Messages asked for once (REQUEST_MESSAGE), sent with the next sample."""
 
     def __post_init__(self) -> None:
         self.rates = {m: self.link.rate(m) for m in STREAMED_MESSAGES}
@@ -92,11 +94,26 @@ class SimulatedVehicle:
             except (BlockingIOError, ConnectionRefusedError, OSError):
                 return
             for msg in self.codec.parse(data):
-                kind = msg.get_type()
-                if kind == "HEARTBEAT":
-                    self.stats.gcs_heartbeats += 1
-                elif kind in ("COMMAND_LONG", "COMMAND_INT"):
-                    self._command(msg)
+                self._answer(msg)
+
+    def _answer(self, msg: Any) -> None:
+        """One message from the ground: commands, data streams, the parameter protocol."""
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            self.stats.gcs_heartbeats += 1
+        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+            self._command(msg)
+        elif getattr(msg, "target_system", 0) not in (0, self.system_id):
+            return
+        elif kind == "REQUEST_DATA_STREAM":
+            self._data_stream(int(msg.req_stream_id), msg.req_message_rate, msg.start_stop)
+        elif kind == "PARAM_REQUEST_LIST":
+            for index in range(len(STREAM_PARAMS)):
+                self._param_value(index)
+        elif kind == "PARAM_REQUEST_READ":
+            self._param_value(self._param_index(msg.param_id, int(msg.param_index)))
+        elif kind == "PARAM_SET":
+            self._param_set(msg.param_id, float(msg.param_value))
 
     def _command(self, msg: Any) -> None:
         """A command for this vehicle (or for every vehicle): acknowledged to its sender;
@@ -106,6 +123,8 @@ class SimulatedVehicle:
         result = mavlink.MAV_RESULT_UNSUPPORTED
         if msg.get_type() == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = self._set_interval(int(msg.param1), float(msg.param2))
+        elif msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            result = self._request_message(int(msg.param1))
         ack = self.codec.command_ack(
             int(msg.command), result, msg.get_srcSystem(), msg.get_srcComponent()
         )
@@ -121,6 +140,49 @@ class SimulatedVehicle:
             self.rates[name] = 0.0 if interval_us < 0 else rate
             self.stats.rate_changes += 1
         return int(mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED)
+
+    def _request_message(self, message_id: int) -> int:
+        """REQUEST_MESSAGE: a heartbeat at once, a streamed message with the next sample;
+        DENIED for any other."""
+        if message_id == mavlink.MSG_ID["HEARTBEAT"]:
+            self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
+            return int(mavlink.MAV_RESULT_ACCEPTED)
+        name = mavlink.MESSAGE_NAME.get(message_id)
+        if name not in STREAMED_MESSAGES:
+            return int(mavlink.MAV_RESULT_DENIED)
+        self.requested.add(str(name))
+        return int(mavlink.MAV_RESULT_ACCEPTED)
+
+    def _data_stream(self, stream_id: int, rate_hz: float, start: int) -> None:
+        """REQUEST_DATA_STREAM (the older way): the stream's messages at rate_hz, or off."""
+        for name in STREAMS.get(stream_id, ()):
+            if name in STREAMED_MESSAGES:
+                self.rates[name] = float(rate_hz) if start else 0.0
+                self.stats.rate_changes += 1
+
+    @staticmethod
+    def _param_index(param_id: str | bytes, index: int) -> int:
+        name = param_id.decode() if isinstance(param_id, bytes) else param_id
+        names = [p for p, _ in STREAM_PARAMS]
+        return names.index(name) if name in names else index
+
+    def _param_value(self, index: int) -> None:
+        if not 0 <= index < len(STREAM_PARAMS):
+            return
+        name, stream = STREAM_PARAMS[index]
+        value = max((self.rates[m] for m in STREAMS[stream] if m in self.rates), default=0.0)
+        self._send(
+            self.mav.param_value_encode(
+                name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, len(STREAM_PARAMS), index
+            )
+        )
+
+    def _param_set(self, param_id: str | bytes, value: float) -> None:
+        """PARAM_SET of a stream rate: applied, and answered with the value now held."""
+        index = self._param_index(param_id, -1)
+        if index >= 0:
+            self._data_stream(STREAM_PARAMS[index][1], value, int(value > 0))
+            self._param_value(index)
 
     def run(self, stop_after_s: float | None = None) -> VehicleStats:
         """Stream the whole recording (or until stop_after_s of vehicle time)."""
@@ -142,7 +204,8 @@ class SimulatedVehicle:
                 next_hb += 1.0
                 self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
                 self._send(self.mav.system_time_encode(int(time.time() * 1e6), ms))
-            due = self._due(t, next_due)
+            due = self._due(t, next_due) | self.requested
+            self.requested = set()
             for msg in self._messages(due, us, ms, rec.measurements[i], rec.inputs[i]):
                 self._send(msg)
         self._serve()
@@ -204,6 +267,25 @@ class SimulatedVehicle:
             self._tlog.close()
             self._tlog = None
         self.sock.close()
+
+
+STREAMS: dict[int, tuple[str, ...]] = {
+    mavlink.MAV_DATA_STREAM_ALL: tuple(STREAMED_MESSAGES),
+    mavlink.MAV_DATA_STREAM_RAW_SENSORS: ("HIGHRES_IMU",),
+    mavlink.MAV_DATA_STREAM_RC_CHANNELS: ("SERVO_OUTPUT_RAW",),
+    mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    mavlink.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
+    mavlink.MAV_DATA_STREAM_EXTRA3: ("AOA_SSA", "NAMED_VALUE_FLOAT"),
+}
+"""REQUEST_DATA_STREAM's streams and the messages in each (as ArduPlane groups them)."""
+STREAM_PARAMS: tuple[tuple[str, int], ...] = (
+    ("SR0_RAW_SENS", mavlink.MAV_DATA_STREAM_RAW_SENSORS),
+    ("SR0_RC_CHAN", mavlink.MAV_DATA_STREAM_RC_CHANNELS),
+    ("SR0_EXTRA1", mavlink.MAV_DATA_STREAM_EXTRA1),
+    ("SR0_EXTRA2", mavlink.MAV_DATA_STREAM_EXTRA2),
+    ("SR0_EXTRA3", mavlink.MAV_DATA_STREAM_EXTRA3),
+)
+"""The vehicle's parameters: ArduPilot's stream rates [Hz], read and set."""
 
 
 def _pwm(us: float) -> int:

@@ -61,6 +61,14 @@ MAV_CMD_SET_MESSAGE_INTERVAL = dialect.MAV_CMD_SET_MESSAGE_INTERVAL
 MAV_RESULT_ACCEPTED = dialect.MAV_RESULT_ACCEPTED
 MAV_RESULT_DENIED = dialect.MAV_RESULT_DENIED
 MAV_RESULT_UNSUPPORTED = dialect.MAV_RESULT_UNSUPPORTED
+MAV_CMD_REQUEST_MESSAGE = dialect.MAV_CMD_REQUEST_MESSAGE
+MAV_PARAM_TYPE_REAL32 = dialect.MAV_PARAM_TYPE_REAL32
+MAV_DATA_STREAM_ALL = dialect.MAV_DATA_STREAM_ALL
+MAV_DATA_STREAM_RAW_SENSORS = dialect.MAV_DATA_STREAM_RAW_SENSORS
+MAV_DATA_STREAM_RC_CHANNELS = dialect.MAV_DATA_STREAM_RC_CHANNELS
+MAV_DATA_STREAM_EXTRA1 = dialect.MAV_DATA_STREAM_EXTRA1
+MAV_DATA_STREAM_EXTRA2 = dialect.MAV_DATA_STREAM_EXTRA2
+MAV_DATA_STREAM_EXTRA3 = dialect.MAV_DATA_STREAM_EXTRA3
 
 
 def new_codec(system_id: int, component_id: int) -> Any:
@@ -88,11 +96,17 @@ class Codec:
         """HEARTBEAT of a ground station (MAV_TYPE_GCS) or a fixed-wing ArduPilot vehicle."""
         if mav_type == MAV_TYPE_GCS:
             autopilot, base_mode = dialect.MAV_AUTOPILOT_INVALID, 0
-        else:
+        else:  # flying, armed, in ArduPlane's MANUAL mode (custom mode 0)
             autopilot = dialect.MAV_AUTOPILOT_ARDUPILOTMEGA
-            base_mode = dialect.MAV_MODE_FLAG_AUTO_ENABLED
+            base_mode = (
+                dialect.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                | dialect.MAV_MODE_FLAG_SAFETY_ARMED
+                | dialect.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+            )
         return self.pack(
-            self.mav.heartbeat_encode(mav_type, autopilot, base_mode, 0, dialect.MAV_STATE_ACTIVE)
+            self.mav.heartbeat_encode(
+                mav_type, autopilot, base_mode, dialect.PLANE_MODE_MANUAL, dialect.MAV_STATE_ACTIVE
+            )
         )
 
     def set_message_interval(self, target_system: int, message: str, rate_hz: float) -> bytes:

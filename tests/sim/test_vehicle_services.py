@@ -1,0 +1,136 @@
+"""The simulated vehicle speaks to a ground station as an ArduPlane does, over real UDP on
+loopback: its heartbeat names a real mode, every command is acknowledged to its sender,
+REQUEST_MESSAGE and REQUEST_DATA_STREAM are served, and its stream rates are parameters
+that can be listed, read and set."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from pymavlink import mavutil
+
+from gcs_estimator.config import load_config
+from gcs_estimator.flightdata import Recording
+from gcs_estimator.telemetry import mavlink
+from sim.truth import simulate
+from sim.vehicle import STREAM_PARAMS, SimulatedVehicle
+from tests.telemetry.test_link import SHORT
+
+DEADLINE_S = 10.0
+
+
+class Ground:
+    """A ground station's socket, the simulated vehicle's target."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.codec = mavlink.Codec(255, 190)
+
+    def send(self, vehicle: SimulatedVehicle, msg: Any) -> None:
+        self.sock.sendto(self.codec.pack(msg), vehicle.sock.getsockname())
+
+    def until(self, vehicle: SimulatedVehicle, want: Callable[[Any], bool]) -> list[Any]:
+        """Let the vehicle answer until a message it sent satisfies want; all it sent."""
+        got: list[Any] = []
+        end = time.monotonic() + DEADLINE_S
+        while not any(want(m) for m in got):
+            assert time.monotonic() < end, [m.get_type() for m in got]
+            vehicle._serve()
+            try:
+                data = self.sock.recv(65535)
+            except TimeoutError:
+                continue
+            got += [m for m in self.codec.parse(data) if m.get_type() != "BAD_DATA"]
+        return got
+
+
+@pytest.fixture
+def pair() -> tuple[Ground, SimulatedVehicle]:
+    config = load_config("noc_uav", SHORT)
+    fl = simulate(config, seed=1)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    ground = Ground()
+    vehicle = SimulatedVehicle(rec, config.link, ground.sock.getsockname(), speed=0.0)
+    return ground, vehicle
+
+
+def _ack(cmd: int) -> Callable[[Any], bool]:
+    return lambda m: m.get_type() == "COMMAND_ACK" and m.command == cmd
+
+
+def test_heartbeat_names_an_arduplane_mode() -> None:
+    codec = mavlink.Codec(1, 1)
+    (hb,) = mavlink.Codec(9, 9).parse(codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
+    assert hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert mavutil.mode_string_v10(hb) == "MANUAL"
+
+
+def test_every_command_is_acknowledged_to_its_sender(pair: tuple[Ground, SimulatedVehicle]) -> None:
+    ground, vehicle = pair
+    mav = ground.codec.mav
+    arm = mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+    ground.send(vehicle, mav.command_long_encode(1, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))
+    (ack,) = [m for m in ground.until(vehicle, _ack(arm)) if m.get_type() == "COMMAND_ACK"]
+    assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+    assert (ack.target_system, ack.target_component) == (255, 190)
+    home = mavutil.mavlink.MAV_CMD_GET_HOME_POSITION
+    ground.send(vehicle, mav.command_int_encode(1, 1, 0, home, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    ground.until(vehicle, _ack(home))
+    ground.send(vehicle, mav.command_long_encode(7, 1, arm, 0, 1, 0, 0, 0, 0, 0, 0))  # not us
+    vehicle._serve()
+    with pytest.raises(TimeoutError):
+        ground.sock.recv(65535)
+
+
+def test_request_message_and_data_streams(pair: tuple[Ground, SimulatedVehicle]) -> None:
+    ground, vehicle = pair
+    mav = ground.codec.mav
+    req = mavlink.MAV_CMD_REQUEST_MESSAGE
+    attitude = mavlink.MSG_ID["ATTITUDE"]
+    ground.send(vehicle, mav.command_long_encode(1, 1, req, 0, attitude, 0, 0, 0, 0, 0, 0))
+    got = ground.until(vehicle, _ack(req))
+    assert [m.result for m in got if m.get_type() == "COMMAND_ACK"] == [0]
+    assert vehicle.requested == {"ATTITUDE"}  # sent with the next sample
+    ground.send(vehicle, mav.command_long_encode(1, 1, req, 0, 0, 0, 0, 0, 0, 0, 0))
+    got = ground.until(vehicle, _ack(req))
+    assert "HEARTBEAT" in [m.get_type() for m in got]
+    extra1 = mavlink.MAV_DATA_STREAM_EXTRA1
+    ground.send(vehicle, mav.request_data_stream_encode(1, 1, extra1, 5, 1))
+    ground.send(vehicle, mav.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA2, 0, 0))
+    vehicle.requested.clear()
+    ground.send(vehicle, mav.param_request_read_encode(1, 1, b"SR0_EXTRA1", -1))
+    (value,) = [
+        m for m in ground.until(vehicle, lambda m: m.get_type() == "PARAM_VALUE")
+        if m.get_type() == "PARAM_VALUE"
+    ]  # fmt: skip
+    assert value.param_value == 5.0 and vehicle.rates["ATTITUDE"] == 5.0
+    assert vehicle.rates["VFR_HUD"] == 0.0
+
+
+def test_parameters_list_read_and_set(pair: tuple[Ground, SimulatedVehicle]) -> None:
+    ground, vehicle = pair
+    mav = ground.codec.mav
+    ground.send(vehicle, mav.param_request_list_encode(1, 1))
+    n = len(STREAM_PARAMS)
+    values: dict[str, Any] = {}
+
+    def all_listed(m: Any) -> bool:
+        if m.get_type() == "PARAM_VALUE":
+            values[m.param_id] = m
+        return len(values) == n
+
+    ground.until(vehicle, all_listed)
+    assert sorted(values) == sorted(p for p, _ in STREAM_PARAMS)
+    assert {m.param_count for m in values.values()} == {n}
+    assert sorted(m.param_index for m in values.values()) == list(range(n))
+    ground.send(vehicle, mav.param_set_encode(1, 1, b"SR0_RAW_SENS", 10.0, 9))
+    got = ground.until(vehicle, lambda m: m.get_type() == "PARAM_VALUE")
+    echo = [m for m in got if m.get_type() == "PARAM_VALUE"][-1]
+    assert (echo.param_id, echo.param_value) == ("SR0_RAW_SENS", 10.0)
+    assert vehicle.rates["HIGHRES_IMU"] == 10.0
