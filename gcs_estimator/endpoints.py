@@ -82,6 +82,7 @@ def open_socket(endpoint: Endpoint, rcvbuf: int) -> socket.socket:
     """A non-blocking UDP socket: bound to the endpoint (listen), or to a free port of
     the same family (send). A port in use is a ConfigError that names it."""
     sock = socket.socket(endpoint.family, socket.SOCK_DGRAM)
+    # SO_RCVBUF is capped by net.core.rmem_max; FORCE (privileged) is not.
     try:
         sock.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), rcvbuf)
     except OSError:

@@ -16,6 +16,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from gcs_estimator import endpoints
 from gcs_estimator.decode_worker import DecodeWorker, LinkArgs
 from gcs_estimator.frames import Frame
 from gcs_estimator.stop import Stop
@@ -37,15 +38,8 @@ class SourceError(RuntimeError):
 
 
 def open_udp(host: str, port: int) -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    # SO_RCVBUF is capped by net.core.rmem_max; FORCE (privileged) is not.
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), RCVBUF_BYTES)
-    except OSError:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
-    sock.bind((host, port))
-    sock.setblocking(False)
-    return sock
+    """A non-blocking UDP socket bound to an IPv4 host and port (endpoints.open_socket)."""
+    return endpoints.open_socket(endpoints.Endpoint(True, host, port, socket.AF_INET), RCVBUF_BYTES)
 
 
 class UdpSource:
