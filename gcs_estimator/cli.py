@@ -29,7 +29,14 @@ from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
 from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
-from gcs_estimator.sources import RCVBUF_BYTES, SourceError, TlogSource, UdpSource, open_udp
+from gcs_estimator.sources import (
+    RCVBUF_BYTES,
+    SourceError,
+    TcpSource,
+    TlogSource,
+    UdpSource,
+    open_udp,
+)
 from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.telemetry.decode import ranges_of
 from gcs_estimator.telemetry.link import MavlinkLink
@@ -442,23 +449,32 @@ def cmd_listen(args: argparse.Namespace) -> int:
     if args.record and record.exists() and not args.force:
         raise ConfigError(f"--record {record}: the file exists; --force to overwrite it")
     # Bound before anything is opened for writing: a busy port leaves a recording as it was.
-    sock = endpoints.open_socket(endpoint, RCVBUF_BYTES)
+    if endpoint.tcp:
+        sock = endpoints.open_tcp(endpoint)
+    else:
+        sock = endpoints.open_socket(endpoint, RCVBUF_BYTES)
     session, link = _link_session(config, args, args.endpoint, record)
     bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
     host = f"[{endpoint.host}]" if ":" in endpoint.host else endpoint.host
-    where = (
-        f"listening on udp {host}:{bound}"
-        if endpoint.listen
-        else f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
-    )
+    proto = "tcp" if endpoint.tcp else "udp"
+    if endpoint.listen:
+        where = f"listening on {proto} {host}:{bound}"
+    elif endpoint.tcp:
+        where = f"connected to tcp {host}:{endpoint.port}"
+    else:
+        where = f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
     print(f"{where}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
-    source = UdpSource(
-        sock,
-        link,
-        idle_exit_s=args.idle_exit,
-        max_seconds=args.duration,
-        peer=None if endpoint.listen else endpoint.address,
-    )
+    source: UdpSource
+    if endpoint.tcp:
+        source = TcpSource(sock, link, endpoint.listen, args.idle_exit, args.duration)
+    else:
+        source = UdpSource(
+            sock,
+            link,
+            idle_exit_s=args.idle_exit,
+            max_seconds=args.duration,
+            peer=None if endpoint.listen else endpoint.address,
+        )
     return _run(session, source, stop)
 
 

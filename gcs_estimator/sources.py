@@ -29,6 +29,9 @@ RCVBUF_BYTES = 8 * 1024 * 1024
 
 POLL_S = 0.02
 """Longest wait for a datagram before the sinks get an idle tick [s]."""
+DRAIN_READS = 256
+"""Reads per turn of a live source's loop: a link that never goes quiet still leaves
+time for the ground station's own messages."""
 SLEEP_SLICE_S = 0.05
 """A paced replay sleeps in slices this long, checking for a stop request between them."""
 
@@ -87,7 +90,7 @@ class UdpSource:
         return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
 
     def _drain(self) -> Iterator[Frame]:
-        while True:
+        for _ in range(DRAIN_READS):  # then the loop's own work (ground messages) comes
             try:
                 data, addr = self.sock.recvfrom(65535)
             except OSError:  # BlockingIOError: drained
@@ -111,6 +114,80 @@ class UdpSource:
     def close(self) -> None:
         self.sock.close()
         self.link.close()
+
+
+class TcpSource(UdpSource):
+    """Bytes from one TCP connection: to the vehicle (tcp:), or from it once it connects
+    (tcpin:). Packets may be split across reads (MavlinkLink.stream); the ground
+    station's messages go back over the same connection. The vehicle closing it ends
+    the session, as the idle timeout would."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        link: MavlinkLink,
+        listening: bool,
+        idle_exit_s: float | None = None,
+        max_seconds: float | None = None,
+    ) -> None:
+        super().__init__(sock, link, idle_exit_s, max_seconds)
+        self._listener = sock if listening else None
+        self._conn: socket.socket | None = None if listening else sock
+        self._address = self._peer_of(self._conn)
+        self._closed = False
+
+    @staticmethod
+    def _peer_of(conn: socket.socket | None) -> tuple[str, int] | None:
+        return None if conn is None else tuple(conn.getpeername()[:2])
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        while self._conn is None and not stop.requested:
+            assert self._listener is not None
+            ready, _, _ = select.select([self._listener], [], [], POLL_S)
+            if ready:
+                self._conn, _ = self._listener.accept()
+                self._conn.setblocking(False)
+                self._address = self._peer_of(self._conn)
+            yield None
+        if self._conn is not None:
+            self.sock = self._conn
+        yield from super().frames(stop)
+
+    def _done(self, start: float) -> bool:
+        return self._closed or super()._done(start)
+
+    def _drain(self) -> Iterator[Frame]:
+        assert self._address is not None
+        for _ in range(DRAIN_READS):
+            try:
+                data = self.sock.recv(65536)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                data = b""
+                self.link.report_once("tcp", f"the connection failed: {exc.strerror or exc}")
+            if not data:
+                self._closed = True
+                self.link.report_once("tcp-closed", "the vehicle closed the connection")
+                return
+            t = self._last_data = time.time()
+            yield from self.link.stream(data, t, self._address)
+
+    def _send_ground(self, now: float) -> None:
+        out = [p for p, _ in self.link.ground_messages(self.codec, now)]
+        if not out:  # nobody heard yet: say who we are, as on udpout
+            out = [self.codec.heartbeat(mavlink.MAV_TYPE_GCS)]
+        for packet in out:
+            try:
+                self.sock.sendall(packet)
+            except OSError:
+                self.link.report_once("send", "cannot send on the connection: vehicle gone?")
+                return
+
+    def close(self) -> None:
+        if self._listener is not None and self._listener is not self.sock:
+            self._listener.close()
+        super().close()
 
 
 class TlogSource:

@@ -24,6 +24,10 @@ def _target(text: str) -> tuple[str, int]:
         endpoint = endpoints.parse(text, default_listen=False)
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    if endpoint.tcp:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the simulated vehicle speaks UDP: give udpout:HOST:PORT"
+        )
     if endpoint.listen:
         raise argparse.ArgumentTypeError(
             f"{text!r}: the simulated vehicle sends to the station: give udpout:HOST:PORT "

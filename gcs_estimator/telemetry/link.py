@@ -96,6 +96,8 @@ class MavlinkLink:
         self.t_first_recv = math.nan
         self.t_last_recv = math.nan
         self._reported: set[str] = set()
+        self._pending: dict[Address, bytes] = {}
+        """Per stream: the start of a packet still arriving."""
         self._key: bytes | None = None
         self.signatures: SignatureCheck | None = None
         """With link.signing_key_file: the check every packet must pass."""
@@ -151,9 +153,29 @@ class MavlinkLink:
     def datagram(self, data: bytes, t_recv_s: float, address: Address | None = None) -> list[Frame]:
         """Frames completed by one received datagram (one or more packets, found by
         mavlink.scan; each run of junk between them counts as one corrupt packet)."""
+        return self._items(list(mavlink.scan(data, self.decoder)), t_recv_s, address)
+
+    def stream(self, data: bytes, t_recv_s: float, address: Address) -> list[Frame]:
+        """Frames completed by bytes read from a stream (TCP, serial): packets may be
+        split across reads, so a packet still arriving at the end waits for the rest."""
+        buf = self._pending.pop(address, b"") + data
+        items = list(mavlink.scan(buf, self.decoder))
+        if items and isinstance(items[-1], int):
+            tail = len(buf) - items[-1]
+            keep = mavlink.incomplete_tail(buf, tail)
+            if keep is not None:
+                self._pending[address] = buf[keep:]
+                items[-1] = keep - tail  # the junk before it, if any
+                if not items[-1]:
+                    items.pop()
+        return self._items(items, t_recv_s, address)
+
+    def _items(
+        self, items: list[tuple[bytes, Any] | int], t_recv_s: float, address: Address | None
+    ) -> list[Frame]:
         name = link_name(address)
         out: list[Frame] = []
-        for item in mavlink.scan(data, self.decoder):
+        for item in items:
             if isinstance(item, int):
                 self._junk(name, item)
             else:

@@ -326,6 +326,22 @@ class Decoder:
         return layout.cls((seq, sysid, compid, *fields))
 
 
+MAX_PACKET_BYTES = 280
+"""The longest MAVLink 2 packet: 10 header, 255 payload, 2 CRC, 13 signature."""
+
+
+def incomplete_tail(buf: bytes, start: int) -> int | None:
+    """On a byte stream: the first start marker at or after start whose packet runs past
+    the end of buf (its header or its body is still to come), or None."""
+    i = next_marker(buf, start)
+    while i < len(buf):
+        size = packet_length(buf, i)
+        if (size == 0 or i + size > len(buf)) and len(buf) - i < MAX_PACKET_BYTES:
+            return i
+        i = next_marker(buf, i + 1)
+    return None
+
+
 def scan(data: bytes, decoder: Decoder) -> Iterator[tuple[bytes, MAVLinkMessage] | int]:
     """The packets in a buffer that pass their CRC, with the length of each run of bytes
     between them that does not (an int). Where a candidate fails, the search goes on from

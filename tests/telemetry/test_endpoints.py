@@ -5,21 +5,26 @@ the station itself), give one clear line and exit 2."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
+import random
 import socket
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gcs_estimator import endpoints
 from gcs_estimator.cli import main
-from gcs_estimator.config import ConfigError, load_config
+from gcs_estimator.config import AircraftConfig, ConfigError, load_config
 from gcs_estimator.flightdata import Recording
-from gcs_estimator.sources import RCVBUF_BYTES, UdpSource
+from gcs_estimator.frames import Frame
+from gcs_estimator.sources import RCVBUF_BYTES, TcpSource, TlogSource, UdpSource
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.cli import _target
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -54,7 +59,7 @@ def test_connection_strings(text: str, listen: bool, host: str | None, port: int
         ("udpin:127.0.0.1", "port 0..65535"),
         ("udpout:127.0.0.1:0", "a port to send to"),
         ("udpout:no-such-host.invalid:14550", "cannot resolve"),
-        ("tcp:127.0.0.1:5760", "mavproxy.py --master=127.0.0.1:5760"),
+        ("serial:/dev/ttyUSB0:57600", "mavproxy.py --master=/dev/ttyUSB0:57600"),
         ("/dev/ttyACM0,57600", "route them to UDP"),
     ],
 )
@@ -123,5 +128,91 @@ def test_the_simulated_vehicle_takes_the_same_strings() -> None:
     assert _target("[::1]:14550") == ("::1", 14550)
     with pytest.raises(argparse.ArgumentTypeError, match="give udpout"):
         _target("udpin:127.0.0.1:14550")
+    with pytest.raises(argparse.ArgumentTypeError, match="speaks UDP"):
+        _target("tcp:127.0.0.1:5760")
     with pytest.raises(argparse.ArgumentTypeError, match="cannot resolve"):
         _target("udpout:no-such-host.invalid:14550")
+
+
+def _flight_packets(config: AircraftConfig, tmp_path: Path) -> list[bytes]:
+    fl = simulate(config, seed=6)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    path = tmp_path / "v.tlog"
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+    return [r.packet for r in read_tlog(path)]
+
+
+def _rows(frames: list[Frame]) -> np.ndarray:
+    return np.array([(f.t_vehicle_s, *f.inputs, *f.y) for f in frames])
+
+
+@pytest.mark.parametrize("station_listens", [False, True], ids=["tcp", "tcpin"])
+def test_a_vehicle_over_tcp_with_packets_split_anywhere(
+    tmp_path: Path, station_listens: bool
+) -> None:
+    """The byte stream is cut at random places (packets split across reads, junk in
+    between): the station makes the frames a replay of the same packets makes."""
+    config = load_config("noc_uav", SHORT)
+    packets = _flight_packets(config, tmp_path)
+    stream = b"".join(packets[:100]) + b"\xfd\x09junk" + b"".join(packets[100:])
+    replayed = [
+        f
+        for f in TlogSource([tmp_path / "v.tlog"], MavlinkLink(config.link), workers=False).frames(
+            Stop()
+        )
+        if f
+    ]
+
+    if station_listens:
+        endpoint = endpoints.parse("tcpin:127.0.0.1:0", True)
+        station = endpoints.open_tcp(endpoint)
+        vehicle = socket.create_connection(station.getsockname()[:2])
+    else:
+        server = socket.socket()
+        server.bind(("127.0.0.1", 0))
+        server.listen(1)
+        endpoint = endpoints.parse(f"tcp:127.0.0.1:{server.getsockname()[1]}", True)
+        station = endpoints.open_tcp(endpoint)
+        vehicle, _ = server.accept()
+        server.close()
+    link = MavlinkLink(config.link, log=io.StringIO())
+    source = TcpSource(station, link, station_listens)
+    frames_it = source.frames(Stop())
+    rng = random.Random(11)
+    i = 0
+    got: list[Frame] = []
+    while i < len(stream):
+        n = rng.randint(1, 600)
+        vehicle.sendall(stream[i : i + n])
+        i += n
+        f = next(frames_it)
+        if f is not None:
+            got.append(f)
+    vehicle.setblocking(False)
+    heard: list[str] = []
+    end = time.monotonic() + DEADLINE_S
+    while "HEARTBEAT" not in heard:  # the station speaks back on the connection
+        assert time.monotonic() < end
+        f = next(frames_it)
+        if f is not None:
+            got.append(f)
+        with contextlib.suppress(BlockingIOError):
+            heard += [m.get_type() for m in mavlink.Codec(9, 9).parse(vehicle.recv(65535))]
+    vehicle.close()  # the vehicle hangs up: the session ends
+    got += [f for f in frames_it if f is not None]
+    source.close()
+    np.testing.assert_array_equal(_rows(got), _rows(replayed))  # NaN where NaN
+    h = link.health.total()
+    assert h.corrupt == 1 and h.received == len(packets) and h.lost == 0
+
+
+def test_tcp_refused_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]
+    closed.close()  # nothing listens there
+    code = main(["listen", f"tcp:127.0.0.1:{port}", "--view", "off", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "cannot connect" in err[-1] and err[-1].startswith("error: endpoint tcp:")
