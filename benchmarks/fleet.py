@@ -14,22 +14,19 @@ from __future__ import annotations
 import argparse
 import json
 import socket
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from station import start_listen
 
 from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.telemetry.mavlink import Codec, read_tlog
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
-
-ROOT = Path(__file__).resolve().parent.parent
-BIN = Path(sys.executable).parent
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,24 +60,10 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
         one = _packets(args.seconds, tmp)
-        station = subprocess.Popen(
-            [
-                *(str(BIN / "gcs-estimator"), "listen", "udpin:127.0.0.1:0"),
-                *("--view", "save", "--idle-exit", "3", "--out", str(tmp / "out")),
-            ],
-            cwd=ROOT,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
+        station, port = start_listen(
+            "--view", "save", "--idle-exit", "3", "--out", str(tmp / "out")
         )
         assert station.stderr is not None
-        port = 0
-        for line in station.stderr:
-            if line.startswith("listening on"):
-                port = int(line.split()[3].rstrip(",").rsplit(":", 1)[1])
-                break
-        if not port:
-            raise SystemExit(f"listen did not start: {station.stderr.read()}")
         codecs = [Codec(sid, 1) for sid in range(1, args.system_ids + 1)]
         parse = Codec(9, 9)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -23,9 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from station import BIN, ROOT, start_listen
 
-ROOT = Path(__file__).resolve().parent.parent
-BIN = Path(sys.executable).parent
 LISTEN = ("--idle-exit", "5", "--view", "off", "--out")
 
 
@@ -43,21 +42,8 @@ def manoeuvre(minutes: int) -> list[str]:
 
 
 def _listen(out: Path, sets: list[str], args: argparse.Namespace) -> tuple[int, float]:
-    station = subprocess.Popen(
-        [str(BIN / "gcs-estimator"), "listen", "udpin:127.0.0.1:0", *sets, *LISTEN, str(out)],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    station, port = start_listen(*sets, *LISTEN, str(out))
     assert station.stderr is not None
-    port = ""
-    for line in station.stderr:
-        if line.startswith("listening on"):
-            port = line.split()[3].rstrip(",").rsplit(":", 1)[1]
-            break
-    if not port:
-        raise SystemExit(f"listen did not start: {station.stderr.read()}")
     pace = ["--speed", str(args.speed), "--boot-s", str(args.boot_s)]
     t0 = time.monotonic()
     subprocess.run(
