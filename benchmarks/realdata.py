@@ -47,7 +47,8 @@ def evaluate(
 ) -> dict[str, float]:
     """Print one record's table; return its worst well-excited error per filter (against
     the best fit where there is one, which is what a filter can reach)."""
-    res = run_recording(config, rec.t_s, rec.inputs, rec.measurements).result
+    vehicle = run_recording(config, rec.t_s, rec.inputs, rec.measurements)
+    res = vehicle.result
     oe = _refine(name, res)
     ref = np.array(config.truth or ())
     fit = None if best is None else np.array([best[n] for n in res.names])
@@ -65,6 +66,11 @@ def evaluate(
 
     est = {k: res.filters[k].coefficients for k in FILTER_KINDS}
     zs = {k: (est[k] - goal) / res.filters[k].sigma for k in FILTER_KINDS}
+    corrected = {
+        k: np.array([c.trusted_sigma for c in vehicle.summaries[k].coefficients])
+        for k in FILTER_KINDS
+    }
+    zc = {k: (est[k] - goal) / corrected[k] for k in FILTER_KINDS}
     iekf = res.filters["IEKF"]
     marks = identifiability(
         iekf.coefficients,
@@ -77,11 +83,11 @@ def evaluate(
         row += [marks[i] if oe is None else oe.identifiability[i]]
         for k in FILTER_KINDS:
             f = res.filters[k]
-            row += [f"{f.coefficients[i]:.5g}", f"{f.sigma[i]:.2g}"]
+            row += [f"{f.coefficients[i]:.5g}", f"{f.sigma[i]:.2g}", f"{corrected[k][i]:.2g}"]
             row += [cell(pct(est[k], ref)[i], ref[i])]
             if fit is not None:
                 row += [cell(pct(est[k], fit)[i], fit[i])]
-            row += [f"{zs[k][i]:+.1f}"]
+            row += [f"{zs[k][i]:+.1f}", f"{zc[k][i]:+.1f}"]
         if oe is not None:
             row += [f"{oe.coefficients[i]:.5g}", f"{oe.sigma[i]:.2g}", f"{oe.crb_sigma[i]:.2g}"]
             row += [cell(pct(oe.coefficients, goal)[i], goal[i])]
@@ -95,10 +101,13 @@ def evaluate(
         )
     summary: dict[str, float] = {}
     well = [i for i, n in enumerate(res.names) if n in WELL_EXCITED and abs(goal[i]) > NEAR_ZERO]
+    judged = [i for i, n in enumerate(res.names) if n in WELL_EXCITED]
     for k in FILTER_KINDS:
         err = np.abs(pct(est[k], goal)[well])
-        within = float(np.mean(np.abs(zs[k]) < 3.0)) * 100
-        msz = float(np.mean(zs[k] ** 2))
+        within = float(np.mean(np.abs(zs[k][judged]) < 3.0)) * 100
+        msz = float(np.mean(zs[k][judged] ** 2))
+        within_c = float(np.mean(np.abs(zc[k][judged]) < 3.0)) * 100
+        msz_c = float(np.mean(zc[k][judged] ** 2))
         summary[k] = float(err.max())
         worst_ref = float(np.abs(pct(est[k], ref)[well]).max())
         biases = ", ".join(
@@ -108,8 +117,9 @@ def evaluate(
         against = "the reference" if fit is None else "the best fit"
         print(
             f"\n{k}: against {against}: worst well-excited |err| {summary[k]:.2f} % "
-            f"({res.names[well[int(np.argmax(err))]]}), within 3σ {within:.0f} %, "
-            f"mean z² {msz:.1f}"
+            f"({res.names[well[int(np.argmax(err))]]}); well-excited within 3σ {within:.0f} %, "
+            f"mean z² {msz:.1f} with the covariance σ; {within_c:.0f} %, {msz_c:.1f} with the "
+            "corrected σ"
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
         )
@@ -121,8 +131,9 @@ def evaluate(
 def _head(label: str, fit: bool, oe: bool) -> list[str]:
     head = ["coefficient", label] + (["best fit"] if fit else []) + ["identified?"]
     for k in FILTER_KINDS:
-        head += [f"{k} estimate", f"{k} σ", f"{k} err %"]
-        head += [f"{k} err % (fit)", f"{k} z (fit)"] if fit else [f"{k} z"]
+        head += [f"{k} estimate", f"{k} σ", f"{k} σ corrected", f"{k} err %"]
+        head += [f"{k} err % (fit)"] if fit else []
+        head += [f"{k} z{' (fit)' if fit else ''}", f"{k} z corrected"]
     if oe:
         head += ["OE estimate", "OE σ (corrected)", "OE σ (Cramer-Rao)", "OE err %", "OE z"]
     return head
@@ -130,14 +141,15 @@ def _head(label: str, fit: bool, oe: bool) -> list[str]:
 
 def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
     """Print the refinement's summary line; return its worst well-excited error [%]."""
-    z = (oe.coefficients - goal) / oe.sigma
-    zc = (oe.coefficients - goal) / oe.crb_sigma
+    judged = [i for i, n in enumerate(oe.names) if n in WELL_EXCITED]
+    z = ((oe.coefficients - goal) / oe.sigma)[judged]
+    zc = ((oe.coefficients - goal) / oe.crb_sigma)[judged]
     err = np.abs(100.0 * (oe.coefficients - goal) / np.abs(goal))[well]
     worst = float(err.max())
     within = float(np.mean(np.abs(z) < 3)) * 100
     print(
         f"\nOE ({oe.method}, {oe.message}): worst well-excited |err| {worst:.2f} % "
-        f"({oe.names[well[int(np.argmax(err))]]}), within 3σ {within:.0f} %, "
+        f"({oe.names[well[int(np.argmax(err))]]}); well-excited within 3σ {within:.0f} %, "
         f"mean z² {np.mean(z**2):.1f} with the corrected σ, {np.mean(zc**2):.1f} with "
         f"Cramer-Rao's; residual colour: {channel_text(oe.residual_colour)}"
     )

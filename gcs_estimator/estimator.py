@@ -249,6 +249,8 @@ class EstimatorResult(NamedTuple):
     """Frames after which the flight states started afresh (filter.max_gap_s)."""
     frames_out_of_order: int = 0
     """Frames skipped because they were not after the previous one."""
+    final_pass_from: int = 0
+    """First frame whose history row is the final pass's (after the last restart's swap)."""
 
 
 class _Start(NamedTuple):
@@ -294,6 +296,9 @@ class Estimator:
         started afresh there."""
         self.out_of_order = 0
         """Frames at or before the previous frame's time: skipped."""
+        self.final_pass_from = 0
+        """The frame at which the pass now running took over (its history row is that
+        pass's output)."""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -423,6 +428,7 @@ class Estimator:
         self.states = rerun
         self._rerun = None
         self.restarts_done += 1
+        self.final_pass_from = max(self.frames - 1, 0)
         if not self.restarts_pending:
             self._buffer = []
         return outs
@@ -522,6 +528,7 @@ class Estimator:
             self._warm_frames,
             self.gaps,
             self.out_of_order,
+            self.final_pass_from,
         )
 
 

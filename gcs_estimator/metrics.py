@@ -23,6 +23,51 @@ CORRELATION_LIMIT = 0.95
 """|correlation| with another coefficient above which the two are not told apart."""
 PRIOR_SHRINK_LIMIT = 0.5
 """A filter's sigma still above this share of its prior sigma: the data added little."""
+MOVEMENT_WINDOW_MIN_FRAMES = 50
+"""Frames the movement check needs after the last restart (fewer: no correction)."""
+MOVEMENT_BANDWIDTH = 0.25
+"""Longest lag of the movement check, as a share of its window (Bartlett weights)."""
+
+
+def sigma_inflation(coefficients: FloatArray, sigma: FloatArray, start: int) -> FloatArray:
+    """How much more a filter's coefficient estimates moved from frame `start` to the end
+    than its own covariance said they would (variance ratio per coefficient; 1: as
+    expected; NaN where the window says nothing).
+
+    Under the filter's model the estimate of a constant is a martingale: its increments
+    are uncorrelated, and the variance of their sum over the window is the variance
+    the covariance lost there, sigma(start-1)^2 - sigma(end)^2. Model-structure error
+    and coloured noise break both (the estimate drifts as the manoeuvre changes which
+    error it absorbs, and increments correlate over seconds). The ratio of the
+    increments' long-run variance (Bartlett-weighted autocovariance up to a quarter of
+    the window, by FFT) to that loss is the factor by which the filter overcounted its
+    information; sigma * sqrt(max(1, ratio)) is the corrected sigma. It is the filter's
+    analogue of the Morelli-Klein correction of an output-error fit's Cramer-Rao bound
+    (docs/decisions/0008)."""
+    x = np.asarray(coefficients[start - 1 :], float)
+    s2 = np.asarray(sigma, float) ** 2
+    p = x.shape[1]
+    w = x.shape[0] - 1
+    if start < 1 or w < MOVEMENT_WINDOW_MIN_FRAMES:
+        return np.full(p, np.nan)
+    d = np.diff(x, axis=0)
+    lag = max(1, int(MOVEMENT_BANDWIDTH * w))
+    n_fft = 1 << int(2 * w - 1).bit_length()
+    spec = np.fft.rfft(d, n_fft, axis=0)
+    acov = np.fft.irfft(spec * spec.conj(), n_fft, axis=0)[: lag + 1]
+    weights = 1.0 - np.arange(lag + 1) / (lag + 1)
+    weights[1:] *= 2.0
+    moved = weights @ acov
+    expected = s2[start - 1] - s2[-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(expected > 1e-6 * s2[start - 1], moved / expected, np.nan)
+    return np.asarray(ratio)
+
+
+def movement_start(frames: int, final_pass_from: int) -> int:
+    """First frame of the movement check: the second half of the run, and never before
+    the final pass's second frame (a pass converging from its prior moves by design)."""
+    return max(frames // 2, final_pass_from + 1, 1)
 
 
 def correlation_of(cov: FloatArray) -> FloatArray:
@@ -88,6 +133,16 @@ class CoefficientSummary:
     """The coefficient it correlates with most."""
     correlation: float = 0.0
     """That correlation."""
+    corrected_sigma: float = math.nan
+    """sigma corrected for how far the estimate moved against its covariance
+    (sigma_inflation(); NaN: the run was too short to tell)."""
+    sigma_inflation: float = math.nan
+    """corrected_sigma / sigma (at least 1; NaN: the run was too short to tell)."""
+
+    @property
+    def trusted_sigma(self) -> float:
+        """The corrected sigma where there is one, else the covariance's."""
+        return self.corrected_sigma if math.isfinite(self.corrected_sigma) else self.sigma
 
 
 @dataclass(frozen=True)
@@ -139,13 +194,19 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
         x = fr.coefficients
         t0 = float(track.t[0])
         corr = correlation_of(fr.covariance)
+        start = movement_start(len(track.t), result.final_pass_from)
+        ratio = sigma_inflation(track.coefficients, track.coefficient_sigma, start)
+        factor = np.sqrt(np.maximum(ratio, 1.0))
+        corrected = fr.sigma * factor
+        trusted = np.where(np.isfinite(corrected), corrected, fr.sigma)
         marks = identifiability(
-            x, fr.sigma, corr, np.asarray(result.config.filter.initial_sigma.coefficients)
+            x, trusted, corr, np.asarray(result.config.filter.initial_sigma.coefficients)
         )
         coeffs = []
         for i, name in enumerate(result.names):
             series = track.coefficients[:, i]
             tru = None if truth is None else float(truth[i])
+            partner, rho = most_correlated(corr, result.names, i)
             coeffs.append(
                 CoefficientSummary(
                     name=name,
@@ -162,8 +223,10 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
                     if tru is None
                     else stay_within_time(track.t, series, tru, CONVERGENCE_BAND) - t0,
                     identifiability=marks[i],
-                    correlated_with=most_correlated(corr, result.names, i)[0],
-                    correlation=most_correlated(corr, result.names, i)[1],
+                    correlated_with=partner,
+                    correlation=rho,
+                    corrected_sigma=float(corrected[i]),
+                    sigma_inflation=float(factor[i]),
                 )
             )
         used = track.n_used > 0

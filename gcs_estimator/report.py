@@ -56,7 +56,7 @@ def markdown_table(
     head = ["coefficient"] + ([truth_label] if has_truth else [])
     settle = f"within 5 % of {truth_label} from s" if has_truth else "steady from s"
     for k in kinds:
-        head += [f"{k} estimate", f"{k} σ"]
+        head += [f"{k} estimate", f"{k} σ", f"{k} σ corrected"]
         if has_truth:
             head += [f"{k} error %", f"{k} error/σ"]
         head += [f"{k} {settle}"]
@@ -82,7 +82,7 @@ def markdown_table(
 
 
 def _filter_cells(c: CoefficientSummary, has_truth: bool) -> list[str]:
-    row = [_fmt(c.estimate), f"{c.sigma:.2g}"]
+    row = [_fmt(c.estimate), f"{c.sigma:.2g}", _corrected_cell(c)]
     if has_truth:
         row += [
             "-" if c.error_pct is None else f"{c.error_pct:+.2f}",
@@ -93,6 +93,12 @@ def _filter_cells(c: CoefficientSummary, has_truth: bool) -> list[str]:
         steady = c.identifiability != NOT_IDENTIFIED
         row += [_time(c.converged_final_s) if steady else "-"]
     return row
+
+
+def _corrected_cell(c: CoefficientSummary) -> str:
+    if not math.isfinite(c.corrected_sigma):
+        return "-"
+    return f"{c.corrected_sigma:.2g} (×{c.sigma_inflation:.1f})"
 
 
 def _identified_cell(mark: CoefficientSummary, refined: Refined | None, i: int) -> str:
@@ -114,7 +120,11 @@ def _refined_cells(refined: Refined, i: int, truth: float | None, has_truth: boo
 
 
 def _legend(truth_label: str, has_truth: bool, refined: bool) -> str:
-    text = "σ: one standard deviation from the filter covariance"
+    text = (
+        "σ: one standard deviation from the filter covariance; σ corrected: that σ times "
+        "the factor by which the estimate moved over the second half of the run more "
+        "than the covariance said it would (1.0: as it said; on real data, the one to trust)"
+    )
     if refined:
         text += (
             "; OE σ: the output-error fit's Cramer-Rao bound corrected for the colour of its "
@@ -202,6 +212,8 @@ def live_table(estimator: Estimator, truth: Sequence[float] | FloatArray | None 
 
 NIS_RATIO_LIMIT = 3.0
 """Mean NIS this many times the channel count (or a third of it): the noise model is off."""
+INFLATION_LIMIT = 2.0
+"""A corrected sigma above this multiple of the covariance's: worth a warning."""
 COLOUR_LIMIT = 5.0
 """Residual colour above this on a channel: the model misses something the data hold."""
 
@@ -226,6 +238,18 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
             out.append(
                 f"{kind}: the turbulence level was applied in {100 * s.gust_on_share:.0f} % of "
                 "the second half of the run: unsteady or near the detection limit"
+            )
+        moved = [
+            f"{c.name} ×{c.sigma_inflation:.1f}"
+            for c in s.coefficients
+            if c.sigma_inflation > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED
+        ]
+        if moved:
+            out.append(
+                f"{kind}: estimates moved more than the covariance allows ("
+                + ", ".join(moved)
+                + "): the model misses something in these data (unmodelled aerodynamics, "
+                "turbulence, sensor errors); trust the corrected σ, not the covariance's"
             )
         weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
         if weak:
@@ -330,13 +354,17 @@ def results_dict(
                 c.name: {
                     "estimate": c.estimate,
                     "sigma": c.sigma,
+                    "corrected_sigma": _num(c.corrected_sigma),
+                    "sigma_inflation": _num(c.sigma_inflation),
                     "truth": c.truth,
                     "error_pct": _num(c.error_pct),
                     "error_sigmas": _num(c.z),
                     "settled_s": _num(c.converged_final_s),
                     "within_5pct_of_truth_s": _num(c.converged_truth_s),
                     "identifiability": c.identifiability,
-                    "relative_sigma": _num(c.sigma / abs(c.estimate) if c.estimate else None),
+                    "relative_sigma": _num(
+                        c.trusted_sigma / abs(c.estimate) if c.estimate else None
+                    ),
                     "most_correlated_with": c.correlated_with or None,
                     "correlation": c.correlation,
                 }

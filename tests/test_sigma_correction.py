@@ -1,0 +1,104 @@
+"""A filter's sigma corrected by how far its estimates moved (metrics.sigma_inflation,
+docs/decisions/0008): about 1 where the model is right, large where it is not, and the
+corrected sigma honest on a flight read with a known model error."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import load_config
+from gcs_estimator.estimator import run_recording
+from gcs_estimator.metrics import movement_start, sigma_inflation
+from gcs_estimator.report import results_dict, trust_warnings
+from sim.truth import Flight, simulate
+
+WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
+
+
+def _martingale(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Recursive least squares of a constant from n unit-variance samples, prior
+    variance 1: the estimate and its sigma after each sample (two independent columns)."""
+    k = np.arange(1, n + 1)[:, None]
+    samples = rng.standard_normal((n, 2))
+    estimate = np.cumsum(samples, axis=0) / (k + 1.0)
+    sigma = np.sqrt(1.0 / (k + 1.0)) * np.ones((1, 2))
+    return estimate, sigma
+
+
+def test_an_estimate_that_moves_as_its_covariance_says_needs_no_correction() -> None:
+    rng = np.random.default_rng(1)
+    ratios = []
+    for _ in range(20):
+        est, sig = _martingale(4000, rng)
+        ratios.append(sigma_inflation(est, sig, 2000))
+    r = np.concatenate(ratios)
+    assert 0.8 < float(np.median(r)) < 1.2
+    assert np.all((r > 0.2) & (r < 3.0))
+
+
+def test_correlated_or_drifting_increments_are_caught() -> None:
+    """The same covariance, but increments that correlate over many frames (AR(1) with
+    coefficient 0.95: long-run variance 39 times the white one), or a slow drift."""
+    rng = np.random.default_rng(2)
+    est, sig = _martingale(4000, rng)
+    white = np.diff(est[1999:], axis=0)
+    coloured = np.empty_like(white)
+    coloured[0] = white[0]
+    for i in range(1, len(white)):
+        coloured[i] = 0.95 * coloured[i - 1] + math.sqrt(1 - 0.95**2) * white[i]
+    moved = est.copy()
+    moved[2000:] = est[1999] + np.cumsum(coloured, axis=0)
+    assert np.all(sigma_inflation(moved, sig, 2000) > 10.0)
+    drifting = est + np.linspace(0.0, 0.2, len(est))[:, None]
+    assert np.all(sigma_inflation(drifting, sig, 2000) > 10.0)
+
+
+def test_too_little_to_judge_is_said_not_guessed() -> None:
+    est, sig = _martingale(100, np.random.default_rng(3))
+    assert np.all(np.isnan(sigma_inflation(est, sig, 80)))  # 20 frames
+    flat = np.ones_like(sig)
+    assert np.all(np.isnan(sigma_inflation(est, flat, 50)))  # the covariance lost nothing
+    assert movement_start(1000, 0) == 500
+    assert movement_start(1000, 700) == 701
+
+
+@pytest.fixture(scope="module")
+def lagged_servo_flight() -> Flight:
+    """A NOC flight whose elevator lags its command by 50 ms, read by filters told that
+    the inputs hold between samples: a model error the filters cannot see."""
+    flying = load_config("noc_uav", ["simulation.actuator_time_constant_s=0.05"])
+    return simulate(flying, seed=1)
+
+
+def test_a_model_error_the_filter_cannot_see_is_in_the_corrected_sigma(
+    lagged_servo_flight: Flight,
+) -> None:
+    flight = lagged_servo_flight
+    told = load_config("noc_uav", ['data.input_hold="previous"'])
+    vehicle = run_recording(told, flight.t_s, flight.inputs, flight.measurements)
+    for kind, s in vehicle.summaries.items():
+        well = [c for c in s.coefficients if c.name in WELL_EXCITED]
+        z = np.array([c.z for c in well], float)
+        zc = np.array([(c.estimate - (c.truth or 0.0)) / c.corrected_sigma for c in well])
+        assert np.mean(z**2) > 50.0, kind  # the covariance claims far too much
+        assert np.mean(zc**2) < 3.0, (kind, zc.round(1))
+        assert np.all(np.abs(zc) < 3.0), (kind, zc.round(1))
+    warnings = trust_warnings(vehicle)
+    assert any("moved more than the covariance allows" in w for w in warnings), warnings
+    est = results_dict(vehicle)["filters"]["IEKF"]["estimates"]["Cma"]
+    assert est["corrected_sigma"] == pytest.approx(est["sigma"] * est["sigma_inflation"])
+    assert est["sigma_inflation"] > 2.0
+
+
+def test_where_the_model_is_right_the_correction_stays_near_one() -> None:
+    config = load_config("noc_uav")
+    flight = simulate(config, seed=2)
+    vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    for kind, s in vehicle.summaries.items():
+        factors = np.array([c.sigma_inflation for c in s.coefficients if c.name in WELL_EXCITED])
+        assert np.all(np.isfinite(factors)) and np.all(factors >= 1.0)
+        assert float(np.median(factors)) < 1.3, (kind, factors.round(2))
+        assert not any("moved more" in w for w in trust_warnings(vehicle)), kind
