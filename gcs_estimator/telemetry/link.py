@@ -13,6 +13,7 @@ import math
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TextIO
 
 from gcs_estimator.config import STREAMED_MESSAGES, ConfigError, LinkConfig
@@ -81,9 +82,14 @@ class MavlinkLink:
         log: TextIO | None = None,
         linear_inputs: bool = True,
         ranges: Ranges = PLAUSIBLE,
+        rejected_path: Path | None = None,
     ) -> None:
         self.config = config
         self.recorder = recorder
+        self.rejected_path = rejected_path
+        """With signing on: where packets that fail the signature check are recorded
+        (opened at the first one), apart from the recording the estimate is made of."""
+        self._rejected: TlogWriter | None = None
         self.log = sys.stderr if log is None else log
         self.linear_inputs = linear_inputs
         self.ranges = ranges
@@ -203,6 +209,9 @@ class MavlinkLink:
     def _decoded(
         self, packet: bytes, msg: object, t_recv_s: float, address: Address | None
     ) -> list[Frame]:
+        name = link_name(address)
+        if self.signatures is not None and not self._signed(packet, t_recv_s, name):
+            return []
         if self.recorder is not None:
             self.recorder.write(int(round(t_recv_s * 1e6)), packet)
         if math.isnan(self.t_first_recv):
@@ -212,13 +221,10 @@ class MavlinkLink:
             msg, packet, t_recv_s, self.config, self.decode_stats, self.ranges
         )
         event = decoded.event
-        name = link_name(address)
         t_vehicle = None
         if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
             t_vehicle = event.t_vehicle_s
         sysid = decoded.system_id
-        if self.signatures is not None and not self._signed(packet, t_recv_s, name):
-            return []
         if address is not None and not self.pinned(sysid, address, t_recv_s, name):
             return []
         if not self.health.on_packet(
@@ -250,18 +256,26 @@ class MavlinkLink:
         return out
 
     def _signed(self, packet: bytes, t_recv_s: float, name: str) -> bool:
-        """Whether a packet passes the signature check; else it is counted by why, and
-        dropped (the recording keeps every packet as received, and a replay checks them
-        again with their receive times, so it drops the same ones)."""
+        """Whether a packet passes the signature check; else it is counted by why,
+        dropped, and recorded apart (rejected_path), not in the recording the estimate is
+        made of. The check's state moves only with good packets, so a replay of the
+        recording with the key accepts what the live run accepted. The rejected file is
+        for forensics: replayed alone, a replayed copy there looks fresh."""
         assert self.signatures is not None
         verdict = self.signatures.check(packet, t_recv_s)
         if verdict == Verdict.SIGNED:
             return True
         counts = self.health.counts(name)
         setattr(counts, verdict.value, getattr(counts, verdict.value) + 1)
+        where = ""
+        if self.rejected_path is not None:
+            if self._rejected is None:
+                self._rejected = TlogWriter(self.rejected_path)
+            self._rejected.write(int(round(t_recv_s * 1e6)), packet)
+            where = f", recorded to {self.rejected_path}"
         self.report_once(
             f"sign-{verdict.value}",
-            f"{verdict.value.replace('_', ' ')} packet(s) with signing on: dropped",
+            f"{verdict.value.replace('_', ' ')} packet(s) with signing on: dropped{where}",
         )
         return False
 
@@ -339,12 +353,14 @@ class MavlinkLink:
 
     def flush_recording(self) -> None:
         """Write what was recorded through to the file (the link may go quiet)."""
-        if self.recorder is not None:
-            self.recorder.flush()
+        for recorder in (self.recorder, self._rejected):
+            if recorder is not None:
+                recorder.flush()
 
     def close(self) -> None:
-        if self.recorder is not None:
-            self.recorder.close()
+        for recorder in (self.recorder, self._rejected):
+            if recorder is not None:
+                recorder.close()
 
     def ground_messages(self, codec: Codec, now: float) -> Iterator[tuple[bytes, Address]]:
         """What the ground station sends each second: a heartbeat to every vehicle, and

@@ -17,7 +17,7 @@ from gcs_estimator.sources import TlogSource
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter
+from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
 from gcs_estimator.telemetry.signing import (
     NEW_STREAM_TICKS,
     TICKS_PER_S,
@@ -74,8 +74,9 @@ def test_unsigned_forged_and_replayed_packets_are_counted_and_dropped(tmp_path: 
         (first, t0 + 0.4),  # replayed
         (stale.heartbeat(hb), t0 + 0.5),  # a new stream too old
     ]
-    tlog = tmp_path / "signed.tlog"
-    link = MavlinkLink(config.link, recorder=TlogWriter(tlog), log=io.StringIO())
+    tlog, rejected = tmp_path / "signed.tlog", tmp_path / "signed.rejected.tlog"
+    log = io.StringIO()
+    link = MavlinkLink(config.link, recorder=TlogWriter(tlog), log=log, rejected_path=rejected)
     for packet, t in sent:
         list(link.datagram(packet, t, here))
     link.close()
@@ -87,14 +88,20 @@ def test_unsigned_forged_and_replayed_packets_are_counted_and_dropped(tmp_path: 
         2,
     )
     assert 2 not in link.vehicles  # the stale stream's vehicle never appeared
+    # The estimate's recording holds what was accepted; the rest is kept apart, as sent.
+    assert [(r.packet, r.t_recv_us) for r in read_tlog(tlog)] == [
+        (p, round(t * 1e6)) for p, t in (sent[0], sent[3])
+    ]
+    assert [r.packet for r in read_tlog(rejected)] == [p for p, _ in (sent[1:3] + sent[4:])]
+    assert str(rejected) in log.getvalue()
 
-    for workers in (False, True):  # the recording keeps all; a replay judges them alike
+    for workers in (False, True):  # a replay with the key accepts the same
         source = TlogSource([tlog], MavlinkLink(config.link, log=io.StringIO()), workers=workers)
         list(source.frames(Stop()))
         stats = source.link_stats()
         source.close()
         got = [stats[k] for k in ("received", "unsigned", "bad_signature", "replayed")]
-        assert got == [2, 1, 1, 2]
+        assert got == [2, 0, 0, 0]
 
 
 def test_the_station_signs_and_the_vehicle_refuses_the_unsigned(tmp_path: Path) -> None:
