@@ -31,6 +31,7 @@ from gcs_estimator.session import RecordingSource, Session, Source, VehicleResul
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
 from gcs_estimator.sources import (
     RCVBUF_BYTES,
+    SerialSource,
     SourceError,
     TcpSource,
     TlogSource,
@@ -427,6 +428,7 @@ def _link_session(
         recorder=TlogWriter(record) if record else None,
         linear_inputs=config.data.input_hold == "linear",
         ranges=ranges_of(config.data),
+        rejected_path=record.with_name(record.stem + ".rejected.tlog") if record else None,
     )
     view = _view_sink(config, args, session, link)
     if view is not None:
@@ -449,6 +451,15 @@ def cmd_listen(args: argparse.Namespace) -> int:
     if args.record and record.exists() and not args.force:
         raise ConfigError(f"--record {record}: the file exists; --force to overwrite it")
     # Bound before anything is opened for writing: a busy port leaves a recording as it was.
+    if endpoint.serial:
+        port = endpoints.open_serial(endpoint)
+        session, link = _link_session(config, args, args.endpoint, record)
+        print(
+            f"reading serial {endpoint.device} at {endpoint.port} baud, recording to {record} "
+            "(Ctrl-C to stop)",
+            file=sys.stderr,
+        )
+        return _run(session, SerialSource(port, link, args.idle_exit, args.duration), stop)
     if endpoint.tcp:
         sock = endpoints.open_tcp(endpoint)
     else:
@@ -579,8 +590,10 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="?",
         default="udpin:127.0.0.1:14550",
         help="udpin:HOST:PORT (or udp:) to bind and wait for the vehicle, udpout:HOST:PORT to "
-        "send to it first; IPv6 as [ADDR]:PORT (default: %(default)s, this machine only; "
-        "udpin:0.0.0.0:14550 for a vehicle on the network)",
+        "send to it first, tcp:HOST:PORT to connect, tcpin:HOST:PORT to wait for a "
+        "connection, or a serial port DEVICE[,BAUD] (/dev/ttyUSB0,57600); IPv6 as "
+        "[ADDR]:PORT (default: %(default)s, this machine only; udpin:0.0.0.0:14550 for a "
+        "vehicle on the network)",
     )
     p.add_argument(
         "--record",

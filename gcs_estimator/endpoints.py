@@ -1,4 +1,4 @@
-"""Connection strings as MAVProxy and QGroundControl users write them, for UDP.
+"""Connection strings as MAVProxy and QGroundControl users write them.
 
     udpin:HOST:PORT   listen on HOST:PORT (the vehicle sends to it); PORT 0: any free port
     udp:HOST:PORT     the same (as in pymavlink's mavutil)
@@ -6,26 +6,30 @@
     tcp:HOST:PORT     connect to HOST:PORT (ArduPilot's SITL serves tcp:127.0.0.1:5760)
     tcpin:HOST:PORT   wait for one TCP connection on HOST:PORT
     HOST:PORT         udpin (listen) for the station, udpout (send) for the simulated vehicle
+    DEVICE[,BAUD]     a serial port (/dev/ttyUSB0,57600, COM3,115200; also DEVICE:BAUD and
+                      serial:DEVICE[,BAUD]); BAUD defaults to 57600, a telemetry radio's
 
-HOST may be a name, an IPv4 address or an IPv6 address in brackets ([::1]:14550). Serial
-links are refused with the way to reach them through a router, not mistaken for UDP.
+HOST may be a name, an IPv4 address or an IPv6 address in brackets ([::1]:14550).
 """
 
 from __future__ import annotations
 
+import re
 import socket
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from gcs_estimator.config import ConfigError
 
+if TYPE_CHECKING:
+    import serial
+
 Address = tuple[str, int]
 
-ROUTED = (
-    "serial:",
-    "/dev/",
-    "COM",
-)
-"""Forms this station does not open itself (yet): routed through MAVProxy or mavlink-router."""
+SERIAL_DEVICE = re.compile(r"^(?:serial:)?(/dev/[^,:]+|COM\d+|\\\\\.\\COM\d+)(?:[,:](\w*))?$")
+"""A serial device (Unix path, or Windows COMn) and an optional baud rate after , or :."""
+DEFAULT_BAUD = 57600
+"""A telemetry radio's rate (SiK radios, MAVProxy's default)."""
 
 
 @dataclass(frozen=True)
@@ -36,12 +40,20 @@ class Endpoint:
     port: int
     family: int
     tcp: bool = False
+    device: str = ""
+    """A serial device ("" for a network endpoint); port is then its baud rate."""
+
+    @property
+    def serial(self) -> bool:
+        return bool(self.device)
 
     @property
     def address(self) -> Address:
-        return (self.host, self.port)
+        return (self.device, 0) if self.device else (self.host, self.port)
 
     def __str__(self) -> str:
+        if self.device:
+            return f"{self.device},{self.port}"
         host = f"[{self.host}]" if ":" in self.host else self.host
         if self.tcp:
             return f"{'tcpin' if self.listen else 'tcp'}:{host}:{self.port}"
@@ -50,13 +62,8 @@ class Endpoint:
 
 def parse(text: str, default_listen: bool) -> Endpoint:
     """An endpoint from a connection string; a ConfigError that says what is wrong."""
-    if text.startswith(ROUTED):
-        raise ConfigError(
-            f"endpoint {text!r}: serial links are not opened by the station itself yet; "
-            "route them to UDP, e.g. mavproxy.py --master="
-            + text.split(":", 1)[-1]
-            + " --out=udpout:127.0.0.1:14550, then listen on udpin:127.0.0.1:14550"
-        )
+    if text.startswith(("serial:", "/dev/", "COM", "\\\\.\\")):
+        return _serial(text)
     scheme, sep, rest = text.partition(":")
     tcp = bool(sep) and scheme in ("tcp", "tcpin")
     if sep and scheme in ("udpin", "udp", "udpout", "tcp", "tcpin"):
@@ -80,6 +87,32 @@ def parse(text: str, default_listen: bool) -> Endpoint:
         raise ConfigError(f"endpoint {text!r}: cannot resolve {host!r}: {exc.strerror}") from None
     family, _, _, _, sockaddr = info[0]
     return Endpoint(listen, str(sockaddr[0]), int(port), int(family), tcp)
+
+
+def _serial(text: str) -> Endpoint:
+    match = SERIAL_DEVICE.match(text)
+    baud = match.group(2) if match else None
+    if match is None or (baud and not baud.isdigit()):
+        raise ConfigError(
+            f"endpoint {text!r}: expected a serial device and an optional baud rate, "
+            "e.g. /dev/ttyUSB0,57600 or COM3,115200"
+        )
+    rate = int(baud) if baud else DEFAULT_BAUD
+    if rate <= 0:
+        raise ConfigError(f"endpoint {text!r}: the baud rate must be positive")
+    return Endpoint(True, "", rate, 0, device=match.group(1))
+
+
+def open_serial(endpoint: Endpoint) -> serial.Serial:
+    """The serial port, raw, 8N1, reads returning what has arrived within 20 ms. A
+    missing or busy device is a ConfigError that names it."""
+    import serial
+
+    try:
+        port = serial.Serial(endpoint.device, endpoint.port, timeout=0.02, write_timeout=1.0)
+    except (serial.SerialException, ValueError) as exc:
+        raise ConfigError(f"endpoint {endpoint}: cannot open: {exc}") from None
+    return port
 
 
 def open_tcp(endpoint: Endpoint, timeout_s: float = 5.0) -> socket.socket:

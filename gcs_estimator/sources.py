@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from gcs_estimator import endpoints
 from gcs_estimator.decode_worker import DecodeWorker, LinkArgs
@@ -23,6 +23,9 @@ from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import Codec, TlogError, TlogRecord, TlogStats, read_tlog
+
+if TYPE_CHECKING:
+    import serial
 
 RCVBUF_BYTES = 8 * 1024 * 1024
 """Listener socket buffer: the ~212 KB default drops packets at high rates."""
@@ -188,6 +191,81 @@ class TcpSource(UdpSource):
         if self._listener is not None and self._listener is not self.sock:
             self._listener.close()
         super().close()
+
+
+class SerialSource:
+    """Bytes from a serial port (a telemetry radio, a USB cable to the autopilot).
+    Packets may be split across reads (MavlinkLink.stream); the ground station's
+    messages go back over the same port."""
+
+    def __init__(
+        self,
+        port: serial.Serial,
+        link: MavlinkLink,
+        idle_exit_s: float | None = None,
+        max_seconds: float | None = None,
+    ) -> None:
+        self.port = port
+        self.link = link
+        self.idle_exit_s = idle_exit_s
+        self.max_seconds = max_seconds
+        self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
+        link.sign(self.codec, time.time())
+        self.address = (f"serial:{port.port}", 0)
+        self._last_data: float | None = None
+        self._failed = False
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        start = time.time()
+        last_ground = 0.0
+        while not stop.requested and not self._done(start):
+            yield from self._read()
+            now = time.time()
+            if now - last_ground >= 1.0:
+                last_ground = now
+                self._send_ground(now)
+                self.link.flush_recording()
+            yield None
+        yield from self.link.flush()
+
+    def _done(self, start: float) -> bool:
+        now = time.time()
+        if self._failed or (self.max_seconds is not None and now - start > self.max_seconds):
+            return True
+        last = self._last_data
+        return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
+
+    def _read(self) -> Iterator[Frame]:
+        """What arrived: waits up to the port's read timeout for the first byte."""
+        import serial
+
+        try:
+            data = self.port.read(max(1, self.port.in_waiting))
+        except (serial.SerialException, OSError) as exc:
+            self._failed = True
+            self.link.report_once("serial", f"the serial port failed: {exc}")
+            return
+        if data:
+            t = self._last_data = time.time()
+            yield from self.link.stream(data, t, self.address)
+
+    def _send_ground(self, now: float) -> None:
+        import serial
+
+        out = [p for p, _ in self.link.ground_messages(self.codec, now)]
+        if not out:  # nobody heard yet: say who we are
+            out = [self.codec.heartbeat(mavlink.MAV_TYPE_GCS)]
+        try:
+            self.port.write(b"".join(out))
+        except (serial.SerialException, OSError) as exc:
+            self.link.report_once("send", f"cannot write to the serial port: {exc}")
+
+    def link_stats(self) -> dict[str, Any]:
+        return self.link.stats()
+
+    def close(self) -> None:
+        self.port.close()
+        self.link.close()
 
 
 class TlogSource:

@@ -12,28 +12,54 @@ import numpy as np
 
 from gcs_estimator import endpoints
 from gcs_estimator.config import ConfigError, load_config, truths_text
+from gcs_estimator.endpoints import Endpoint
 from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
+from sim.ports import Port, SerialPort, Shared, UdpIn
 from sim.truth import simulate
 from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
 
 
-def _target(text: str) -> tuple[str, int]:
-    """Where the vehicle sends: udpout:HOST:PORT, udp:HOST:PORT or HOST:PORT (IPv6 as
-    [ADDR]:PORT), resolved now so that a bad host is an error here, not a hang later."""
+def _target(text: str) -> tuple[str, int] | Endpoint:
+    """Where the vehicle speaks: udpout:HOST:PORT, udp:HOST:PORT or HOST:PORT (send to
+    the station; IPv6 as [ADDR]:PORT), udpin:HOST:PORT (wait for the station to speak
+    first), or a serial port DEVICE[,BAUD]; resolved now so that a bad host is an error
+    here, not a hang later."""
     try:
         endpoint = endpoints.parse(text, default_listen=False)
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     if endpoint.tcp:
         raise argparse.ArgumentTypeError(
-            f"{text!r}: the simulated vehicle speaks UDP: give udpout:HOST:PORT"
+            f"{text!r}: the simulated vehicle speaks UDP or serial: give udpout:HOST:PORT, "
+            "udpin:HOST:PORT or DEVICE[,BAUD]"
         )
-    if endpoint.listen:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: the simulated vehicle sends to the station: give udpout:HOST:PORT "
-            "(and listen on udpin: at the station)"
+    if endpoint.serial or (endpoint.listen and text.startswith("udpin:")):
+        return endpoint
+    return endpoint.address  # udp: sends, as MAVProxy's --out=udp: does
+
+
+def _ports(target: tuple[str, int] | Endpoint, vehicles: int) -> list[tuple[str, int] | Port]:
+    """Each vehicle's target: its own UDP socket to the station, or its share of one
+    udpin or serial port (opened here, so a busy port is an error before any flight)."""
+    if isinstance(target, tuple):
+        return [target] * vehicles
+    port: UdpIn | SerialPort
+    if target.serial:
+        port = SerialPort(target)
+        print(f"gcs-sim: serial {target.device} at {target.port} baud", file=sys.stderr)
+    else:
+        port = UdpIn(target)
+        host, bound = port.bound
+        print(
+            f"gcs-sim: waiting for a ground station to speak on udp {host}:{bound} "
+            "(listen udpout:HOST:PORT there)",
+            file=sys.stderr,
+            flush=True,
         )
-    return endpoint.address
+        port.wait_for_peer(None)
+        print(f"gcs-sim: ground station at {port.peer}", file=sys.stderr, flush=True)
+    shared = Shared(port, vehicles)
+    return [shared.user(k) for k in range(vehicles)]
 
 
 def command(
@@ -70,7 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--target",
         type=_target,
         default=("127.0.0.1", 14550),
-        help="ground station: [udpout:]HOST:PORT, IPv6 as [ADDR]:PORT (default 127.0.0.1:14550)",
+        help="ground station: [udpout:]HOST:PORT to send to it, udpin:HOST:PORT to wait for it "
+        "to speak first, or a serial port DEVICE[,BAUD]; IPv6 as [ADDR]:PORT "
+        "(default 127.0.0.1:14550)",
     )
     ap.add_argument(
         "--speed", type=float, default=1.0, help="multiple of real time; 0 = as fast as possible"
@@ -138,11 +166,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    try:
+        targets = _ports(args.target, len(recs))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
     vehicles = [
         SimulatedVehicle(
             rec,
             config.link,
-            args.target,
+            targets[k],
             system_id=k + 1,
             speed=args.speed,
             boot_s=args.boot_s,

@@ -9,9 +9,7 @@ the configured rates. Answers a ground station's HEARTBEAT and SET_MESSAGE_INTER
 
 from __future__ import annotations
 
-import contextlib
 import math
-import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +21,7 @@ from gcs_estimator.flightdata import Recording
 from gcs_estimator.telemetry import mavlink, pwm
 from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
 from gcs_estimator.telemetry.signing import load_key, sign_outgoing
+from sim.ports import Port, UdpOut
 
 BOOT_OFFSET_S = 5.0
 """The vehicle has been up this long when the recording starts [s]."""
@@ -37,11 +36,12 @@ class VehicleStats:
 
 @dataclass
 class SimulatedVehicle:
-    """One vehicle: a recording to stream, a link mapping and a UDP target."""
+    """One vehicle: a recording to stream, a link mapping, and a UDP target or a port
+    (sim.ports: udpin, serial, shared by several vehicles)."""
 
     recording: Recording
     link: LinkConfig
-    target: tuple[str, int]
+    target: tuple[str, int] | Port
     system_id: int = 1
     speed: float = 1.0
     """Multiple of real time; 0 = as fast as possible."""
@@ -65,34 +65,21 @@ class SimulatedVehicle:
             except (OSError, ValueError) as exc:
                 raise ConfigError(f"link.signing_key_file: {exc}") from exc
             sign_outgoing(self.mav, key, time.time())
-        family = socket.getaddrinfo(self.target[0], self.target[1], type=socket.SOCK_DGRAM)[0][0]
-        self.sock = socket.socket(family, socket.SOCK_DGRAM)
-        loopback = self.target[0].startswith("127.") or self.target[0] == "::1"
-        if family == socket.AF_INET6:
-            self.sock.bind(("::1" if loopback else "::", 0))
-        else:
-            self.sock.bind(("127.0.0.1" if loopback else "0.0.0.0", 0))
-        self.sock.setblocking(False)
+        self.port: Port = UdpOut(self.target) if isinstance(self.target, tuple) else self.target
         self._tlog = TlogWriter(self.tlog) if self.tlog else None
 
     def _send(self, msg: Any) -> None:
         self._send_packet(self.codec.pack(msg))
 
     def _send_packet(self, buf: bytes) -> None:
-        # Nobody listening (ICMP unreachable) is no reason to stop flying.
-        with contextlib.suppress(OSError):
-            self.sock.sendto(buf, self.target)
+        self.port.send(buf)
         self.stats.sent += 1
         if self._tlog is not None:
             self._tlog.write(int(time.time() * 1e6), buf)
 
     def _serve(self) -> None:
         """Answer what the ground station sent."""
-        while True:
-            try:
-                data, _ = self.sock.recvfrom(65535)
-            except (BlockingIOError, ConnectionRefusedError, OSError):
-                return
+        for data in self.port.receive():
             for msg in self.codec.parse(data):
                 self._answer(msg)
 
@@ -266,7 +253,7 @@ class SimulatedVehicle:
         if self._tlog is not None:
             self._tlog.close()
             self._tlog = None
-        self.sock.close()
+        self.port.close()
 
 
 STREAMS: dict[int, tuple[str, ...]] = {

@@ -16,6 +16,7 @@ from pymavlink import mavutil
 from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.telemetry import mavlink
+from sim.ports import UdpOut
 from sim.truth import simulate
 from sim.vehicle import STREAM_PARAMS, SimulatedVehicle
 from tests.telemetry.test_link import SHORT
@@ -33,7 +34,8 @@ class Ground:
         self.codec = mavlink.Codec(255, 190)
 
     def send(self, vehicle: SimulatedVehicle, msg: Any) -> None:
-        self.sock.sendto(self.codec.pack(msg), vehicle.sock.getsockname())
+        assert isinstance(vehicle.port, UdpOut)
+        self.sock.sendto(self.codec.pack(msg), vehicle.port.sock.getsockname())
 
     def until(self, vehicle: SimulatedVehicle, want: Callable[[Any], bool]) -> list[Any]:
         """Let the vehicle answer until a message it sent satisfies want; all it sent."""
