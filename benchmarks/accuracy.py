@@ -154,6 +154,16 @@ def report(results: list[RunResult], title: str) -> None:
     for kind in KINDS:
         zs = np.array([[abs(_num(c.z)) for c in r.summaries[kind].coefficients] for r in results])
         share = float(np.mean(zs <= 3.0))
+        zc = np.array(
+            [
+                [abs(_num(c.z)) * c.sigma / c.trusted_sigma for c in r.summaries[kind].coefficients]
+                for r in results
+            ]
+        )
+        share_c = float(np.mean(zc <= 3.0))
+        inflation = np.array(
+            [[c.sigma_inflation for c in r.summaries[kind].coefficients] for r in results]
+        )
         nees = np.array([_num(r.summaries[kind].nees) for r in results])
         lo, hi = chi2.ppf(0.025, p * runs) / runs, chi2.ppf(0.975, p * runs) / runs
         nis = np.array([r.summaries[kind].mean_nis for r in results])
@@ -185,7 +195,9 @@ def report(results: list[RunResult], title: str) -> None:
         print(
             f"{kind}: turbulence level estimated sigma_w {np.median(gust):.2f} m/s "
             f"(median; range {gust.min():.2f}-{gust.max():.2f}) | "
-            f"within 3σ {share * 100:.1f} % of (coefficient, seed) pairs | "
+            f"within 3σ {share * 100:.1f} % of (coefficient, seed) pairs "
+            f"({share_c * 100:.1f} % with the corrected σ, median factor "
+            f"{np.nanmedian(inflation):.2f}, largest {np.nanmax(inflation):.2f}) | "
             f"mean NEES {np.mean(nees):.2f} (95 % band {lo:.2f}-{hi:.2f}, dof {p}) | "
             f"mean NIS after the last restart {np.mean(nis):.3f} (95 % band {nlo:.3f}-{nhi:.3f},"
             f" dof {dof:.2f}; over the whole flight {np.mean(nis_all):.2f}) | "
