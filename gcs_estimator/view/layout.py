@@ -16,6 +16,8 @@ Entity paths (documented in the README; tests read them back):
         Scalars, one per observation channel: innovation / its predicted sigma
         (NaN where the channel was missing), with ±2 guide lines
     /vehicle/{id}/results                  TextDocument (Markdown): the current table
+    /legend                                TextDocument (Markdown, static): how to read the
+        plots; at the end, the run's warnings too
     /link/rate                             Scalars [packets/s]
     /link/counts                           Scalars [lost, duplicates, out of order, corrupt]
 
@@ -27,7 +29,8 @@ series are decimated to [view] display_rate_hz.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from gcs_estimator.config import AXES
@@ -43,12 +46,18 @@ STATE_UNITS: tuple[str, ...] = ("m/s", "deg", "deg", "deg/s")
 
 EKF_COLOR = (31, 119, 180)
 IEKF_COLOR = (255, 127, 14)
-TRUTH_COLOR = (200, 200, 200)
+TRUTH_COLOR = (44, 160, 44)
+"""Green, drawn wider than the estimates: it stands out on the dark and the light theme."""
+GUIDE_COLOR = (150, 150, 150)
+"""Reference lines (chi-square bounds, +-2): grey."""
 MEASURED_COLOR = (120, 120, 120)
+LEGEND = "/legend"
+
+Range = tuple[float, float]
 
 
 def _lighter(rgb: tuple[int, int, int]) -> tuple[int, int, int, int]:
-    return (rgb[0], rgb[1], rgb[2], 110)
+    return (rgb[0], rgb[1], rgb[2], 150)
 
 
 def vehicle_root(system_id: int) -> str:
@@ -110,14 +119,14 @@ def _style(*series: tuple[str, tuple[int, ...], float]) -> SeriesStyle:
 def coefficient_style(has_truth: bool, truth_label: str) -> SeriesStyle:
     series = [
         ("EKF", EKF_COLOR, 2.0),
-        ("EKF -2σ", _lighter(EKF_COLOR), 1.0),
-        ("EKF +2σ", _lighter(EKF_COLOR), 1.0),
+        ("EKF -2σ", _lighter(EKF_COLOR), 1.5),
+        ("EKF +2σ", _lighter(EKF_COLOR), 1.5),
         ("IEKF", IEKF_COLOR, 2.0),
-        ("IEKF -2σ", _lighter(IEKF_COLOR), 1.0),
-        ("IEKF +2σ", _lighter(IEKF_COLOR), 1.0),
+        ("IEKF -2σ", _lighter(IEKF_COLOR), 1.5),
+        ("IEKF +2σ", _lighter(IEKF_COLOR), 1.5),
     ]
     if has_truth:
-        series.append((truth_label, TRUTH_COLOR, 1.5))
+        series.append((truth_label, TRUTH_COLOR, 3.0))
     return _style(*series)
 
 
@@ -132,8 +141,8 @@ def state_style(state: str, unit: str) -> SeriesStyle:
 NIS_STYLE = _style(
     ("EKF", EKF_COLOR, 1.0),
     ("IEKF", IEKF_COLOR, 1.0),
-    ("95 % low", TRUTH_COLOR, 1.0),
-    ("95 % high", TRUTH_COLOR, 1.0),
+    ("95 % low", GUIDE_COLOR, 1.0),
+    ("95 % high", GUIDE_COLOR, 1.0),
 )
 
 TURBULENCE_STYLE = _style(("EKF", EKF_COLOR, 1.0), ("IEKF", IEKF_COLOR, 1.0))
@@ -150,19 +159,41 @@ def innovation_style() -> SeriesStyle:
         (227, 119, 194),
     )
     series = [(n, palette[i % len(palette)], 1.0) for i, n in enumerate(OBS_NAMES)]
-    series += [("-2", TRUTH_COLOR, 1.0), ("+2", TRUTH_COLOR, 1.0)]
+    series += [("-2", GUIDE_COLOR, 1.0), ("+2", GUIDE_COLOR, 1.0)]
     return _style(*series)
 
 
-def y_range(truth: float | None) -> tuple[float, float] | None:
-    """A coefficient plot's initial y range when the truth is known: zero (the start) and
-    the truth with a margin, so that a zero start's first wild seconds do not flatten
-    the convergence (the viewer resets to automatic on double click)."""
-    if truth is None or truth == 0.0:
+def legend_text(truth_label: str | None, warnings: Sequence[str] = ()) -> str:
+    """How to read the coefficient plots (one legend for the whole grid), and at the end
+    what to check before trusting them."""
+    text = (
+        "**Coefficients:** blue **EKF**, orange **IEKF**, each with its ±2σ band as the two "
+        "lighter lines of its colour"
+    )
+    if truth_label:
+        text += f"; the wide green line is the **{truth_label}** value"
+    text += (
+        ". A panel's range follows the estimates after the zero start's first seconds "
+        "(double-click a plot for the whole run). At the end each title says how well the "
+        "flight identified the coefficient; *not identified* means the data barely "
+        "constrain it."
+    )
+    if warnings:
+        text += "\n\n**Before trusting these numbers:**\n\n" + "".join(f"- {w}\n" for w in warnings)
+    return text
+
+
+def coefficient_range(
+    lo: float, hi: float, truth: float | None = None, margin: float = 0.25
+) -> Range | None:
+    """A panel's y range holding [lo, hi] (the estimates and their bands) and the truth,
+    widened by `margin` of their span on each side; None when nothing is finite."""
+    values = [v for v in (lo, hi, truth) if v is not None and math.isfinite(v)]
+    if not values:
         return None
-    lo, hi = min(0.0, truth), max(0.0, truth)
-    margin = 0.6 * abs(truth)
-    return (lo - margin, hi + margin)
+    low, high = min(values), max(values)
+    span = max(high - low, 0.05 * max(abs(low), abs(high)), 1e-9)
+    return (low - margin * span, high + margin * span)
 
 
 def build_blueprint(
@@ -170,21 +201,25 @@ def build_blueprint(
     names: Sequence[str],
     axes: Sequence[str],
     power_input: str,
-    truth: Sequence[float] | None = None,
+    ranges: Mapping[int, Sequence[Range | None]] | None = None,
+    marks: Mapping[int, Sequence[str]] | None = None,
 ) -> object:
     """The viewer's layout: per vehicle, the drag, lift and moment coefficients side by
-    side on top; states, inputs, diagnostics and the results table in tabs below. Several
-    vehicles get one tab each."""
+    side on top, one legend for all of them below, and states, inputs, diagnostics and
+    the results table in tabs under that. Several vehicles get one tab each."""
     import rerun.blueprint as rrb
 
-    def coefficient_view(sid: int, i: int, legend: bool) -> rrb.TimeSeriesView:
+    def coefficient_view(sid: int, i: int) -> rrb.TimeSeriesView:
         name = names[i]
-        rng = y_range(None if truth is None else truth[i])
+        own = (ranges or {}).get(sid)
+        rng = None if own is None else own[i]
+        mark = (marks or {}).get(sid)
+        title = name if not mark or mark[i] == "identified" else f"{name} ({mark[i]})"
         return rrb.TimeSeriesView(
             origin=coefficient_path(sid, name, axes[i]),
-            name=name,
+            name=title,
             axis_y=rrb.ScalarAxis(range=rng) if rng is not None else None,
-            plot_legend=rrb.PlotLegend(corner="RightTop" if legend else None, visible=legend),
+            plot_legend=rrb.PlotLegend(visible=False),
         )
 
     per_vehicle = []
@@ -196,7 +231,7 @@ def build_blueprint(
                 continue
             columns.append(
                 rrb.Vertical(
-                    *[coefficient_view(sid, i, legend=i == 0) for i in group],
+                    *[coefficient_view(sid, i) for i in group],
                     name=f"{GROUPS[axis]} ({axis})",
                 )
             )
@@ -224,8 +259,9 @@ def build_blueprint(
         per_vehicle.append(
             rrb.Vertical(
                 rrb.Horizontal(*columns, name="coefficients"),
+                rrb.TextDocumentView(origin=LEGEND, name="how to read"),
                 rrb.Tabs(states, inputs, diagnostics, results, name="flight"),
-                row_shares=[3.0, 2.0],
+                row_shares=[3.0, 0.45, 2.0],
                 name=f"vehicle {sid}",
             )
         )

@@ -64,6 +64,12 @@ LinkSource = Callable[[], tuple[float, Mapping[str, int]]]
 TableSource = Callable[[int], str]
 """Returns the current results table (Markdown) of a vehicle."""
 
+LAYOUT_INTERVAL_S = 5.0
+"""Wall clock between layouts sent because the coefficients' ranges moved."""
+SETTLE_AFTER_RESTART_S = 1.0
+"""Vehicle time after the last restart from which the estimates set the ranges for good
+(before it, the zero start's wild seconds: only the newest batch does)."""
+
 
 @dataclass
 class _Rows:
@@ -78,6 +84,12 @@ class _Rows:
     """Display decimation: the last display interval a row was kept for."""
     last_times: dict[str, float] = field(default_factory=dict)
     """Both timelines' values at the newest frame sent."""
+    t_first: float = math.nan
+    """Vehicle time of the first frame."""
+    settled: FloatArray | None = None
+    """[p x 2] lowest and highest estimate (band included) since the settle time."""
+    recent: FloatArray | None = None
+    """[p x 2] the same over the newest batch only."""
 
     def clear(self) -> None:
         self.t, self.tv, self.u, self.y = [], [], [], []
@@ -118,6 +130,10 @@ class RerunView:
         self._chi2 = _chi2_bounds()
         self._last_flush = clock()
         self._last_table = -math.inf
+        restarts = config.filter.restart_times_s
+        self._settle_s = (restarts[-1] if restarts else 0.0) + SETTLE_AFTER_RESTART_S
+        self._sent_ranges: dict[int, list[lay.Range | None]] = {}
+        self._last_layout = -math.inf
         self._newest: dict[str, float] = {}
         """Both timelines' values at the newest frame of any vehicle (for the link)."""
         self._link_last = (0.0, 0)
@@ -170,17 +186,57 @@ class RerunView:
         for op in ops:
             self._send(op)
         if len(self.rows) == 1:
+            label = self.truth_label if self.truth is not None else None
+            self._send(Text(lay.LEGEND, {}, lay.legend_text(label)))
             self._send_layout()  # the first vehicle is laid out at once
         else:
             self._layout_due = True  # the others with the next batch: one layout per burst
 
-    def _send_layout(self) -> None:
-        """The viewer's layout for every vehicle so far. It is a whole blueprint each
-        time, so it goes at most once per batch: vehicles that appear together (a fleet
-        coming up) cost one layout, not one per vehicle with all the vehicles before."""
-        truth = None if self.truth is None else tuple(float(v) for v in self.truth)
-        self._send(Layout(tuple(sorted(self.rows)), self.names, self.axes, self.power_input, truth))
+    def _send_layout(self, marks: Mapping[int, Sequence[str]] | None = None) -> None:
+        """The viewer's layout for every vehicle so far, with each coefficient panel's
+        range. It is a whole blueprint each time, so it goes at most once per batch:
+        vehicles that appear together (a fleet coming up) cost one layout, not one per
+        vehicle with all the vehicles before."""
+        ranges = {sid: self._ranges(sid) for sid in self.rows}
+        self._sent_ranges = ranges
+        ids = tuple(sorted(self.rows))
+        self._send(Layout(ids, self.names, self.axes, self.power_input, ranges, dict(marks or {})))
         self._layout_due = False
+        self._last_layout = self.clock()
+
+    def _ranges(self, sid: int, margin: float = 0.25) -> list[lay.Range | None]:
+        """Each coefficient panel's range: the estimates and bands since the settle time
+        (before it, of the newest batch) and the vehicle's truth, with a margin."""
+        rows = self.rows[sid]
+        span = rows.settled if rows.settled is not None else rows.recent
+        truth = self.truth_of(sid) if self.truth is not None else None
+        out: list[lay.Range | None] = []
+        for i in range(len(self.names)):
+            t = None if truth is None else float(truth[i])
+            if span is None:
+                out.append(lay.coefficient_range(math.nan, math.nan, t, margin))
+            else:
+                lo, hi = float(span[i, 0]), float(span[i, 1])
+                out.append(lay.coefficient_range(lo, hi, t, margin))
+        return out
+
+    def _ranges_moved(self) -> bool:
+        """Whether an estimate left its panel's range, or the range it would get now is
+        less than half the one it has (the scale shrank as the estimates converged)."""
+        for sid in self.rows:
+            sent = self._sent_ranges.get(sid)
+            if sent is None:
+                return True
+            held = self._ranges(sid, margin=0.0)
+            wanted = self._ranges(sid)
+            for old, now, want in zip(sent, held, wanted, strict=True):
+                if now is None or want is None:
+                    continue
+                if old is None or now[0] < old[0] or now[1] > old[1]:
+                    return True
+                if (want[1] - want[0]) < 0.5 * (old[1] - old[0]):
+                    return True
+        return False
 
     # ------------------------------------------------------------ sending
     def _send(self, op: Op) -> None:
@@ -191,11 +247,13 @@ class RerunView:
         """Send every buffered row; update the link entities and, now and then, the
         results tables."""
         self._last_flush = self.clock()
-        if self._layout_due:
-            self._send_layout()
         for sid, rows in self.rows.items():
             if rows.t:
                 self._send_rows(sid, rows)
+        if self._layout_due or (
+            self._last_flush - self._last_layout >= LAYOUT_INTERVAL_S and self._ranges_moved()
+        ):
+            self._send_layout()
         self._send_link()
         if self.table_source is not None and (
             self._last_flush - self._last_table >= self.config.view.results_interval_s
@@ -212,6 +270,7 @@ class RerunView:
         x = {k: np.array([o.x for o in rows.outs[k]]) for k in KINDS}
         sd = {k: np.array([o.info.sigma for o in rows.outs[k]]) for k in KINDS}
         c0 = self.coefficients.start
+        self._track_ranges(rows, tv, x, sd)
         for i, name in enumerate(self.names):
             cols = []
             for k in KINDS:
@@ -236,6 +295,42 @@ class RerunView:
         if len(idx):
             self._send_display(sid, rows, idx, {name: v[idx] for name, v in times.items()}, x)
         rows.clear()
+
+    def _track_ranges(
+        self,
+        rows: _Rows,
+        tv: FloatArray,
+        x: dict[FilterKind, FloatArray],
+        sd: dict[FilterKind, FloatArray],
+    ) -> None:
+        """Lowest and highest estimate with its band (the band clipped to the estimate's
+        own magnitude, so a coefficient the data barely constrain keeps its line in
+        view) per coefficient: over this batch, and since the settle time."""
+        if math.isnan(rows.t_first):
+            rows.t_first = float(tv[0])
+        coef = self.coefficients
+        lows, highs = [], []
+        for k in KINDS:
+            est = x[k][:, coef]
+            band = np.minimum(2.0 * sd[k][:, coef], np.abs(est))
+            lows.append(est - band)
+            highs.append(est + band)
+        lo = np.fmin.reduce(lows)
+        hi = np.fmax.reduce(highs)
+        with np.errstate(all="ignore"):
+            rows.recent = np.column_stack([np.nanmin(lo, axis=0), np.nanmax(hi, axis=0)])
+            late = tv - rows.t_first >= self._settle_s
+            if late.any():
+                now = np.column_stack([np.nanmin(lo[late], axis=0), np.nanmax(hi[late], axis=0)])
+                if rows.settled is None:
+                    rows.settled = now
+                else:
+                    rows.settled = np.column_stack(
+                        [
+                            np.fmin(rows.settled[:, 0], now[:, 0]),
+                            np.fmax(rows.settled[:, 1], now[:, 1]),
+                        ]
+                    )
 
     def _send_display(
         self,
@@ -283,9 +378,20 @@ class RerunView:
         vals = [counts.get(k, 0) for k in ("lost", "duplicates", "out_of_order", "corrupt")]
         self._send(Columns(lay.LINK_COUNTS, {lay.TIMELINE: np.array([t])}, np.array([vals], float)))
 
-    def close(self, final_tables: Mapping[int, str] | None = None) -> None:
-        """Send what is left and the final results tables; close every outlet."""
+    def close(
+        self,
+        final_tables: Mapping[int, str] | None = None,
+        marks: Mapping[int, Sequence[str]] | None = None,
+        warnings: Sequence[str] = (),
+    ) -> None:
+        """Send what is left, the final layout (ranges of the whole run, identifiability
+        in the panel titles), the legend with the run's warnings, and the final results
+        tables; close every outlet."""
         self.flush()
+        if self.rows:
+            self._send_layout(marks)
+            label = self.truth_label if self.truth is not None else None
+            self._send(Text(lay.LEGEND, {}, lay.legend_text(label, warnings)))
         for sid, text in (final_tables or {}).items():
             rows = self.rows.get(sid)
             if rows is not None and rows.last_times:
@@ -321,9 +427,19 @@ class ViewSink:
         self.view.tick()
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
-        from gcs_estimator.report import final_table
+        from gcs_estimator.report import final_table, trust_warnings
 
-        self.view.close({sid: final_table(v) for sid, v in results.items()})
+        marks = {}
+        for sid, v in results.items():
+            s = v.summaries.get("IEKF") or next(iter(v.summaries.values()), None)
+            if s is not None:
+                marks[sid] = [c.identifiability for c in s.coefficients]
+        warnings = [
+            (f"vehicle {sid}: " if len(results) > 1 else "") + w
+            for sid, v in results.items()
+            for w in trust_warnings(v)
+        ]
+        self.view.close({sid: final_table(v) for sid, v in results.items()}, marks, warnings)
 
 
 # ------------------------------------------------------------------ opening

@@ -16,7 +16,7 @@ import multiprocessing as mp
 import os
 import queue
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -24,7 +24,7 @@ from typing import Any, Literal
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.view.layout import SeriesStyle, build_blueprint
+from gcs_estimator.view.layout import Range, SeriesStyle, build_blueprint
 
 APPLICATION_ID = "gcs-estimator"
 
@@ -40,7 +40,7 @@ class Columns:
 
 @dataclass(frozen=True)
 class Text:
-    """A Markdown document at one time (timeline -> seconds)."""
+    """A Markdown document at one time (timeline -> seconds; none: static)."""
 
     entity: str
     times: dict[str, float]
@@ -57,13 +57,17 @@ class Style:
 
 @dataclass(frozen=True)
 class Layout:
-    """The blueprint for these vehicles (sent again when a vehicle appears)."""
+    """The blueprint for these vehicles (sent again when a vehicle appears, when the
+    coefficients' ranges have moved, and at the end with the identifiability marks)."""
 
     system_ids: tuple[int, ...]
     names: tuple[str, ...]
     axes: tuple[str, ...]
     power_input: str
-    truth: tuple[float, ...] | None
+    ranges: Mapping[int, Sequence[Range | None]] = field(default_factory=dict)
+    """Per vehicle, each coefficient panel's y range (None: the viewer's own)."""
+    marks: Mapping[int, Sequence[str]] = field(default_factory=dict)
+    """Per vehicle, each coefficient's identifiability (panel titles; empty: none yet)."""
 
 
 Op = Columns | Text | Style | Layout
@@ -82,6 +86,8 @@ def apply(rec: Any, op: Op) -> None:
             ],
             columns=rr.Scalars.columns(scalars=np.asarray(op.values, np.float64)),
         )
+    elif isinstance(op, Text) and not op.times:
+        rec.log(op.entity, rr.TextDocument(op.text, media_type=rr.MediaType.MARKDOWN), static=True)
     elif isinstance(op, Text):
         rec.send_columns(
             op.entity,
@@ -100,7 +106,7 @@ def apply(rec: Any, op: Op) -> None:
         )
     elif isinstance(op, Layout):
         rec.send_blueprint(
-            build_blueprint(op.system_ids, op.names, op.axes, op.power_input, op.truth),
+            build_blueprint(op.system_ids, op.names, op.axes, op.power_input, op.ranges, op.marks),
             make_active=True,
             make_default=True,
         )

@@ -1,0 +1,66 @@
+"""The view's layout follows the estimates: every final estimate (and the truth) inside
+its panel's range, a range not set by the zero start's wild first seconds, the
+identifiability in the panel titles and the run's warnings in the legend at the end."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gcs_estimator.config import load_config
+from gcs_estimator.session import RecordingSource, Session
+from gcs_estimator.view import layout as lay
+from gcs_estimator.view.live import RerunView, ViewSink
+from gcs_estimator.view.outlets import Layout, Op, Outlet, Text
+from sim.truth import simulate
+
+
+class Collect(Outlet):
+    """An outlet that keeps what it is sent."""
+
+    def __init__(self) -> None:
+        self.ops: list[Op] = []
+
+    def send(self, op: Op) -> None:
+        self.ops.append(op)
+
+    def close(self) -> None:
+        pass
+
+
+def test_ranges_follow_the_estimates_and_the_end_says_what_is_identified() -> None:
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=30"])
+    flight = simulate(config, seed=3)
+    out = Collect()
+    clock = iter(np.arange(0.0, 1e6, 0.04))  # about real time: a call or two per frame
+    view = RerunView([out], config, clock=lambda: float(next(clock)))
+    session = Session(config)
+    session.add_sink(ViewSink(view))
+    results = session.run(RecordingSource(flight.t_s, flight.inputs, flight.measurements))
+    res = results[1]
+
+    layouts = [op for op in out.ops if isinstance(op, Layout)]
+    assert 2 < len(layouts) < 20  # moved with the estimates, not once per batch
+    final = layouts[-1]
+    ranges = final.ranges[1]
+    for i, name in enumerate(res.result.names):
+        rng = ranges[i]
+        assert rng is not None, name
+        for f in res.result.filters.values():
+            assert rng[0] < f.coefficients[i] < rng[1], (name, rng, f.coefficients[i])
+        assert rng[0] < flight.truth[i] < rng[1], (name, rng, flight.truth[i])
+        # The zero start's excursions do not set the scale: the range is far tighter
+        # than what the estimates swept in the first seconds.
+        track = res.result.filters["IEKF"].track
+        assert track is not None
+        early = track.coefficients[track.t - track.t[0] < 3.0, i]
+        swept = float(np.nanmax(early) - np.nanmin(early))
+        if swept > 10 * abs(flight.truth[i]):
+            assert rng[1] - rng[0] < 0.5 * swept, (name, rng, swept)
+
+    marks = final.marks[1]
+    iekf = res.summaries["IEKF"].coefficients
+    assert list(marks) == [c.identifiability for c in iekf]
+    assert "not identified" in marks  # CDa on this manoeuvre
+    legends = [op.text for op in out.ops if isinstance(op, Text) and op.entity == lay.LEGEND]
+    assert len(legends) == 2 and "Before trusting" in legends[-1] and "CDa" in legends[-1]
+    assert all(not op.times for op in out.ops if isinstance(op, Text) and op.entity == lay.LEGEND)
