@@ -583,7 +583,7 @@ class ViewConfig:
     connect_url: str = setting("rerun+http://127.0.0.1:9876/proxy")
     viewer_port: int = setting(9876, ge=1, le=65535, doc="port of a spawned viewer")
     display_rate_hz: float = setting(
-        25.0, gt=0, unit="Hz", doc="display-only series; estimates: every frame"
+        10.0, gt=0, unit="Hz", doc="display-only series and the ±2σ bands; estimates: every frame"
     )
     flush_interval_s: float = setting(1.0, gt=0, unit="s", doc="wall clock between batches")
     results_interval_s: float = setting(5.0, gt=0, unit="s", doc="live results table refresh")

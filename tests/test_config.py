@@ -85,7 +85,7 @@ ROOT = Path(__file__).resolve().parent.parent
             r"\[filter.turbulence\] detection_sigma: must be a number >= 0, got -3.0",
         ),
         (
-            "display_rate_hz = 25.0",
+            "display_rate_hz = 10.0",
             "display_rate_hz = 0",
             r"\[view\] display_rate_hz: must be a number > 0, got 0",
         ),

@@ -3,8 +3,11 @@
 Entity paths (documented in the README; tests read them back):
 
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}
-        Scalars [EKF, EKF - 2σ, EKF + 2σ, IEKF, IEKF - 2σ, IEKF + 2σ (, truth)]
-        every frame (never decimated)
+        Scalars [EKF, IEKF] every frame (never decimated)
+    /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/band
+        Scalars [EKF - 2σ, EKF + 2σ, IEKF - 2σ, IEKF + 2σ] at the display rate
+    /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/truth
+        Scalars [truth] at the first and last frame of each batch (a constant: a line)
     /vehicle/{id}/states/{V|alpha|theta|q}
         Scalars [measured, EKF, IEKF]; V in m/s, angles in deg, q in deg/s
     /vehicle/{id}/inputs/elevator          Scalars [elevator deg]
@@ -69,6 +72,14 @@ def coefficient_path(system_id: int, name: str, axis: str) -> str:
     return f"{vehicle_root(system_id)}/coefficients/{GROUPS[axis]}/{name}"
 
 
+def band_path(system_id: int, name: str, axis: str) -> str:
+    return coefficient_path(system_id, name, axis) + "/band"
+
+
+def truth_path(system_id: int, name: str, axis: str) -> str:
+    return coefficient_path(system_id, name, axis) + "/truth"
+
+
 def state_path(system_id: int, state: str) -> str:
     return f"{vehicle_root(system_id)}/states/{state}"
 
@@ -116,18 +127,17 @@ def _style(*series: tuple[str, tuple[int, ...], float]) -> SeriesStyle:
     )
 
 
-def coefficient_style(has_truth: bool, truth_label: str) -> SeriesStyle:
-    series = [
-        ("EKF", EKF_COLOR, 2.0),
-        ("EKF -2σ", _lighter(EKF_COLOR), 1.5),
-        ("EKF +2σ", _lighter(EKF_COLOR), 1.5),
-        ("IEKF", IEKF_COLOR, 2.0),
-        ("IEKF -2σ", _lighter(IEKF_COLOR), 1.5),
-        ("IEKF +2σ", _lighter(IEKF_COLOR), 1.5),
-    ]
-    if has_truth:
-        series.append((truth_label, TRUTH_COLOR, 3.0))
-    return _style(*series)
+COEFFICIENT_STYLE = _style(("EKF", EKF_COLOR, 2.0), ("IEKF", IEKF_COLOR, 2.0))
+BAND_STYLE = _style(
+    ("EKF -2σ", _lighter(EKF_COLOR), 1.5),
+    ("EKF +2σ", _lighter(EKF_COLOR), 1.5),
+    ("IEKF -2σ", _lighter(IEKF_COLOR), 1.5),
+    ("IEKF +2σ", _lighter(IEKF_COLOR), 1.5),
+)
+
+
+def truth_style(truth_label: str) -> SeriesStyle:
+    return _style((truth_label, TRUTH_COLOR, 3.0))
 
 
 def state_style(state: str, unit: str) -> SeriesStyle:
@@ -164,22 +174,17 @@ def innovation_style() -> SeriesStyle:
 
 
 def legend_text(truth_label: str | None, warnings: Sequence[str] = ()) -> str:
-    """How to read the coefficient plots (one legend for the whole grid), and at the end
-    what to check before trusting them."""
-    text = (
-        "**Coefficients:** blue **EKF**, orange **IEKF**, each with its ±2σ band as the two "
-        "lighter lines of its colour"
-    )
+    """How to read the coefficient plots (one legend for the whole grid); at the end, what
+    to check before trusting them, first (the panel is small)."""
+    text = "**Coefficients:** blue **EKF**, orange **IEKF**; lighter lines of each colour: ±2σ"
     if truth_label:
-        text += f"; the wide green line is the **{truth_label}** value"
+        text += f"; wide green: **{truth_label}**"
     text += (
-        ". A panel's range follows the estimates after the zero start's first seconds "
-        "(double-click a plot for the whole run). At the end each title says how well the "
-        "flight identified the coefficient; *not identified* means the data barely "
-        "constrain it."
+        ". Ranges follow the estimates once the zero start settles (double-click a plot "
+        "for the whole run); at the end the titles mark what the flight did not identify."
     )
     if warnings:
-        text += "\n\n**Before trusting these numbers:**\n\n" + "".join(f"- {w}\n" for w in warnings)
+        text = "**Before trusting these numbers:** " + "; ".join(warnings) + ".\n\n" + text
     return text
 
 
@@ -261,14 +266,14 @@ def build_blueprint(
                 rrb.Horizontal(*columns, name="coefficients"),
                 rrb.TextDocumentView(origin=LEGEND, name="how to read"),
                 rrb.Tabs(states, inputs, diagnostics, results, name="flight"),
-                row_shares=[3.0, 0.45, 2.0],
+                row_shares=[3.0, 0.6, 2.0],
                 name=f"vehicle {sid}",
             )
         )
     root_container = per_vehicle[0] if len(per_vehicle) == 1 else rrb.Tabs(*per_vehicle)
     return rrb.Blueprint(
         root_container,
-        rrb.TimePanel(timeline=TIMELINE, play_state="following"),
+        rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )

@@ -170,12 +170,14 @@ class RerunView:
 
     def _announce(self, system_id: int) -> None:
         """A new vehicle: style its series once, and lay the viewer out for all vehicles."""
-        has_truth = self.truth is not None
-        coef = lay.coefficient_style(has_truth, self.truth_label)
-        ops: list[Op] = [
-            Style(lay.coefficient_path(system_id, n, a), coef)
-            for n, a in zip(self.names, self.axes, strict=True)
-        ]
+        ops: list[Op] = []
+        for n, a in zip(self.names, self.axes, strict=True):
+            ops.append(Style(lay.coefficient_path(system_id, n, a), lay.COEFFICIENT_STYLE))
+            ops.append(Style(lay.band_path(system_id, n, a), lay.BAND_STYLE))
+            if self.truth is not None:
+                ops.append(
+                    Style(lay.truth_path(system_id, n, a), lay.truth_style(self.truth_label))
+                )
         ops += [
             Style(lay.state_path(system_id, s), lay.state_style(s, unit))
             for s, unit in zip(FLIGHT_STATES, lay.STATE_UNITS, strict=True)
@@ -271,16 +273,17 @@ class RerunView:
         sd = {k: np.array([o.info.sigma for o in rows.outs[k]]) for k in KINDS}
         c0 = self.coefficients.start
         self._track_ranges(rows, tv, x, sd)
+        ends = [0, n - 1] if n > 1 else [0]
+        own = self.truth_of(sid) if self.truth is not None else None
         for i, name in enumerate(self.names):
-            cols = []
-            for k in KINDS:
-                est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
-                cols += [est, est - s2, est + s2]
+            est = np.column_stack([x[k][:, c0 + i] for k in KINDS])
+            self._send(Columns(lay.coefficient_path(sid, name, self.axes[i]), times, est))
             if self.truth is not None:
-                own = self.truth_of(sid)
-                cols.append(np.full(n, math.nan if own is None else own[i]))
-            path = lay.coefficient_path(sid, name, self.axes[i])
-            self._send(Columns(path, times, np.column_stack(cols)))
+                # A constant: the first and last frame of each batch draw its line.
+                value = math.nan if own is None else float(own[i])
+                at = {tl: v[ends] for tl, v in times.items()}
+                truth = np.full((len(ends), 1), value)
+                self._send(Columns(lay.truth_path(sid, name, self.axes[i]), at, truth))
         self.frames_sent += n
 
         # Display-only series: one row per display interval of vehicle time.
@@ -293,7 +296,11 @@ class RerunView:
         self._newest = rows.last_times
         idx = np.flatnonzero(keep)
         if len(idx):
-            self._send_display(sid, rows, idx, {name: v[idx] for name, v in times.items()}, x)
+            shown = {name: v[idx] for name, v in times.items()}
+            self._send_bands(
+                sid, shown, {k: x[k][idx] for k in KINDS}, {k: sd[k][idx] for k in KINDS}
+            )
+            self._send_display(sid, rows, idx, shown, x)
         rows.clear()
 
     def _track_ranges(
@@ -331,6 +338,24 @@ class RerunView:
                             np.fmax(rows.settled[:, 1], now[:, 1]),
                         ]
                     )
+
+    def _send_bands(
+        self,
+        sid: int,
+        times: dict[str, FloatArray],
+        x: dict[FilterKind, FloatArray],
+        sd: dict[FilterKind, FloatArray],
+    ) -> None:
+        """The ±2σ bands at the display rate (the estimates themselves go every frame)."""
+        c0 = self.coefficients.start
+        for i, name in enumerate(self.names):
+            cols = []
+            for k in KINDS:
+                est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
+                cols += [est - s2, est + s2]
+            self._send(
+                Columns(lay.band_path(sid, name, self.axes[i]), times, np.column_stack(cols))
+            )
 
     def _send_display(
         self,

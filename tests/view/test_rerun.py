@@ -112,19 +112,26 @@ def test_coefficients_equal_the_filter_outputs_every_frame(
     run, path, t_s = short_run
     tr = tracks(run)
     truth = np.array(run.result.config.truth)
+    axes = run.result.config.structure.axes
+    rate = run.result.config.view.display_rate_hz
     for i, name in enumerate(run.result.names):
         t, v = read_scalars(path, path_of(run, name))
         np.testing.assert_allclose(t, t_s, atol=1e-9)  # ns resolution of the index
-        cols = 0
-        for kind in FILTER_KINDS:
-            x = tr[kind].coefficients[:, i].astype(float)
-            s2 = 2 * tr[kind].coefficient_sigma[:, i].astype(float)
-            np.testing.assert_array_equal(kept(v[:, cols]), x)
+        for col, kind in enumerate(FILTER_KINDS):
+            np.testing.assert_array_equal(kept(v[:, col]), tr[kind].coefficients[:, i])
+        # The bands at the display rate, from the same outputs.
+        tb, band = read_scalars(path, lay.band_path(1, name, axes[i]))
+        assert len(tb) == len(np.unique(np.floor(t_s * rate)))
+        idx = np.searchsorted(t_s, tb - 1e-9)
+        for col, kind in enumerate(FILTER_KINDS):
+            x = tr[kind].coefficients[idx, i].astype(float)
+            s2 = 2 * tr[kind].coefficient_sigma[idx, i].astype(float)
             atol = F32_EPS * float(np.max(np.abs(x) + s2))
-            np.testing.assert_allclose(v[:, cols + 1], x - s2, rtol=F32_EPS, atol=atol)
-            np.testing.assert_allclose(v[:, cols + 2], x + s2, rtol=F32_EPS, atol=atol)
-            cols += 3
-        np.testing.assert_array_equal(v[:, 6], truth[i])
+            np.testing.assert_allclose(band[:, 2 * col], x - s2, rtol=F32_EPS, atol=atol)
+            np.testing.assert_allclose(band[:, 2 * col + 1], x + s2, rtol=F32_EPS, atol=atol)
+        tt, tru = read_scalars(path, lay.truth_path(1, name, axes[i]))
+        assert tt[0] == pytest.approx(t_s[0]) and tt[-1] == pytest.approx(t_s[-1])
+        np.testing.assert_array_equal(tru[:, 0], truth[i])
         trecv, _ = read_scalars(path, path_of(run, name), lay.RECEIVE_TIMELINE)
         np.testing.assert_allclose(trecv, t_s - t_s[0], atol=1e-9)
     # The restart re-runs are in: what the view showed at 5 s is the history's value.
@@ -178,15 +185,7 @@ def test_results_table_and_layout_are_in_the_recording(
         for c in styles.to_chunks()
         if "SeriesLines:names" in c.to_record_batch().schema.names
     ]
-    assert names and names[0][0] == [
-        "EKF",
-        "EKF -2σ",
-        "EKF +2σ",
-        "IEKF",
-        "IEKF -2σ",
-        "IEKF +2σ",
-        "truth",
-    ]
+    assert names and names[0][0] == ["EKF", "IEKF"]
     # The blueprint travels with the recording: a view for every coefficient and state.
     reader = RrdReader(path)
     origins: set[str] = set()
@@ -240,7 +239,7 @@ def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path:
         t, v = read_scalars(rrd, path_of(run, "Cmq", sid))
         assert len(t) == run.result.frames
         np.testing.assert_array_equal(
-            kept(v[:, 3]), tracks(run)["IEKF"].coefficients[:, run.result.names.index("Cmq")]
+            kept(v[:, 1]), tracks(run)["IEKF"].coefficients[:, run.result.names.index("Cmq")]
         )
     t, counts = read_scalars(rrd, lay.LINK_COUNTS)
     assert counts[-1, 0] == link.health.total().lost
@@ -315,7 +314,7 @@ def test_served_session_is_joined_late_and_the_viewer_gets_the_history(tmp_path:
     )
     iekf = hist[hist["filter"] == "IEKF"]
     np.testing.assert_allclose(t, iekf["t_s"], atol=1e-9)  # every frame from the first on
-    np.testing.assert_array_equal(kept(v[:, 3]), iekf["Cma"])
+    np.testing.assert_array_equal(kept(v[:, 1]), iekf["Cma"])
 
 
 class SilentPeer:
@@ -407,8 +406,8 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
     data = json.loads((tmp_path / "results_sys1.json").read_text())
     assert data["truth_label"] == "book"
     assert data["filters"]["IEKF"]["estimates"]["Cma"]["truth"] == names.index("Cma") + 1.5
-    _, v = read_scalars(tmp_path / "view.rrd", lay.coefficient_path(1, "Cma", "Cm"))
-    assert np.all(v[:, 6] == names.index("Cma") + 1.5)
+    _, v = read_scalars(tmp_path / "view.rrd", lay.truth_path(1, "Cma", "Cm"))
+    assert np.all(v[:, 0] == names.index("Cma") + 1.5)
     # A reference that misses a coefficient names the file and the key.
     ref.write_text("[truth]\nCD0 = 1.0\n")
     capsys.readouterr()
