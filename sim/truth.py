@@ -109,6 +109,44 @@ class _GustModel:
         return np.asarray(self.C @ self.z)
 
 
+MULTISTEP_UNITS = ((0.0, 3.0), (3.0, 5.0), (5.0, 6.0), (6.0, 7.0))
+"""The 3-2-1-1 multistep's steps, in units from its start (+A, -A, +A, -A)."""
+
+
+def elevator_offsets_rad(manoeuvre: Manoeuvre, t_s: np.ndarray) -> FloatArray:
+    """elevator_offset_rad at every time of t_s [s] (ascending), in one pass over each
+    multistep's and pulse's own span of samples: linear in the flight's length."""
+    t = np.asarray(t_s, float)
+    if len(t) > 1 and np.any(np.diff(t) < 0):
+        return np.array([elevator_offset_rad(manoeuvre, float(v)) for v in t])
+    out = np.zeros_like(t)
+    # Earlier entries win, as in elevator_offset_rad: assign in reverse order.
+    pulses = zip(
+        manoeuvre.pulse_starts_s,
+        manoeuvre.pulse_durations_s,
+        manoeuvre.pulse_amplitudes_deg,
+        strict=True,
+    )
+    for start, length, amp in reversed(list(pulses)):
+        lo, hi = np.searchsorted(t, [start - 1e-6, start + length + 1e-6])
+        seg = t[lo:hi] + 1e-9
+        inside = (start <= seg) & (seg < start + length)
+        out[lo:hi][inside] = math.radians(amp)
+    a = math.radians(manoeuvre.multistep_amplitude_deg)
+    unit = manoeuvre.multistep_unit_s
+    for start in reversed(manoeuvre.multistep_starts_s):
+        lo, hi = np.searchsorted(t, [start - unit, start + 8.0 * unit])
+        tau = (t[lo:hi] - start) / unit + 1e-9
+        level = np.select(
+            [(tau >= lo_) & (tau < hi_) for lo_, hi_ in MULTISTEP_UNITS],
+            [a, -a, a, -a],
+            np.nan,
+        )
+        hit = ~np.isnan(level)
+        out[lo:hi][hit] = level[hit]
+    return out
+
+
 def perturbed(config: AircraftConfig, seed: int, spread: float) -> AircraftConfig:
     """The config with its true coefficients moved by spread/2 to spread of their value,
     each up or down at random (seeded by seed): an aircraft that is not the paper's, for
@@ -161,16 +199,10 @@ def simulate(
     # boundary act from that step on, and at a sample time from that sample on.
     t_mid = (np.arange(n_steps) + 0.5) * dt
     u_steps = np.column_stack(
-        [
-            de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_mid]),
-            np.full(n_steps, power0),
-        ]
+        [de0 + elevator_offsets_rad(sim.manoeuvre, t_mid), np.full(n_steps, power0)]
     )
     u_samples = np.column_stack(
-        [
-            de0 + np.array([elevator_offset_rad(sim.manoeuvre, t) for t in t_samples]),
-            np.full(n_samples, power0),
-        ]
+        [de0 + elevator_offsets_rad(sim.manoeuvre, t_samples), np.full(n_samples, power0)]
     )
     if sim.actuator_time_constant_s > 0.0:
         # The servo lags its command: the elevator moves between samples, flown as it
