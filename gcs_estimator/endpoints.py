@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import re
 import socket
+import struct
+import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -154,5 +156,42 @@ def open_socket(endpoint: Endpoint, rcvbuf: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise ConfigError(f"endpoint {endpoint}: cannot bind: {exc.strerror}") from None
+    kernel_stamps(sock)
     sock.setblocking(False)
     return sock
+
+
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+"""Linux: each datagram carries the kernel's arrival time (struct timespec)."""
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+"""Linux: datagrams carry the count the socket has dropped for a full buffer so far."""
+ANCILLARY_BYTES = 64
+"""Room for both (a timespec and a counter, with their headers)."""
+
+
+def kernel_stamps(sock: socket.socket) -> bool:
+    """Ask for arrival times and the drop counter with every datagram (Linux); False
+    where the system has neither (receive times are then read after the fact)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+    except OSError:
+        return False
+    return True
+
+
+def arrival(ancillary: list[tuple[int, int, bytes]], fallback: float) -> tuple[float, int | None]:
+    """(the kernel's arrival time [s since the epoch], or fallback; the socket's drop
+    counter, or None) from a recvmsg's ancillary data."""
+    t, dropped = fallback, None
+    for level, kind, data in ancillary:
+        if level != socket.SOL_SOCKET:
+            continue
+        if kind == SO_TIMESTAMPNS and len(data) >= 16:
+            sec, nsec = struct.unpack("qq", data[:16])
+            t = sec + nsec * 1e-9
+        elif kind == SO_RXQ_OVFL and len(data) >= 4:
+            (dropped,) = struct.unpack("I", data[:4])
+    return t, dropped

@@ -69,6 +69,9 @@ class UdpSource:
         self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
         link.sign(self.codec, time.time())
         self._last_data: float | None = None
+        self.kernel_dropped = 0
+        """Datagrams the system dropped because this socket's buffer was full (the
+        kernel's counter, as of the last datagram that carried it)."""
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         start = time.time()
@@ -93,13 +96,25 @@ class UdpSource:
         return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
 
     def _drain(self) -> Iterator[Frame]:
+        """Datagrams waiting, each with the kernel's arrival time where the system gives
+        it (endpoints.kernel_stamps), so time spent queued in the socket counts as latency
+        and the recording holds when packets really arrived."""
         for _ in range(DRAIN_READS):  # then the loop's own work (ground messages) comes
             try:
-                data, addr = self.sock.recvfrom(65535)
+                data, ancillary, _, addr = self.sock.recvmsg(65535, endpoints.ANCILLARY_BYTES)
             except OSError:  # BlockingIOError: drained
                 return
-            t = self._last_data = time.time()
-            yield from self.link.datagram(data, t, addr)
+            now = self._last_data = time.time()
+            t, dropped = endpoints.arrival(ancillary, now)
+            if dropped is not None and dropped > self.kernel_dropped:
+                if self.kernel_dropped == 0:
+                    self.link.report_once(
+                        "kernel-drop",
+                        "packets dropped by this machine: the socket's buffer was full "
+                        "(the station fell behind the link)",
+                    )
+                self.kernel_dropped = dropped
+            yield from self.link.datagram(data, min(t, now), addr)
 
     def _send_ground(self, now: float) -> None:
         out = list(self.link.ground_messages(self.codec, now))
@@ -112,7 +127,7 @@ class UdpSource:
                 self.link.report_once("send", f"cannot send to {address}: vehicle gone?")
 
     def link_stats(self) -> dict[str, Any]:
-        return self.link.stats()
+        return {**self.link.stats(), "dropped_by_this_machine": self.kernel_dropped}
 
     def close(self) -> None:
         self.sock.close()
