@@ -580,6 +580,13 @@ class ViewConfig:
     serve_bind: str = setting("127.0.0.1", doc='"0.0.0.0" lets viewers on other machines join')
     serve_port: int = setting(9877, ge=1, le=65535)
     server_memory_limit: str = setting("1GiB", doc="history kept for late viewers")
+    serve_linger_s: float = setting(
+        30.0,
+        ge=0,
+        unit="s",
+        doc="a served view stays up this long after the run, for viewers to catch up "
+        "(Ctrl-C ends it sooner)",
+    )
     connect_url: str = setting("rerun+http://127.0.0.1:9876/proxy")
     viewer_port: int = setting(9876, ge=1, le=65535, doc="port of a spawned viewer")
     display_rate_hz: float = setting(

@@ -16,10 +16,13 @@ class Stop:
 
     def __init__(self) -> None:
         self.requested = False
+        self.count = 0
+        """Signals so far (a wait after the run, such as a served view's, ends at the next)."""
 
     def install(self) -> Stop:
         def handler(signum: int, frame: FrameType | None) -> None:
             self.requested = True
+            self.count += 1
 
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)

@@ -26,6 +26,7 @@ from gcs_estimator.estimator import FILTER_KINDS, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS
+from gcs_estimator.stop import PROCESS_STOP
 from gcs_estimator.view import layout as lay
 from gcs_estimator.view.outlets import (
     Columns,
@@ -542,6 +543,9 @@ def open_outlets(
             save=choice.save,
             serve=(vc.serve_bind, vc.serve_port, vc.server_memory_limit) if choice.serve else None,
             shutdown_timeout_s=vc.shutdown_timeout_s,
+            linger_s=vc.serve_linger_s,
+            stop=PROCESS_STOP,
+            log=log,
         )
         outlets.append(local)
         if choice.save is not None:

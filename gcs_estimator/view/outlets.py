@@ -16,14 +16,16 @@ import multiprocessing as mp
 import os
 import queue
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TextIO
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.stop import Stop
 from gcs_estimator.view.layout import Range, SeriesStyle, build_blueprint
 
 APPLICATION_ID = "gcs-estimator"
@@ -133,9 +135,16 @@ class LocalOutlet(Outlet):
         save: Path | None = None,
         serve: tuple[str, int, str] | None = None,
         shutdown_timeout_s: float = 3.0,
+        linger_s: float = 0.0,
+        stop: Stop | None = None,
+        log: TextIO = sys.stderr,
     ) -> None:
         import rerun as rr
 
+        self.linger_s = linger_s
+        """A server stays up this long after the run (viewers behind catch up)."""
+        self.stop = stop
+        self.log = log
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         sinks: list[Any] = []
         parts = []
@@ -161,8 +170,29 @@ class LocalOutlet(Outlet):
         try:
             self.rec.flush(timeout_sec=self.timeout)
         except RuntimeError as exc:  # a flush timeout: the file keeps what was written
-            print(f"note: view: {exc}", file=sys.stderr)
+            print(f"note: view: {exc}", file=self.log)
+        if self.server_uri is not None and self.linger_s > 0:
+            self._linger()
         self.rec.disconnect()
+
+    def _linger(self) -> None:
+        """Keep serving after the run, so that a viewer that joined late or is behind
+        gets the end too; a signal (Ctrl-C) ends the wait."""
+        print(
+            f"view: the run has ended; still serving {self.server_uri} for "
+            f"{self.linger_s:g} s so viewers can catch up (Ctrl-C to stop now)",
+            file=self.log,
+            flush=True,
+        )
+        signals = self.stop.count if self.stop is not None else 0
+        end = time.monotonic() + self.linger_s
+        while time.monotonic() < end:
+            if self.stop is not None and self.stop.count != signals:
+                break
+            time.sleep(LINGER_POLL_S)  # a slice of the wait, to notice a signal
+
+
+LINGER_POLL_S = 0.1
 
 
 RemoteSink = tuple[Literal["spawn", "connect"], str]
