@@ -44,23 +44,24 @@ def sigma_inflation(coefficients: FloatArray, sigma: FloatArray, start: int) -> 
     information; sigma * sqrt(max(1, ratio)) is the corrected sigma. It is the filter's
     analogue of the Morelli-Klein correction of an output-error fit's Cramer-Rao bound
     (docs/decisions/0008)."""
-    x = np.asarray(coefficients[start - 1 :], float)
-    s2 = np.asarray(sigma, float) ** 2
-    p = x.shape[1]
-    w = x.shape[0] - 1
+    p = coefficients.shape[1]
+    w = coefficients.shape[0] - start
     if start < 1 or w < MOVEMENT_WINDOW_MIN_FRAMES:
         return np.full(p, np.nan)
-    d = np.diff(x, axis=0)
+    s2 = np.asarray(sigma[[start - 1, -1]], float) ** 2
     lag = max(1, int(MOVEMENT_BANDWIDTH * w))
     n_fft = 1 << int(2 * w - 1).bit_length()
-    spec = np.fft.rfft(d, n_fft, axis=0)
-    acov = np.fft.irfft(spec * spec.conj(), n_fft, axis=0)[: lag + 1]
     weights = 1.0 - np.arange(lag + 1) / (lag + 1)
     weights[1:] *= 2.0
-    moved = weights @ acov
-    expected = s2[start - 1] - s2[-1]
+    moved = np.empty(p)
+    for j in range(p):  # one column at a time: an hour's history stays a few MB
+        d = np.diff(np.asarray(coefficients[start - 1 :, j], float))
+        spec = np.fft.rfft(d, n_fft)
+        acov = np.fft.irfft(spec * spec.conj(), n_fft)[: lag + 1]
+        moved[j] = weights @ acov
+    expected = s2[0] - s2[1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(expected > 1e-6 * s2[start - 1], moved / expected, np.nan)
+        ratio = np.where(expected > 1e-6 * s2[0], moved / expected, np.nan)
     return np.asarray(ratio)
 
 
