@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -439,34 +438,46 @@ def _jsonable(data: Any) -> Any:
 
 def write_history_csv(path: Path, result: EstimatorResult) -> None:
     """Time histories, one row per filter and frame: estimates and sigmas of every state
-    and coefficient, NIS, channels used, and the frame's inputs and measurements."""
+    and coefficient, NIS, channels used, and the frame's inputs and measurements.
+
+    Each value is written as the shortest text that reads back as the number kept: the
+    estimates and sigmas to the history's float32 (estimator.HISTORY_DTYPE, 7 significant
+    digits), times, inputs and measurements to float64; an empty cell where a value is
+    missing. Arrow's CSV writer formats whole columns (an hour's history in seconds)."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
     names = list(FLIGHT_STATES) + list(result.names)
     power = POWER_COLUMNS[result.config.propulsion.input_name]
-
-    def cell(v: float) -> str:
-        return repr(float(v)) if np.isfinite(v) else ""
-
-    with open(path, "w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(
-            ["filter", "t_s"]
-            + names
-            + [f"sigma_{n}" for n in names]
-            + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
-            + [f"meas_{n}" for n in OBS_NAMES]
-        )
+    header = (
+        ["filter", "t_s"]
+        + names
+        + [f"sigma_{n}" for n in names]
+        + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
+        + [f"meas_{n}" for n in OBS_NAMES]
+    )
+    options = pacsv.WriteOptions(include_header=False, quoting_style="none")
+    with open(path, "wb") as fh:
+        fh.write((",".join(header) + "\n").encode())
         for kind, fr in result.filters.items():
             tr = fr.track
-            if tr is None:
+            if tr is None or len(tr.t) == 0:
                 continue
-            for i in range(len(tr.t)):
-                row = [kind, repr(float(tr.t[i]))]
-                row += [repr(float(v)) for v in tr.x[i]]
-                row += [repr(float(v)) for v in tr.sigma[i]]
-                row += [cell(tr.nis[i]), str(int(tr.n_used[i]))]
-                row += [cell(v) for v in tr.u[i]]
-                row += [cell(v) for v in tr.y[i]]
-                w.writerow(row)
+
+            def missing_empty(values: np.ndarray) -> list[Any]:
+                return [pa.array(np.asarray(c), from_pandas=True) for c in np.atleast_2d(values.T)]
+
+            columns = [
+                pa.array([kind] * len(tr.t)),
+                pa.array(np.asarray(tr.t, float)),
+                *[pa.array(np.asarray(c)) for c in tr.x.T],
+                *[pa.array(np.asarray(c)) for c in tr.sigma.T],
+                *missing_empty(np.asarray(tr.nis)[None, :].T),
+                pa.array(np.asarray(tr.n_used).astype(np.int64)),
+                *missing_empty(np.asarray(tr.u)),
+                *missing_empty(np.asarray(tr.y)),
+            ]
+            pacsv.write_csv(pa.table(columns, names=header), fh, options)
 
 
 def write_results(
