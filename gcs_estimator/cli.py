@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import socket
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -31,6 +32,7 @@ from gcs_estimator.session import RecordingSource, Session, Source, VehicleResul
 from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
 from gcs_estimator.sources import (
     RCVBUF_BYTES,
+    LiveSource,
     SerialSource,
     SourceError,
     TcpSource,
@@ -453,40 +455,39 @@ def cmd_listen(args: argparse.Namespace) -> int:
     # Bound before anything is opened for writing: a busy port leaves a recording as it was.
     if endpoint.serial:
         port = endpoints.open_serial(endpoint)
-        session, link = _link_session(config, args, args.endpoint, record)
-        print(
-            f"reading serial {endpoint.device} at {endpoint.port} baud, recording to {record} "
-            "(Ctrl-C to stop)",
-            file=sys.stderr,
-        )
-        return _run(session, SerialSource(port, link, args.idle_exit, args.duration), stop)
-    if endpoint.tcp:
-        sock = endpoints.open_tcp(endpoint)
     else:
-        sock = endpoints.open_socket(endpoint, RCVBUF_BYTES)
+        sock = (
+            endpoints.open_tcp(endpoint)
+            if endpoint.tcp
+            else endpoints.open_socket(endpoint, RCVBUF_BYTES)
+        )
     session, link = _link_session(config, args, args.endpoint, record)
-    bound = sock.getsockname()[1]  # the port the system chose, when asked for port 0
+    source: LiveSource
+    if endpoint.serial:
+        where = f"reading serial {endpoint.device} at {endpoint.port} baud"
+        source = SerialSource(port, link, args.idle_exit, args.duration)
+    elif endpoint.tcp:
+        where = _where(endpoint, sock)
+        source = TcpSource(sock, link, endpoint.listen, args.idle_exit, args.duration)
+    else:
+        where = _where(endpoint, sock)
+        peer = None if endpoint.listen else endpoint.address
+        source = UdpSource(sock, link, args.idle_exit, args.duration, peer)
+    print(f"{where}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
+    return _run(session, source, stop)
+
+
+def _where(endpoint: endpoints.Endpoint, sock: socket.socket) -> str:
+    """What the station listens on or connects to, with the port the system chose when
+    asked for port 0."""
+    bound = sock.getsockname()[1]
     host = f"[{endpoint.host}]" if ":" in endpoint.host else endpoint.host
     proto = "tcp" if endpoint.tcp else "udp"
     if endpoint.listen:
-        where = f"listening on {proto} {host}:{bound}"
-    elif endpoint.tcp:
-        where = f"connected to tcp {host}:{endpoint.port}"
-    else:
-        where = f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
-    print(f"{where}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
-    source: UdpSource
+        return f"listening on {proto} {host}:{bound}"
     if endpoint.tcp:
-        source = TcpSource(sock, link, endpoint.listen, args.idle_exit, args.duration)
-    else:
-        source = UdpSource(
-            sock,
-            link,
-            idle_exit_s=args.idle_exit,
-            max_seconds=args.duration,
-            peer=None if endpoint.listen else endpoint.address,
-        )
-    return _run(session, source, stop)
+        return f"connected to tcp {host}:{endpoint.port}"
+    return f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

@@ -48,38 +48,29 @@ def open_udp(host: str, port: int) -> socket.socket:
     return endpoints.open_socket(endpoints.Endpoint(True, host, port, socket.AF_INET), RCVBUF_BYTES)
 
 
-class UdpSource:
-    """Datagrams from a bound UDP socket; the ground station's own messages go back to
-    each vehicle's address (heartbeat at 1 Hz, rate requests until acknowledged)."""
+class LiveSource:
+    """The loop every live link shares: read what arrived, send the ground station's own
+    messages once a second (heartbeat, rate requests until acknowledged), write the
+    recording through, and end on a stop request, the idle timeout, the time limit or a
+    link that failed. Subclasses say how to read and where the messages go."""
 
     def __init__(
-        self,
-        sock: socket.socket,
-        link: MavlinkLink,
-        idle_exit_s: float | None = None,
-        max_seconds: float | None = None,
-        peer: tuple[str, int] | None = None,
+        self, link: MavlinkLink, idle_exit_s: float | None, max_seconds: float | None
     ) -> None:
-        self.peer = peer
-        """udpout: where the station speaks first (heartbeats) until a vehicle answers."""
-        self.sock = sock
         self.link = link
         self.idle_exit_s = idle_exit_s
         self.max_seconds = max_seconds
         self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
         link.sign(self.codec, time.time())
         self._last_data: float | None = None
-        self.kernel_dropped = 0
-        """Datagrams the system dropped because this socket's buffer was full (the
-        kernel's counter, as of the last datagram that carried it)."""
+        self._ended = False
+        """The link failed or the other side closed it."""
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         start = time.time()
         last_ground = 0.0
         while not stop.requested and not self._done(start):
-            ready, _, _ = select.select([self.sock], [], [], POLL_S)
-            if ready:
-                yield from self._drain()
+            yield from self._receive()
             now = time.time()
             if now - last_ground >= 1.0:
                 last_ground = now
@@ -90,10 +81,55 @@ class UdpSource:
 
     def _done(self, start: float) -> bool:
         now = time.time()
-        if self.max_seconds is not None and now - start > self.max_seconds:
+        if self._ended or (self.max_seconds is not None and now - start > self.max_seconds):
             return True
         last = self._last_data
         return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
+
+    def _receive(self) -> Iterator[Frame]:
+        """Frames completed by what arrived within about POLL_S."""
+        raise NotImplementedError
+
+    def _send_ground(self, now: float) -> None:
+        raise NotImplementedError
+
+    def _stream_ground(self, now: float) -> bytes:
+        """The ground messages for a point-to-point stream (TCP, serial): all of them
+        down the one line, and a heartbeat while nobody has been heard, as on udpout."""
+        out = [p for p, _ in self.link.ground_messages(self.codec, now)]
+        return b"".join(out or [self.codec.heartbeat(mavlink.MAV_TYPE_GCS)])
+
+    def link_stats(self) -> dict[str, Any]:
+        return self.link.stats()
+
+    def close(self) -> None:
+        self.link.close()
+
+
+class UdpSource(LiveSource):
+    """Datagrams from a bound UDP socket; the ground station's own messages go back to
+    each vehicle's address."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        link: MavlinkLink,
+        idle_exit_s: float | None = None,
+        max_seconds: float | None = None,
+        peer: tuple[str, int] | None = None,
+    ) -> None:
+        super().__init__(link, idle_exit_s, max_seconds)
+        self.peer = peer
+        """udpout: where the station speaks first (heartbeats) until a vehicle answers."""
+        self.sock = sock
+        self.kernel_dropped = 0
+        """Datagrams the system dropped because this socket's buffer was full (the
+        kernel's counter, as of the last datagram that carried it)."""
+
+    def _receive(self) -> Iterator[Frame]:
+        ready, _, _ = select.select([self.sock], [], [], POLL_S)
+        if ready:
+            yield from self._drain()
 
     def _drain(self) -> Iterator[Frame]:
         """Datagrams waiting, each with the kernel's arrival time where the system gives
@@ -131,10 +167,10 @@ class UdpSource:
 
     def close(self) -> None:
         self.sock.close()
-        self.link.close()
+        super().close()
 
 
-class TcpSource(UdpSource):
+class TcpSource(LiveSource):
     """Bytes from one TCP connection: to the vehicle (tcp:), or from it once it connects
     (tcpin:). Packets may be split across reads (MavlinkLink.stream); the ground
     station's messages go back over the same connection. The vehicle closing it ends
@@ -148,11 +184,10 @@ class TcpSource(UdpSource):
         idle_exit_s: float | None = None,
         max_seconds: float | None = None,
     ) -> None:
-        super().__init__(sock, link, idle_exit_s, max_seconds)
+        super().__init__(link, idle_exit_s, max_seconds)
         self._listener = sock if listening else None
         self._conn: socket.socket | None = None if listening else sock
         self._address = self._peer_of(self._conn)
-        self._closed = False
 
     @staticmethod
     def _peer_of(conn: socket.socket | None) -> tuple[str, int] | None:
@@ -168,47 +203,43 @@ class TcpSource(UdpSource):
                 self._address = self._peer_of(self._conn)
             yield None
         if self._conn is not None:
-            self.sock = self._conn
-        yield from super().frames(stop)
+            yield from super().frames(stop)
 
-    def _done(self, start: float) -> bool:
-        return self._closed or super()._done(start)
-
-    def _drain(self) -> Iterator[Frame]:
-        assert self._address is not None
+    def _receive(self) -> Iterator[Frame]:
+        assert self._conn is not None and self._address is not None
+        ready, _, _ = select.select([self._conn], [], [], POLL_S)
+        if not ready:
+            return
         for _ in range(DRAIN_READS):
             try:
-                data = self.sock.recv(65536)
+                data = self._conn.recv(65536)
             except BlockingIOError:
                 return
             except OSError as exc:
                 data = b""
                 self.link.report_once("tcp", f"the connection failed: {exc.strerror or exc}")
             if not data:
-                self._closed = True
+                self._ended = True
                 self.link.report_once("tcp-closed", "the vehicle closed the connection")
                 return
             t = self._last_data = time.time()
             yield from self.link.stream(data, t, self._address)
 
     def _send_ground(self, now: float) -> None:
-        out = [p for p, _ in self.link.ground_messages(self.codec, now)]
-        if not out:  # nobody heard yet: say who we are, as on udpout
-            out = [self.codec.heartbeat(mavlink.MAV_TYPE_GCS)]
-        for packet in out:
-            try:
-                self.sock.sendall(packet)
-            except OSError:
-                self.link.report_once("send", "cannot send on the connection: vehicle gone?")
-                return
+        assert self._conn is not None
+        try:
+            self._conn.sendall(self._stream_ground(now))
+        except OSError:
+            self.link.report_once("send", "cannot send on the connection: vehicle gone?")
 
     def close(self) -> None:
-        if self._listener is not None and self._listener is not self.sock:
-            self._listener.close()
+        for sock in (self._listener, self._conn):
+            if sock is not None:
+                sock.close()
         super().close()
 
 
-class SerialSource:
+class SerialSource(LiveSource):
     """Bytes from a serial port (a telemetry radio, a USB cable to the autopilot).
     Packets may be split across reads (MavlinkLink.stream); the ground station's
     messages go back over the same port."""
@@ -220,44 +251,18 @@ class SerialSource:
         idle_exit_s: float | None = None,
         max_seconds: float | None = None,
     ) -> None:
+        super().__init__(link, idle_exit_s, max_seconds)
         self.port = port
-        self.link = link
-        self.idle_exit_s = idle_exit_s
-        self.max_seconds = max_seconds
-        self.codec = Codec(mavlink.GCS_SYSTEM_ID, mavlink.GCS_COMPONENT_ID)
-        link.sign(self.codec, time.time())
         self.address = (f"serial:{port.port}", 0)
-        self._last_data: float | None = None
-        self._failed = False
 
-    def frames(self, stop: Stop) -> Iterator[Frame | None]:
-        start = time.time()
-        last_ground = 0.0
-        while not stop.requested and not self._done(start):
-            yield from self._read()
-            now = time.time()
-            if now - last_ground >= 1.0:
-                last_ground = now
-                self._send_ground(now)
-                self.link.flush_recording()
-            yield None
-        yield from self.link.flush()
-
-    def _done(self, start: float) -> bool:
-        now = time.time()
-        if self._failed or (self.max_seconds is not None and now - start > self.max_seconds):
-            return True
-        last = self._last_data
-        return self.idle_exit_s is not None and last is not None and now - last > self.idle_exit_s
-
-    def _read(self) -> Iterator[Frame]:
+    def _receive(self) -> Iterator[Frame]:
         """What arrived: waits up to the port's read timeout for the first byte."""
         import serial
 
         try:
             data = self.port.read(max(1, self.port.in_waiting))
         except (serial.SerialException, OSError) as exc:
-            self._failed = True
+            self._ended = True
             self.link.report_once("serial", f"the serial port failed: {exc}")
             return
         if data:
@@ -267,20 +272,14 @@ class SerialSource:
     def _send_ground(self, now: float) -> None:
         import serial
 
-        out = [p for p, _ in self.link.ground_messages(self.codec, now)]
-        if not out:  # nobody heard yet: say who we are
-            out = [self.codec.heartbeat(mavlink.MAV_TYPE_GCS)]
         try:
-            self.port.write(b"".join(out))
+            self.port.write(self._stream_ground(now))
         except (serial.SerialException, OSError) as exc:
             self.link.report_once("send", f"cannot write to the serial port: {exc}")
 
-    def link_stats(self) -> dict[str, Any]:
-        return self.link.stats()
-
     def close(self) -> None:
         self.port.close()
-        self.link.close()
+        super().close()
 
 
 class TlogSource:

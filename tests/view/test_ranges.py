@@ -10,21 +10,9 @@ from gcs_estimator.config import load_config
 from gcs_estimator.session import RecordingSource, Session
 from gcs_estimator.view import layout as lay
 from gcs_estimator.view.live import RerunView, ViewSink
-from gcs_estimator.view.outlets import Layout, Op, Outlet, Text
+from gcs_estimator.view.outlets import Layout, Text
 from sim.truth import simulate
-
-
-class Collect(Outlet):
-    """An outlet that keeps what it is sent."""
-
-    def __init__(self) -> None:
-        self.ops: list[Op] = []
-
-    def send(self, op: Op) -> None:
-        self.ops.append(op)
-
-    def close(self) -> None:
-        pass
+from tests.view.test_layout_burst import Collect
 
 
 def test_ranges_follow_the_estimates_and_the_end_says_what_is_identified() -> None:
