@@ -167,8 +167,9 @@ def load_until_steady(
     url: str, timeout_s: float = 90.0, interval_s: float = 1.0, width: int = 1600
 ) -> tuple[bytes, float]:
     """Open url and take a screenshot every interval_s until two in a row are the same
-    (the viewer has loaded everything and stopped drawing); that screenshot and the
-    seconds it took. An AssertionError with the last picture's size at the timeout."""
+    and drawn (a page still blank while the viewer loads does not count): the viewer
+    has loaded everything and stopped drawing. That screenshot and the seconds it took;
+    an AssertionError at the timeout."""
     browser = Browser(width=width)
     try:
         start = time.monotonic()
@@ -177,12 +178,21 @@ def load_until_steady(
         while time.monotonic() - start < timeout_s:
             time.sleep(interval_s)  # a polling interval, not a wait for a process
             shot = browser.screenshot()
-            if shot == previous:
+            if shot == previous and drawn(shot):
                 return shot, time.monotonic() - start - interval_s
             previous = shot
         raise AssertionError(f"the view never stood still in {timeout_s:.0f} s")
     finally:
         browser.close()
+
+
+DRAWN_COLOURS = 200
+"""Distinct colours above which a screenshot shows a drawn view, not a blank page."""
+
+
+def drawn(png: bytes) -> bool:
+    img = decode_png(png)
+    return len(np.unique(img.reshape(-1, 3), axis=0)) > DRAWN_COLOURS
 
 
 def decode_png(data: bytes) -> np.ndarray:

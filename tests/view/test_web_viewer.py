@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.view import layout as lay
-from tests.view.browser import CHROMIUM, decode_png, load_until_steady, served
+from tests.view.browser import CHROMIUM, decode_png, drawn, load_until_steady, served
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -34,7 +34,7 @@ def test_the_web_viewer_shows_the_whole_flight(tmp_path: Path) -> None:
     img = decode_png(png)
     height = img.shape[0]
     top = img[: int(0.45 * height)]  # the coefficient grid
-    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 200  # not a blank page
+    assert drawn(png)  # not a blank page
     # Every column of the grid (drag, lift, moment) holds the IEKF line and the truth.
     for third in np.array_split(np.arange(top.shape[1]), 3):
         panel = top[:, third]
