@@ -69,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="flight duration")
     ap.add_argument("--config", default="noc_uav")
     ap.add_argument("--view", action="store_true", help="with the Rerun view saving an .rrd")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config")
     record.add_argument(ap, "live")
     args = ap.parse_args(argv)
     with record.recorded("live", args.record, "Live link: latency and load on loopback UDP"):
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     override = f"simulation.manoeuvre.duration_s={args.seconds}"
-    config = load_config(args.config, [override])
+    config = load_config(args.config, [override, *args.set])
 
     latency = Latency()
     warm_up(config)  # compiles the kernels before binding

@@ -332,7 +332,7 @@ class FilterTuning:
     )
     max_step_s: float = setting(0.02, gt=0, unit="s", doc="longest Runge-Kutta prediction step")
     restart_frames_per_step: int = setting(
-        25,
+        10,
         ge=0,
         doc="frames of a restart's re-run done per new frame (it catches up beside the live "
         "pass); 0: all at once",
