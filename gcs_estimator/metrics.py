@@ -151,7 +151,7 @@ class FilterSummary:
     kind: FilterKind
     coefficients: tuple[CoefficientSummary, ...]
     mean_nis: float
-    """Mean NIS over the updates after the last restart (the filter as it runs on)."""
+    """Mean NIS over the updates of the pass that runs on (from the last restart's swap)."""
     mean_nis_all: float
     """Mean NIS over every update, the zero-start transient included."""
     mean_channels: float
@@ -187,7 +187,6 @@ def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: flo
 def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterKind, FilterSummary]:
     """Figures for each filter of a finished run (needs the estimator's history)."""
     out: dict[FilterKind, FilterSummary] = {}
-    restarts = result.config.filter.restart_times_s
     for kind, fr in result.filters.items():
         track = fr.track
         if track is None or len(track.t) == 0:
@@ -231,7 +230,8 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
                 )
             )
         used = track.n_used > 0
-        settled = used & (track.t - t0 > (restarts[-1] if restarts else -1.0))
+        settled = used.copy()  # the pass that runs on: from the last restart's swap
+        settled[: result.final_pass_from] = False
         nees = None
         if truth is not None:
             d = x - truth
