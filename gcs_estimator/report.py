@@ -463,21 +463,25 @@ def write_history_csv(path: Path, result: EstimatorResult) -> None:
             tr = fr.track
             if tr is None or len(tr.t) == 0:
                 continue
-
-            def missing_empty(values: np.ndarray) -> list[Any]:
-                return [pa.array(np.asarray(c), from_pandas=True) for c in np.atleast_2d(values.T)]
-
             columns = [
                 pa.array([kind] * len(tr.t)),
                 pa.array(np.asarray(tr.t, float)),
-                *[pa.array(np.asarray(c)) for c in tr.x.T],
-                *[pa.array(np.asarray(c)) for c in tr.sigma.T],
-                *missing_empty(np.asarray(tr.nis)[None, :].T),
+                *_arrow_columns(tr.x),
+                *_arrow_columns(tr.sigma),
+                *_arrow_columns(tr.nis[:, None], blank_nan=True),
                 pa.array(np.asarray(tr.n_used).astype(np.int64)),
-                *missing_empty(np.asarray(tr.u)),
-                *missing_empty(np.asarray(tr.y)),
+                *_arrow_columns(tr.u, blank_nan=True),
+                *_arrow_columns(tr.y, blank_nan=True),
             ]
             pacsv.write_csv(pa.table(columns, names=header), fh, options)
+
+
+def _arrow_columns(values: np.ndarray, blank_nan: bool = False) -> list[Any]:
+    """Each column of a [N x k] array as an Arrow array (NaN as a missing value: an empty
+    cell, where blank_nan)."""
+    import pyarrow as pa
+
+    return [pa.array(np.asarray(c), from_pandas=blank_nan) for c in np.asarray(values).T]
 
 
 def write_results(
