@@ -14,6 +14,7 @@ HOST may be a name, an IPv4 address or an IPv6 address in brackets ([::1]:14550)
 
 from __future__ import annotations
 
+import contextlib
 import re
 import socket
 import struct
@@ -169,17 +170,13 @@ ANCILLARY_BYTES = 64
 """Room for both (a timespec and a counter, with their headers)."""
 
 
-def kernel_stamps(sock: socket.socket) -> bool:
-    """Ask for arrival times and the drop counter with every datagram (Linux); False
-    where the system has neither (receive times are then read after the fact)."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
-    except OSError:
-        return False
-    return True
+def kernel_stamps(sock: socket.socket) -> None:
+    """Ask for arrival times and the drop counter with every datagram (Linux); elsewhere
+    nothing (receive times are then read after the fact)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
 
 
 def arrival(ancillary: list[tuple[int, int, bytes]], fallback: float) -> tuple[float, int | None]:

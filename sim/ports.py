@@ -69,8 +69,6 @@ class UdpIn:
     def __init__(self, endpoint: Endpoint) -> None:
         self.sock = endpoints.open_socket(endpoint, 1 << 20)
         self.peer: tuple[str, int] | None = None
-        self.unsent = 0
-        """Packets sent before any station spoke (dropped)."""
         self._pending: list[bytes] = []
         """Received while waiting for the station, kept for receive()."""
 
@@ -93,8 +91,7 @@ class UdpIn:
         return True
 
     def send(self, packet: bytes) -> None:
-        if self.peer is None:
-            self.unsent += 1
+        if self.peer is None:  # nobody has spoken yet: nowhere to send it
             return
         with contextlib.suppress(OSError):
             self.sock.sendto(packet, self.peer)
