@@ -12,14 +12,14 @@ tests/filters/test_fast.py checks it against the reference, kernel and flight al
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
 from gcs_estimator.arrays import FloatArray, IntArray
-from gcs_estimator.filters import core
+from gcs_estimator.filters import core, small
 from gcs_estimator.filters.core import FilterState, GustState, StepInfo, Tuning
 from gcs_estimator.filters.hybrid import PSD_JITTER
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
@@ -38,43 +38,44 @@ for _fn in (
 
 
 @njit(cache=True)
-def _congruence(M: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
-    """(I + E) M (I + E)^T for symmetric M, where E is zero but for its first d rows,
-    D [d x n]: M + E M + M E^T + E M E^T at d x n x n instead of n^3."""
-    DM = D @ M
-    out = M.copy()
-    n = M.shape[0]
-    d = D.shape[0]
+def _stage(F: FloatArray, K: FloatArray, c: float, d: int) -> FloatArray:  # pragma: no cover
+    """F[:d] + c F[:d, :d] @ K: a Runge-Kutta stage of the transition matrix's top rows."""
+    n = F.shape[1]
+    out = np.empty((d, n))
     for i in range(d):
         for j in range(n):
-            out[i, j] += DM[i, j]
-            out[j, i] += DM[i, j]
-    DMD = DM @ np.ascontiguousarray(D.T)
-    for i in range(d):
-        for j in range(d):
-            out[i, j] += DMD[i, j]
+            out[i, j] = F[i, j]
+        for a in range(d):
+            f = c * F[i, a]
+            if f == 0.0:
+                continue
+            for j in range(n):
+                out[i, j] += f * K[a, j]
     return out
 
 
 @njit(cache=True)
-def _congruence_diag(q: FloatArray, D: FloatArray) -> FloatArray:  # pragma: no cover
-    """_congruence(diag(q), D): D diag(q) is D with its columns scaled, exactly the
-    products the matrix product would sum with zeros."""
-    DM = np.empty_like(D)
-    for i in range(D.shape[0]):
-        for j in range(D.shape[1]):
-            DM[i, j] = D[i, j] * q[j]
-    out = np.diag(q)
-    d = D.shape[0]
+def _add_process_noise(
+    P: FloatArray, q: FloatArray, D: FloatArray, D_m: FloatArray, h: float
+) -> None:  # pragma: no cover
+    """P += Qd, Simpson's rule for the integral of Phi(s) diag(q) Phi(s)^T over a step h:
+    h/6 (diag(q) + 4 (I + E_m) diag(q) (I + E_m)^T + (I + E) diag(q) (I + E)^T), the
+    transition matrix at mid-step and at the end being I + E_m and I + E (first d rows
+    D_m and D, zero below)."""
+    d, n = D.shape
+    for j in range(n):
+        P[j, j] += h * q[j]
+    w = h / 6.0
     for i in range(d):
-        for j in range(q.shape[0]):
-            out[i, j] += DM[i, j]
-            out[j, i] += DM[i, j]
-    DMD = DM @ np.ascontiguousarray(D.T)
-    for i in range(d):
-        for j in range(d):
-            out[i, j] += DMD[i, j]
-    return out
+        for j in range(n):
+            g = w * (4.0 * D_m[i, j] + D[i, j]) * q[j]
+            P[i, j] += g
+            P[j, i] += g
+        for b in range(d):
+            acc = 0.0
+            for c in range(n):
+                acc += (4.0 * D_m[i, c] * D_m[b, c] + D[i, c] * D[b, c]) * q[c]
+            P[i, b] += w * acc
 
 
 @njit(cache=True)
@@ -91,81 +92,39 @@ def _propagate(
     """hybrid.propagate for the aircraft: rows >= d = n_dynamic of F are zero, so the
     transition matrix differs from I in its first d rows only, and each Runge-Kutta stage
     of it is d x n. Q = diag(q); the inputs go linearly from u0 to u1 over dt."""
+    P = P.copy()
     if dt <= 0.0:
-        return x.copy(), P.copy()
+        return x.copy(), P
     steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
     h = dt / steps
     d = m.n_dynamic
+    n = x.shape[0]
     still = np.zeros(2)
     du = u1 - u0
+    D = np.empty((d, n))
+    D_m = np.empty((d, n))
     for j in range(steps):
         ua = u0 + du * (j / steps)
         ub = u0 + du * ((j + 1) / steps)
         x, F1, F2, F3, F4 = rk4_step(x, ua, ub, still, h, m)
         # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
-        K1 = np.ascontiguousarray(F1[:d])
-        K2 = F2[:d] + 0.5 * h * (np.ascontiguousarray(F2[:d, :d]) @ K1)
-        K3 = F3[:d] + 0.5 * h * (np.ascontiguousarray(F3[:d, :d]) @ K2)
-        K4 = F4[:d] + h * (np.ascontiguousarray(F4[:d, :d]) @ K3)
-        D = h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
-        D_m = 0.25 * h * (K1 + K2)
-        Qd = h / 6.0 * (np.diag(q) + 4.0 * _congruence_diag(q, D_m) + _congruence_diag(q, D))
-        P = _congruence(P, D) + Qd
-    return x, 0.5 * (P + P.T)
-
-
-@njit(cache=True)
-def _cholesky(S: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
-    """Lower Cholesky factor of S plus a tiny diagonal (hybrid.PSD_JITTER); False if S is
-    not positive definite (or not finite)."""
-    m = S.shape[0]
-    scale = 1.0
-    for i in range(m):
-        scale = max(scale, abs(S[i, i]))
-    jitter = PSD_JITTER * scale
-    L = np.zeros((m, m))
-    for i in range(m):
-        for j in range(i + 1):
-            acc = S[i, j]
-            for c in range(j):
-                acc -= L[i, c] * L[j, c]
-            if i != j:
-                L[i, j] = acc / L[j, j]
-                continue
-            acc += jitter
-            if not acc > 0.0:  # also catches NaN
-                return L, False
-            L[i, i] = math.sqrt(acc)
-    return L, True
-
-
-@njit(cache=True)
-def _psd_solve(S: FloatArray, B: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
-    """S^-1 B by Cholesky with a tiny diagonal; (garbage, False) if S is not PD."""
-    L, ok = _cholesky(S)
-    if not ok:
-        return B.copy(), False
-    m = S.shape[0]
-    # Forward then back substitution: S^-1 B = L^-T L^-1 B.
-    Z = np.empty_like(B)
-    for col in range(B.shape[1]):
-        for i in range(m):
-            acc = B[i, col]
-            for j in range(i):
-                acc -= L[i, j] * Z[j, col]
-            Z[i, col] = acc / L[i, i]
-        for i in range(m - 1, -1, -1):
-            acc = Z[i, col]
-            for j in range(i + 1, m):
-                acc -= L[j, i] * Z[j, col]
-            Z[i, col] = acc / L[i, i]
-    return Z, True
+        K2 = _stage(F2, F1, 0.5 * h, d)
+        K3 = _stage(F3, K2, 0.5 * h, d)
+        K4 = _stage(F4, K3, h, d)
+        for i in range(d):
+            for c in range(n):
+                D[i, c] = h / 6.0 * (F1[i, c] + 2.0 * K2[i, c] + 2.0 * K3[i, c] + K4[i, c])
+                D_m[i, c] = 0.25 * h * (F1[i, c] + K2[i, c])
+        small.congruence(P, D)
+        _add_process_noise(P, q, D, D_m, h)
+    small.symmetrise(P)
+    return x, P
 
 
 @njit(cache=True)
 def _select(
     y: FloatArray, hx: FloatArray, H: FloatArray, HP: FloatArray, R: FloatArray, gate: float
-) -> np.ndarray:  # pragma: no cover
+) -> IntArray:  # pragma: no cover
     """Channels present in y and, with gate > 0, within gate sigma of the prediction."""
     idx = np.empty(N_OBS, dtype=np.int64)
     m = 0
@@ -184,27 +143,68 @@ def _select(
 
 
 @njit(cache=True)
+def _rows(A: FloatArray, idx: IntArray) -> FloatArray:  # pragma: no cover
+    out = np.empty((idx.shape[0], A.shape[1]))
+    for a in range(idx.shape[0]):
+        for j in range(A.shape[1]):
+            out[a, j] = A[idx[a], j]
+    return out
+
+
+class _Linearised(NamedTuple):
+    """The observation linearised at an iterate, on the channels used."""
+
+    h: FloatArray
+    H: FloatArray
+    HP: FloatArray
+    """H @ P-."""
+    L: FloatArray
+    """Cholesky factor of S = H P- H^T + R."""
+
+
+@njit(cache=True)
+def _linearise(
+    x: FloatArray, u: FloatArray, idx: IntArray, Pp: FloatArray, Ru: FloatArray, m: ModelArrays
+) -> tuple[_Linearised, bool]:  # pragma: no cover
+    hx, H_all = observe(x, u, m)
+    H = _rows(H_all, idx)
+    start, cols = small.nonzero_columns(H)
+    HP = small.sparse_times(H, start, cols, Pp)
+    L, ok = small.cholesky(small.gram(HP, H, Ru), PSD_JITTER)
+    return _Linearised(hx[idx], H, HP, L), ok
+
+
+@njit(cache=True)
 def _moved(
-    x_next: FloatArray, x_i: FloatArray, Pp: FloatArray, K1: FloatArray, HuP1: FloatArray
+    x_next: FloatArray, x_i: FloatArray, Pp: FloatArray, Kt1: FloatArray, HP1: FloatArray
 ) -> float:  # pragma: no cover
     """Largest move of a component in EKF-posterior sigmas (the relinearisation gate)."""
     moved = 0.0
     for j in range(x_next.shape[0]):
         var = Pp[j, j]
-        for a in range(K1.shape[1]):
-            var -= K1[j, a] * HuP1[a, j]
+        for a in range(Kt1.shape[0]):
+            var -= Kt1[a, j] * HP1[a, j]
         moved = max(moved, abs(x_next[j] - x_i[j]) / math.sqrt(max(var, 1e-300)))
     return moved
 
 
 @njit(cache=True)
-def _largest_step(
-    x_next: FloatArray, x_i: FloatArray, sigma: FloatArray
-) -> float:  # pragma: no cover
-    biggest = 0.0
-    for j in range(x_next.shape[0]):
-        biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
-    return biggest
+def _gain_step(
+    xp: FloatArray, x_i: FloatArray, yu: FloatArray, lin: _Linearised
+) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
+    """The gain's transpose Kt = S^-1 H P- and the next iterate
+    x- + K (y - h(x_i) - H (x- - x_i))."""
+    Kt = small.cholesky_solve(lin.L, lin.HP)
+    k, n = Kt.shape
+    r = yu - lin.h
+    for a in range(k):
+        for j in range(n):
+            r[a] -= lin.H[a, j] * (xp[j] - x_i[j])
+    x_next = xp.copy()
+    for a in range(k):
+        for j in range(n):
+            x_next[j] += Kt[a, j] * r[a]
+    return Kt, x_next
 
 
 @njit(cache=True)
@@ -214,50 +214,44 @@ def _iterate(
     u: FloatArray,
     yu: FloatArray,
     Ru: FloatArray,
-    idx: np.ndarray,
-    hu: FloatArray,
-    Hu: FloatArray,
-    HuP: FloatArray,
-    S: FloatArray,
+    idx: IntArray,
+    first: _Linearised,
     tun: Tuning,
     m: ModelArrays,
-) -> tuple[FloatArray, FloatArray, FloatArray, int, bool]:  # pragma: no cover
-    """The (iterated) update with the prior held fixed (hybrid.iekf_update), from h, H,
-    H P and S at the prior on the channels used: returns the last iterate, gain and
-    Jacobian, the iterations kept, and False if some S_i was not positive definite."""
+) -> tuple[FloatArray, FloatArray, _Linearised, int, bool]:  # pragma: no cover
+    """The (iterated) update with the prior held fixed (hybrid.iekf_update), from the
+    linearisation at the prior: returns the last iterate, the gain's transpose and the
+    linearisation it came from, the iterations kept, and False if some S_i was not
+    positive definite."""
+    n = xp.shape[0]
     sigma = np.sqrt(np.diag(Pp))
     x_i = xp.copy()
-    K = K1 = np.zeros((xp.shape[0], idx.shape[0]))
-    Hu1 = Hu
-    HuP1 = np.empty((idx.shape[0], xp.shape[0]))
+    lin = first
+    Kt = Kt1 = np.zeros((idx.shape[0], n))
     done = 0
     for it in range(tun.iterations):
         if it > 0:
-            hx_i, H_i = observe(x_i, u, m)
-            Hu = np.ascontiguousarray(H_i[idx])
-            hu = hx_i[idx]
-            HuP = Hu @ Pp
-            S = HuP @ Hu.T + Ru
-        Kt, ok = _psd_solve(S, HuP)
-        if not ok:
-            return xp, K, Hu, 0, False
-        K = np.ascontiguousarray(Kt.T)
-        x_next = xp + K @ (yu - hu - Hu @ (xp - x_i))
+            lin, ok = _linearise(x_i, u, idx, Pp, Ru, m)
+            if not ok:
+                return xp, Kt, lin, 0, False
+        Kt, x_next = _gain_step(xp, x_i, yu, lin)
         if (
             it == 1
             and tun.relinearise > 0.0
-            and _moved(x_next, x_i, Pp, K1, HuP1) < tun.relinearise
+            and _moved(x_next, x_i, Pp, Kt1, first.HP) < tun.relinearise
         ):
             # Keep the EKF update: re-linearising moved nothing by `relinearise` sigmas.
-            return x_i, K1, Hu1, done, True
+            return x_i, Kt1, first, done, True
         done = it + 1
-        biggest = _largest_step(x_next, x_i, sigma)
+        biggest = 0.0
+        for j in range(n):
+            biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
         x_i = x_next
         if it == 0:
-            K1, Hu1, HuP1 = K, Hu, HuP
+            Kt1 = Kt
         if tun.tolerance > 0.0 and biggest < tun.tolerance:
             break
-    return x_i, K, Hu, done, True
+    return x_i, Kt, lin, done, True
 
 
 @njit(cache=True)
@@ -269,26 +263,29 @@ def _update(
     e_out = np.full(N_OBS, np.nan)
     s_out = np.full(N_OBS, np.nan)
     hx, H = observe(xp, u, m)
-    HP = H @ Pp
+    start, cols = small.nonzero_columns(H)
+    HP = small.sparse_times(H, start, cols, Pp)
     idx = _select(y, hx, H, HP, tun.R, tun.gate)
     k = idx.shape[0]
     if k == 0:
         return xp, Pp, e_out, s_out, 0.0, 0, 0
-    Hu = np.ascontiguousarray(H[idx])
-    HuP = np.ascontiguousarray(HP[idx])
-    hu = hx[idx]
-    yu = y[idx]
+    Hu = _rows(H, idx)
+    HuP = _rows(HP, idx)
     Ru = np.empty((k, k))
+    yu = np.empty(k)
     for a in range(k):
+        yu[a] = y[idx[a]]
         for b in range(k):
             Ru[a, b] = tun.R[idx[a], idx[b]]
-    # Innovation statistics at the prior (NIS).
-    S = HuP @ Hu.T + Ru
-    e = yu - hu
-    Se, ok = _psd_solve(S, e.reshape(k, 1))
+    S = small.gram(HuP, Hu, Ru)
+    L, ok = small.cholesky(S, PSD_JITTER)
     if not ok:
         return xp, Pp, e_out, s_out, math.nan, -1, 0
-    x, K, Hu, done, ok = _iterate(xp, Pp, u, yu, Ru, idx, hu, Hu, HuP, S, tun, m)
+    first = _Linearised(hx[idx], Hu, HuP, L)
+    # Innovation statistics at the prior (NIS).
+    e = yu - first.h
+    Se = small.cholesky_solve(L, e.reshape(k, 1))
+    x, Kt, lin, done, ok = _iterate(xp, Pp, u, yu, Ru, idx, first, tun, m)
     if not ok:
         return xp, Pp, e_out, s_out, math.nan, -1, 0
     nis = 0.0
@@ -296,9 +293,8 @@ def _update(
         nis += e[a] * Se[a, 0]
         e_out[idx[a]] = e[a]
         s_out[idx[a]] = math.sqrt(S[a, a])
-    I_KH = np.eye(xp.shape[0]) - K @ Hu
-    P = I_KH @ Pp @ np.ascontiguousarray(I_KH.T) + K @ Ru @ np.ascontiguousarray(K.T)
-    return x, 0.5 * (P + P.T), e_out, s_out, nis, k, done
+    P = small.joseph(Pp, Kt, lin.H, lin.HP, Ru)
+    return x, P, e_out, s_out, nis, k, done
 
 
 @njit(cache=True)
@@ -329,90 +325,124 @@ def _step(
     return new, info, healthy
 
 
+# The packed form of a filter's Tuning and its aircraft's ModelArrays: two flat arrays, so
+# that a step's call hands the compiled code 17 values instead of 39 (the dispatch cost
+# grows with every argument). Scalar fields first, then the arrays back to back.
+_TF_SCALARS = (
+    "q_decay_s",
+    "tolerance",
+    "relinearise",
+    "max_step_s",
+    "gate",
+    "adapt_time_s",
+    "detection2",
+    "gust_var0",
+)
+_TI_HEAD = 9
+"""iterations, adaptive, linear_inputs, coef_start, n_dynamic, bias_start, then the
+lengths of axis (= regressor) and bias_channel, then n."""
+
+
+def pack(tuning: Tuning, m: ModelArrays) -> tuple[FloatArray, IntArray]:
+    """Tuning and ModelArrays as (floats, ints) for _kernel (unpacked by _unpack)."""
+    n = tuning.q_final.shape[0]
+    floats = [np.array([getattr(tuning, f) for f in _TF_SCALARS], float)]
+    floats += [np.ravel(tuning.R)]
+    floats += [tuning.q_final, tuning.q_initial, tuning.gust_unit]
+    floats += [tuning.prior_x, tuning.prior_sigma, m.k]
+    head = [
+        tuning.iterations,
+        int(tuning.adaptive),
+        int(tuning.linear_inputs),
+        m.coef_start,
+        m.n_dynamic,
+        m.bias_start,
+        m.axis.shape[0],
+        m.bias_channel.shape[0],
+        n,
+    ]
+    ints = np.concatenate([np.array(head), m.axis, m.regressor, m.bias_channel])
+    return np.concatenate(floats).astype(np.float64), ints.astype(np.int64)
+
+
+@njit(cache=True)
+def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # pragma: no cover
+    """pack's inverse, as views of the two arrays."""
+    n = ti[8]
+    n_coef = ti[6]
+    o = len(_TF_SCALARS)
+    R = tf[o : o + N_OBS * N_OBS].copy().reshape((N_OBS, N_OBS))
+    o += N_OBS * N_OBS
+    vecs = [tf[o + i * n : o + (i + 1) * n] for i in range(5)]
+    o += 5 * n
+    tun = Tuning(
+        R,
+        vecs[0],
+        vecs[1],
+        tf[0],
+        vecs[2],
+        ti[0],
+        tf[1],
+        tf[2],
+        tf[3],
+        tf[4],
+        ti[1] != 0,
+        tf[5],
+        tf[6],
+        vecs[3],
+        vecs[4],
+        tf[7],
+        ti[2] != 0,
+    )
+    h = _TI_HEAD
+    model = ModelArrays(
+        tf[o:],
+        ti[h : h + n_coef],
+        ti[h + n_coef : h + 2 * n_coef],
+        ti[3],
+        ti[4],
+        ti[h + 2 * n_coef :],
+        ti[5],
+    )
+    return tun, model
+
+
 @njit(cache=True, nogil=True)
 def _kernel(
     x: FloatArray,
     P: FloatArray,
-    t_prev: float,
     u_prev: FloatArray,
+    sens: FloatArray,
+    t_prev: float,
     t_start: float,
     g_var: float,
     g_info: float,
     g_gain: float,
     g_num: float,
     g_den: float,
-    g_sens: FloatArray,
     g_age: int,
     t: float,
     u: FloatArray,
     y: FloatArray,
-    R: FloatArray,
-    q_final: FloatArray,
-    q_initial: FloatArray,
-    q_decay_s: float,
-    gust_unit: FloatArray,
-    iterations: int,
-    tolerance: float,
-    relinearise: float,
-    max_step_s: float,
-    gate: float,
-    adaptive: bool,
-    adapt_time_s: float,
-    detection2: float,
-    prior_x: FloatArray,
-    prior_sigma: FloatArray,
-    gust_var0: float,
-    linear_inputs: bool,
-    k: FloatArray,
-    axis: IntArray,
-    regressor: IntArray,
-    coef_start: int,
-    n_dynamic: int,
-    bias_channel: IntArray,
-    bias_start: int,
+    tf: FloatArray,
+    ti: IntArray,
 ) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """_step over the fields of FilterState, Tuning and ModelArrays, in their order."""
+    """_step over the fields of FilterState, and Tuning and ModelArrays packed."""
+    tun, m = _unpack(tf, ti)
     st = FilterState(
-        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, g_sens, g_age)
+        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age)
     )
-    tun = Tuning(
-        R,
-        q_final,
-        q_initial,
-        q_decay_s,
-        gust_unit,
-        iterations,
-        tolerance,
-        relinearise,
-        max_step_s,
-        gate,
-        adaptive,
-        adapt_time_s,
-        detection2,
-        prior_x,
-        prior_sigma,
-        gust_var0,
-        linear_inputs,
-    )
-    new, info, healthy = _step(
-        st,
-        t,
-        u,
-        y,
-        tun,
-        ModelArrays(k, axis, regressor, coef_start, n_dynamic, bias_channel, bias_start),
-    )
+    new, info, healthy = _step(st, t, u, y, tun, m)
     g = new.gust
+    # The arrays in one vector: each array returned costs more to hand back than the
+    # arithmetic of a row of the update; kernel_step slices it.
+    vec = np.concatenate((new.x, info.sigma, info.innovation, info.innovation_sigma, new.u, g.sens))
     return (
-        new.x,
         new.P,
-        new.u,
-        info.sigma,
+        vec,
         info.nis,
         info.n_used,
         info.iterations,
-        info.innovation,
-        info.innovation_sigma,
         info.gust_sigma,
         info.failed,
         healthy,
@@ -421,9 +451,25 @@ def _kernel(
         g.gain,
         g.pass_num,
         g.pass_den,
-        g.sens,
         g.sens_age,
     )
+
+
+_PACKED: dict[tuple[int, int], tuple[Tuning, Model, FloatArray, IntArray]] = {}
+"""pack's results by the identity of (tuning, model); the entry holds both, so an id is
+never reused while its entry lives."""
+
+
+def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
+    key = (id(tuning), id(model))
+    hit = _PACKED.get(key)
+    if hit is not None and hit[0] is tuning and hit[1] is model:
+        return hit[2], hit[3]
+    if len(_PACKED) >= 64:
+        _PACKED.clear()
+    tf, ti = pack(tuning, model.arrays)
+    _PACKED[key] = (tuning, model, tf, ti)
+    return tf, ti
 
 
 def kernel_step(
@@ -431,19 +477,38 @@ def kernel_step(
 ) -> tuple[FilterState, StepInfo, bool]:
     """Predict, update with y, adapt the gust level (core contract)."""
     t = float(t)
+    tf, ti = _packed(tuning, model)
+    g = state.gust
     kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
-    (x, P, u_held, sigma, nis, used, done, e, s, gust_sigma, failed, healthy, *gust) = kernel(
+    (P, vec, nis, used, done, gust_sigma, failed, healthy, *gust) = kernel(
         state.x,
         state.P,
-        state.t,
         state.u,
+        g.sens,
+        state.t,
         state.t_start,
-        *state.gust,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.sens_age,
         t,
         u,
         y,
-        *tuning,
-        *model.arrays,
+        tf,
+        ti,
     )
-    new = FilterState(x, P, t, u_held, state.t_start, GustState(*gust))
-    return new, StepInfo(sigma, nis, used, done, e, s, gust_sigma, failed), healthy
+    n = state.x.shape[0]
+    o = 2 * n + 2 * N_OBS
+    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
+    var, info, gain, num, den, age = gust
+    new = FilterState(
+        vec[:n],
+        P,
+        t,
+        vec[o : o + u.shape[0]],
+        state.t_start,
+        GustState(var, info, gain, num, den, vec[o + u.shape[0] :], age),
+    )
+    return new, StepInfo(vec[n : 2 * n], nis, used, done, e, s, gust_sigma, failed), healthy

@@ -28,8 +28,13 @@ from sim.truth import simulate
 # Cholesky, BLAS or not): agreement to a millionth of each state's sigma, and relative
 # 1e-6 on covariances and statistics, is far below anything that matters and far above
 # rounding.
-SIGMA_FRACTION = 1e-6
 PATHS_RTOL = 1e-6
+# Over a flight: the zero start (prior sigma 100, posterior a thousandth) cancels all but
+# 1e-10 of the prior in the first updates, so the order of the arithmetic shows there at
+# a few millionths of a sigma; once the first restart's pass takes over, the two agree
+# to rounding.
+TRANSIENT_FRACTION = 1e-5
+SETTLED_FRACTION = 1e-9
 
 Aircraft = tuple[AircraftConfig, Model, np.ndarray]
 Case = dict[str, Any]
@@ -78,7 +83,9 @@ def _assert_same(
     scale = np.sqrt(np.abs(np.diag(sb.P))) + 1e-300
     assert np.all(np.abs(sa.x - sb.x) <= rtol * scale + 1e-14)
     assert np.all(np.abs(sa.P - sb.P) <= rtol * np.outer(scale, scale) + P_atol)
-    np.testing.assert_allclose(ia.sigma, ib.sigma, rtol=rtol)
+    # A variance within P_atol gives a sigma within P_atol / (sigma_a + sigma_b).
+    sigma_atol = P_atol / (ia.sigma + ib.sigma + 1e-300)
+    assert np.all(np.abs(ia.sigma - ib.sigma) <= rtol * ib.sigma + sigma_atol)
     np.testing.assert_allclose(ia.innovation, ib.innovation, rtol=rtol, atol=1e-12)
     np.testing.assert_allclose(ia.innovation_sigma, ib.innovation_sigma, rtol=rtol)
     assert ia.nis == pytest.approx(ib.nis, rel=rtol, abs=1e-9, nan_ok=True)
@@ -258,10 +265,11 @@ def test_fast_equals_reference_over_a_flight(noc_config: AircraftConfig, gate: f
     for i in range(n):
         a = fast_est.step(float(flight.t_s[i]), flight.inputs[i], y[i])
         b = ref_est.step(float(flight.t_s[i]), flight.inputs[i], y[i])
+        fraction = SETTLED_FRACTION if fast_est.restarts_done else TRANSIENT_FRACTION
         for kind in a:
             ia, ib = a[kind].info, b[kind].info
             diff = np.abs(a[kind].x - b[kind].x)
-            assert np.all(diff <= SIGMA_FRACTION * ib.sigma), (i, kind, diff / ib.sigma)
+            assert np.all(diff <= fraction * ib.sigma), (i, kind, diff / ib.sigma)
             np.testing.assert_allclose(ia.sigma, ib.sigma, rtol=PATHS_RTOL)
             assert ia.n_used == ib.n_used
             assert ia.nis == pytest.approx(ib.nis, rel=PATHS_RTOL, abs=1e-9, nan_ok=True)
