@@ -2,12 +2,19 @@
 
     python benchmarks/speed.py
 
-Per filter (the EKF, and the IEKF with all N = 7 iterations every step), CPU time,
-median of 3:
+Per filter (the EKF; the IEKF with the configured relinearisation gate, which stops it
+after the first iteration near the solution; and the IEKF with all N = 7 iterations every
+step), CPU time, median of 3, from a converged state over 2500 frames of a flight:
 - kernel: the compiled backend's one call per step (filters.fast.kernel_step: process
   noise, prediction, update, health check, gust matching);
-- step contract: the same through filters.core's guarded step, as the estimator calls it;
-- numpy reference: the reference backend through the same contract, and the ratio.
+- step contract: the same through filters.core's guarded step, as the estimator's runner
+  calls it for each filter and frame (the target figure);
+- flops per step: counted from the loop bounds of the step's linear algebra (the model's
+  own equations not counted), and the rate they run at as a share of the machine's
+  small-matrix rate (a 15 x 15 product through BLAS in a compiled loop, measured here);
+- numpy reference: the reference backend through the same contract;
+- filterpy: filterpy's ExtendedKalmanFilter on the same model functions (the numpy
+  equations, Runge-Kutta state and transition matrix), all channels every frame.
 Then a whole 60 s flight through the estimator (both filters, restarts, history):
 frames per second.
 """
@@ -18,50 +25,145 @@ import argparse
 import sys
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from numba import njit
 
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
+from gcs_estimator.estimator import run_recording
 from gcs_estimator.filters import core, fast
 from gcs_estimator.filters.core import FilterState, Tuning
+from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
+from gcs_estimator.model.channels import N_OBS
 from sim.truth import Flight, simulate
 
 WARM = 300
 """Frames stepped before timing, so that the timing is of the steady state."""
 
+FILTERS: tuple[tuple[str, str, list[str]], ...] = (
+    ("EKF", "EKF", []),
+    ("IEKF (default gate)", "IEKF", []),
+    ("IEKF (N = 7)", "IEKF", ["filter.relinearise_sigma=0"]),
+)
+"""(label, filter kind, config overrides)."""
 
-def _converged(config: AircraftConfig, model: Model, tuning: Tuning, flight: Flight) -> FilterState:
-    step = core.stepper("fast")
-    s = core.initial_state(model, tuning, flight.t_s[0], flight.inputs[0], flight.measurements[0])
-    for i in range(WARM):
-        s, _ = step(
-            s, float(flight.t_s[i]), flight.inputs[i], flight.measurements[i], tuning, model
-        )
-    return s
+Step = Callable[..., Any]
 
 
-def rate(
-    step: Callable[..., tuple[FilterState, object]]
-    | Callable[..., tuple[FilterState, object, bool]],
-    kind: FilterKind,
-    frames: int,
-) -> float:
-    # relinearise_sigma = 0: the IEKF runs all N iterations every step (the configured
-    # gate usually stops it after 2 near the solution, which would flatter the figure).
-    config = load_config("noc_uav", ["filter.relinearise_sigma=0"])
-    flight = simulate(config, seed=1)
-    model = build_model(config)
-    tuning = core.tuning_of(config, model, kind)
-    s = _converged(config, model, tuning, flight)
-    n = min(frames, len(flight.t_s) - WARM)
-    t, u, y = flight.t_s, flight.inputs, flight.measurements
+class Setup:
+    """One filter on the NOC flight, stepped to WARM frames."""
+
+    def __init__(self, kind: str, overrides: list[str]) -> None:
+        self.config: AircraftConfig = load_config("noc_uav", overrides)
+        self.flight: Flight = simulate(self.config, seed=1)
+        self.model: Model = build_model(self.config)
+        self.tuning: Tuning = core.tuning_of(self.config, self.model, kind)  # type: ignore[arg-type]
+        step = core.stepper("fast")
+        f = self.flight
+        s = core.initial_state(self.model, self.tuning, f.t_s[0], f.inputs[0], f.measurements[0])
+        for i in range(WARM):
+            s, _ = step(s, float(f.t_s[i]), f.inputs[i], f.measurements[i], self.tuning, self.model)
+        self.state: FilterState = s
+
+    def rate(self, step: Step, frames: int) -> tuple[float, float]:
+        """(steps per second, mean update iterations per step)."""
+        f, s = self.flight, self.state
+        n = min(frames, len(f.t_s) - WARM)
+        iterations = 0
+        t0 = time.process_time()
+        for i in range(WARM, WARM + n):
+            s, info = step(
+                s, float(f.t_s[i]), f.inputs[i], f.measurements[i], self.tuning, self.model
+            )[:2]
+            iterations += info.iterations
+        return n / (time.process_time() - t0), iterations / n
+
+    def pattern(self) -> tuple[int, int, int, int]:
+        """(n, n_dynamic, channels, non-zeros of H) at the converged state."""
+        _, H = eq.observe(self.state.x, self.flight.inputs[WARM], self.model.arrays)
+        return self.model.n, self.model.arrays.n_dynamic, N_OBS, int(np.count_nonzero(H))
+
+
+def step_flops(n: int, d: int, k: int, nnz: int, iterations: float, rk_steps: int = 1) -> float:
+    """Floating-point operations of one step's linear algebra, from the loop bounds of
+    filters.fast and filters.small (a multiply-add counts 2)."""
+    predict = rk_steps * (
+        3 * 2 * d * d * n  # Runge-Kutta stages of the transition matrix
+        + 8 * d * n  # its weighted sums
+        + 2 * d * n * n
+        + 2 * d * d * n
+        + 4 * d * n  # congruence
+        + n
+        + 5 * d * n
+        + 5 * d * d * n  # process noise (Simpson)
+    )
+    linearise = 2 * nnz * n + k * (k + 1) * n + k**3 / 3  # H P, S, Cholesky
+    update = (
+        2 * N_OBS * n  # gate
+        + 2 * k * k  # NIS
+        + iterations * (linearise + 2 * k * k * n + 4 * k * n)  # gain, iterate
+    )
+    joseph = 2 * n * n * k + 2 * n * n * k + 2 * n * k * k + n * (n + 1) * k
+    return predict + update + joseph
+
+
+@njit(cache=True)
+def _products(A: np.ndarray, times: int) -> float:  # pragma: no cover
+    acc = 0.0
+    for _ in range(times):
+        acc += (A @ A)[0, 0]
+    return acc
+
+
+def small_matrix_gflops() -> float:
+    """The machine's rate on 15 x 15 products through BLAS, from compiled code: best of 5."""
+    A = np.random.default_rng(0).standard_normal((15, 15))
+    _products(A, 10)
+    best = 0.0
+    for _ in range(5):
+        t0 = time.perf_counter()
+        _products(A, 20000)
+        best = max(best, 20000 * 2 * 15**3 / (time.perf_counter() - t0) / 1e9)
+    return best
+
+
+def filterpy_rate(setup: Setup, frames: int) -> float | None:
+    """filterpy's EKF over the same frames, the model's numpy functions, steps/s."""
+    try:
+        from filterpy.kalman import ExtendedKalmanFilter
+    except ImportError:
+        return None
+    model, tuning, f = setup.model, setup.tuning, setup.flight
+    n = model.n
+    eye = np.eye(n)
+    ekf = ExtendedKalmanFilter(dim_x=n, dim_z=N_OBS)
+    ekf.x = setup.state.x.copy()
+    ekf.P = setup.state.P.copy()
+    ekf.R = tuning.R.copy()
+    still = np.zeros(2)
+    count = min(frames, len(f.t_s) - WARM)
     t0 = time.process_time()
-    for i in range(WARM, WARM + n):
-        s = step(s, float(t[i]), u[i], y[i], tuning, model)[0]
-    return n / (time.process_time() - t0)
+    for i in range(WARM, WARM + count):
+        dt = float(f.t_s[i] - f.t_s[i - 1])
+        u0, u1 = model.inputs(f.inputs[i - 1]), model.inputs(f.inputs[i])
+        x1, *rows = eq.rk4_step(ekf.x, u0, u1, still, dt, model.arrays)
+        F1, F2, F3, F4 = (np.vstack([r, np.zeros((n - r.shape[0], n))]) for r in rows)
+        K2 = F2 @ (eye + 0.5 * dt * F1)
+        K3 = F3 @ (eye + 0.5 * dt * K2)
+        K4 = F4 @ (eye + dt * K3)
+        ekf.F = eye + dt / 6.0 * (F1 + 2.0 * K2 + 2.0 * K3 + K4)
+        ekf.Q = np.diag(tuning.q_final) * dt
+        ekf.predict()
+        ekf.x = x1
+        ekf.update(
+            f.measurements[i],
+            lambda x, u=u1: eq.observe(x, u, model.arrays)[1],
+            lambda x, u=u1: eq.observe(x, u, model.arrays)[0],
+        )
+    return count / (time.process_time() - t0)
 
 
 def whole_flight() -> tuple[float, int]:
@@ -86,19 +188,28 @@ def main() -> int:
 
 def run() -> int:
     fast_step, ref_step = core.stepper("fast"), core.stepper("reference")
+    peak = small_matrix_gflops()
+    print(f"small-matrix rate of this machine: {peak:.2f} GFLOP/s (15 x 15 products, BLAS)\n")
     print(
-        "| filter | kernel steps/s | step contract steps/s | contract / kernel | "
-        "numpy reference steps/s | contract / reference |"
+        "| filter | kernel steps/s | step contract steps/s | iterations/step | kflop/step | "
+        "GFLOP/s (contract) | share of small-matrix rate | numpy reference steps/s | "
+        "filterpy EKF steps/s |"
     )
-    print("|---|---|---|---|---|---|")
-    for kind in FILTER_KINDS:
-        kernel = np.median([rate(fast.kernel_step, kind, 2500) for _ in range(3)])
-        contract = np.median([rate(fast_step, kind, 2500) for _ in range(3)])
-        ref = rate(ref_step, kind, 300)
-        label = "IEKF (N = 7)" if kind == "IEKF" else "EKF"
+    print("|---|---|---|---|---|---|---|---|---|")
+    for label, kind, overrides in FILTERS:
+        setup = Setup(kind, overrides)
+        kernel = float(np.median([setup.rate(fast.kernel_step, 2500)[0] for _ in range(3)]))
+        runs = [setup.rate(fast_step, 2500) for _ in range(3)]
+        contract = float(np.median([r[0] for r in runs]))
+        iterations = runs[0][1]
+        flops = step_flops(*setup.pattern(), iterations)
+        gflops = flops * contract / 1e9
+        ref = setup.rate(ref_step, 300)[0]
+        fp = filterpy_rate(setup, 300) if kind == "EKF" else None
+        fp_text = "-" if fp is None else f"{fp:,.0f}"
         print(
-            f"| {label} | {kernel:,.0f} | {contract:,.0f} | {contract / kernel:.2f} | "
-            f"{ref:,.0f} | {contract / ref:.0f}x |"
+            f"| {label} | {kernel:,.0f} | {contract:,.0f} | {iterations:.2f} | "
+            f"{flops / 1e3:.1f} | {gflops:.2f} | {gflops / peak:.1%} | {ref:,.0f} | {fp_text} |"
         )
     fps, n = whole_flight()
     print(

@@ -371,16 +371,14 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
     n = ti[8]
     n_coef = ti[6]
     o = len(_TF_SCALARS)
-    R = tf[o : o + N_OBS * N_OBS].copy().reshape((N_OBS, N_OBS))
+    R = tf[o : o + N_OBS * N_OBS].reshape((N_OBS, N_OBS))
     o += N_OBS * N_OBS
-    vecs = [tf[o + i * n : o + (i + 1) * n] for i in range(5)]
-    o += 5 * n
     tun = Tuning(
         R,
-        vecs[0],
-        vecs[1],
+        tf[o : o + n],
+        tf[o + n : o + 2 * n],
         tf[0],
-        vecs[2],
+        tf[o + 2 * n : o + 3 * n],
         ti[0],
         tf[1],
         tf[2],
@@ -389,14 +387,14 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
         ti[1] != 0,
         tf[5],
         tf[6],
-        vecs[3],
-        vecs[4],
+        tf[o + 3 * n : o + 4 * n],
+        tf[o + 4 * n : o + 5 * n],
         tf[7],
         ti[2] != 0,
     )
     h = _TI_HEAD
     model = ModelArrays(
-        tf[o:],
+        tf[o + 5 * n :],
         ti[h : h + n_coef],
         ti[h + n_coef : h + 2 * n_coef],
         ti[3],

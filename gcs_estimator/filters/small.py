@@ -141,41 +141,45 @@ def joseph(
     n = P.shape[0]
     k = Kt.shape[0]
     A = P.copy()
-    for i in range(n):
-        A_i = A[i]
+    _less_outer(A, Kt, HP, False)
+    # B^T = H A^T - R K^T (R symmetric), over the non-zeros of H and R.
+    Bt = np.zeros((k, n))
+    for b in range(k):
+        Bt_b = Bt[b]
+        for j in range(n):
+            h = H[b, j]
+            if h == 0.0:
+                continue
+            for i in range(n):
+                Bt_b[i] += h * A[i, j]
         for a in range(k):
-            kia = Kt[a, i]
-            HP_a = HP[a]
-            for j in range(n):
-                A_i[j] -= kia * HP_a[j]
-    B = np.empty((n, k))
-    for i in range(n):
-        A_i = A[i]
-        for b in range(k):
-            H_b = H[b]
-            acc = 0.0
-            for j in range(n):
-                acc += A_i[j] * H_b[j]
-            for a in range(k):
-                acc -= Kt[a, i] * R[a, b]
-            B[i, b] = acc
-    _less_outer(A, np.ascontiguousarray(B.T), Kt)
+            r = R[b, a]
+            if r == 0.0:
+                continue
+            Kt_a = Kt[a]
+            for i in range(n):
+                Bt_b[i] -= r * Kt_a[i]
+    _less_outer(A, Bt, Kt, True)
     return A
 
 
 @njit(cache=True, fastmath=FAST)
-def _less_outer(A: FloatArray, Ut: FloatArray, V: FloatArray) -> None:  # pragma: no cover
-    """A <- A - Ut^T V for a result known to be symmetric: the lower triangle of A is
-    updated, then mirrored onto the upper."""
+def _less_outer(
+    A: FloatArray, Ut: FloatArray, V: FloatArray, symmetric: bool
+) -> None:  # pragma: no cover
+    """A <- A - Ut^T V. For a result known to be symmetric only the lower triangle of A
+    is updated, then mirrored onto the upper."""
     n = A.shape[0]
     for i in range(n):
         A_i = A[i]
+        stop = i + 1 if symmetric else A.shape[1]
         for a in range(Ut.shape[0]):
             u = Ut[a, i]
             V_a = V[a]
-            for j in range(i + 1):
+            for j in range(stop):
                 A_i[j] -= u * V_a[j]
-    _mirror(A)
+    if symmetric:
+        _mirror(A)
 
 
 @njit(cache=True)

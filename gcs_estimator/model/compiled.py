@@ -18,6 +18,7 @@ for _fn in (
     eq.density,
     eq.thrust,
     eq.aero_coefficients,
+    eq.dynamics_rows,
     eq.dynamics,
     eq.sensor_placement,
     eq.observe,

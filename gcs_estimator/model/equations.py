@@ -119,7 +119,22 @@ def aero_coefficients(
 
 
 def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
-    """State derivative f(x_a, u) and its Jacobian F = df/dx_a (paper eq. 11, corrected).
+    """State derivative f(x_a, u) and its Jacobian F = df/dx_a [n x n] (dynamics_rows
+    with the zero rows below n_dynamic)."""
+    f, F_rows = dynamics_rows(x, u, model)
+    n = x.shape[0]
+    F = np.zeros((n, n))
+    for i in range(F_rows.shape[0]):
+        for j in range(n):
+            F[i, j] = F_rows[i, j]
+    return f, F
+
+
+def dynamics_rows(
+    x: FloatArray, u: FloatArray, model: ModelArrays
+) -> tuple[FloatArray, FloatArray]:
+    """State derivative f(x_a, u) and the rows of F = df/dx_a that are not zero, the
+    first n_dynamic (paper eq. 11, corrected).
 
         Vdot     = -(qbar*S/m)*CD + g*sin(alpha - theta) + (Fe/m)*cos(alpha + sigma_T)
         alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
@@ -128,7 +143,8 @@ def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArr
         qdot     = (qbar*S*cbar/Iy)*Cm + Fe*arm/Iy
         betadot  = 0
 
-    Returns f [n] and F [n x n], n the dimension of the augmented state.
+    Returns f [n] and F[:n_dynamic] [n_dynamic x n], n the dimension of the augmented
+    state.
     """
     k = model.k
     n = x.shape[0]
@@ -150,7 +166,7 @@ def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArr
     mcoef = k[AREA] * k[CHORD] / k[IYY]
 
     f = np.zeros(n)
-    F = np.zeros((n, n))
+    F = np.zeros((model.n_dynamic, n))
     f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
     f[1] = -0.5 * rho * V * A * C[1] + q + g / V * cat - Fe / (m * V) * sas
     f[2] = q
@@ -279,12 +295,12 @@ def rk4_step(
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """One classical Runge-Kutta step of x' = f(air_relative(x, gust), u(t)) over h [s],
     the inputs linear from u0 to u1 (u0 = u1: held), the gust held. Returns x(t + h) and
-    the Jacobians F1..F4 at the four stages (the filters propagate the transition matrix
-    from them; the simulator ignores them). The filters fly in still air (gust 0), where
-    air_relative(x) is x exactly."""
+    the Jacobians' rows F1..F4 [n_dynamic x n] at the four stages (the filters propagate
+    the transition matrix from them; the simulator ignores them). The filters fly in still
+    air (gust 0), where air_relative(x) is x exactly."""
     um = u0 + 0.5 * (u1 - u0)
-    f1, F1 = dynamics(air_relative(x, gust), u0, model)
-    f2, F2 = dynamics(air_relative(x + 0.5 * h * f1, gust), um, model)
-    f3, F3 = dynamics(air_relative(x + 0.5 * h * f2, gust), um, model)
-    f4, F4 = dynamics(air_relative(x + h * f3, gust), u1, model)
+    f1, F1 = dynamics_rows(air_relative(x, gust), u0, model)
+    f2, F2 = dynamics_rows(air_relative(x + 0.5 * h * f1, gust), um, model)
+    f3, F3 = dynamics_rows(air_relative(x + 0.5 * h * f2, gust), um, model)
+    f4, F4 = dynamics_rows(air_relative(x + h * f3, gust), u1, model)
     return x + h / 6.0 * (f1 + 2.0 * f2 + 2.0 * f3 + f4), F1, F2, F3, F4
