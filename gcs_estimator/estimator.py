@@ -88,16 +88,22 @@ class Rows:
         return self._flushed + self._nbuf
 
     def append(self, row: FloatArray | Sequence[float]) -> None:
+        self.claim()[:] = row
+
+    def claim(self) -> np.ndarray:
+        """A new row at the end, to be filled in place (its values undefined until then)."""
         if self._nbuf == HISTORY_CHUNK:
             self._write(self._nbuf)
             self._flushed += self._nbuf
             self._nbuf = 0
-        self._buf[self._nbuf] = row
         self._nbuf += 1
+        row: np.ndarray = self._buf[self._nbuf - 1]
+        return row
 
-    def set_last(self, row: FloatArray | Sequence[float]) -> None:
-        """Replace the newest row (always still in memory)."""
-        self._buf[self._nbuf - 1] = row
+    def last(self) -> np.ndarray:
+        """The newest row (always still in memory), to be replaced in place."""
+        row: np.ndarray = self._buf[self._nbuf - 1]
+        return row
 
     def _write(self, rows: int) -> None:
         """The rows in memory to the file, after the rows already there."""
@@ -121,17 +127,22 @@ HISTORY_CHUNK = 4096
 
 
 class FrameHistory:
-    """Per-frame times, inputs and observations, shared by both filters."""
+    """Per-frame times, inputs and observations, shared by both filters: one row of
+    [t, u, y] per frame."""
 
     def __init__(self) -> None:
-        self.t = Rows(1)
-        self.u = Rows(N_INPUTS)
-        self.y = Rows(N_OBS)
+        self.rows = Rows(1 + N_INPUTS + N_OBS)
 
     def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
-        self.t.append((t,))
-        self.u.append(u)
-        self.y.append(y)
+        row = self.rows.claim()
+        row[0] = t
+        row[1 : 1 + N_INPUTS] = u
+        row[1 + N_INPUTS :] = y
+
+    def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(t [N], u [N x N_INPUTS], y [N x N_OBS]), views of one array."""
+        a = self.rows.array()
+        return a[:, 0], a[:, 1 : 1 + N_INPUTS], a[:, 1 + N_INPUTS :]
 
 
 HISTORY_DTYPE = np.float32
@@ -141,29 +152,43 @@ float64). Half the disk, and half the pages the end of a run maps to summarise t
 
 
 class History:
-    """Per-frame outputs of one filter, in frame order, columnar."""
+    """Per-frame outputs of one filter, in frame order: one row per frame of
+    [x (n), sigma (n), NIS, channels used, gust sigma, innovations (7), their sigmas (7)],
+    so that a frame costs one row, not one per quantity."""
 
     def __init__(self, n: int) -> None:
-        self.x = Rows(n, HISTORY_DTYPE)
-        self.sigma = Rows(n, HISTORY_DTYPE)
-        self.scalars = Rows(3, HISTORY_DTYPE)
-        """NIS, channels used, gust sigma."""
-        self.innovation = Rows(N_OBS, HISTORY_DTYPE)
-        self.innovation_sigma = Rows(N_OBS, HISTORY_DTYPE)
+        self.n = n
+        self.rows = Rows(2 * n + 3 + 2 * N_OBS, HISTORY_DTYPE)
 
-    def _columns(self, out: StepOutput) -> zip[tuple[Rows, FloatArray | tuple[float, ...]]]:
-        i = out.info
-        values = (out.x, i.sigma, (i.nis, i.n_used, i.gust_sigma), i.innovation, i.innovation_sigma)
-        rows = (self.x, self.sigma, self.scalars, self.innovation, self.innovation_sigma)
-        return zip(rows, values, strict=True)
+    def _fill(self, row: np.ndarray, out: StepOutput) -> None:
+        n, i = self.n, out.info
+        row[:n] = out.x
+        row[n : 2 * n] = i.sigma
+        row[2 * n] = i.nis
+        row[2 * n + 1] = i.n_used
+        row[2 * n + 2] = i.gust_sigma
+        row[2 * n + 3 : 2 * n + 3 + N_OBS] = i.innovation
+        row[2 * n + 3 + N_OBS :] = i.innovation_sigma
 
     def append(self, out: StepOutput) -> None:
-        for rows, value in self._columns(out):
-            rows.append(value)
+        self._fill(self.rows.claim(), out)
 
     def set_last(self, out: StepOutput) -> None:
-        for rows, value in self._columns(out):
-            rows.set_last(value)
+        self._fill(self.rows.last(), out)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The rows so far as named views: x, sigma, nis, n_used, gust_sigma, innovation,
+        innovation_sigma."""
+        a, n = self.rows.array(), self.n
+        return {
+            "x": a[:, :n],
+            "sigma": a[:, n : 2 * n],
+            "nis": a[:, 2 * n],
+            "n_used": a[:, 2 * n + 1],
+            "gust_sigma": a[:, 2 * n + 2],
+            "innovation": a[:, 2 * n + 3 : 2 * n + 3 + N_OBS],
+            "innovation_sigma": a[:, 2 * n + 3 + N_OBS :],
+        }
 
 
 @dataclass(frozen=True)
@@ -193,22 +218,22 @@ class Track:
 
     @staticmethod
     def of(h: History, frames: FrameHistory, model: Model) -> Track:
-        x = h.x.array()
-        sigma = h.sigma.array()
-        scalars = h.scalars.array()
+        c = h.columns()
+        t, u, y = frames.arrays()
+        x, sigma = c["x"], c["sigma"]
         return Track(
-            t=np.asarray(frames.t.array()[:, 0]),
+            t=t,
             x=x,
             sigma=sigma,
             coefficients=x[:, model.coefficients],
             coefficient_sigma=sigma[:, model.coefficients],
-            nis=scalars[:, 0],
-            n_used=scalars[:, 1],
-            innovation=h.innovation.array(),
-            innovation_sigma=h.innovation_sigma.array(),
-            gust_sigma=scalars[:, 2],
-            u=frames.u.array(),
-            y=frames.y.array(),
+            nis=c["nis"],
+            n_used=c["n_used"],
+            innovation=c["innovation"],
+            innovation_sigma=c["innovation_sigma"],
+            gust_sigma=c["gust_sigma"],
+            u=u,
+            y=y,
         )
 
 

@@ -15,7 +15,7 @@ def test_rows_spill_to_disk_and_read_back_equal() -> None:
         rows.append(row)
         if k % 1000 == 999:
             data[k] = row * 2  # the newest row replaced (a restart's swap)
-            rows.set_last(data[k])
+            rows.last()[:] = data[k]
     assert rows.n == len(data)
     got = rows.array()
     assert isinstance(got, np.memmap)  # mapped from the file, not held in memory
