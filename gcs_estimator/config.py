@@ -590,7 +590,14 @@ class ViewConfig:
     connect_url: str = setting("rerun+http://127.0.0.1:9876/proxy")
     viewer_port: int = setting(9876, ge=1, le=65535, doc="port of a spawned viewer")
     display_rate_hz: float = setting(
-        10.0, gt=0, unit="Hz", doc="display-only series and the ±2σ bands; estimates: every frame"
+        10.0, gt=0, unit="Hz", doc="display-only series and the ±2σ bands"
+    )
+    estimate_rate_hz: float = setting(
+        25.0,
+        ge=0,
+        unit="Hz",
+        doc="coefficient estimates in the view, and the newest of each batch (0: every "
+        "frame; the history file always has every frame)",
     )
     flush_interval_s: float = setting(1.0, gt=0, unit="s", doc="wall clock between batches")
     results_interval_s: float = setting(5.0, gt=0, unit="s", doc="live results table refresh")

@@ -3,7 +3,7 @@
 Entity paths (documented in the README; tests read them back):
 
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}
-        Scalars [EKF, IEKF] every frame (never decimated)
+        Scalars [EKF, IEKF] at [view] estimate_rate_hz, and the newest of each batch
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/band
         Scalars [EKF - 2σ, EKF + 2σ, IEKF - 2σ, IEKF + 2σ] at the display rate
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/truth

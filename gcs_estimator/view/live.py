@@ -3,8 +3,9 @@
 Per frame the estimator loop only appends references to lists (about a microsecond).
 Every `flush_interval_s` of wall-clock time (and at the end) the rows are stacked into
 columns and sent with `send_columns`, one call per entity, so logging costs little next
-to estimation however fast a replay runs. Coefficient estimates and their bands are sent
-for every frame; display-only series are decimated to `display_rate_hz`.
+to estimation however fast a replay runs. Coefficient estimates are decimated to
+`estimate_rate_hz` (and the newest of each batch is always sent); their bands and the
+display-only series to `display_rate_hz`.
 """
 
 from __future__ import annotations
@@ -83,6 +84,8 @@ class _Rows:
     outs: dict[FilterKind, list[StepOutput]] = field(default_factory=lambda: {k: [] for k in KINDS})
     last_bucket: float = math.nan
     """Display decimation: the last display interval a row was kept for."""
+    last_estimate_bucket: float = math.nan
+    """The same for the estimates (estimate_rate_hz)."""
     last_times: dict[str, float] = field(default_factory=dict)
     """Both timelines' values at the newest frame sent."""
     t_first: float = math.nan
@@ -95,6 +98,21 @@ class _Rows:
     def clear(self) -> None:
         self.t, self.tv, self.u, self.y = [], [], [], []
         self.outs = {k: [] for k in KINDS}
+
+
+def first_in_interval(
+    tv: FloatArray, rate_hz: float, last_bucket: float
+) -> tuple[np.ndarray, float]:
+    """Decimation to rate_hz: which of the times tv [s] (increasing) are the first in
+    their 1/rate_hz interval, the interval of the last row kept before being
+    last_bucket; and the newest interval. rate_hz 0: every row."""
+    if rate_hz <= 0.0:
+        return np.ones(len(tv), bool), last_bucket
+    bucket = np.floor(tv * rate_hz)
+    keep = np.empty(len(tv), bool)
+    keep[0] = bucket[0] != last_bucket
+    keep[1:] = bucket[1:] != bucket[:-1]
+    return keep, float(bucket[-1])
 
 
 class RerunView:
@@ -126,6 +144,7 @@ class RerunView:
         self.table_source = table_source
         self.clock = clock
         self.rate = config.view.display_rate_hz
+        self.estimate_rate = config.view.estimate_rate_hz
         self.rows: dict[int, _Rows] = {}
         self._layout_due = False
         self._chi2 = _chi2_bounds()
@@ -276,9 +295,15 @@ class RerunView:
         self._track_ranges(rows, tv, x, sd)
         ends = [0, n - 1] if n > 1 else [0]
         own = self.truth_of(sid) if self.truth is not None else None
+        keep, rows.last_estimate_bucket = first_in_interval(
+            tv, self.estimate_rate, rows.last_estimate_bucket
+        )
+        keep[-1] = True  # the newest estimate is always shown
+        e_idx = np.flatnonzero(keep)
+        e_times = {name: v[e_idx] for name, v in times.items()}
         for i, name in enumerate(self.names):
-            est = np.column_stack([x[k][:, c0 + i] for k in KINDS])
-            self._send(Columns(lay.coefficient_path(sid, name, self.axes[i]), times, est))
+            est = np.column_stack([x[k][e_idx, c0 + i] for k in KINDS])
+            self._send(Columns(lay.coefficient_path(sid, name, self.axes[i]), e_times, est))
             if self.truth is not None:
                 # A constant: the first and last frame of each batch draw its line.
                 value = math.nan if own is None else float(own[i])
@@ -288,11 +313,7 @@ class RerunView:
         self.frames_sent += n
 
         # Display-only series: one row per display interval of vehicle time.
-        bucket = np.floor(tv * self.rate)
-        keep = np.empty(n, bool)
-        keep[0] = bucket[0] != rows.last_bucket
-        keep[1:] = bucket[1:] != bucket[:-1]
-        rows.last_bucket = float(bucket[-1])
+        keep, rows.last_bucket = first_in_interval(tv, self.rate, rows.last_bucket)
         rows.last_times = {lay.TIMELINE: float(tv[-1]), lay.RECEIVE_TIMELINE: float(t[-1])}
         self._newest = rows.last_times
         idx = np.flatnonzero(keep)
@@ -347,7 +368,7 @@ class RerunView:
         x: dict[FilterKind, FloatArray],
         sd: dict[FilterKind, FloatArray],
     ) -> None:
-        """The ±2σ bands at the display rate (the estimates themselves go every frame)."""
+        """The ±2σ bands at the display rate (the estimates at estimate_rate_hz)."""
         c0 = self.coefficients.start
         for i, name in enumerate(self.names):
             cols = []

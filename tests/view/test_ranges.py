@@ -4,12 +4,14 @@ identifiability in the panel titles and the run's warnings in the legend at the 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from gcs_estimator.config import load_config
 from gcs_estimator.session import RecordingSource, Session
 from gcs_estimator.view import layout as lay
-from gcs_estimator.view.live import RerunView, ViewSink
+from gcs_estimator.view.live import RerunView, ViewSink, first_in_interval
 from gcs_estimator.view.outlets import Layout, Text
 from sim.truth import simulate
 from tests.view.test_layout_burst import Collect
@@ -52,3 +54,16 @@ def test_ranges_follow_the_estimates_and_the_end_says_what_is_identified() -> No
     legends = [op.text for op in out.ops if isinstance(op, Text) and op.entity == lay.LEGEND]
     assert len(legends) == 2 and "Before trusting" in legends[-1] and "CDa" in legends[-1]
     assert all(not op.times for op in out.ops if isinstance(op, Text) and op.entity == lay.LEGEND)
+
+
+def test_decimation_keeps_the_first_row_of_each_interval() -> None:
+    tv = np.arange(50) / 50.0  # 50 Hz
+    keep, last = first_in_interval(tv, 25.0, math.nan)
+    np.testing.assert_array_equal(np.flatnonzero(keep), np.arange(0, 50, 2))
+    assert last == 24.0
+    # The next batch goes on from the last interval kept: its first row, in the same
+    # interval as the batch's last, is not kept again.
+    keep, _ = first_in_interval(np.array([0.99, 1.0, 1.02]), 25.0, last)
+    np.testing.assert_array_equal(keep, [False, True, False])
+    keep, same = first_in_interval(tv, 0.0, 7.0)  # 0: every row
+    assert keep.all() and same == 7.0
