@@ -73,15 +73,20 @@ class Health:
 
 class Rows:
     """Rows appended to a 2-D array kept on disk: the newest HISTORY_CHUNK rows in memory,
-    the rest written to an unnamed temporary file (gone with the process), so a long
-    flight's history costs disk, not memory. array() maps the file (read-only)."""
+    the rest written to unnamed temporary files (gone with the process), so a long
+    flight's history costs disk, not memory.
 
-    def __init__(self, width: int, dtype: type = np.float64) -> None:
-        self._buf: np.ndarray = np.empty((HISTORY_CHUNK, width), dtype)
-        self._row_bytes = self._buf[0].nbytes
+    A row may be made of column groups (widths): in memory a frame's row is one row, so
+    appending it is one write; on disk each group has its own file, so reading one group
+    back (arrays(), mapped read-only) touches only its own pages."""
+
+    def __init__(self, width: int | Sequence[int], dtype: type = np.float64) -> None:
+        widths = (width,) if isinstance(width, int) else tuple(width)
+        self._edges = np.concatenate([[0], np.cumsum(widths)]).astype(int).tolist()
+        self._buf: np.ndarray = np.empty((HISTORY_CHUNK, self._edges[-1]), dtype)
         self._nbuf = 0
         self._flushed = 0
-        self._file: BinaryIO | None = None
+        self._files: list[BinaryIO] = []
 
     @property
     def n(self) -> int:
@@ -105,21 +110,36 @@ class Rows:
         row: np.ndarray = self._buf[self._nbuf - 1]
         return row
 
+    def _groups(self) -> list[tuple[int, int]]:
+        return list(zip(self._edges[:-1], self._edges[1:], strict=True))
+
     def _write(self, rows: int) -> None:
-        """The rows in memory to the file, after the rows already there."""
-        if self._file is None:
-            self._file = tempfile.TemporaryFile(prefix="gcs-history-")  # noqa: SIM115
-        os.pwrite(self._file.fileno(), self._buf[:rows].tobytes(), self._flushed * self._row_bytes)
+        """The rows in memory to the files, after the rows already there."""
+        if not self._files:
+            self._files = [
+                tempfile.TemporaryFile(prefix="gcs-history-")  # noqa: SIM115
+                for _ in self._groups()
+            ]
+        item = self._buf.itemsize
+        for f, (a, b) in zip(self._files, self._groups(), strict=True):
+            block = np.ascontiguousarray(self._buf[:rows, a:b])
+            os.pwrite(f.fileno(), block.tobytes(), self._flushed * (b - a) * item)
+
+    def arrays(self) -> list[np.ndarray]:
+        """The rows so far, one array per column group: copies while they fit in memory,
+        else the files mapped read-only (the rows in memory written to them first)."""
+        if self._flushed == 0:
+            return [self._buf[: self._nbuf, a:b].copy() for a, b in self._groups()]
+        self._write(self._nbuf)
+        return [
+            np.memmap(f, self._buf.dtype, mode="r", shape=(self.n, b - a))
+            for f, (a, b) in zip(self._files, self._groups(), strict=True)
+        ]
 
     def array(self) -> np.ndarray:
-        """The rows so far: a copy while they fit in memory, else the file mapped
-        read-only (the rows in memory written to it first)."""
-        if self._flushed == 0:
-            return self._buf[: self._nbuf].copy()
-        self._write(self._nbuf)
-        assert self._file is not None
-        shape = (self.n, self._buf.shape[1])
-        return np.memmap(self._file, self._buf.dtype, mode="r", shape=shape)
+        """arrays() of a single group."""
+        (out,) = self.arrays()
+        return out
 
 
 HISTORY_CHUNK = 4096
@@ -131,7 +151,7 @@ class FrameHistory:
     [t, u, y] per frame."""
 
     def __init__(self) -> None:
-        self.rows = Rows(1 + N_INPUTS + N_OBS)
+        self.rows = Rows((1, N_INPUTS, N_OBS))
 
     def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
         row = self.rows.claim()
@@ -140,9 +160,9 @@ class FrameHistory:
         row[1 + N_INPUTS :] = y
 
     def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """(t [N], u [N x N_INPUTS], y [N x N_OBS]), views of one array."""
-        a = self.rows.array()
-        return a[:, 0], a[:, 1 : 1 + N_INPUTS], a[:, 1 + N_INPUTS :]
+        """(t [N], u [N x N_INPUTS], y [N x N_OBS])."""
+        t, u, y = self.rows.arrays()
+        return t[:, 0], u, y
 
 
 HISTORY_DTYPE = np.float32
@@ -154,11 +174,11 @@ float64). Half the disk, and half the pages the end of a run maps to summarise t
 class History:
     """Per-frame outputs of one filter, in frame order: one row per frame of
     [x (n), sigma (n), NIS, channels used, gust sigma, innovations (7), their sigmas (7)],
-    so that a frame costs one row, not one per quantity."""
+    so that a frame costs one row, not one per quantity (on disk, one file per group)."""
 
     def __init__(self, n: int) -> None:
         self.n = n
-        self.rows = Rows(2 * n + 3 + 2 * N_OBS, HISTORY_DTYPE)
+        self.rows = Rows((n, n, 3, N_OBS, N_OBS), HISTORY_DTYPE)
 
     def _fill(self, row: np.ndarray, out: StepOutput) -> None:
         n, i = self.n, out.info
@@ -179,15 +199,15 @@ class History:
     def columns(self) -> dict[str, np.ndarray]:
         """The rows so far as named views: x, sigma, nis, n_used, gust_sigma, innovation,
         innovation_sigma."""
-        a, n = self.rows.array(), self.n
+        x, sigma, scalars, innovation, innovation_sigma = self.rows.arrays()
         return {
-            "x": a[:, :n],
-            "sigma": a[:, n : 2 * n],
-            "nis": a[:, 2 * n],
-            "n_used": a[:, 2 * n + 1],
-            "gust_sigma": a[:, 2 * n + 2],
-            "innovation": a[:, 2 * n + 3 : 2 * n + 3 + N_OBS],
-            "innovation_sigma": a[:, 2 * n + 3 + N_OBS :],
+            "x": x,
+            "sigma": sigma,
+            "nis": scalars[:, 0],
+            "n_used": scalars[:, 1],
+            "gust_sigma": scalars[:, 2],
+            "innovation": innovation,
+            "innovation_sigma": innovation_sigma,
         }
 
 

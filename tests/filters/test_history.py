@@ -33,3 +33,17 @@ def test_a_short_history_stays_in_memory() -> None:
         rows.append((k, k, k))
     got = rows.array()
     assert not isinstance(got, np.memmap) and got.shape == (10, 3)
+
+
+def test_column_groups_come_back_apart_each_from_its_own_file() -> None:
+    """A row written at once, read back as groups (mapped from disk past a chunk)."""
+    rng = np.random.default_rng(2)
+    data = rng.normal(size=(2 * HISTORY_CHUNK + 5, 6))
+    rows = Rows((2, 3, 1))
+    for row in data:
+        rows.claim()[:] = row
+    rows.last()[:] = data[-1] = 7.0
+    a, b, c = rows.arrays()
+    assert all(isinstance(g, np.memmap) for g in (a, b, c))
+    assert [g.shape[1] for g in (a, b, c)] == [2, 3, 1]
+    np.testing.assert_array_equal(np.hstack([a, b, c]), data)
