@@ -98,9 +98,11 @@ def run(args: argparse.Namespace) -> int:
             stderr=subprocess.DEVNULL,
         )
         start = time.time()
+        cpu = time.process_time()
         source = UdpSource(sock, link, idle_exit_s=2.0, max_seconds=args.seconds * 3)
         results = session.run(source)
         wall = time.time() - start
+        cpu = time.process_time() - cpu
         sim.wait(timeout=30)
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
@@ -113,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
     h = link.health.total()
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
-        f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s"
+        f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s; "
+        f"the station used {cpu:.1f} s of CPU ({cpu / wall:.0%} of one core)"
     )
     print(
         f"frames: {got} of {flown} flown ({flown - got} lost); packets lost {h.lost} (of "

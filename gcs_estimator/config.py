@@ -334,8 +334,15 @@ class FilterTuning:
     restart_frames_per_step: int = setting(
         10,
         ge=0,
-        doc="frames of a restart's re-run done per new frame (it catches up beside the live "
-        "pass); 0: all at once",
+        doc="frames of a restart's re-run done at least per new frame (it catches up beside "
+        "the live pass, and in idle time); 0: all at once",
+    )
+    restart_grace_frames: int = setting(
+        0,
+        ge=0,
+        doc="frames after a restart begins before its re-run must progress on the receive "
+        "path (until then idle time only): spreads the work of many vehicles restarting "
+        "together",
     )
     max_gap_s: float = setting(
         2.0,

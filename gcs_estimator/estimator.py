@@ -307,6 +307,17 @@ class _Start(NamedTuple):
     gust_var: float | None = None
 
 
+class _Pending(NamedTuple):
+    """A restart begun whose re-run has not started."""
+
+    frames: int
+    """Frames buffered when it began (the warm start fits those)."""
+    means: dict[FilterKind, tuple[FloatArray, FloatArray]] | None
+    """Each filter's coefficients and sigma to start from; None: the warm start's."""
+    gust: dict[FilterKind, float | None]
+    """Each filter's gust variance to start from (None: the configured)."""
+
+
 class Estimator:
     """EKF and IEKF side by side for one vehicle; the place that owns the filter passes."""
 
@@ -333,6 +344,12 @@ class Estimator:
         self._buffer: list[tuple[float, FloatArray, FloatArray, bool]] = []
         self._t0 = math.nan
         self._t_last = -math.inf
+        self._pending: _Pending | None = None
+        """A restart begun whose re-run has not started yet (its warm start not fitted)."""
+        self._since_begin = 0
+        """Frames since the restart under way began, that one included."""
+        self.worked_ahead = 0
+        """Restart work done in idle time (work_ahead): frames, and 1 per warm start."""
         self._rerun: dict[FilterKind, FilterState | None] | None = None
         """The re-run of a restart while it catches up (None: none under way)."""
         self._rerun_pos = 0
@@ -378,12 +395,14 @@ class Estimator:
         for an update (they already gave the flight states).
 
         At each configured restart time both filters begin a re-run of the buffered frames
-        from the start (_begin_restart). The re-run goes on beside the live pass,
-        filter.restart_frames_per_step frames per new frame, so that no frame's call
-        waits for the whole re-run; when it has caught up, it takes the live pass's
-        place, and the outputs returned are those of the re-run at this frame. Every
-        step is the same as a re-run done at once would make, so the estimates are too.
-        The history keeps what was known live at each time but for the frame of the swap.
+        from the start (_begin_restart). The re-run goes on beside the live pass, at
+        least filter.restart_frames_per_step frames per new frame after
+        restart_grace_frames (more when work_ahead runs it in idle time), so that no
+        frame's call waits for the whole re-run; when the schedule has caught up, it
+        takes the live pass's place, and the outputs returned are those of the re-run at
+        this frame. Every step is the same as a re-run done at once would make, so the
+        estimates are too. The history keeps what was known live at each time but for
+        the frame of the swap.
         """
         if self.frames == 0:
             self._t0 = t
@@ -400,13 +419,14 @@ class Estimator:
                 self.histories[kind].append(out)
         restarts = self.config.filter.restart_times_s
         if (
-            self._rerun is None
+            not self.restart_under_way
             and self.restarts_pending
             and t - self._t0 >= restarts[self.restarts_done]
         ):
             self._begin_restart()
-        if self._rerun is not None:
-            swapped = self._catch_up(self.config.filter.restart_frames_per_step)
+        if self.restart_under_way:
+            self._since_begin += 1
+            swapped = self._follow_schedule()
             if swapped is not None:
                 outs = swapped
                 if self.keep_history:
@@ -414,11 +434,48 @@ class Estimator:
                         self.histories[kind].set_last(out)
         return outs
 
+    @property
+    def restart_under_way(self) -> bool:
+        return self._pending is not None or self._rerun is not None
+
+    def _follow_schedule(self) -> dict[FilterKind, StepOutput] | None:
+        """The re-run's progress this frame must have made, whatever was done ahead in
+        idle time (work_ahead): restart_frames_per_step frames per frame once
+        restart_grace_frames have passed (0: all of it now). When that reaches the newest
+        frame the re-run takes over: at a frame fixed by the data and the settings alone,
+        never by how busy the machine was, so a replay swaps where the live run did."""
+        ft = self.config.filter
+        n = len(self._buffer)
+        per = ft.restart_frames_per_step
+        due = n if per <= 0 else min(n, max(0, self._since_begin - ft.restart_grace_frames) * per)
+        if due == 0:
+            return None
+        outs = self._advance_rerun(due)
+        if due < n:
+            return None
+        return self._swap(outs)
+
+    def work_ahead(self, max_frames: int) -> int:
+        """Do some of a restart's work before the schedule asks for it (from idle time):
+        the warm start's fit, then up to max_frames buffered frames of the re-run. Never
+        takes over (see _follow_schedule). Returns the work done (frames; the fit counts
+        one); 0: nothing to do."""
+        if self._pending is not None:
+            self._start_rerun()
+            self.worked_ahead += 1
+            return 1
+        if self._rerun is None:
+            return 0
+        pos = self._rerun_pos
+        self._advance_rerun(min(len(self._buffer), pos + max_frames))
+        self.worked_ahead += self._rerun_pos - pos
+        return self._rerun_pos - pos
+
     def finish_restarts(self) -> None:
         """Complete a re-run still under way (the end of the data came first)."""
-        if self._rerun is not None:
-            swapped = self._catch_up(0)
-            if swapped is not None and self.keep_history:
+        if self.restart_under_way:
+            swapped = self._swap(self._advance_rerun(len(self._buffer)))
+            if swapped and self.keep_history:
                 for kind, out in swapped.items():
                     self.histories[kind].set_last(out)
 
@@ -457,20 +514,26 @@ class Estimator:
             self.restarts_done = len(self.config.filter.restart_times_s)
             self._buffer = []
             self._rerun = None
+            self._pending = None
 
-    def _catch_up(self, limit: int) -> dict[FilterKind, StepOutput] | None:
-        """Advance the re-run by up to `limit` buffered frames (0: all); when it has
-        caught up with the newest frame, it becomes the live pass: its outputs there."""
+    def _advance_rerun(self, end: int) -> dict[FilterKind, StepOutput]:
+        """Step the re-run through the buffered frames up to `end` (exclusive); its
+        outputs at the last frame stepped (empty if none)."""
+        if self._pending is not None:
+            self._start_rerun()
         rerun = self._rerun
         assert rerun is not None
-        end = len(self._buffer) if limit <= 0 else min(len(self._buffer), self._rerun_pos + limit)
         outs: dict[FilterKind, StepOutput] = {}
         for t, u, y, known in self._buffer[self._rerun_pos : end]:
             outs = self._advance(rerun, t, u, y, known)
-        self._rerun_pos = end
-        if end < len(self._buffer):
-            return None
-        self.states = rerun
+        self._rerun_pos = max(self._rerun_pos, end)
+        return outs
+
+    def _swap(self, outs: dict[FilterKind, StepOutput]) -> dict[FilterKind, StepOutput]:
+        """The re-run, caught up with the newest frame, becomes the live pass; its
+        outputs there."""
+        assert self._rerun is not None and self._rerun_pos == len(self._buffer)
+        self.states = self._rerun
         self._rerun = None
         self.restarts_done += 1
         self.final_pass_from = max(self.frames - 1, 0)
@@ -479,14 +542,46 @@ class Estimator:
         return outs
 
     def _begin_restart(self) -> None:
-        """Start a re-run of the buffered frames from a new linearisation point (see
-        FilterTuning)."""
+        """Begin a re-run of the buffered frames from a new linearisation point (see
+        FilterTuning): take from the live pass what the re-run starts from, now; the
+        warm start's fit, when there is one, waits for _start_rerun (idle time first)."""
         tuning = self.config.filter
         coef = self.model.coefficients
-        if self.restarts_done == 0 and tuning.warm_start == "equation-error":
+        warm = self.restarts_done == 0 and tuning.warm_start == "equation-error"
+        means: dict[FilterKind, tuple[FloatArray, FloatArray]] | None = None
+        if not warm:
+            means = {
+                k: (s.x[coef].copy(), np.sqrt(np.diag(s.P))[coef])
+                for k, s in self.states.items()
+                if s is not None
+            }
+        gust: dict[FilterKind, float | None] = {}
+        for kind, state in self.states.items():
+            assert state is not None
+            # The first re-run starts at the turbulence level the zero-start pass ended
+            # with: its average over the pass can come out near calm (early innovations
+            # are smaller than the unknown coefficients make it predict), and a re-run
+            # that starts as calm air in turbulence can lock onto wrong coefficients
+            # (docs/decisions). Later re-runs start at the average of the pass before.
+            gust[kind] = None
+            if tuning.turbulence.adaptive:
+                first = self.restarts_done == 0
+                gust[kind] = max(state.gust.var, 0.0) if first else state.gust.pass_average()
+        self._pending = _Pending(len(self._buffer), means, gust)
+        self._since_begin = 0
+
+    def _start_rerun(self) -> None:
+        """The re-run's first states: from the warm start's fit to the frames buffered
+        when the restart began, or from the live pass's estimates then."""
+        pending = self._pending
+        assert pending is not None
+        tuning = self.config.filter
+        means = pending.means
+        if means is None:
             from gcs_estimator.warmstart import equation_error
 
-            t_b, u_b, y_b, _ = (np.array(col) for col in zip(*self._buffer, strict=True))
+            frames = self._buffer[: pending.frames]
+            t_b, u_b, y_b, _ = (np.array(col) for col in zip(*frames, strict=True))
             ws = equation_error(
                 self.model,
                 t_b,
@@ -498,30 +593,14 @@ class Estimator:
             self.warm_start = ws.beta
             self._warm_samples, self._warm_frames = ws.samples, len(t_b)
             means = {k: (ws.beta, ws.sigma) for k in FILTER_KINDS}
-        else:
-            means = {
-                k: (s.x[coef].copy(), np.sqrt(np.diag(s.P))[coef])
-                for k, s in self.states.items()
-                if s is not None
-            }
         p0 = np.array(tuning.initial_sigma.coefficients)
-        for kind, state in self.states.items():
-            assert state is not None
-            beta, sigma = means[kind]
-            # The first re-run starts at the turbulence level the zero-start pass ended
-            # with: its average over the pass can come out near calm (early innovations
-            # are smaller than the unknown coefficients make it predict), and a re-run
-            # that starts as calm air in turbulence can lock onto wrong coefficients
-            # (docs/decisions). Later re-runs start at the average of the pass before.
-            gust_var = None
-            if tuning.turbulence.adaptive:
-                first = self.restarts_done == 0
-                gust_var = max(state.gust.var, 0.0) if first else state.gust.pass_average()
+        for kind, (beta, sigma) in means.items():
             # A data-derived prior, widened so that reusing the early data in it weighs
             # little next to the data themselves; never wider than P0.
             self._starts[kind] = _Start(
-                beta, np.minimum(p0, tuning.restart_sigma_inflation * sigma), gust_var
+                beta, np.minimum(p0, tuning.restart_sigma_inflation * sigma), pending.gust[kind]
             )
+        self._pending = None
         self._rerun = dict.fromkeys(FILTER_KINDS)
         self._rerun_pos = 0
 

@@ -24,6 +24,12 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.metrics import FilterSummary, summarise
 from gcs_estimator.stop import Stop
 
+WORK_AHEAD_S = 0.002
+"""Restart work done each time the source had nothing ready [s]: small enough that a
+packet arriving meanwhile waits little for it."""
+WORK_AHEAD_FRAMES = 5
+"""Frames of one vehicle's re-run at a time before the next vehicle's turn."""
+
 
 class Source(Protocol):
     """Where frames come from."""
@@ -112,6 +118,8 @@ class Session:
             for frame in source.frames(stop):
                 if frame is not None:
                     self.process(frame)
+                elif getattr(source, "idle", False):
+                    self.work_ahead(WORK_AHEAD_S)
                 for sink in self.sinks:
                     sink.tick()
         finally:
@@ -126,6 +134,14 @@ class Session:
             finally:
                 source.close()
         return results
+
+    def work_ahead(self, budget_s: float) -> None:
+        """Restart work from idle time (the source had nothing ready): the vehicles'
+        re-runs in turn, WORK_AHEAD_FRAMES at a time, for up to about budget_s."""
+        busy = [e for e in self.estimators.values() if e.restart_under_way]
+        end = time.perf_counter() + budget_s
+        while busy and time.perf_counter() < end:
+            busy = [e for e in busy if e.work_ahead(WORK_AHEAD_FRAMES) > 0]
 
     def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
         est = self.estimator(frame.system_id)

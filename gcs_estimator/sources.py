@@ -65,6 +65,9 @@ class LiveSource:
         self._last_data: float | None = None
         self._ended = False
         """The link failed or the other side closed it."""
+        self.idle = False
+        """Nothing was waiting to be read when the last None was yielded (the session
+        then does restart work ahead: Session.work_ahead)."""
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         start = time.time()
@@ -76,8 +79,13 @@ class LiveSource:
                 last_ground = now
                 self._send_ground(now)
                 self.link.flush_recording()
+            self.idle = not self._waiting()
             yield None
         yield from self.link.flush()
+
+    def _waiting(self) -> bool:
+        """Whether more data is ready to be read now."""
+        return False
 
     def _done(self, start: float) -> bool:
         now = time.time()
@@ -152,6 +160,9 @@ class UdpSource(LiveSource):
                 self.kernel_dropped = dropped
             yield from self.link.datagram(data, min(t, now), addr)
 
+    def _waiting(self) -> bool:
+        return bool(select.select([self.sock], [], [], 0)[0])
+
     def _send_ground(self, now: float) -> None:
         out = list(self.link.ground_messages(self.codec, now))
         if self.peer is not None and all(a[:2] != self.peer for _, a in out):
@@ -225,6 +236,9 @@ class TcpSource(LiveSource):
             t = self._last_data = time.time()
             yield from self.link.stream(data, t, self._address)
 
+    def _waiting(self) -> bool:
+        return self._conn is not None and bool(select.select([self._conn], [], [], 0)[0])
+
     def _send_ground(self, now: float) -> None:
         assert self._conn is not None
         try:
@@ -268,6 +282,12 @@ class SerialSource(LiveSource):
         if data:
             t = self._last_data = time.time()
             yield from self.link.stream(data, t, self.address)
+
+    def _waiting(self) -> bool:
+        try:
+            return bool(self.port.in_waiting)
+        except (OSError, ValueError):
+            return False
 
     def _send_ground(self, now: float) -> None:
         import serial

@@ -453,6 +453,10 @@ def _kernel(
     )
 
 
+PACKED_KEPT = 4096
+"""Filters whose packed settings are kept: two per vehicle, far more than a station
+estimates at once (link.max_vehicles)."""
+
 _PACKED: dict[tuple[int, int], tuple[Tuning, Model, FloatArray, IntArray]] = {}
 """pack's results by the identity of (tuning, model); the entry holds both, so an id is
 never reused while its entry lives."""
@@ -463,7 +467,7 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
     hit = _PACKED.get(key)
     if hit is not None and hit[0] is tuning and hit[1] is model:
         return hit[2], hit[3]
-    if len(_PACKED) >= 64:
+    if len(_PACKED) >= PACKED_KEPT:
         _PACKED.clear()
     tf, ti = pack(tuning, model.arrays)
     _PACKED[key] = (tuning, model, tf, ti)

@@ -47,3 +47,44 @@ def test_an_incremental_re_run_ends_where_one_at_once_does() -> None:
     kinds = len(at_once.states)
     assert max(heavy) > 200 * kinds
     assert max(light) <= kinds * (1 + config.filter.restart_frames_per_step)
+
+
+def _history(est: Estimator) -> dict[str, np.ndarray]:
+    out = est.result()
+    return {k: f.track.x for k, f in out.filters.items() if f.track is not None}
+
+
+def test_work_done_ahead_in_idle_time_changes_nothing_but_when_it_is_done() -> None:
+    """Idle time (Session.work_ahead) runs the warm start's fit and the re-run early, in
+    uneven amounts; the swap stays at the frame the schedule fixes, so the history, not
+    just the end, is the same as without: a replay swaps where the live run did."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
+    fl = simulate(config, seed=5)
+    plain, ahead = Estimator(config), Estimator(config)
+    rng = np.random.default_rng(3)
+    done = 0
+    for t, u, y in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
+        done += ahead.work_ahead(int(rng.integers(0, 40)))
+        plain.step(float(t), u, y)
+        ahead.step(float(t), u, y)
+    assert done > 300  # most of both re-runs was done in "idle time"
+    assert plain.final_pass_from == ahead.final_pass_from
+    a, b = _history(plain), _history(ahead)
+    for kind in a:
+        np.testing.assert_array_equal(a[kind], b[kind])
+
+
+def test_a_grace_period_leaves_the_receive_path_alone_then_swaps_later_to_the_same_end() -> None:
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
+    grace = replace(config, filter=replace(config.filter, restart_grace_frames=50))
+    plain, _ = _run(config)
+    spread, per_frame = _run(grace)
+    kinds = len(plain.states)
+    begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
+    # The restart's frame and the grace after it: the live step only, no fit, no re-run.
+    assert set(per_frame[begin : begin + 50]) == {kinds}
+    assert spread.final_pass_from > plain.final_pass_from
+    for kind, s in plain.states.items():
+        other = spread.states[kind]
+        assert s is not None and other is not None
+        np.testing.assert_array_equal(other.x, s.x)

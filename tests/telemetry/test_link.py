@@ -100,6 +100,17 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
     again = replay(config, tmp_path / "live.tlog")
     for kind, beta in again.final().items():
         np.testing.assert_array_equal(beta, live[kind])
+    # Live, the restarts' work went into idle time; the re-runs took over at the same
+    # frames as in the replay (which had none), so every frame's estimate is the same.
+    live_est, again_est = station.session.estimator(1), again.session.estimator(1)
+    assert live_est.worked_ahead > 100 and again_est.worked_ahead == 0
+    assert live_est.final_pass_from == again_est.final_pass_from
+    live_result, again_result = live_est.result(), again_est.result()
+    for kind, f in live_result.filters.items():
+        assert f.track is not None
+        other = again_result.filters[kind].track
+        assert other is not None
+        np.testing.assert_array_equal(f.track.x, other.x)
 
 
 def test_link_reaches_the_offline_estimate(tmp_path: Path, noc_config: AircraftConfig) -> None:
