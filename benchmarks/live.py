@@ -9,8 +9,10 @@ process exactly as `gcs-estimator listen` does. For every frame it measures the 
 from the kernel's arrival time of the packet that completed the frame (SO_TIMESTAMPNS:
 time queued in the socket's buffer counts) to the end of both filters' update (and the
 view's, with --view). Prints median, p99 and max latency per vehicle and overall (target
-p99 <= 5 ms), the datagrams the kernel dropped for a full socket buffer, and frames
-received against frames flown (target: none lost).
+p99 <= 5 ms with 10 vehicles; p99 <= 20 ms and max <= 100 ms with 50), the station's CPU
+time, the datagrams the kernel dropped for a full socket buffer, and frames received
+against frames flown (target: none lost). link.max_vehicles is raised to the vehicles
+flown.
 """
 
 from __future__ import annotations
@@ -79,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
 def run(args: argparse.Namespace) -> int:
     override = f"simulation.manoeuvre.duration_s={args.seconds}"
     config = load_config(args.config, [override, *args.set])
+    if config.link.max_vehicles < args.vehicles:  # every vehicle flown is estimated
+        config = load_config(
+            args.config, [override, f"link.max_vehicles={args.vehicles}", *args.set]
+        )
 
     latency = Latency()
     warm_up(config)  # compiles the kernels before binding
@@ -127,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"latency, packet arrival (kernel time) -> both filters updated, over {len(lat)} "
             f"complete frames: median {np.median(lat):.3f} ms, p99 "
-            f"{np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms (target p99 <= 5 ms)"
+            f"{np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms ({_target(args.vehicles)})"
         )
         print("\n| vehicle | frames | median ms | p99 ms | max ms |\n|---|---|---|---|---|")
         for sid, v in by_vehicle.items():
@@ -136,6 +142,12 @@ def run(args: argparse.Namespace) -> int:
                 f"{v.max():.3f} |"
             )
     return 0
+
+
+def _target(vehicles: int) -> str:
+    if vehicles <= 10:
+        return "target p99 <= 5 ms"
+    return "target with 50 vehicles: p99 <= 20 ms, max <= 100 ms"
 
 
 if __name__ == "__main__":
