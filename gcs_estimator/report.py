@@ -220,8 +220,9 @@ COLOUR_LIMIT = 5.0
 def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
     """What a user should know before trusting the numbers: a noise model that does not
     fit (NIS far from the channel count), a warm start that fitted few frames, a
-    turbulence level switched on and off, coefficients the data do not identify, and
-    residuals far from white in the whole-record fit."""
+    turbulence level switched on and off, coefficients the data do not identify, a filter
+    that diverged and started again, and residuals far from white in the whole-record
+    fit."""
     out: list[str] = []
     result = vehicle.result
     for kind, s in vehicle.summaries.items():
@@ -253,6 +254,22 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
         if weak:
             out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+    out += _run_warnings(result)
+    if refined is not None:
+        out += _refined_warnings(refined)
+    return out
+
+
+def _run_warnings(result: EstimatorResult) -> list[str]:
+    """A filter that diverged, a warm start that fitted few frames."""
+    out: list[str] = []
+    for kind, f in result.filters.items():
+        if f.health.divergences:
+            out.append(
+                f"{kind}: the estimate diverged {f.health.divergences} time(s) and started "
+                "again from the prior there (a long gap early in the flight, or bad data); "
+                "the history shows absurd values before each"
+            )
     if result.warm_start_samples is not None and result.warm_start_frames > 0:
         least = min(result.warm_start_samples)
         if least < 0.5 * result.warm_start_frames:
@@ -261,8 +278,6 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                 f"the equation-error warm start fitted CD, CL, Cm on only {cd}, {cl}, {cm} of "
                 f"{result.warm_start_frames} frames (gaps or missing channels)"
             )
-    if refined is not None:
-        out += _refined_warnings(refined)
     return out
 
 

@@ -125,3 +125,17 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     est = np.array([fit["estimates"][n]["estimate"] for n in data["coefficients"]])
     sig = np.array([fit["estimates"][n]["sigma"] for n in data["coefficients"]])
     assert fit["converged"] and np.mean(((est - truth) / sig) ** 2) < 4.0
+
+
+def test_a_filter_that_diverged_is_named() -> None:
+    """A 1.7 s gap in the first tenth of a second, while the coefficients are still at
+    their zero prior: the EKF's prediction across it runs away, the contract starts it
+    again from the prior, and the run says so (the restarts still reach the estimate)."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    fl = simulate(config, seed=1)
+    keep = np.r_[0:4, 90 : len(fl.t_s)]
+    with np.errstate(over="ignore"):  # the runaway values overflow the float32 history
+        run = run_recording(config, fl.t_s[keep], fl.inputs[keep], fl.measurements[keep])
+    assert run.result.filters["EKF"].health.divergences == 1
+    assert any(w.startswith("EKF: the estimate diverged 1 time") for w in trust_warnings(run))
+    assert not any(w.startswith("IEKF: the estimate diverged") for w in trust_warnings(run))
