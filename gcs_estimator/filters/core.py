@@ -53,6 +53,10 @@ GUST_VAR_FLOOR = -0.1
 """Lowest running gust variance [m^2/s^2]: in calm air the estimate wanders around zero;
 the floor keeps it from drifting so far below that real turbulence takes long to show."""
 
+STATE_MARGIN = 2.0
+"""A belief's flight states may reach this multiple of the largest a signal can be before
+it counts as run away (Tuning.state_max)."""
+
 GUST_CLIP = 25.0
 """Squared innovations count at most this many times their variance (5 sigma) in the
 covariance matching, so that a glitch or the zero-start transient does not set the level."""
@@ -162,6 +166,10 @@ class Tuning(NamedTuple):
     """Configured initial gust variance [m^2/s^2]."""
     linear_inputs: bool
     """Inputs linear between samples (first-order hold), else held at the earlier sample."""
+    state_max: FloatArray
+    """Largest magnitude of each flight state [V, alpha, theta, q] a belief may hold
+    (twice what an aircraft's signals reach, data.plausible_max); beyond it, or at an
+    airspeed not above zero, the belief has run away (see plausible)."""
 
 
 class StepInfo(NamedTuple):
@@ -224,6 +232,8 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         prior_sigma=prior_sigma,
         gust_var0=ft.turbulence.sigma_w_mps**2,
         linear_inputs=config.data.input_hold == "linear",
+        state_max=STATE_MARGIN
+        * np.array([config.data.plausible(q) for q in ("airspeed", "alpha", "theta", "q")]),
     )
 
 
@@ -286,6 +296,19 @@ def rebase(
 
 # The functions below are written once, for both backends: plain Python on numpy arrays
 # and named tuples, which filters.fast also compiles.
+
+
+def plausible(x: FloatArray, state_max: FloatArray) -> bool:
+    """Whether the flight states x[0:4] are where an aircraft can be: an airspeed above
+    zero (the equations divide by it) and every state within state_max. A belief beyond
+    is treated as diverged (the contract starts it again from the prior) even while it is
+    still finite: the next steps would take it to infinity, through absurd estimates."""
+    if not x[0] > 0.0:
+        return False
+    for i in range(state_max.shape[0]):  # noqa: SIM110 (numba compiles no generators)
+        if not abs(x[i]) <= state_max[i]:
+            return False
+    return True
 
 
 def input_path(u_prev: FloatArray, u: FloatArray, linear: bool) -> tuple[FloatArray, FloatArray]:
@@ -414,13 +437,23 @@ def _recover(
     tuning: Tuning,
     model: Model,
 ) -> tuple[FilterState, StepInfo]:
-    if np.isfinite(state.x).all() and np.isfinite(state.P).all():
+    finite = np.isfinite(state.x).all() and np.isfinite(state.P).all()
+    if finite and plausible(state.x, tuning.state_max):
         P = repair_covariance(state.P)
         return state._replace(P=P), info._replace(sigma=np.sqrt(np.diag(P)), repaired=True)
-    # Diverged (e.g. garbage input that passed every check): start again from the
-    # configured prior at this frame rather than stop estimating.
+    # Diverged (non-finite, or run away from where an aircraft can be: a long gap while
+    # the coefficients are unknown, garbage input that passed every check): start again
+    # from the configured prior at this frame rather than stop estimating.
     fresh = initial_state(model, tuning, t, u, y)
-    return fresh, info._replace(sigma=np.sqrt(np.diag(fresh.P)), diverged=True)
+    nothing = np.full(N_OBS, np.nan)  # the step's update was thrown away with its belief
+    return fresh, info._replace(
+        sigma=np.sqrt(np.diag(fresh.P)),
+        nis=math.nan,
+        n_used=0,
+        innovation=nothing,
+        innovation_sigma=nothing.copy(),
+        diverged=True,
+    )
 
 
 def stepper(backend: Backend) -> StepFn:

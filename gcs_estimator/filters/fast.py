@@ -24,10 +24,11 @@ from gcs_estimator.filters.core import FilterState, GustState, StepInfo, Tuning
 from gcs_estimator.filters.hybrid import PSD_JITTER
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model
-from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
 
 for _fn in (
+    core.plausible,
     core.gust_applied,
     core.input_path,
     core.process_noise,
@@ -307,7 +308,11 @@ def _step(
     xp, Pp = _propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
     variances = np.diag(P).copy()
-    healthy = variances.min() > 0.0 and math.isfinite(x.sum() + P.sum())
+    healthy = (
+        variances.min() > 0.0
+        and math.isfinite(x.sum() + P.sum())
+        and core.plausible(x, tun.state_max)
+    )
     gust = core.adapt_gust(st.gust, tun, m, dt, x, u, e, s, applied)
     new = FilterState(x, P, t, u.copy(), st.t_start, gust)
     info = StepInfo(
@@ -349,7 +354,7 @@ def pack(tuning: Tuning, m: ModelArrays) -> tuple[FloatArray, IntArray]:
     floats = [np.array([getattr(tuning, f) for f in _TF_SCALARS], float)]
     floats += [np.ravel(tuning.R)]
     floats += [tuning.q_final, tuning.q_initial, tuning.gust_unit]
-    floats += [tuning.prior_x, tuning.prior_sigma, m.k]
+    floats += [tuning.prior_x, tuning.prior_sigma, tuning.state_max, m.k]
     head = [
         tuning.iterations,
         int(tuning.adaptive),
@@ -391,10 +396,11 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
         tf[o + 4 * n : o + 5 * n],
         tf[7],
         ti[2] != 0,
+        tf[o + 5 * n : o + 5 * n + N_FLIGHT],
     )
     h = _TI_HEAD
     model = ModelArrays(
-        tf[o + 5 * n :],
+        tf[o + 5 * n + N_FLIGHT :],
         ti[h : h + n_coef],
         ti[h + n_coef : h + 2 * n_coef],
         ti[3],

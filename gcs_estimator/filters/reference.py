@@ -52,7 +52,11 @@ def kernel_step(
         s[upd.used] = np.sqrt(np.diag(upd.S))
         nis, n_used, iterations = upd.nis, int(upd.used.sum()), upd.iterations
     variances = np.diag(post.P)
-    healthy = bool(variances.min() > 0.0) and math.isfinite(float(post.x.sum() + post.P.sum()))
+    healthy = (
+        bool(variances.min() > 0.0)
+        and math.isfinite(float(post.x.sum() + post.P.sum()))
+        and core.plausible(post.x, tuning.state_max)
+    )
     gust = core.adapt_gust(state.gust, tuning, model.arrays, dt, post.x, u, e, s, applied)
     new = FilterState(post.x, post.P, t, np.array(u, float), state.t_start, gust)
     info = StepInfo(
