@@ -41,18 +41,7 @@ for _fn in (
 @njit(cache=True)
 def _stage(F: FloatArray, K: FloatArray, c: float, d: int) -> FloatArray:  # pragma: no cover
     """F[:d] + c F[:d, :d] @ K: a Runge-Kutta stage of the transition matrix's top rows."""
-    n = F.shape[1]
-    out = np.empty((d, n))
-    for i in range(d):
-        for j in range(n):
-            out[i, j] = F[i, j]
-        for a in range(d):
-            f = c * F[i, a]
-            if f == 0.0:
-                continue
-            for j in range(n):
-                out[i, j] += f * K[a, j]
-    return out
+    return F[:d] + c * small.times(F[:d, :d], K)
 
 
 @njit(cache=True)
