@@ -33,7 +33,7 @@ from gcs_estimator.schema import (
 
 __all__ = ["AircraftConfig", "ConfigError", "load_config", "load_reference", "load_truths"]
 
-REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0")
+REGRESSORS: tuple[str, ...] = ("1", "alpha", "qhat", "elevator", "V/V0", "adhat")
 """Regressors a coefficient may have, in kernel order (see model.equations)."""
 REGRESSOR_SUFFIX: dict[str, str] = {
     "1": "0",
@@ -41,6 +41,7 @@ REGRESSOR_SUFFIX: dict[str, str] = {
     "qhat": "q",
     "elevator": "de",
     "V/V0": "V",
+    "adhat": "adot",
 }
 """Naming rule: CL with regressor alpha is "CLa", Cm with elevator is "Cmde", and so on."""
 AXES: tuple[str, ...] = ("CD", "CL", "Cm")
@@ -134,7 +135,10 @@ class Propulsion:
 
 
 def _regressors() -> Any:
-    names = 'CL + "alpha" is CLa: suffixes 0, a, q, de, V'
+    names = (
+        'CL + "alpha" is CLa: suffixes 0, a, q, de, V, adot; adhat = alphadot*cbar/(2*V0) '
+        "(usually strongly correlated with qhat: needs varied excitation)"
+    )
     return setting(choices=REGRESSORS, unique=True, doc=names)
 
 

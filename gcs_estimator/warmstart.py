@@ -16,7 +16,8 @@ from q.
 Noise in the alpha regressor biases the alpha coefficients towards zero (errors in
 variables), so alpha, a state smooth between samples, is smoothed first: a zero-phase
 quadratic Savitzky-Golay filter over 0.2 s passes the 2 Hz short period
-(docs/decisions/0001).
+(docs/decisions/0001). The alpha-rate regressor adhat, where the structure has one, is the
+same filter's derivative.
 """
 
 from __future__ import annotations
@@ -52,26 +53,29 @@ SMOOTH_S = 0.2
 """Span of the Savitzky-Golay smoother of the alpha regressor [s]."""
 
 
-def _smooth(t: FloatArray, x: FloatArray, span_s: float) -> FloatArray:
-    """Zero-phase quadratic Savitzky-Golay smoothing over span_s. Short gaps (a channel
-    sent at a lower rate than the frames, a lost packet) are bridged linearly first; the
-    ends, and samples farther than half a span from a real one, come back NaN. With fewer
-    than 5 samples in the span the data come back as they are."""
+def _smooth(t: FloatArray, x: FloatArray, span_s: float, deriv: int = 0) -> FloatArray:
+    """Zero-phase quadratic Savitzky-Golay smoothing over span_s (deriv=1: the smoothed
+    rate). Short gaps (a channel sent at a lower rate than the frames, a lost packet) are
+    bridged linearly first; the ends, and samples farther than half a span from a real
+    one, come back NaN. With fewer than 5 samples in the span the data come back as they
+    are (the rate: NaN)."""
     finite = np.isfinite(x)
+    unsmoothed = x if deriv == 0 else np.full_like(x, np.nan)
     if len(t) < 2 or finite.sum() < 2:
-        return x
+        return unsmoothed
     dt = float(np.median(np.diff(t)))
     n = int(span_s / dt) if dt > 0 else 0
     n = n if n % 2 == 1 else n - 1
     if n < 5 or n > len(x):
-        return x
+        return unsmoothed
     known = t[finite]
     filled = np.interp(t, known, x[finite])
     after = np.clip(np.searchsorted(known, t), 0, len(known) - 1)
     before = np.clip(after - 1, 0, len(known) - 1)
     nearest = np.minimum(np.abs(known[after] - t), np.abs(t - known[before]))
     out = np.full_like(x, np.nan)
-    out[n // 2 : len(x) - n // 2] = np.convolve(filled, savgol_coeffs(n, 2), mode="valid")
+    kernel = savgol_coeffs(n, 2, deriv=deriv, delta=dt)
+    out[n // 2 : len(x) - n // 2] = np.convolve(filled, kernel, mode="valid")
     out[nearest > 0.5 * span_s] = np.nan
     return out
 
@@ -112,14 +116,16 @@ def equation_error(
     qbar = 0.5 * rho * V**2
     force = qbar * k[eq.AREA] / m
     alpha_s = _smooth(t_s, alpha, SMOOTH_S)
+    alpha_rate = _smooth(t_s, alpha, SMOOTH_S, deriv=1) if eq.has_alpha_rate(model.arrays) else 0.0
     alpha = np.where(np.isfinite(alpha_s), alpha_s, alpha)  # also in the axis rotation
     Cm = (qdot - Fe * k[eq.ARM] / k[eq.IYY]) / (qbar * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY])
     CX = (ax - Fe * math.cos(k[eq.SIGMA_T]) / m) / force
     CZ = (az + Fe * math.sin(k[eq.SIGMA_T]) / m) / force
     CL = CX * np.sin(alpha) - CZ * np.cos(alpha)
     CD = -CX * np.cos(alpha) - CZ * np.sin(alpha)
+    kc = k[eq.CHORD] / (2 * k[eq.V0])
     regressors = np.column_stack(
-        [np.ones_like(V), alpha_s, q * k[eq.CHORD] / (2 * k[eq.V0]), de, V / k[eq.V0]]
+        [np.ones_like(V), alpha_s, q * kc, de, V / k[eq.V0], alpha_rate * kc * np.ones_like(V)]
     )
 
     beta = np.array(prior_mean, float)

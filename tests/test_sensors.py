@@ -8,6 +8,7 @@ import numpy as np
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
+from gcs_estimator.metrics import WEAK
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.warmstart import equation_error
 from sim.truth import simulate
@@ -61,3 +62,33 @@ def test_warm_start_bridges_a_channel_sent_at_half_the_frame_rate() -> None:
     for name in ("CLa", "Cma", "Cmde"):
         i = model.names.index(name)
         assert abs(ws.beta[i] - flight.truth[i]) < 0.1 * abs(flight.truth[i]), name
+
+
+ALPHA_RATE = ['coefficients.Cm=["1", "alpha", "qhat", "elevator", "adhat"]', "truth.Cmadot=-20"]
+"""The NOC UAV with a pitch-damping alpha-rate term (as JSBSim's and DATCOM's models have)."""
+
+
+def test_an_alpha_rate_term_is_flown_and_identified_apart_from_pitch_damping() -> None:
+    """The simulator flies Cmadot; the filters, told of it, estimate it and Cmq within 3
+    sigma and 10 %, and mark the pair as strongly correlated (in calm air alphadot follows
+    q). The warm start's fit includes the term."""
+    config = load_config("noc_uav", ALPHA_RATE)
+    flight = simulate(config, seed=1)
+    model = build_model(config)
+    p = model.n_coefficients
+    ws = equation_error(
+        model, flight.t_s, flight.inputs, flight.measurements, np.zeros(p), np.full(p, 100.0)
+    )
+    i_q, i_ad = config.coefficient_names.index("Cmq"), config.coefficient_names.index("Cmadot")
+    damping = flight.truth[i_q] + flight.truth[i_ad]
+    assert abs(ws.beta[i_q] + ws.beta[i_ad] - damping) < 0.2 * abs(damping)
+    vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    res = vehicle.result
+    for kind, f in res.filters.items():
+        for i in (i_q, i_ad):
+            err = f.coefficients[i] - flight.truth[i]
+            assert abs(err) < 3.0 * f.sigma[i], (kind, res.names[i], f.coefficients[i], f.sigma[i])
+            assert abs(err) < 0.1 * abs(flight.truth[i]), (kind, res.names[i], f.coefficients[i])
+        mark = {c.name: c for c in vehicle.summaries[kind].coefficients}["Cmadot"]
+        assert mark.identifiability == WEAK, mark
+        assert mark.correlated_with == "Cmq" and abs(mark.correlation) > 0.9, mark

@@ -13,7 +13,7 @@ airframe's constant density k[RHO].
 The functions take the aircraft as ModelArrays: the airframe packed into a float array
 ``k`` (indices below), the coefficient structure as two int arrays, ``axis[i]`` (0 = CD,
 1 = CL, 2 = Cm) and ``regressor[i]`` (0 = 1, 1 = alpha, 2 = qhat, 3 = elevator,
-4 = V/V0) of coefficient i, and the layout offsets. They are written with scalar
+4 = V/V0, 5 = adhat) of coefficient i, and the layout offsets. They are written with scalar
 arithmetic and loops only, so that the very same source runs as plain Python (the
 reference path, which imports no compiler) and compiles with numba (model.compiled).
 """
@@ -38,7 +38,7 @@ PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 N_STATE = N_FLIGHT
 """The flight states [V, alpha, theta, q] are x_a[0:4]."""
 AXIS_D, AXIS_L, AXIS_M = 0, 1, 2
-REG_ONE, REG_ALPHA, REG_QHAT, REG_ELEV, REG_SPEED = 0, 1, 2, 3, 4
+REG_ONE, REG_ALPHA, REG_QHAT, REG_ELEV, REG_SPEED, REG_ADOT = 0, 1, 2, 3, 4, 5
 
 
 class ModelArrays(NamedTuple):
@@ -83,10 +83,12 @@ def thrust(V: float, u1: float, rho: float, k: FloatArray) -> tuple[float, float
 def aero_coefficients(
     x: FloatArray, u: FloatArray, m: ModelArrays
 ) -> tuple[FloatArray, FloatArray]:
-    """Coefficients C = [CD, CL, Cm] and their Jacobian dC/dx_a (3 x n).
+    """Coefficients C = [CD, CL, Cm] and their Jacobian dC/dx_a (3 x n), without the
+    alpha-rate terms (coefficients() adds them).
 
-    C_axis = sum_i beta_i * r_regressor(i) with r = [1, alpha, q*cbar/(2*V0), de, V/V0]
-    (paper eq. 12, generalised to a configured structure).
+    C_axis = sum_i beta_i * r_regressor(i) with
+    r = [1, alpha, q*cbar/(2*V0), de, V/V0, alphadot*cbar/(2*V0)] (paper eq. 12,
+    generalised to a configured structure).
     """
     k = m.k
     n = x.shape[0]
@@ -94,12 +96,13 @@ def aero_coefficients(
     alpha = x[1]
     q = x[3]
     qhat_per_q = k[CHORD] / (2.0 * k[V0])
-    r = np.empty(5)
+    r = np.empty(6)
     r[REG_ONE] = 1.0
     r[REG_ALPHA] = alpha
     r[REG_QHAT] = q * qhat_per_q
     r[REG_ELEV] = u[0]
     r[REG_SPEED] = V / k[V0]
+    r[REG_ADOT] = 0.0
     C = np.zeros(3)
     dC = np.zeros((3, n))
     c0 = m.coef_start
@@ -115,6 +118,101 @@ def aero_coefficients(
             dC[a, 3] += b * qhat_per_q
         elif j == REG_SPEED:
             dC[a, 0] += b / k[V0]
+    return C, dC
+
+
+def _alpha_rate(
+    x: FloatArray,
+    u: FloatArray,
+    m: ModelArrays,
+    C: FloatArray,
+    dC: FloatArray,
+    rho: float,
+    Fe: float,
+    dFe: float,
+) -> tuple[float, FloatArray]:
+    """alphadot and d(alphadot)/dx_a [n] given the coefficients C, dC (paper eq. 11):
+
+    alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
+               - (Fe/(m*V))*sin(alpha + sigma_T)
+    """
+    k = m.k
+    n = x.shape[0]
+    V = x[0]
+    alpha = x[1]
+    theta = x[2]
+    A = k[AREA] / k[MASS]
+    g = k[GRAV]
+    mass = k[MASS]
+    sat = math.sin(alpha - theta)
+    cat = math.cos(alpha - theta)
+    sas = math.sin(alpha + k[SIGMA_T])
+    cas = math.cos(alpha + k[SIGMA_T])
+    f1 = -0.5 * rho * V * A * C[1] + x[3] + g / V * cat - Fe / (mass * V) * sas
+    row = np.zeros(n)
+    for j in range(n):
+        row[j] = -0.5 * rho * V * A * dC[1, j]
+    row[0] += (
+        -0.5 * rho * A * C[1] - g / (V * V) * cat - (dFe / (mass * V) - Fe / (mass * V * V)) * sas
+    )
+    row[1] += -g / V * sat - Fe / (mass * V) * cas
+    row[2] += g / V * sat
+    row[3] += 1.0
+    return f1, row
+
+
+def has_alpha_rate(m: ModelArrays) -> bool:
+    """Whether some coefficient has the alpha-rate regressor adhat."""
+    for i in range(m.regressor.shape[0]):  # noqa: SIM110 (numba compiles loops, not any())
+        if m.regressor[i] == REG_ADOT:
+            return True
+    return False
+
+
+def coefficients(
+    x: FloatArray, u: FloatArray, m: ModelArrays, rho: float, Fe: float, dFe: float
+) -> tuple[FloatArray, FloatArray]:
+    """C = [CD, CL, Cm] and dC/dx_a [3 x n], alpha-rate terms included.
+
+    The regressor adhat = alphadot*cbar/(2*V0) takes alphadot from the model's own alpha
+    equation (JSBSim's CLadot, Cmadot). With CL's own adhat coefficient CLad, alphadot
+    appears on both sides of that equation; it is linear there, so
+
+        alphadot = alphadot_0 / (1 + kappa*cbar/(2*V0)*CLad),   kappa = qbar*S/(m*V),
+
+    alphadot_0 being the equation with adhat = 0. Its Jacobian is that of the quotient.
+    """
+    C, dC = aero_coefficients(x, u, m)
+    if not has_alpha_rate(m):
+        return C, dC
+    k = m.k
+    n = x.shape[0]
+    V = x[0]
+    kc = k[CHORD] / (2.0 * k[V0])
+    kappa = 0.5 * rho * V * k[AREA] / k[MASS]
+    f0, row0 = _alpha_rate(x, u, m, C, dC, rho, Fe, dFe)
+    c0 = m.coef_start
+    cl_ad = 0.0
+    for i in range(m.axis.shape[0]):
+        if m.regressor[i] == REG_ADOT and m.axis[i] == AXIS_L:
+            cl_ad += x[c0 + i]
+    den = 1.0 + kappa * kc * cl_ad
+    f1 = f0 / den
+    adhat = kc * f1
+    dden = np.zeros(n)
+    dden[0] = 0.5 * rho * k[AREA] / k[MASS] * kc * cl_ad
+    for i in range(m.axis.shape[0]):
+        if m.regressor[i] == REG_ADOT and m.axis[i] == AXIS_L:
+            dden[c0 + i] += kappa * kc
+    for i in range(m.axis.shape[0]):
+        if m.regressor[i] != REG_ADOT:
+            continue
+        a = m.axis[i]
+        b = x[c0 + i]
+        C[a] += b * adhat
+        dC[a, c0 + i] = adhat
+        for j in range(n):
+            dC[a, j] += b * kc * (row0[j] - f1 * dden[j]) / den
     return C, dC
 
 
@@ -156,8 +254,8 @@ def dynamics_rows(
     A = k[AREA] / m
     g = k[GRAV]
     rho = density(u, k)
-    C, dC = aero_coefficients(x, u, model)
     Fe, dFe = thrust(V, u[1], rho, k)
+    C, dC = coefficients(x, u, model, rho, Fe, dFe)
     qbar = 0.5 * rho * V * V
     sat = math.sin(alpha - theta)
     cat = math.cos(alpha - theta)
@@ -206,8 +304,8 @@ def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArra
     m = k[MASS]
     A = k[AREA] / m
     rho = density(u, k)
-    C, dC = aero_coefficients(x, u, model)
     Fe, dFe = thrust(V, u[1], rho, k)
+    C, dC = coefficients(x, u, model, rho, Fe, dFe)
     qbar = 0.5 * rho * V * V
     sa = math.sin(alpha)
     ca = math.cos(alpha)

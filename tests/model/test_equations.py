@@ -67,21 +67,66 @@ PLACED = [
     'sensors.bias_states=["alpha", "q", "a_x", "a_z"]',
 ]
 """The NOC UAV with its sensors away from the CG and four estimated biases."""
+ALPHA_RATE = [
+    'coefficients.CL=["1", "alpha", "qhat", "elevator", "adhat"]',
+    'coefficients.Cm=["1", "alpha", "qhat", "elevator", "adhat"]',
+    "truth.CLadot=0",
+    "truth.Cmadot=0",
+]
+"""The NOC UAV with alpha-rate terms in lift and moment (JSBSim's CLadot, Cmadot)."""
 
 
-@pytest.mark.parametrize("which", ["noc", "hfb", "placed"])
+@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate"])
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_jacobians_match_numerical(
     which: str, data: st.DataObject, noc_config: AircraftConfig, hfb_config: AircraftConfig
 ) -> None:
-    config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", PLACED)
+    config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config(
+        "noc_uav", PLACED if which == "placed" else ALPHA_RATE
+    )
     model = build_model(config)
     x, u = data.draw(states(model))
+    if which == "alpha rate":  # CLadot within what keeps alphadot's denominator away from 0
+        x[model.coefficients.start + model.names.index("CLadot")] = data.draw(st.floats(-5, 5))
     _, F = model.f(x, u)
     assert_jacobian_close(F, numerical_jacobian(lambda z: model.f(z, u), x))
     _, H = model.h(x, u)
     assert_jacobian_close(H, numerical_jacobian(lambda z: model.h(z, u), x))
+
+
+def test_alpha_rate_terms_take_the_models_own_alphadot(noc_config: AircraftConfig) -> None:
+    """Cmadot adds Cmadot * alphadot * cbar / (2 V0), alphadot being the model's own f[1];
+    with CLadot too, alphadot solves its equation with the lift term included."""
+    model = build_model(load_config("noc_uav", ALPHA_RATE))
+    names = model.names
+    truth = dict(zip(noc_config.coefficient_names, noc_config.truth or (), strict=True))
+    beta = np.array([truth.get(n, 0.0) for n in names])
+    x = model.augment(np.array([24.0, 0.08, 0.02, 0.3]), beta)
+    u = np.array([-0.02, 0.4])
+    kc = noc_config.airframe.mean_chord_m / (2 * noc_config.airframe.trim_airspeed_mps)
+    f, _ = model.f(x, u)
+    h, _ = model.h(x, u)
+    i_m = model.coefficients.start + names.index("Cmadot")
+    i_l = model.coefficients.start + names.index("CLadot")
+    x2 = x.copy()
+    x2[i_m] = -6.0
+    f2, _ = model.f(x2, u)
+    h2, _ = model.h(x2, u)
+    mcoef = h2[4] - h[4]  # qdot from the added moment alone
+    qbar_term = 0.5 * 1.225 * 24.0**2  # NOC flies at the airframe's constant density
+    k = model.k
+    scale = qbar_term * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY]
+    rho = float(k[eq.RHO])
+    scale *= rho / 1.225
+    assert mcoef == pytest.approx(scale * -6.0 * f[1] * kc, rel=1e-12)
+    assert f2[3] - f[3] == pytest.approx(mcoef, rel=1e-12)
+    # With CLadot, alphadot = f[1] satisfies its own equation: the lift term uses it.
+    x3 = x2.copy()
+    x3[i_l] = 2.0
+    f3, _ = model.f(x3, u)
+    lift = -0.5 * rho * 24.0 * k[eq.AREA] / k[eq.MASS] * 2.0 * kc * f3[1]
+    assert f3[1] - f2[1] == pytest.approx(lift, rel=1e-9)
 
 
 def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:
