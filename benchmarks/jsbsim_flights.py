@@ -36,7 +36,7 @@ import numpy as np
 from best_fit import best_fit  # benchmarks/: the script's directory is on sys.path
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import load_config
+from gcs_estimator.config import REGRESSOR_SUFFIX, load_config
 from gcs_estimator.flightdata import Recording, write_csv
 from gcs_estimator.units import FOOT, POUND_FORCE, SLUG
 
@@ -138,6 +138,9 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
     fz = g("forces/fbz-aero-lbs") + g("forces/fbz-prop-lbs")
     thrust = math.hypot(g("forces/fbx-prop-lbs"), g("forces/fbz-prop-lbs"))
     qs = g("aero/qbar-psf") * g("metrics/Sw-sqft")
+    u, v, w = g("velocities/u-fps"), g("velocities/v-fps"), g("velocities/w-fps")
+    ground_speed = math.sqrt(u * u + v * v + w * w)
+    ground_alpha = math.atan2(w, u)
     values = {
         "t": t,
         "V": g("velocities/vt-fps") * FOOT,
@@ -165,6 +168,9 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         "CLadot": _term(g, "aero/coefficient/CLadot") / qs,
         "Cmadot": _term(g, "aero/coefficient/Cmadot") / (qs * g("metrics/cbarw-ft")),
         "adhat": g("aero/alphadot-rad_sec") * g("metrics/cbarw-ft") / (2 * g("velocities/vt-fps")),
+        # The gust: air-relative V and alpha against the motion over the ground.
+        "gust_u": (g("velocities/vt-fps") - ground_speed) * FOOT,
+        "gust_w": (g("aero/alpha-rad") - ground_alpha) * ground_speed * FOOT,
     }
     for k, v in values.items():
         out.setdefault(k, []).append(float(v))
@@ -186,8 +192,9 @@ def reference(f: dict[str, FloatArray], chord_m: float) -> dict[str, tuple[float
         "alpha": f["alpha"],
         "qhat": f["q"] * chord_m / (2.0 * f["V"]),
         "elevator": f["de"],
+        "adhat": f["adhat"],
     }
-    suffix = {"1": "0", "alpha": "a", "qhat": "q", "elevator": "de"}
+    suffix = REGRESSOR_SUFFIX
     out: dict[str, tuple[float, float]] = {}
     for axis, regs in STRUCTURE.items():
         X = np.column_stack([regressors[r] for r in regs])
@@ -265,13 +272,12 @@ def airframe_toml(
 
 def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
     """Fly every aircraft calm and in light turbulence; (config, csv) per record. Next to
-    each, NAME.best_fit.json: the structure's best fit to the noise-free flight
-    (benchmarks/best_fit.py) of the calm flight, which serves the turbulent one too."""
+    each, NAME.best_fit.json: the structure's best fit to that noise-free flight, through
+    its own gusts (benchmarks/best_fit.py)."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for ac in AIRCRAFT:
-        best: list[float] = []
-        for turbulent in (False, True):  # calm first: its best fit serves both
+        for turbulent in (False, True):
             f = fly(ac, turbulent, seed)
             ref = reference(f, float(f["chord"][0]))
             rng = np.random.default_rng(seed)
@@ -283,10 +289,13 @@ def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
             toml = airframe_toml(ac, f, ref, alpha_dot_terms(f))
             toml_path.write_text(toml, encoding="utf-8")
             config = load_config(toml_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
-            if not best:  # gusts are not in the structure: the fit is of the calm flight
-                clean = np.column_stack([f[k] for k in CLEAN])
-                best = best_fit(config, f["t"], inputs, clean, np.array(config.truth)).tolist()
-            fit = dict(zip(config.coefficient_names, best, strict=True))
+            clean = np.column_stack([f[k] for k in CLEAN])
+            gust = np.column_stack([f["gust_u"], f["gust_w"]])
+            best, rms = best_fit(config, f["t"], inputs, clean, np.array(config.truth), gust)
+            fit = {
+                "coefficients": dict(zip(config.coefficient_names, best.tolist(), strict=True)),
+                "residual_sigmas": dict(zip(CLEAN, rms.tolist(), strict=True)),
+            }
             csv_path.with_suffix(".best_fit.json").write_text(json.dumps(fit), encoding="utf-8")
             records.append((toml_path, csv_path))
             print(

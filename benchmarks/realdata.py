@@ -9,7 +9,8 @@ project's defaults) and on HFB-320, and prints per coefficient: reference, estim
 sigma, error in percent and in sigmas; and per record: the worst error over the
 well-excited coefficients, the share within 3 sigma and the mean squared z (an honest
 sigma gives about 1). For the JSBSim records the table also holds the structure's best
-fit to the noise-free flight (benchmarks/best_fit.py): the errors and z against it show
+fit to the noise-free flight, flown through its own gusts (benchmarks/best_fit.py), with
+how closely it reproduces the flight: the errors and z against it show
 the filter, its distance from JSBSim's linearised aerodynamics what the structure misses.
 Beside the filters: `refine` (output error over the whole record, from the IEKF's
 estimate) with its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's
@@ -43,7 +44,11 @@ NEAR_ZERO = 0.01
 
 
 def evaluate(
-    name: str, config: AircraftConfig, rec: Recording, best: dict[str, float] | None = None
+    name: str,
+    config: AircraftConfig,
+    rec: Recording,
+    best: dict[str, float] | None = None,
+    best_residual: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Print one record's table; return its worst well-excited error per filter (against
     the best fit where there is one, which is what a filter can reach)."""
@@ -93,12 +98,7 @@ def evaluate(
             row += [cell(pct(oe.coefficients, goal)[i], goal[i])]
             row += [f"{(oe.coefficients[i] - goal[i]) / oe.sigma[i]:+.1f}"]
         print("| " + " | ".join(row) + " |")
-    if fit is not None:
-        gap = pct(fit, ref)
-        print(
-            "\nbest fit against the reference (what the structure misses): "
-            + ", ".join(f"{n} {cell(gap[i], ref[i])}" for i, n in enumerate(res.names))
-        )
+    _print_best_fit(res.names, ref, fit, best_residual)
     summary: dict[str, float] = {}
     well = [i for i, n in enumerate(res.names) if n in WELL_EXCITED and abs(goal[i]) > NEAR_ZERO]
     judged = [i for i, n in enumerate(res.names) if n in WELL_EXCITED]
@@ -126,6 +126,31 @@ def evaluate(
     if oe is not None:
         summary["OE"] = _oe_summary(oe, goal, well)
     return summary
+
+
+def _print_best_fit(
+    names: tuple[str, ...],
+    ref: FloatArray,
+    fit: FloatArray | None,
+    residual: dict[str, float] | None,
+) -> None:
+    """The best fit's distance from the reference, and how closely it reproduces the
+    flight."""
+    if fit is not None:
+        gap = 100.0 * (fit - ref) / np.abs(ref)
+        print(
+            "\nbest fit against the reference (what the structure misses): "
+            + ", ".join(
+                f"{n} {'ref ≈ 0' if abs(ref[i]) <= NEAR_ZERO else f'{gap[i]:+.2f}'}"
+                for i, n in enumerate(names)
+            )
+        )
+    if residual is not None:
+        print(
+            "best fit's residual (RMS over the sensor sigma; near 0: the structure, flown "
+            "through the flight's gusts, reproduces it): "
+            + ", ".join(f"{c} {v:.2f}" for c, v in residual.items())
+        )
 
 
 def _head(label: str, fit: bool, oe: bool) -> list[str]:
@@ -182,7 +207,9 @@ def run(args: argparse.Namespace) -> int:
         config = load_config(config_path)
         best = json.loads(csv_path.with_suffix(".best_fit.json").read_text(encoding="utf-8"))
         rec = load_recording(csv_path)[1]
-        worst[csv_path.stem] = evaluate(csv_path.stem, config, rec, best)
+        worst[csv_path.stem] = evaluate(
+            csv_path.stem, config, rec, best["coefficients"], best["residual_sigmas"]
+        )
     hfb = load_config("hfb320")
     worst["hfb320"] = evaluate("hfb320", hfb, load_recording("hfb320", hfb.data)[1])
     print(

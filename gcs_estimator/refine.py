@@ -59,12 +59,11 @@ def _predict(
     nd = P.shape[0]
     steps = max(1, int(math.ceil(span / max_step - 1e-9)))
     h = span / steps
-    still = np.zeros(2)
     eye = np.eye(nd)
     for s in range(steps):
         ua = u0 + (u1 - u0) * (s / steps)
         ub = u0 + (u1 - u0) * ((s + 1) / steps)
-        x1, F1, F2, F3, F4 = eq.rk4_step(x, ua, ub, still, h, m)
+        x1, F1, F2, F3, F4 = eq.rk4_step(x, ua, ub, h, m)
         # The transition of the Runge-Kutta step: each stage's slope depends on x
         # through the stages before it.
         d1 = np.ascontiguousarray(F1[:nd, :nd])

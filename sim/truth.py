@@ -19,7 +19,7 @@ from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.model.equations import ModelArrays, air_relative, observe, rk4_step
+from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe
 from gcs_estimator.telemetry import pwm
 
 
@@ -168,8 +168,9 @@ def simulate(
 ) -> Flight:
     """Fly the configured manoeuvre with the true coefficients and sample the sensors.
 
-    The air-relative state (V + u_g, alpha + w_g/V: small-gust approximation) drives the
-    aerodynamics and is what the air-data sensors see.
+    The state flown is the motion over the ground; the air-relative state (V + u_g,
+    alpha + w_g/V) drives the aerodynamics and is what the air-data sensors see
+    (equations.wind_slope).
     """
     if truth is None:
         if config.truth is None:
@@ -284,9 +285,10 @@ def integrate(
     per_sample: int,
     m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
-    """Fly x0 with classical Runge-Kutta (equations.rk4_step), inputs u_steps [steps x 2]
-    and gust [steps + 1 x 2] held over each step of dt [s]; every per_sample steps, sample
-    the air-relative flight states and the noise-free observations with u_samples."""
+    """Fly x0 (the motion over the ground) with classical Runge-Kutta through the air's
+    motion (equations.fly_step), inputs u_steps [steps x 2] and gust [steps + 1 x 2] held
+    over each step of dt [s]; every per_sample steps, sample the air-relative flight
+    states and the noise-free observations with u_samples."""
     n_samples = u_samples.shape[0]
     states = np.empty((n_samples, N_FLIGHT))
     clean = np.empty((n_samples, N_OBS))
@@ -300,6 +302,6 @@ def integrate(
         if i == n_samples - 1:
             break
         for _ in range(per_sample):
-            x = rk4_step(x, u_steps[step], u_steps[step], gust[step], dt, m)[0]
+            x = fly_step(x, u_steps[step], u_steps[step], gust[step], dt, m)
             step += 1
     return states, clean

@@ -89,14 +89,13 @@ def _propagate(
     h = dt / steps
     d = m.n_dynamic
     n = x.shape[0]
-    still = np.zeros(2)
     du = u1 - u0
     D = np.empty((d, n))
     D_m = np.empty((d, n))
     for j in range(steps):
         ua = u0 + du * (j / steps)
         ub = u0 + du * ((j + 1) / steps)
-        x, F1, F2, F3, F4 = rk4_step(x, ua, ub, still, h, m)
+        x, F1, F2, F3, F4 = rk4_step(x, ua, ub, h, m)
         # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
         K2 = _stage(F2, F1, 0.5 * h, d)
         K3 = _stage(F3, K2, 0.5 * h, d)

@@ -27,6 +27,8 @@ for _fn in (
     eq.observe,
     eq.air_relative,
     eq.rk4_step,
+    eq.wind_slope,
+    eq.fly_step,
 ):
     register_jitable(_fn)
 
