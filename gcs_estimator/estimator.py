@@ -296,6 +296,9 @@ class EstimatorResult(NamedTuple):
     """Frames skipped because they were not after the previous one."""
     final_pass_from: int = 0
     """First frame whose history row is the final pass's (after the last restart's swap)."""
+    state_names: tuple[str, ...] = ()
+    """Every element of the augmented state, in order (flight states, gust states where
+    modelled, coefficients, biases): the columns of a track's x and sigma."""
 
 
 class _Start(NamedTuple):
@@ -653,6 +656,7 @@ class Estimator:
             self.gaps,
             self.out_of_order,
             self.final_pass_from,
+            self.model.layout.names,
         )
 
 

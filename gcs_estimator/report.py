@@ -462,7 +462,7 @@ def write_history_csv(path: Path, result: EstimatorResult) -> None:
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    names = list(FLIGHT_STATES) + list(result.names)
+    names = list(result.state_names)
     power = POWER_COLUMNS[result.config.propulsion.input_name]
     header = (
         ["filter", "t_s"]

@@ -54,6 +54,26 @@ def test_simulate_writes_table_json_and_csv(
     assert (tmp_path / "results_sys1.md").read_text().startswith("# NOC UAV")
 
 
+def test_history_has_a_column_for_every_state_a_run_estimates(tmp_path: Path) -> None:
+    """A rate-gyro bias state: the history CSV names a column for each element of the
+    augmented state, and every row holds as many cells as the header."""
+    over = [
+        "simulation.manoeuvre.duration_s=12",
+        "simulation.sensors.bias.q=0.003",
+        'sensors.bias_states=["q"]',
+    ]
+    args = ["simulate", "--out", str(tmp_path), "--seed", "2", "--view", "off"]
+    assert main(args + [a for o in over for a in ("--set", o)]) == 0
+    lines = (tmp_path / "results_sys1_history.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    for name in ("V", "CLa", "q_bias", "sigma_q_bias"):
+        assert name in header
+    assert len(lines) > 100
+    assert {len(line.split(",")) for line in lines[1:]} == {len(header)}
+    data = json.loads((tmp_path / "results_sys1.json").read_text())
+    assert set(data["filters"]["IEKF"]["sensor_biases"]) == {"q_bias"}
+
+
 def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_path: Path) -> None:
     rec = load_hfb320(hfb_data_path)
     csv_path = tmp_path / "hfb.csv"
