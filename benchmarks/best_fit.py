@@ -63,7 +63,7 @@ def best_fit(
     [N x 2]: the flight's gusts (u_g, w_g [m/s]: the air-relative V and alpha being
     V + u_g and alpha + w_g / V), none in calm air. Returns the coefficients and the
     fit's RMS residual per channel in units of the channel's measurement sigma."""
-    model = build_model(config)
+    model = build_model(config, gust_states=False)
     u = np.ascontiguousarray(np.array([model.inputs(row) for row in inputs]))
     g = np.zeros((len(t_s), 2)) if gust is None else np.ascontiguousarray(gust, dtype=float)
     first = clean[0, :4].copy()

@@ -1,6 +1,6 @@
 """Data no filter here was tuned on: the JSBSim validation set and the HFB-320 flight test.
 
-    ./run bench realdata [--seed 1]
+    ./run bench realdata [--seed 1] [--set KEY=VALUE]
 
 Flies the validation set first (benchmarks/jsbsim_flights.py: two JSBSim aircraft, calm
 and in light turbulence, noisy sensors, a vane ahead of the CG, a gyro bias), then runs
@@ -193,6 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seed", type=int, default=1, help="noise and turbulence seed")
     ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help='a config override for every record, e.g. filter.turbulence.model="states"',
+    )
     record.add_argument(ap, "realdata")
     args = ap.parse_args(argv)
     with record.recorded("realdata", args.record, "Real data: the JSBSim set and HFB-320"):
@@ -204,13 +211,13 @@ def run(args: argparse.Namespace) -> int:
     records = generate(Path(args.out), args.seed)
     worst: dict[str, dict[str, float]] = {}
     for config_path, csv_path in records:
-        config = load_config(config_path)
+        config = load_config(config_path, args.set)
         best = json.loads(csv_path.with_suffix(".best_fit.json").read_text(encoding="utf-8"))
         rec = load_recording(csv_path)[1]
         worst[csv_path.stem] = evaluate(
             csv_path.stem, config, rec, best["coefficients"], best["residual_sigmas"]
         )
-    hfb = load_config("hfb320")
+    hfb = load_config("hfb320", args.set)
     worst["hfb320"] = evaluate("hfb320", hfb, load_recording("hfb320", hfb.data)[1])
     print(
         "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "

@@ -301,10 +301,17 @@ class ProcessNoise:
 
 @dataclass(frozen=True)
 class TurbulenceNoise:
-    """The filter's model of turbulence: white process noise on V, alpha and theta whose
-    level follows a Dryden gust intensity, estimated online from the innovations
-    (model.turbulence.gust_densities)."""
+    """The filter's model of turbulence, its level a Dryden gust intensity estimated online
+    from the innovations: gust states u_g, w_g (first-order Dryden processes with the
+    scale lengths below) in the augmented state, or white process noise on V, alpha and
+    theta (model.turbulence.gust_densities)."""
 
+    model: str = setting(
+        "noise",
+        choices=("noise", "states"),
+        doc="states: gust states u_g, w_g (coloured, mean-reverting); noise: white process "
+        "noise on the flight states",
+    )
     adaptive: bool = setting(True, doc="estimate sigma_w^2 online from the V and alpha innovations")
     sigma_w_mps: float = setting(0.0, ge=0, unit="m/s", doc="initial (adaptive) or fixed level")
     sigma_u_ratio: float = setting(1.5, gt=0)

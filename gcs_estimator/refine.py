@@ -516,7 +516,7 @@ def refine_run(
     if idx.size < 10:
         raise RefineError(f"only {idx.size} frames in the window {window_s}; 10 needed")
     config = result.config
-    model = build_model(config)
+    model = build_model(config, gust_states=False)
     start = np.zeros(model.n)
     start[model.coefficients] = fr.coefficients
     start[model.biases] = fr.biases

@@ -41,7 +41,7 @@ def output_error(
     weighted by the configured filter's measurement sigma. start: augmented state to
     start from (default: the flight's first true state and the true coefficients, the
     most favourable start). until_s: use only the samples up to this time."""
-    model = build_model(config)
+    model = build_model(config, gust_states=False)
     sim = config.simulation
     per_sample = max(1, round(1.0 / (sim.sample_rate_hz * sim.integration_step_s)))
     dt = 1.0 / (sim.sample_rate_hz * per_sample)

@@ -178,7 +178,7 @@ def simulate(
         truth = np.array(config.truth)
     sim = config.simulation
     rng = np.random.default_rng(sim.seed if seed is None else seed)
-    model = build_model(config)
+    model = build_model(config, gust_states=False)
     trimmed = trim(model, truth)
     gusts = _GustModel(sim.turbulence, float(trimmed.state[0]), rng)
 

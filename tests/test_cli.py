@@ -55,18 +55,19 @@ def test_simulate_writes_table_json_and_csv(
 
 
 def test_history_has_a_column_for_every_state_a_run_estimates(tmp_path: Path) -> None:
-    """A rate-gyro bias state: the history CSV names a column for each element of the
-    augmented state, and every row holds as many cells as the header."""
+    """A rate-gyro bias state and gust states: the history CSV names a column for each
+    element of the augmented state, and every row holds as many cells as the header."""
     over = [
         "simulation.manoeuvre.duration_s=12",
         "simulation.sensors.bias.q=0.003",
         'sensors.bias_states=["q"]',
+        'filter.turbulence.model="states"',
     ]
     args = ["simulate", "--out", str(tmp_path), "--seed", "2", "--view", "off"]
     assert main(args + [a for o in over for a in ("--set", o)]) == 0
     lines = (tmp_path / "results_sys1_history.csv").read_text().splitlines()
     header = lines[0].split(",")
-    for name in ("V", "CLa", "q_bias", "sigma_q_bias"):
+    for name in ("u_g", "w_g", "CLa", "q_bias", "sigma_q_bias", "sigma_w_g"):
         assert name in header
     assert len(lines) > 100
     assert {len(line.split(",")) for line in lines[1:]} == {len(header)}

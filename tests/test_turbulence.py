@@ -37,6 +37,25 @@ def test_light_turbulence_is_measured_and_the_coefficients_stay_consistent(
         assert np.all(z < 4.0), (kind, dict(zip(res.names, z.round(1), strict=True)))
 
 
+def test_gust_states_measure_light_turbulence_and_stay_consistent(
+    noc_config: AircraftConfig,
+) -> None:
+    """Gust states in the augmented state (filter.turbulence.model = "states"): the level
+    is measured as well, the coefficients stay within their sigmas, and the states follow
+    the simulator's gusts."""
+    tuning = noc_config.filter
+    config = replace(
+        noc_config, filter=replace(tuning, turbulence=replace(tuning.turbulence, model="states"))
+    )
+    sigma_w = 0.772
+    res, truth = _fly(config, sigma_w, seed=3)
+    assert res.state_names[4:6] == ("u_g", "w_g")
+    for kind, f in res.filters.items():
+        assert f.gust_sigma == np.clip(f.gust_sigma, 0.8 * sigma_w, 1.2 * sigma_w), kind
+        z = np.abs(f.coefficients - truth) / f.sigma
+        assert np.all(z < 4.0), (kind, dict(zip(res.names, z.round(1), strict=True)))
+
+
 def test_calm_air_is_measured_as_calm(noc_config: AircraftConfig) -> None:
     res, truth = _fly(noc_config, 0.0, seed=3)
     for kind, f in res.filters.items():

@@ -21,7 +21,8 @@ Process noise (Q, continuous-time spectral density, diagonal):
            + sigma_w^2 diag(gust_unit)
 
 where sigma_w^2 is the vertical gust variance estimated online by covariance matching
-(GustState), applied only once detected.
+(GustState), applied only once detected; gust_unit drives the gust states where the
+layout has them (filter.turbulence.model = "states"), else the flight states.
 
 Source: Meng, Liu and Veres (2010), sections III-IV; docs/model.md.
 """
@@ -40,6 +41,7 @@ from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.model.equations import ModelArrays
+from gcs_estimator.model.turbulence import gust_state_densities
 
 FilterKind = Literal["EKF", "IEKF"]
 FILTER_KINDS: tuple[FilterKind, ...] = ("EKF", "IEKF")
@@ -56,6 +58,11 @@ the floor keeps it from drifting so far below that real turbulence takes long to
 STATE_MARGIN = 2.0
 """A belief's flight states may reach this multiple of the largest a signal can be before
 it counts as run away (Tuning.state_max)."""
+
+GUST_STATE_FLOOR = 1e-3
+"""Gust intensity [m/s] the gust states always carry (process noise and initial spread),
+so that their variance never reaches zero in calm air: a belief with a zero variance
+would count as unhealthy and be repaired at every pass."""
 
 GUST_CLIP = 25.0
 """Squared innovations count at most this many times their variance (5 sigma) in the
@@ -140,7 +147,8 @@ class Tuning(NamedTuple):
     """Process-noise spectral density at t_start [n]; decays to q_final."""
     q_decay_s: float
     gust_unit: FloatArray
-    """Process-noise spectral density per unit sigma_w^2 [n] (zero but on flight states)."""
+    """Process-noise spectral density per unit sigma_w^2 [n] (zero but on the gust states,
+    or on the flight states where turbulence is white process noise)."""
     iterations: int
     """Measurement-update iterations: 1 is the EKF, more the IEKF."""
     tolerance: float
@@ -204,7 +212,16 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     q_final[coef] = ft.process_noise.coefficients
     q_initial[coef] = ft.process_noise.coefficients_initial
     unit = np.zeros(n)
-    unit[flight] = ft.turbulence.unit(float(model.k[eq.V0]))
+    turb = ft.turbulence
+    v0 = float(model.k[eq.V0])
+    if model.gusts.stop > model.gusts.start:
+        unit[model.gusts] = gust_state_densities(
+            v0, turb.sigma_u_ratio, turb.length_u_m, turb.length_w_m
+        )
+        q_final[model.gusts] = GUST_STATE_FLOOR**2 * unit[model.gusts]
+        q_initial[model.gusts] = q_final[model.gusts]
+    else:
+        unit[flight] = turb.unit(v0)
     prior_x = np.zeros(n)
     prior_x[coef] = ft.initial_coefficients
     prior_sigma = np.zeros(n)
@@ -261,13 +278,21 @@ def initial_state(
         x[model.coefficients] = coefficients
     if coefficient_sigma is not None:
         sigma[model.coefficients] = coefficient_sigma
+    level = tuning.gust_var0 if gust_var is None else gust_var
+    gusts = model.gusts
+    if gusts.stop > gusts.start:
+        # Gust states start at zero with their stationary spread at this level: a
+        # first-order process of density q and time constant L/V has variance q L/(2 V).
+        lengths = np.array([model.k[eq.GUST_LU], model.k[eq.GUST_LW]])
+        stationary = tuning.gust_unit[gusts] * lengths / (2.0 * model.k[eq.V0])
+        sigma[gusts] = np.sqrt(max(level, GUST_STATE_FLOOR**2) * stationary)
     return FilterState(
         x=x,
         P=np.diag(sigma**2),
         t=t,
         u=np.array(u, float),
         t_start=t,
-        gust=GustState.start(tuning.gust_var0 if gust_var is None else gust_var),
+        gust=GustState.start(level),
     )
 
 

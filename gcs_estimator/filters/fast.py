@@ -213,7 +213,7 @@ def _iterate(
     linearisation it came from, the iterations kept, and False if some S_i was not
     positive definite."""
     n = xp.shape[0]
-    sigma = np.sqrt(np.diag(Pp))
+    sigma = np.sqrt(np.maximum(np.diag(Pp), 1e-300))  # a state held exactly cannot move
     x_i = xp.copy()
     lin = first
     Kt = Kt1 = np.zeros((idx.shape[0], n))

@@ -170,7 +170,9 @@ def iekf_update(
     nis = float(e @ psd_solve(S, e))
 
     yu, Ru = y[used], R[np.ix_(used, used)]
-    sigma = np.sqrt(np.diag(P))
+    # A state the prior holds exactly (a gust state in calm air) cannot move: floored, its
+    # zero step counts as zero sigmas.
+    sigma = np.maximum(np.sqrt(np.diag(P)), 1e-300)
     x_i = x_prior
     Hu = H[used]
     hu = hx[used]

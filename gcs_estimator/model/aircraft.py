@@ -16,8 +16,10 @@ from gcs_estimator.model.channels import FLIGHT_STATES, N_INPUTS, REQUIRED_INPUT
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.model.state import StateLayout
 
-FLIGHT, COEFFICIENTS, BIASES = "flight", "coefficients", "biases"
+FLIGHT, GUSTS, COEFFICIENTS, BIASES = "flight", "gusts", "coefficients", "biases"
 """Names of the augmented state's blocks."""
+GUST_STATES = ("u_g", "w_g")
+"""The gust states' names (filter.turbulence.model = "states")."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,14 @@ class Model:
         return self.layout.block(BIASES).names
 
     @property
+    def gusts(self) -> slice:
+        """Where the gust states [u_g, w_g] sit (empty when turbulence is process noise)."""
+        for b in self.layout.blocks:
+            if b.name == GUSTS:
+                return b.slice
+        return slice(0, 0)
+
+    @property
     def flight(self) -> slice:
         """Where the flight states [V, alpha, theta, q] sit in the augmented state."""
         return self.layout.block(FLIGHT).slice
@@ -85,9 +95,11 @@ class Model:
         return x
 
 
-def build_model(config: AircraftConfig) -> Model:
+def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Model:
     """Pack an aircraft configuration for the equations: the state is the flight block
-    (dynamic) followed by the coefficients of the configured structure (constant)."""
+    (dynamic), the gust states where the filters model turbulence as states
+    (`gust_states`; default: as filter.turbulence.model says), then the coefficients of
+    the configured structure and the sensor biases (constant)."""
     a = config.airframe
     p = config.propulsion
     k = np.zeros(eq.N_CONST)
@@ -103,6 +115,8 @@ def build_model(config: AircraftConfig) -> Model:
     s = config.sensors
     k[eq.VANE_X], k[eq.VANE_Z] = s.vane_x_m, s.vane_z_m
     k[eq.ACCEL_X], k[eq.ACCEL_Z] = s.accel_x_m, s.accel_z_m
+    turbulence = config.filter.turbulence
+    k[eq.GUST_LU], k[eq.GUST_LW] = turbulence.length_u_m, turbulence.length_w_m
     if p.model == "propeller":
         k[eq.PROP_KIND] = eq.PROP_PROPELLER
         k[eq.PROP_AREA] = p.prop_area_m2
@@ -115,8 +129,11 @@ def build_model(config: AircraftConfig) -> Model:
     regressor = np.array([REGRESSORS.index(r) for _, r in pairs], dtype=np.int64)
     names = config.structure.names
     biases = tuple(f"{c}_bias" for c in s.bias_states)
+    gusts = turbulence.model == "states" if gust_states is None else gust_states
     layout = StateLayout.assemble(
-        [(FLIGHT, FLIGHT_STATES, True), (COEFFICIENTS, names, False), (BIASES, biases, False)]
+        [(FLIGHT, FLIGHT_STATES, True)]
+        + ([(GUSTS, GUST_STATES, True)] if gusts else [])
+        + [(COEFFICIENTS, names, False), (BIASES, biases, False)]
     )
     arrays = ModelArrays(
         k=k,

@@ -32,7 +32,9 @@ from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 MASS, AREA, CHORD, IYY, RHO, GRAV, V0, SIGMA_T, ARM = 0, 1, 2, 3, 4, 5, 6, 7, 8
 PROP_KIND, PROP_AREA, PROP_COEF, MOTOR_K = 9, 10, 11, 12
 VANE_X, VANE_Z, ACCEL_X, ACCEL_Z = 13, 14, 15, 16
-N_CONST = 17
+GUST_LU, GUST_LW = 17, 18
+"""Scale lengths [m] of the filters' gust states (where the layout has them)."""
+N_CONST = 19
 PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 
 N_STATE = N_FLIGHT
@@ -228,11 +230,57 @@ def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArr
     return f, F
 
 
+def has_gust_states(model: ModelArrays) -> bool:
+    """Whether the augmented state holds gust states [u_g, w_g] after the flight states."""
+    return model.n_dynamic > N_FLIGHT
+
+
+def _gust_chain(x: FloatArray, J: FloatArray, rows: int) -> None:
+    """J (rows x n), the Jacobian of a function of air_relative(x, x[4:6]) with respect
+    to the air-relative state, becomes that with respect to x (in place): V_a = V + u_g,
+    alpha_a = alpha + w_g / V."""
+    V = x[0]
+    wg = x[N_FLIGHT + 1]
+    for i in range(rows):
+        dV = J[i, 0]
+        da = J[i, 1]
+        J[i, 0] = dV - da * wg / (V * V)
+        J[i, N_FLIGHT] += dV
+        J[i, N_FLIGHT + 1] += da / V
+
+
 def dynamics_rows(
     x: FloatArray, u: FloatArray, model: ModelArrays
 ) -> tuple[FloatArray, FloatArray]:
     """State derivative f(x_a, u) and the rows of F = df/dx_a that are not zero, the
-    first n_dynamic (paper eq. 11, corrected).
+    first n_dynamic (still_rows).
+
+    With gust states [u_g, w_g] (model.turbulence "states"), the flight states are the
+    motion over the ground and the aerodynamics see air_relative(x, [u_g, w_g]); the
+    equations of still_rows hold at that air-relative state (first order in the gust
+    angle: equations.wind_slope has the exact projection), and each gust is a
+    first-order Dryden process, u_g' = -(V/L_u) u_g + noise, w_g' = -(V/L_w) w_g + noise.
+    """
+    if not has_gust_states(model):
+        return still_rows(x, u, model)
+    g0 = N_FLIGHT
+    xa = air_relative(x, x[g0 : g0 + 2])
+    f, F = still_rows(xa, u, model)
+    _gust_chain(x, F, N_FLIGHT)
+    k = model.k
+    V = x[0]
+    f[g0] = -V / k[GUST_LU] * x[g0]
+    f[g0 + 1] = -V / k[GUST_LW] * x[g0 + 1]
+    F[g0, 0] = -x[g0] / k[GUST_LU]
+    F[g0, g0] = -V / k[GUST_LU]
+    F[g0 + 1, 0] = -x[g0 + 1] / k[GUST_LW]
+    F[g0 + 1, g0 + 1] = -V / k[GUST_LW]
+    return f, F
+
+
+def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
+    """State derivative f(x_a, u) and the rows of F = df/dx_a that are not zero, the
+    first n_dynamic, in still air (paper eq. 11, corrected).
 
         Vdot     = -(qbar*S/m)*CD + g*sin(alpha - theta) + (Fe/m)*cos(alpha + sigma_T)
         alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
@@ -288,6 +336,19 @@ def dynamics_rows(
 
 
 def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
+    """Observations h(x_a, u) and H = dh/dx_a (still_observe); with gust states, of the
+    air-relative state (the pitot, the vane and the aerodynamic forces see the air)."""
+    if not has_gust_states(model):
+        return still_observe(x, u, model)
+    xa = air_relative(x, x[N_FLIGHT : N_FLIGHT + 2])
+    h, H = still_observe(xa, u, model)
+    _gust_chain(x, H, N_OBS)
+    return h, H
+
+
+def still_observe(
+    x: FloatArray, u: FloatArray, model: ModelArrays
+) -> tuple[FloatArray, FloatArray]:
     """Observations h(x_a, u) and H = dh/dx_a (paper eq. 13-14, C_Z corrected).
 
         y = [V, alpha, theta, q, qdot, a_x, a_z]

@@ -1,7 +1,8 @@
 """Turbulence: Dryden intensity presets and the gust process-noise densities the filters use.
 
 The simulator flies the Dryden shaping filters themselves (sim.truth); the filters model
-gusts as white process noise on V, alpha and theta scaled by a gust intensity sigma_w^2
+gusts either as gust states (first-order Dryden processes in the augmented state) or as
+white process noise on V, alpha and theta, scaled by a gust intensity sigma_w^2
 (docs/model.md, "Turbulence").
 """
 
@@ -39,3 +40,19 @@ def gust_densities(
         theta_density,
         0.0,
     )
+
+
+def gust_state_densities(
+    airspeed_mps: float, sigma_u_ratio: float, length_u_m: float, length_w_m: float
+) -> tuple[float, float]:
+    """Spectral densities driving the gust states u_g, w_g per unit sigma_w^2.
+
+    A first-order process x' = -(V/L) x + noise of density 2 sigma^2 V / L has the
+    stationary variance sigma^2: Dryden's u_g exactly. Dryden's w_g is second order, and
+    above 1/T_w = V/L_w its spectrum holds 3/2 of that first-order process's power; the
+    filter sees turbulence mostly there (the innovations of one sample), so the w_g state
+    is driven at 3 sigma_w^2 V / L_w, the white level of gust_densities (its stationary
+    variance is then 1.5 sigma_w^2; matched at 2 sigma_w^2 V / L_w the online level came
+    out sqrt(1.5) too high)."""
+    v = airspeed_mps
+    return 2.0 * sigma_u_ratio**2 * v / length_u_m, 3.0 * v / length_w_m

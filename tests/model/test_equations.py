@@ -74,19 +74,22 @@ ALPHA_RATE = [
     "truth.Cmadot=0",
 ]
 """The NOC UAV with alpha-rate terms in lift and moment (JSBSim's CLadot, Cmadot)."""
+GUSTS = ['filter.turbulence.model="states"', "sensors.vane_x_m=0.8", "sensors.accel_z_m=0.05"]
+"""The NOC UAV with gust states in the filters' augmented state (and sensors off the CG)."""
 
 
-@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate"])
+@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate", "gusts"])
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_jacobians_match_numerical(
     which: str, data: st.DataObject, noc_config: AircraftConfig, hfb_config: AircraftConfig
 ) -> None:
-    config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config(
-        "noc_uav", PLACED if which == "placed" else ALPHA_RATE
-    )
+    overrides = {"placed": PLACED, "alpha rate": ALPHA_RATE, "gusts": GUSTS}.get(which, [])
+    config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", overrides)
     model = build_model(config)
     x, u = data.draw(states(model))
+    if which == "gusts":
+        x[model.gusts] = [data.draw(st.floats(-5.0, 5.0)) for _ in range(2)]
     if which == "alpha rate":  # CLadot within what keeps alphadot's denominator away from 0
         x[model.coefficients.start + model.names.index("CLadot")] = data.draw(st.floats(-5, 5))
     _, F = model.f(x, u)
@@ -127,6 +130,29 @@ def test_alpha_rate_terms_take_the_models_own_alphadot(noc_config: AircraftConfi
     f3, _ = model.f(x3, u)
     lift = -0.5 * rho * 24.0 * k[eq.AREA] / k[eq.MASS] * 2.0 * kc * f3[1]
     assert f3[1] - f2[1] == pytest.approx(lift, rel=1e-9)
+
+
+def test_gust_states_are_what_the_air_data_see_and_decay_as_dryden(
+    noc_config: AircraftConfig,
+) -> None:
+    """With gust states the pitot and vane read V + u_g and alpha + w_g / V, the
+    aerodynamics act at that air-relative state, and each gust decays with time constant
+    L / V."""
+    model = build_model(load_config("noc_uav", ['filter.turbulence.model="states"']))
+    still = build_model(noc_config)
+    assert still.gusts == slice(0, 0)
+    assert model.n == still.n + 2 and model.gusts == slice(4, 6)
+    beta = np.array(noc_config.truth)
+    x = model.augment(np.array([24.0, 0.05, 0.05, 0.1]), beta)
+    x[model.gusts] = [0.8, -1.2]
+    u = np.array([0.01, 0.35])
+    air = still.augment(np.array([24.8, 0.05 - 1.2 / 24.0, 0.05, 0.1]), beta)
+    np.testing.assert_allclose(model.h(x, u)[0], still.h(air, u)[0], rtol=1e-12)
+    f, _ = model.f(x, u)
+    np.testing.assert_allclose(f[:4], still.f(air, u)[0][:4], rtol=1e-12)
+    t = noc_config.filter.turbulence
+    assert f[4] == pytest.approx(-24.0 / t.length_u_m * 0.8)
+    assert f[5] == pytest.approx(-24.0 / t.length_w_m * -1.2)
 
 
 def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:
