@@ -9,9 +9,10 @@ project's defaults) and on HFB-320, and prints per coefficient: reference, estim
 sigma, error in percent and in sigmas; and per record: the worst error over the
 well-excited coefficients, the share within 3 sigma and the mean squared z (an honest
 sigma gives about 1). For the JSBSim records the table also holds the structure's best
-fit to the noise-free flight, flown through its own gusts (benchmarks/best_fit.py), with
-how closely it reproduces the flight: the errors and z against it show
-the filter, its distance from JSBSim's linearised aerodynamics what the structure misses.
+fit to the noise-free calm flight (benchmarks/best_fit.py), which serves the turbulent one
+too, with how closely it reproduces each flight flown through its own gusts: the errors
+and z against it show the filter, its distance from JSBSim's linearised aerodynamics
+what the structure misses.
 Beside the filters: `refine` (output error over the whole record, from the IEKF's
 estimate) with its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's
 identifiability mark.
@@ -147,8 +148,9 @@ def _print_best_fit(
         )
     if residual is not None:
         print(
-            "best fit's residual (RMS over the sensor sigma; near 0: the structure, flown "
-            "through the flight's gusts, reproduces it): "
+            "best fit flown through this flight's own gusts, residual RMS over the sensor "
+            "sigma (near 0: the structure reproduces the flight; above 1: it cannot, and "
+            "no value is a sharp target): "
             + ", ".join(f"{c} {v:.2f}" for c, v in residual.items())
         )
 
