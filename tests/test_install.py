@@ -83,6 +83,12 @@ def test_the_installed_package_is_the_wheel_not_this_checkout(installed: Install
     assert installed.run("gcs-estimator", "--version").stdout.startswith("gcs-estimator ")
     mod = installed.run("python", "-m", "gcs_estimator", "keys", "--config", "hfb320")
     assert "| `CmV` |" in mod.stdout
+    # What ./run does after installing: the kernels compiled into the install's own cache,
+    # so that the tests below (and a user's first listen) start warm.
+    pre = installed.run("python", "-m", "gcs_estimator.precompile")
+    assert pre.stdout.startswith("compiled the kernels in ")
+    cached = list((installed.venv / "lib").glob("python3*/site-packages/gcs_estimator/**/*.nbi"))
+    assert cached, "no numba cache written next to the installed package"
 
 
 def test_simulate_and_offline_from_an_empty_directory(installed: Installed) -> None:

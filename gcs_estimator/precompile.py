@@ -1,0 +1,39 @@
+"""Compile the kernels once, ahead of the first run: `python -m gcs_estimator.precompile`.
+
+numba compiles the filter kernels, the simulator's integrator and the refinement's filter
+on first use and caches them on disk; on a fresh install that first use is the first
+`listen` or `demo`, which would wait about half a minute before its listening line.
+`./run` calls this right after installing, so the wait comes with the install, once, and
+says so.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+
+
+def main() -> int:
+    from gcs_estimator.config import load_config
+    from gcs_estimator.estimator import run_recording
+    from gcs_estimator.refine import refine_run
+    from gcs_estimator.session import warm_up
+    from sim.truth import simulate
+
+    start = time.perf_counter()
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=2"])
+    warm_up(config)
+    flight = simulate(config, seed=1)
+    result = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")  # two seconds identify little: only the compile counts
+        refine_run(result, "output-error")
+    assert np.isfinite(result.filters["IEKF"].coefficients).all()
+    print(f"compiled the kernels in {time.perf_counter() - start:.1f} s (cached for every run)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
