@@ -132,14 +132,15 @@ def _alpha_rate(
     rho: float,
     Fe: float,
     dFe: float,
-) -> tuple[float, FloatArray]:
-    """alphadot and d(alphadot)/dx_a [n] given the coefficients C, dC (paper eq. 11):
+    row: FloatArray,
+) -> float:
+    """alphadot given the coefficients C, dC (paper eq. 11), its derivative d/dx_a written
+    into row [n]:
 
-    alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
-               - (Fe/(m*V))*sin(alpha + sigma_T)
+        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
+                   - (Fe/(m*V))*sin(alpha + sigma_T)
     """
     k = m.k
-    n = x.shape[0]
     V = x[0]
     alpha = x[1]
     theta = x[2]
@@ -150,17 +151,16 @@ def _alpha_rate(
     cat = math.cos(alpha - theta)
     sas = math.sin(alpha + k[SIGMA_T])
     cas = math.cos(alpha + k[SIGMA_T])
-    f1 = -0.5 * rho * V * A * C[1] + x[3] + g / V * cat - Fe / (mass * V) * sas
-    row = np.zeros(n)
-    for j in range(n):
+    for j in range(row.shape[0]):
         row[j] = -0.5 * rho * V * A * dC[1, j]
+    # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
     row[0] += (
         -0.5 * rho * A * C[1] - g / (V * V) * cat - (dFe / (mass * V) - Fe / (mass * V * V)) * sas
     )
     row[1] += -g / V * sat - Fe / (mass * V) * cas
     row[2] += g / V * sat
     row[3] += 1.0
-    return f1, row
+    return float(-0.5 * rho * V * A * C[1] + x[3] + g / V * cat - Fe / (mass * V) * sas)
 
 
 def has_alpha_rate(m: ModelArrays) -> bool:
@@ -192,7 +192,8 @@ def coefficients(
     V = x[0]
     kc = k[CHORD] / (2.0 * k[V0])
     kappa = 0.5 * rho * V * k[AREA] / k[MASS]
-    f0, row0 = _alpha_rate(x, u, m, C, dC, rho, Fe, dFe)
+    row0 = np.zeros(n)
+    f0 = _alpha_rate(x, u, m, C, dC, rho, Fe, dFe, row0)
     c0 = m.coef_start
     cl_ad = 0.0
     for i in range(m.axis.shape[0]):
@@ -314,22 +315,17 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     f = np.zeros(n)
     F = np.zeros((model.n_dynamic, n))
     f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
-    f[1] = -0.5 * rho * V * A * C[1] + q + g / V * cat - Fe / (m * V) * sas
+    f[1] = _alpha_rate(x, u, model, C, dC, rho, Fe, dFe, F[1])
     f[2] = q
     f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
 
     for j in range(n):
         F[0, j] = -qbar * A * dC[0, j]
-        F[1, j] = -0.5 * rho * V * A * dC[1, j]
         F[3, j] = qbar * mcoef * dC[2, j]
     # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
     F[0, 0] += -rho * V * A * C[0] + dFe / m * cas
     F[0, 1] += g * cat - Fe / m * sas
     F[0, 2] += -g * cat
-    F[1, 0] += -0.5 * rho * A * C[1] - g / (V * V) * cat - (dFe / (m * V) - Fe / (m * V * V)) * sas
-    F[1, 1] += -g / V * sat - Fe / (m * V) * cas
-    F[1, 2] += g / V * sat
-    F[1, 3] += 1.0
     F[2, 3] = 1.0
     F[3, 0] += rho * V * mcoef * C[2] + dFe * k[ARM] / k[IYY]
     return f, F
