@@ -256,7 +256,7 @@ def dynamics_rows(
     """State derivative f(x_a, u) and the rows of F = df/dx_a that are not zero, the
     first n_dynamic (still_rows).
 
-    With gust states [u_g, w_g] (model.turbulence "states"), the flight states are the
+    With gust states [u_g, w_g] (filter.turbulence.model = "states"), the flight states are the
     motion over the ground and the aerodynamics see air_relative(x, [u_g, w_g]); the
     equations of still_rows hold at that air-relative state (first order in the gust
     angle: equations.wind_slope has the exact projection), and each gust is a
@@ -512,8 +512,9 @@ def rk4_step(
     h: float,
     model: ModelArrays,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """One classical Runge-Kutta step of x' = f(x, u(t)) over h [s] in still air, the
-    inputs linear from u0 to u1 (u0 = u1: held). Returns x(t + h) and the Jacobians' rows
+    """One classical Runge-Kutta step of the filters' model x' = f(x, u(t)) (dynamics_rows:
+    still air, or the gust states where the layout has them) over h [s], the inputs
+    linear from u0 to u1 (u0 = u1: held). Returns x(t + h) and the Jacobians' rows
     F1..F4 [n_dynamic x n] at the four stages (the filters propagate the transition
     matrix from them)."""
     um = u0 + 0.5 * (u1 - u0)
