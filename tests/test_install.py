@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -59,7 +60,9 @@ class Installed:
 
 
 def _clean_env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    # NUMBA_CACHE_DIR: this checkout's kernel cache (set on importing it), not the install's.
+    drop = ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR")
+    env = {k: v for k, v in os.environ.items() if k not in drop}
     env["PYTHONDONTWRITEBYTECODE"] = "1"
     return env
 
@@ -134,3 +137,29 @@ def test_simulated_vehicle_to_listening_station_on_loopback(installed: Installed
     assert (folder / "telemetry.tlog").stat().st_size > 0
     assert res["link"]["received"] > 0
     assert len(res["filters"]["IEKF"]["estimates"]) == 11
+
+
+def test_a_change_to_any_source_gives_the_compiled_kernels_a_fresh_cache(tmp_path: Path) -> None:
+    """numba sees a change to the file holding a compiled function but not to the
+    functions it calls from other files; the cache folder follows the sources instead."""
+    for package in ("gcs_estimator", "sim"):
+        shutil.copytree(
+            ROOT / package, tmp_path / package, ignore=shutil.ignore_patterns("__pycache__")
+        )
+    env = _clean_env()
+    env["PYTHONPATH"] = str(tmp_path)
+    probe = [sys.executable, "-c", "import gcs_estimator, os; print(os.environ['NUMBA_CACHE_DIR'])"]
+
+    def cache_dir() -> Path:
+        out = subprocess.run(probe, cwd=tmp_path, env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        return Path(out.stdout.strip())
+
+    first = cache_dir()
+    assert first.parent == tmp_path / "gcs_estimator" / "__pycache__"
+    assert cache_dir() == first  # the same sources, the same cache
+    first.mkdir()
+    equations = tmp_path / "gcs_estimator" / "model" / "equations.py"
+    equations.write_text(equations.read_text() + "\n# changed\n")
+    second = cache_dir()
+    assert second != first and not first.exists()  # the stale cache is gone too
