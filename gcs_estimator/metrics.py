@@ -162,7 +162,13 @@ class FilterSummary:
     gust_sigma: float = 0.0
     """Turbulence level (vertical gust sigma) the filter ended with [m/s]."""
     gust_on_share: float = 0.0
-    """Share of the second half of the run in which the turbulence level was applied."""
+    """Share of the frames since the last restart's swap (the pass that ran on to the end)
+    in which the turbulence level was applied."""
+
+
+def _share_on(gust_sigma: FloatArray) -> float:
+    """Share of the frames with a turbulence level applied (0 for none)."""
+    return float(np.mean(gust_sigma > 0.0)) if len(gust_sigma) else 0.0
 
 
 def percent_error(estimate: float, reference: float) -> float | None:
@@ -245,6 +251,6 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
             nees=nees,
             steps=len(track.t),
             gust_sigma=fr.gust_sigma,
-            gust_on_share=float(np.mean(track.gust_sigma[len(track.t) // 2 :] > 0.0)),
+            gust_on_share=_share_on(track.gust_sigma[result.final_pass_from :]),
         )
     return out

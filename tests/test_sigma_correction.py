@@ -102,3 +102,26 @@ def test_where_the_model_is_right_the_correction_stays_near_one() -> None:
         assert np.all(np.isfinite(factors)) and np.all(factors >= 1.0)
         assert float(np.median(factors)) < 1.3, (kind, factors.round(2))
         assert not any("moved more" in w for w in trust_warnings(vehicle)), kind
+
+
+def test_a_turbulence_level_switched_on_and_off_by_what_the_model_misses_is_named() -> None:
+    """Calm air, but the aircraft has a strong alpha-rate damping term the structure lacks:
+    its innovations during the manoeuvres read as bursts of turbulence, and the warnings
+    say so and what to compare. The same structure on a flight it fits, calm or in steady
+    light turbulence, raises nothing."""
+    flown = load_config(
+        "noc_uav",
+        ['coefficients.Cm=["1", "alpha", "qhat", "elevator", "adhat"]', "truth.Cmadot=-150"],
+    )
+    flight = simulate(flown, seed=1)
+    config = load_config("noc_uav")
+    vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    for kind, s in vehicle.summaries.items():
+        assert 0.02 < s.gust_on_share < 0.9, (kind, s.gust_on_share)
+    named = [w for w in trust_warnings(vehicle) if "on and off" in w]
+    assert len(named) == 2 and all("adaptive = false" in w for w in named), named
+    for preset in ("none", "light"):
+        air = load_config("noc_uav", [f'simulation.turbulence.preset="{preset}"'])
+        fitted = simulate(air, seed=1)
+        run = run_recording(air, fitted.t_s, fitted.inputs, fitted.measurements)
+        assert not any("on and off" in w for w in trust_warnings(run)), preset
