@@ -214,7 +214,7 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     unit = np.zeros(n)
     turb = ft.turbulence
     v0 = float(model.k[eq.V0])
-    if model.gusts.stop > model.gusts.start:
+    if model.has_gust_states:
         unit[model.gusts] = gust_state_densities(
             v0, turb.sigma_u_ratio, turb.length_u_m, turb.length_w_m
         )
@@ -280,7 +280,7 @@ def initial_state(
         sigma[model.coefficients] = coefficient_sigma
     level = tuning.gust_var0 if gust_var is None else gust_var
     gusts = model.gusts
-    if gusts.stop > gusts.start:
+    if model.has_gust_states:
         # Gust states start at zero with their stationary spread at this level: a
         # first-order process of density q and time constant L/V has variance q L/(2 V).
         lengths = np.array([model.k[eq.GUST_LU], model.k[eq.GUST_LW]])

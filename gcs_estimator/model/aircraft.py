@@ -67,6 +67,10 @@ class Model:
         return slice(0, 0)
 
     @property
+    def has_gust_states(self) -> bool:
+        return eq.has_gust_states(self.arrays)
+
+    @property
     def flight(self) -> slice:
         """Where the flight states [V, alpha, theta, q] sit in the augmented state."""
         return self.layout.block(FLIGHT).slice
