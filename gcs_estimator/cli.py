@@ -329,6 +329,7 @@ def _results_sink(
         lambda: session.elapsed_s,
         refine=_refiner(args),
         run=lambda: run_info(args, config, origin),
+        estimators=lambda: session.estimators,
     )
 
 

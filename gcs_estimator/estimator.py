@@ -617,21 +617,34 @@ class Estimator:
                 out[kind] = Snapshot(s.x[coef].copy(), np.sqrt(np.diag(s.P))[coef], math.sqrt(gust))
         return out
 
+    @property
+    def history_rows(self) -> int:
+        """Frames in the history (0 when none is kept)."""
+        return self.frame_history.rows.n if self.keep_history else 0
+
+    def tracks(self) -> dict[FilterKind, Track]:
+        """Each filter's history so far (mapped from disk, not copied, once it is long;
+        empty when none is kept). Every row but the newest is final: only the newest is
+        replaced, when a re-run takes over at the end of the data (finish_restarts)."""
+        if not self.keep_history:
+            return {}
+        return {
+            kind: Track.of(self.histories[kind], self.frame_history, self.model)
+            for kind, s in self.states.items()
+            if s is not None
+        }
+
     def result(self) -> EstimatorResult:
         """The run so far, tracks included (reads the whole history: call it once)."""
         coef = self.model.coefficients
         filters: dict[FilterKind, FilterResult] = {}
+        tracks = self.tracks()
         for kind, s in self.states.items():
             if s is None:
                 continue
             cov = s.P[coef, coef]
             biases = self.model.biases
             gust = s.gust.applied(self.tunings[kind].detection2)
-            track = (
-                Track.of(self.histories[kind], self.frame_history, self.model)
-                if self.keep_history
-                else None
-            )
             filters[kind] = FilterResult(
                 kind,
                 s.x[coef].copy(),
@@ -641,7 +654,7 @@ class Estimator:
                 s.x[biases].copy(),
                 np.sqrt(np.diag(s.P))[biases],
                 self.health[kind],
-                track,
+                tracks.get(kind),
             )
         return EstimatorResult(
             self.config,

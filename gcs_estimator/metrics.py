@@ -40,25 +40,30 @@ def sigma_inflation(coefficients: FloatArray, sigma: FloatArray, start: int) -> 
     and coloured noise break both (the estimate drifts as the manoeuvre changes which
     error it absorbs, and increments correlate over seconds). The ratio of the
     increments' long-run variance (Bartlett-weighted autocovariance up to a quarter of
-    the window, by FFT) to that loss is the factor by which the filter overcounted its
+    the window) to that loss is the factor by which the filter overcounted its
     information; sigma * sqrt(max(1, ratio)) is the corrected sigma. It is the filter's
     analogue of the Morelli-Klein correction of an output-error fit's Cramer-Rao bound
-    (docs/decisions/0008)."""
+    (docs/decisions/0008).
+
+    The weighted sum is taken in O(N) as the sum of squared moving sums: with the
+    increments d zero-padded, sum_t (d_t + ... + d_t+L)^2 = sum_k (L + 1 - |k|) acov(k),
+    and a moving sum of increments is a difference of two estimates."""
     p = coefficients.shape[1]
     w = coefficients.shape[0] - start
     if start < 1 or w < MOVEMENT_WINDOW_MIN_FRAMES:
         return np.full(p, np.nan)
     s2 = np.asarray(sigma[[start - 1, -1]], float) ** 2
     lag = max(1, int(MOVEMENT_BANDWIDTH * w))
-    n_fft = 1 << int(2 * w - 1).bit_length()
-    weights = 1.0 - np.arange(lag + 1) / (lag + 1)
-    weights[1:] *= 2.0
+    # Moving sums of lag + 1 increments d_t .. d_t+lag for t = -lag .. w - 1 (the
+    # increments outside 0 .. w - 1 are zero): x[hi] - x[lo] with x the estimates.
+    t = np.arange(-lag, w)
+    hi = np.minimum(t + lag, w - 1) + 1
+    lo = np.maximum(t, 0)
     moved = np.empty(p)
     for j in range(p):  # one column at a time: an hour's history stays a few MB
-        d = np.diff(np.asarray(coefficients[start - 1 :, j], float))
-        spec = np.fft.rfft(d, n_fft)
-        acov = np.fft.irfft(spec * spec.conj(), n_fft)[: lag + 1]
-        moved[j] = weights @ acov
+        x = np.asarray(coefficients[start - 1 :, j], float)
+        sums = x[hi] - x[lo]
+        moved[j] = (sums @ sums) / (lag + 1)
     expected = s2[0] - s2[1]
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(expected > 1e-6 * s2[0], moved / expected, np.nan)

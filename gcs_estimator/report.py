@@ -6,13 +6,19 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import POWER_COLUMNS
-from gcs_estimator.estimator import FILTER_KINDS, Estimator, EstimatorResult, FilterKind
+from gcs_estimator.estimator import (
+    FILTER_KINDS,
+    Estimator,
+    EstimatorResult,
+    FilterKind,
+    Track,
+)
 from gcs_estimator.metrics import (
     CORRELATION_LIMIT,
     NOT_IDENTIFIED,
@@ -459,44 +465,80 @@ def _jsonable(data: Any) -> Any:
     return data
 
 
-def write_history_csv(path: Path, result: EstimatorResult) -> None:
-    """Time histories, one row per filter and frame: estimates and sigmas of every state
-    and coefficient, NIS, channels used, and the frame's inputs and measurements.
+class HistoryCsv:
+    """The history CSV, written as the run goes: one row per filter and frame with the
+    estimates and sigmas of every state and coefficient, NIS, channels used, and the
+    frame's inputs and measurements.
+
+    Rows come in blocks of frames (append), each block the EKF's rows then the IEKF's,
+    so within a filter the rows are in frame order; a stop then writes only the last
+    block, whatever the flight's length, and the file holds what was processed even if
+    the process is killed.
 
     Each value is written as the shortest text that reads back as the number kept: the
     estimates and sigmas to the history's float32 (estimator.HISTORY_DTYPE, 7 significant
     digits), times, inputs and measurements to float64; an empty cell where a value is
     missing. Arrow's CSV writer formats whole columns (an hour's history in seconds)."""
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
 
-    names = list(result.state_names)
-    power = POWER_COLUMNS[result.config.propulsion.input_name]
-    header = (
-        ["filter", "t_s"]
-        + names
-        + [f"sigma_{n}" for n in names]
-        + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
-        + [f"meas_{n}" for n in OBS_NAMES]
-    )
-    options = pacsv.WriteOptions(include_header=False, quoting_style="none")
-    with open(path, "wb") as fh:
-        fh.write((",".join(header) + "\n").encode())
-        for kind, fr in result.filters.items():
-            tr = fr.track
-            if tr is None or len(tr.t) == 0:
+    def __init__(self, path: Path, state_names: Sequence[str], power_input: str) -> None:
+        names = list(state_names)
+        power = POWER_COLUMNS[power_input]
+        self.header = (
+            ["filter", "t_s"]
+            + names
+            + [f"sigma_{n}" for n in names]
+            + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
+            + [f"meas_{n}" for n in OBS_NAMES]
+        )
+        self.path = path
+        self.rows = 0
+        """Frames written so far (per filter)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh: BinaryIO | None = open(path, "wb")  # noqa: SIM115 (closed by close())
+        self._fh.write((",".join(self.header) + "\n").encode())
+        self._fh.flush()
+
+    def append(self, tracks: Mapping[FilterKind, Track], stop: int) -> None:
+        """Frames rows..stop of each filter's track (a track may be longer)."""
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        if self._fh is None or stop <= self.rows:
+            return
+        options = pacsv.WriteOptions(include_header=False, quoting_style="none")
+        a = self.rows
+        for kind, tr in tracks.items():
+            n = min(stop, len(tr.t))
+            if n <= a:
                 continue
             columns = [
-                pa.array([kind] * len(tr.t)),
-                pa.array(np.asarray(tr.t, float)),
-                *_arrow_columns(tr.x),
-                *_arrow_columns(tr.sigma),
-                *_arrow_columns(tr.nis[:, None], blank_nan=True),
-                pa.array(np.asarray(tr.n_used).astype(np.int64)),
-                *_arrow_columns(tr.u, blank_nan=True),
-                *_arrow_columns(tr.y, blank_nan=True),
+                pa.array([kind] * (n - a)),
+                pa.array(np.asarray(tr.t[a:n], float)),
+                *_arrow_columns(tr.x[a:n]),
+                *_arrow_columns(tr.sigma[a:n]),
+                *_arrow_columns(tr.nis[a:n, None], blank_nan=True),
+                pa.array(np.asarray(tr.n_used[a:n]).astype(np.int64)),
+                *_arrow_columns(tr.u[a:n], blank_nan=True),
+                *_arrow_columns(tr.y[a:n], blank_nan=True),
             ]
-            pacsv.write_csv(pa.table(columns, names=header), fh, options)
+            pacsv.write_csv(pa.table(columns, names=self.header), self._fh, options)
+        self._fh.flush()
+        self.rows = stop
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def write_history_csv(path: Path, result: EstimatorResult, csv: HistoryCsv | None = None) -> None:
+    """The whole history CSV of a run (HistoryCsv); given the one written as the run
+    went, only the frames it does not hold yet, then it is closed."""
+    if csv is None:
+        csv = HistoryCsv(path, result.state_names, result.config.propulsion.input_name)
+    tracks = {k: f.track for k, f in result.filters.items() if f.track is not None}
+    csv.append(tracks, max((len(t.t) for t in tracks.values()), default=0))
+    csv.close()
 
 
 def _arrow_columns(values: np.ndarray, blank_nan: bool = False) -> list[Any]:
@@ -513,8 +555,10 @@ def write_results(
     extra: Mapping[str, Any] | None = None,
     stem: str = "results",
     refined: Refined | None = None,
+    history: HistoryCsv | None = None,
 ) -> dict[str, Path]:
-    """Write <stem>.json, <stem>.md and <stem>_history.csv into out_dir; return their paths."""
+    """Write <stem>.json, <stem>.md and <stem>_history.csv into out_dir (the history: the
+    rest of the one written as the run went, where given); return their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = results_dict(vehicle, extra, refined)
     paths = {
@@ -525,5 +569,5 @@ def write_results(
     paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     title = f"# {vehicle.result.config.airframe.name}: estimated aerodynamic coefficients\n\n"
     paths["markdown"].write_text(title + final_table(vehicle, refined), encoding="utf-8")
-    write_history_csv(paths["csv"], vehicle.result)
+    write_history_csv(paths["csv"], vehicle.result, history)
     return paths

@@ -10,17 +10,23 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.report import final_table, write_results
+from gcs_estimator.report import HistoryCsv, final_table, write_results
 from gcs_estimator.session import VehicleResult
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
 
 
+HISTORY_BLOCK_FRAMES = 1024
+"""Frames of a vehicle's history written to its CSV at a time during the run (20 s at
+the NOC UAV's 50 Hz): what a stop has left to write."""
+
+
 class ResultsSink:
-    """At the end: each vehicle's Table I on stdout and its JSON, Markdown and CSV files."""
+    """Each vehicle's history CSV as the run goes (given the session's estimators); at
+    the end, its Table I on stdout, its JSON and Markdown, and the rest of the CSV."""
 
     def __init__(
         self,
@@ -31,7 +37,14 @@ class ResultsSink:
         out: TextIO | None = None,
         refine: Callable[[VehicleResult], Refined | None] | None = None,
         run: Callable[[], dict[str, Any]] | None = None,
+        estimators: Callable[[], Mapping[int, Estimator]] | None = None,
+        history_block_frames: int = HISTORY_BLOCK_FRAMES,
     ) -> None:
+        self.estimators = estimators
+        """The session's estimators by system id, whose histories go to the CSV as the
+        run goes; None: the whole CSV at the end."""
+        self.history_block_frames = history_block_frames
+        self.histories: dict[int, HistoryCsv] = {}
         self.refine = refine
         self.run = run
         """What the JSON says of the run (version, command line, source, times)."""
@@ -42,7 +55,21 @@ class ResultsSink:
         self.out = sys.stdout if out is None else out
 
     def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
-        pass
+        if self.estimators is None or not outs:
+            return
+        est = self.estimators().get(frame.system_id)
+        if est is None:
+            return
+        csv = self.histories.get(frame.system_id)
+        if csv is None:  # the vehicle's first frame: the file and its header
+            path = self.out_dir / f"{self.stem(frame.system_id)}_history.csv"
+            power = est.config.propulsion.input_name
+            csv = HistoryCsv(path, est.model.layout.names, power)
+            self.histories[frame.system_id] = csv
+        # Every row but the newest is final (Estimator.tracks).
+        final = est.history_rows - 1
+        if final - csv.rows >= self.history_block_frames:
+            csv.append(est.tracks(), final)
 
     def tick(self) -> None:
         pass
@@ -60,8 +87,11 @@ class ResultsSink:
                 extra["link"] = dict(link)
             if self.run is not None:
                 extra["run"] = self.run()
-            paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined)
+            history = self.histories.pop(sid, None)
+            paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
             print("results: " + ", ".join(str(p) for p in paths.values()), file=self.out)
+        for csv in self.histories.values():  # vehicles without a result (none so far)
+            csv.close()
         if link is not None:
             counts = ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
             print("link: " + counts, file=self.out)

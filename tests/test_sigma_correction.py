@@ -28,6 +28,26 @@ def _martingale(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarra
     return estimate, sigma
 
 
+def test_movement_is_the_bartlett_weighted_autocovariance_of_the_increments() -> None:
+    """The O(N) moving-sum form against the definition written out: increments d from
+    frame start - 1 on, their autocovariance to lag L (a quarter of the window), weighted
+    1 - k / (L + 1), over the covariance's loss."""
+    rng = np.random.default_rng(5)
+    n, start = 700, 300
+    est = np.cumsum(rng.standard_normal((n, 3)), axis=0) * [1.0, 0.1, 3.0]
+    est[:, 1] += np.sin(np.arange(n) / 15.0)  # correlated increments
+    sig = np.linspace(2.0, 1.0, n)[:, None] * np.ones((1, 3))
+    w = n - start
+    lag = int(0.25 * w)
+    d = np.diff(est[start - 1 :], axis=0)
+    want = []
+    for j in range(3):
+        acov = [float(d[k:, j] @ d[: w - k, j]) for k in range(lag + 1)]
+        weights = [1.0] + [2.0 * (1.0 - k / (lag + 1)) for k in range(1, lag + 1)]
+        want.append(np.dot(weights, acov) / (sig[start - 1, j] ** 2 - sig[-1, j] ** 2))
+    np.testing.assert_allclose(sigma_inflation(est, sig, start), want, rtol=1e-10)
+
+
 def test_an_estimate_that_moves_as_its_covariance_says_needs_no_correction() -> None:
     rng = np.random.default_rng(1)
     ratios = []
