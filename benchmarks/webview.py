@@ -1,12 +1,15 @@
 """The demo's recording in a browser: how long Rerun's web viewer takes to show all of it.
 
-    ./run bench webview [--seconds 60] [--screenshot docs/view.png]
+    ./run bench webview [--seconds 60] [--runs 3] [--screenshot docs/view.png]
 
 Simulates the demo's flight into an .rrd (the view as `simulate --view save` writes it),
 serves it with `rerun --serve-web`, opens it in headless Chromium (software rendering),
 and takes a screenshot every second until two in a row are the same: the time that took
 is the load time (target: within 20 s for a 60 s recording). A 2 s flight first gives
-the viewer's own start-up. Prints each recording's size (per hour of flight:
+the viewer's own start-up. Each is timed in a browser opening the viewer for the first
+time (a fresh profile: the viewer's code compiled on the spot), then the 60 s flight
+again in a browser that has opened the viewer before, as a user's browser has after its
+first visit. Prints each recording's size (per hour of flight:
 `./run bench replay --view`), and writes the final screenshot (the README's picture). Needs Debian's
 `chromium`.
 """
@@ -28,6 +31,7 @@ from tests.view.browser import CHROMIUM, load_until_steady, served
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="flight length")
+    ap.add_argument("--runs", type=int, default=3, help="loads timed of each case")
     ap.add_argument(
         "--screenshot", default=str(record.ROOT / "docs" / "view.png"), help="the picture's path"
     )
@@ -41,39 +45,57 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    png = b""
-    for seconds in (BOOT_FLIGHT_S, args.seconds):
-        size, shown, png = _load(seconds)
+    with tempfile.TemporaryDirectory() as tmp:
+        boot = _flight(BOOT_FLIGHT_S, Path(tmp) / "boot")
+        rrd = _flight(args.seconds, Path(tmp) / "flight")
+        for path, seconds in ((boot, BOOT_FLIGHT_S), (rrd, args.seconds)):
+            times = []
+            for _ in range(args.runs):
+                with served(path) as url:
+                    png, shown = load_until_steady(url, timeout_s=180.0)
+                times.append(shown)
+            print(
+                f"{seconds:g} s flight: .rrd {path.stat().st_size / 1e6:.2f} MB; a browser "
+                f"opening the web viewer for the first time showed all of it after "
+                f"{_spread(times)}"
+            )
+        times = []
+        for _ in range(args.runs):
+            with served(boot) as before, served(rrd) as url:
+                png, shown = load_until_steady(url, timeout_s=180.0, visited=before)
+            times.append(shown)
         print(
-            f"{seconds:g} s flight: .rrd {size / 1e6:.2f} MB; the web viewer showed all of it "
-            f"after {shown:.1f} s"
+            f"{args.seconds:g} s flight in a browser that has opened the web viewer before "
+            f"(its code compiled and cached; the page on a server of its own): all of it "
+            f"after {_spread(times)}"
         )
     print(
-        f"(the {BOOT_FLIGHT_S:g} s flight is the viewer's own start-up under software "
-        "rendering; the difference is the recording's loading)"
+        f"(target: within 20 s for the {args.seconds:g} s flight; the {BOOT_FLIGHT_S:g} s "
+        "flight is the viewer's own start-up under software rendering, the difference the "
+        "recording's loading)"
     )
     Path(args.screenshot).write_bytes(png)
     print(f"screenshot of the {args.seconds:g} s flight: {args.screenshot}")
     return 0
 
 
+def _spread(times: list[float]) -> str:
+    """min / median / max of a few timings (the machine is noisy)."""
+    t = sorted(times)
+    return f"{t[0]:.1f} / {t[len(t) // 2]:.1f} / {t[-1]:.1f} s (min / median / max of {len(t)})"
+
+
 BOOT_FLIGHT_S = 2.0
 
 
-def _load(seconds: float) -> tuple[int, float, bytes]:
-    """(.rrd bytes, seconds until the web viewer stood still, its screenshot) of a
-    simulated flight this long."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "run"
-        subprocess.run(
-            [sys.executable, "-m", "gcs_estimator", "simulate", "--view", "save", "--out", str(out),
-             "--set", f"simulation.manoeuvre.duration_s={seconds:g}"],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        rrd = out / "view.rrd"
-        with served(rrd) as url:
-            png, shown = load_until_steady(url, timeout_s=180.0)
-        return rrd.stat().st_size, shown, png
+def _flight(seconds: float, out: Path) -> Path:
+    """The .rrd of a simulated flight this long, as `simulate --view save` writes it."""
+    subprocess.run(
+        [sys.executable, "-m", "gcs_estimator", "simulate", "--view", "save", "--out", str(out),
+         "--set", f"simulation.manoeuvre.duration_s={seconds:g}"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    return out / "view.rrd"
 
 
 if __name__ == "__main__":
