@@ -29,7 +29,7 @@ from gcs_estimator.config import (
 from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.report import live_table
 from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
-from gcs_estimator.sinks import ProgressSink, ResultsSink, StatusSink
+from gcs_estimator.sinks import ProgressSink, RefineStatus, ResultsSink, StatusSink
 from gcs_estimator.sources import (
     RCVBUF_BYTES,
     LiveSource,
@@ -269,11 +269,14 @@ def _refiner(args: argparse.Namespace) -> Callable[[VehicleResult], Refined | No
             file=sys.stderr,
             flush=True,
         )
+        status = RefineStatus()
         try:
-            return refine_run(vehicle.result, method, window_s=window)
+            return refine_run(vehicle.result, method, window_s=window, progress=status)
         except RefineError as exc:
             print(f"refine: {exc}", file=sys.stderr)
             return None
+        finally:
+            status.end()
 
     return run
 

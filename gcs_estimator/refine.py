@@ -27,7 +27,9 @@ and the residual colour shows it (the corrected sigma grows).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -196,6 +198,22 @@ class Refined:
     message: str
 
 
+class RefineProgress(NamedTuple):
+    """Where a fit stands, after each Gauss-Newton iteration."""
+
+    round: int
+    """Noise-estimation round (filter error: up to `rounds`; output error: 1)."""
+    rounds: int
+    iterations: int
+    """Gauss-Newton iterations so far, over all rounds."""
+    cost: float
+    """Negative log-likelihood (without its constant) the iteration started from."""
+    step_sigma: float
+    """Largest parameter step of the iteration, in sigmas (about); 0: none accepted."""
+    runs: int
+    """Filter runs (flights of the model over the record) so far."""
+
+
 class RefineError(RuntimeError):
     """The fit could not be made (the model, flown over the record, leaves finite
     numbers from the start, or the record holds too few observations)."""
@@ -276,11 +294,13 @@ def _gauss_newton(
     r: FloatArray,
     iterations: int,
     relax: BoolArray | None = None,
+    report: Callable[[int, float, float], None] | None = None,
 ) -> tuple[FloatArray, FloatArray, int, bool]:
     """Levenberg-Marquardt on the whitened innovations; returns the parameters, the
     measurement variances, iterations used, converged. With `relax` (output error: the
     observed channels), each iteration first sets the channels' variances to their mean
-    squared output error, the closed-form maximum of the likelihood over R."""
+    squared output error, the closed-form maximum of the likelihood over R. `report`
+    gets (iteration, cost it started from, step in sigmas) after each iteration."""
     lam = 1e-3
     for it in range(1, iterations + 1):
         if relax is not None:
@@ -316,9 +336,22 @@ def _gauss_newton(
                 accepted = True
                 break
             lam *= 10.0
+        if report is not None:
+            report(it, cost, moved)
         if not accepted or moved < STEP_TOLERANCE:
             return x, r, it, True
     return x, r, iterations, False
+
+
+def _reporter(
+    progress: Callable[[RefineProgress], None], prob: _Problem, k: int, rounds: int, before: int
+) -> Callable[[int, float, float], None]:
+    """_gauss_newton's report of round k, its iterations counted after `before`."""
+
+    def report(it: int, cost: float, step: float) -> None:
+        progress(RefineProgress(k, rounds, before + it, cost, step, prob.runs))
+
+    return report
 
 
 def _fit_noise(
@@ -390,13 +423,15 @@ def refine(
     estimate_process_noise: bool = True,
     rounds: int = 8,
     iterations: int = 50,
+    progress: Callable[[RefineProgress], None] | None = None,
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
     t_s[0], coefficients, biases): the parameters by Gauss-Newton on the whitened
     innovations, the noise levels (measurement sigmas, and the process noise of V, alpha,
     theta, q unless estimate_process_noise is False: output error) by maximising the
-    likelihood between them, until neither moves."""
+    likelihood between them, until neither moves. `progress` hears after each
+    Gauss-Newton iteration where the fit stands."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -424,12 +459,14 @@ def refine(
     total = 0
     converged = False
     cost = prob.cost(x, q, r)
-    for _ in range(rounds if estimate_process_noise else 1):
+    n_rounds = rounds if estimate_process_noise else 1
+    for k in range(1, n_rounds + 1):
+        report = None if progress is None else _reporter(progress, prob, k, n_rounds, total)
         if estimate_process_noise:
             q, r = _fit_noise(prob, x, q, r, observed, True)
-            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations)
+            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, report=report)
         else:
-            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, observed)
+            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, observed, report)
         total += its
         new = prob.cost(x, q, r)
         done = abs(cost - new) < 1e-6 * max(abs(new), 1.0)
@@ -495,6 +532,7 @@ def refine_run(
     method: str = "output-error",
     kind: FilterKind = "IEKF",
     window_s: tuple[float | None, float | None] = (None, None),
+    progress: Callable[[RefineProgress], None] | None = None,
 ) -> Refined:
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
@@ -535,6 +573,7 @@ def refine_run(
         tuning.max_step_s,
         linear_inputs=config.data.input_hold == "linear",
         estimate_process_noise=method == "filter-error",
+        progress=progress,
     )
 
 

@@ -16,7 +16,7 @@ from gcs_estimator.report import HistoryCsv, final_table, write_results
 from gcs_estimator.session import VehicleResult
 
 if TYPE_CHECKING:
-    from gcs_estimator.refine import Refined
+    from gcs_estimator.refine import Refined, RefineProgress
 
 
 HISTORY_BLOCK_FRAMES = 1024
@@ -215,3 +215,52 @@ class ProgressSink:
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
         if self.shown >= 0:
             print(file=self.out)
+
+
+class RefineStatus:
+    """Where a whole-record fit stands (refine's progress callback): redrawn in place on
+    a terminal at most every `every_s`, else a line at most every ten times that; a
+    final line when it is done (end)."""
+
+    def __init__(
+        self,
+        out: TextIO | None = None,
+        every_s: float = 0.5,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.out = sys.stderr if out is None else out
+        self.tty = self.out.isatty()
+        self.every_s = every_s if self.tty else 10 * every_s
+        self.clock = clock
+        self.start = clock()
+        self.last = -math.inf
+        self.latest: RefineProgress | None = None
+
+    def line(self, p: RefineProgress) -> str:
+        rounds = "" if p.rounds == 1 else f"round {p.round} of at most {p.rounds}, "
+        step = f"last step {p.step_sigma:.2g} σ" if p.step_sigma > 0 else "no step taken"
+        return (
+            f"refining: {rounds}iteration {p.iterations}, cost {p.cost:.6g}, {step}, "
+            f"{p.runs} filter runs, {_duration(self.clock() - self.start)}"
+        )[:STATUS_WIDTH]
+
+    def __call__(self, p: RefineProgress) -> None:
+        self.latest = p
+        now = self.clock()
+        if now - self.last < self.every_s:
+            return
+        self.last = now
+        self._draw(p)
+
+    def _draw(self, p: RefineProgress) -> None:
+        if self.tty:
+            print("\r\033[K" + self.line(p), end="", file=self.out, flush=True)
+        else:
+            print(self.line(p), file=self.out, flush=True)
+
+    def end(self) -> None:
+        """The fit is over: its last state drawn, and the line ended on a terminal."""
+        if self.latest is not None:
+            self._draw(self.latest)
+            if self.tty:
+                print(file=self.out, flush=True)

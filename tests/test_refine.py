@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -13,8 +14,9 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
-from gcs_estimator.refine import RefineError, refine_run
+from gcs_estimator.refine import RefineError, RefineProgress, refine_run
 from gcs_estimator.report import trust_warnings
+from gcs_estimator.sinks import RefineStatus
 from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.reference import output_error
 from sim.truth import simulate
@@ -151,3 +153,42 @@ def test_a_filter_that_ran_away_starts_again_and_is_named() -> None:
     well = [run.result.names.index(n) for n in ("CLa", "Cma", "Cmq", "Cmde")]
     iekf = run.result.filters["IEKF"].coefficients
     assert np.all(np.abs(iekf[well] / truth[well] - 1) < 0.05)
+
+
+def test_refine_reports_each_iteration(noc_config: AircraftConfig) -> None:
+    """The progress callback hears every Gauss-Newton iteration, numbered on across
+    rounds, with the filter runs so far; the last report is the fit's own count; and the
+    status line draws it in place on a terminal and as plain lines elsewhere."""
+    config = load_config(noc_config.source, ["simulation.manoeuvre.duration_s=20"])
+    flight = simulate(config, seed=5)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    reports: list[RefineProgress] = []
+    refined = refine_run(run.result, "filter-error", progress=reports.append)
+    assert [p.iterations for p in reports] == list(range(1, refined.iterations + 1))
+    assert all(np.isfinite(p.cost) for p in reports)
+    assert [p.round for p in reports] == sorted(p.round for p in reports)
+    assert {p.rounds for p in reports} == {8}
+    runs = [p.runs for p in reports]
+    assert runs == sorted(runs) and runs[-1] <= int(refined.message.split("(")[1].split()[0])
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    now = [0.0]
+    for out in (Terminal(), io.StringIO()):
+        status = RefineStatus(out, every_s=2.0, clock=lambda: now[0])
+        for k, p in enumerate(reports):
+            now[0] = float(k)  # one report a second
+            status(p)
+        status.end()
+        text = out.getvalue()
+        last = f"iteration {refined.iterations}, "
+        if isinstance(out, Terminal):  # every 2 s, then the end
+            draws = text.split("\r\033[K")[1:]
+            assert len(draws) == (len(reports) + 1) // 2 + 1
+            assert last in draws[-1] and text.endswith("\n") and text.count("\n") == 1
+        else:  # every 20 s, then the end
+            lines = text.splitlines()
+            assert all(line.startswith("refining: round ") for line in lines)
+            assert len(lines) == (len(reports) + 19) // 20 + 1 and last in lines[-1]
