@@ -36,6 +36,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, run_recording
 from gcs_estimator.flightdata import Recording, load_recording
 from gcs_estimator.metrics import IDENTIFIED, correlation_of, identifiability
+from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.refine import Refined, RefineError, refine_run
 from gcs_estimator.report import channel_text
 
@@ -125,6 +126,11 @@ def evaluate(
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
         )
+    if res.noise_differences is not None:
+        read = ", ".join(
+            f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.measurement_sigma, strict=True)
+        )
+        print(f"\nmeasurement noise read from the data (σ, SI): {read}")
     if oe is not None:
         summary["OE"] = _oe_summary(oe, goal, well)
     summary.update(_judged_fairly(est, goal, well, marks, best_residual))

@@ -370,6 +370,14 @@ class FilterTuning:
     innovation_gate: float = setting(
         0.0, ge=0, doc="reject channels beyond this many sigma; 0: off"
     )
+    measurement_noise: str = setting(
+        "config",
+        choices=("config", "data"),
+        doc="config: [filter.measurement_sigma] throughout; data: each restart's re-run "
+        "uses each channel's noise estimated from the frames so far (robust fourth "
+        "differences, gcs_estimator/noise.py), measurement_sigma before the first restart "
+        "and for channels with too few samples",
+    )
     initial_coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=0.0)
     initial_sigma: InitialSigma = table(InitialSigma)
     process_noise: ProcessNoise = table(ProcessNoise)

@@ -299,6 +299,11 @@ class EstimatorResult(NamedTuple):
     state_names: tuple[str, ...] = ()
     """Every element of the augmented state, in order (flight states, gust states where
     modelled, coefficients, biases): the columns of a track's x and sigma."""
+    measurement_sigma: tuple[float, ...] = ()
+    """Measurement noise sigma per channel the final pass used (the config's, or the
+    data's: [filter] measurement_noise)."""
+    noise_differences: tuple[int, ...] | None = None
+    """Differences each channel's noise estimate took (None: none made)."""
 
 
 class _Start(NamedTuple):
@@ -334,6 +339,12 @@ class Estimator:
         self.tunings: dict[FilterKind, Tuning] = {
             k: core.tuning_of(config, self.model, k) for k in FILTER_KINDS
         }
+        self._rerun_tunings = self.tunings
+        """The settings of the re-run under way (measurement noise from the data)."""
+        self.noise_sigma = np.array(config.filter.measurement_sigma, float)
+        """Measurement noise sigma per channel the live pass uses."""
+        self.noise_differences: tuple[int, ...] | None = None
+        """Differences each channel's noise estimate took (None: none made)."""
         self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
         self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
@@ -489,11 +500,15 @@ class Estimator:
         u: FloatArray,
         y: FloatArray,
         inputs_known: bool = True,
+        tunings: dict[FilterKind, Tuning] | None = None,
     ) -> dict[FilterKind, StepOutput]:
+        """One frame through both filters of a pass (the live pass's settings unless
+        given)."""
         outs: dict[FilterKind, StepOutput] = {}
         y_used = y if inputs_known else np.full_like(y, np.nan)
+        tunings = self.tunings if tunings is None else tunings
         for kind in FILTER_KINDS:
-            tuning = self.tunings[kind]
+            tuning = tunings[kind]
             state = states[kind]
             if state is None:
                 start = self._starts[kind]
@@ -528,7 +543,7 @@ class Estimator:
         assert rerun is not None
         outs: dict[FilterKind, StepOutput] = {}
         for t, u, y, known in self._buffer[self._rerun_pos : end]:
-            outs = self._advance(rerun, t, u, y, known)
+            outs = self._advance(rerun, t, u, y, known, self._rerun_tunings)
         self._rerun_pos = max(self._rerun_pos, end)
         return outs
 
@@ -537,6 +552,8 @@ class Estimator:
         outputs there."""
         assert self._rerun is not None and self._rerun_pos == len(self._buffer)
         self.states = self._rerun
+        self.tunings = self._rerun_tunings
+        self.noise_sigma = np.sqrt(np.diag(self.tunings["EKF"].R))
         self._rerun = None
         self.restarts_done += 1
         self.final_pass_from = max(self.frames - 1, 0)
@@ -579,6 +596,7 @@ class Estimator:
         pending = self._pending
         assert pending is not None
         tuning = self.config.filter
+        self._rerun_tunings = self._noise_from_data(pending.frames)
         means = pending.means
         if means is None:
             from gcs_estimator.warmstart import equation_error
@@ -606,6 +624,23 @@ class Estimator:
         self._pending = None
         self._rerun = dict.fromkeys(FILTER_KINDS)
         self._rerun_pos = 0
+
+    def _noise_from_data(self, frames: int) -> dict[FilterKind, Tuning]:
+        """The re-run's settings: with `measurement_noise = "data"`, each channel's noise
+        estimated from the first `frames` buffered frames (gcs_estimator/noise.py), the
+        configured sigma the fallback; else the live pass's."""
+        if self.config.filter.measurement_noise != "data":
+            return self.tunings
+        from gcs_estimator.noise import noise_from_differences
+
+        buffered = self._buffer[:frames]
+        t = np.array([row[0] for row in buffered])
+        y = np.array([row[2] for row in buffered]).reshape(len(buffered), -1)
+        fallback = np.array(self.config.filter.measurement_sigma, float)
+        sigma, used = noise_from_differences(t, y, fallback)
+        self.noise_differences = tuple(int(n) for n in used)
+        R = np.diag(sigma**2)
+        return {k: tn._replace(R=R) for k, tn in self.tunings.items()}
 
     def snapshot(self) -> dict[FilterKind, Snapshot]:
         """Current coefficient estimates and sigmas per filter (empty before data)."""
@@ -670,6 +705,8 @@ class Estimator:
             self.out_of_order,
             self.final_pass_from,
             self.model.layout.names,
+            tuple(float(v) for v in self.noise_sigma),
+            self.noise_differences,
         )
 
 

@@ -29,6 +29,7 @@ from gcs_estimator.metrics import (
     percent_error,
 )
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
+from gcs_estimator.noise import MIN_DIFFERENCES
 from gcs_estimator.session import VehicleResult
 
 if TYPE_CHECKING:
@@ -268,10 +269,32 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
         if weak:
             out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+    out += _noise_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
         out += _refined_warnings(refined)
     return out
+
+
+def _noise_warning(vehicle: VehicleResult) -> list[str]:
+    """Measurement noise read from the data in turbulence: the motion the gusts cause
+    from sample to sample reads as sensor noise (docs/decisions/0011)."""
+    result = vehicle.result
+    if result.noise_differences is None:
+        return []
+    gust = max((s.gust_sigma for s in vehicle.summaries.values()), default=0.0)
+    if not gust > 0.0:
+        return []
+    configured = np.array(result.config.filter.measurement_sigma, float)
+    ratio = np.array(result.measurement_sigma) / configured
+    c = int(np.argmax(ratio))
+    return [
+        f"measurement noise read from the data while the filters saw turbulence (σ_w "
+        f"{gust:.2f} m/s): what the gusts move from sample to sample reads as sensor noise "
+        f"({OBS_NAMES[c]} read {ratio[c]:.1f} times the configured σ), which biases the "
+        "estimates and shrinks the turbulence level; if the sensors' noise is known, "
+        'compare a run with [filter] measurement_noise = "config"'
+    ]
 
 
 def _run_warnings(result: EstimatorResult) -> list[str]:
@@ -330,6 +353,14 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
             f"equation-error warm start: fitted CD, CL, Cm on {cd}, {cl}, {cm} of "
             f"{result.warm_start_frames} frames"
         )
+    if result.noise_differences is not None:
+        levels = ", ".join(
+            f"{n} {v:.3g}" + ("" if used >= MIN_DIFFERENCES else " (configured)")
+            for n, v, used in zip(
+                OBS_NAMES, result.measurement_sigma, result.noise_differences, strict=True
+            )
+        )
+        notes.append(f"measurement noise from the data (σ, SI): {levels}")
     table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
     text = table + "".join(f"- {n}\n" for n in notes)
     warnings = trust_warnings(vehicle, refined)
@@ -360,6 +391,11 @@ def results_dict(
             "warm_start": None if result.warm_start is None else result.warm_start.tolist(),
             "warm_start_samples": result.warm_start_samples,
             "warm_start_frames": result.warm_start_frames,
+            "measurement_noise": config.filter.measurement_noise,
+            "measurement_sigma": dict(zip(OBS_NAMES, result.measurement_sigma, strict=True)),
+            "noise_differences": None
+            if result.noise_differences is None
+            else dict(zip(OBS_NAMES, result.noise_differences, strict=True)),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
             "covariance_repairs": {

@@ -1,0 +1,67 @@
+"""Each sensor's noise level from the record itself (`[filter] measurement_noise = "data"`).
+
+A channel sampled fast against the aircraft's motion is a smooth signal plus white noise.
+The fourth difference y[k] - 4 y[k+1] + 6 y[k+2] - 4 y[k+3] + y[k+4] of the smooth part
+is of order h^4 times the signal's fourth derivative, small at the sample interval h; of
+white noise of sigma s it has variance 70 s^2. So sigma = MAD(fourth differences) *
+1.4826 / sqrt(70): the median absolute deviation keeps the estimate from the few large
+differences at an elevator step (difference-based variance estimators: Rice 1984;
+Gasser, Sroka and Jennen-Steinmetz 1986). The fourth order, not the second, because the
+simulator's short-period pitch response at 50 Hz is not smooth enough for the second: it
+read the pitch-rate noise 1.5 times too high over the first 10 s, the fourth 1.17 times.
+
+What it cannot tell from noise is motion that is itself rough at the sample rate:
+turbulence with a short scale length moves pitch acceleration (and so qdot and q) sample
+to sample, and that motion is counted as noise. docs/decisions/0011 says what it gives on
+the simulator and the validation set.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+
+MIN_DIFFERENCES = 30
+"""Differences a channel needs for its own estimate (fewer: the fallback)."""
+DIFFERENCE = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
+"""The fourth difference's weights (their squares sum to 70)."""
+EVEN_SPACING = 0.01
+"""The intervals within one difference may differ by this share (else it is skipped)."""
+FLOOR_RATIO = 0.1
+"""An estimate never goes below this share of the fallback (a quantised or constant
+channel would otherwise get no noise at all, and a filter that trusts it without bound)."""
+MAD_TO_SIGMA = 1.4826
+"""sigma over the median absolute deviation, for Gaussian noise."""
+
+
+def noise_from_differences(
+    t: FloatArray, y: FloatArray, fallback: FloatArray
+) -> tuple[FloatArray, np.ndarray]:
+    """(sigma per channel [c], differences used per channel [c]) of observations y
+    [N x c] at times t [N], NaN where missing: only consecutive samples all present and
+    evenly spaced give a difference. A channel with fewer than MIN_DIFFERENCES keeps its
+    fallback sigma; none goes below FLOOR_RATIO of it."""
+    t = np.asarray(t, float)
+    y = np.asarray(y, float)
+    fallback = np.asarray(fallback, float)
+    sigma = fallback.copy()
+    k = DIFFERENCE.shape[0]
+    used = np.zeros(y.shape[1], dtype=int)
+    if y.shape[0] < k:
+        return sigma, used
+    windows = np.lib.stride_tricks.sliding_window_view(np.diff(t), k - 1)
+    shortest, longest = windows.min(axis=1), windows.max(axis=1)
+    even = (shortest > 0) & (longest - shortest <= EVEN_SPACING * shortest)
+    scale = math.sqrt(float(DIFFERENCE @ DIFFERENCE))
+    for c in range(y.shape[1]):
+        d = np.convolve(y[:, c], DIFFERENCE[::-1], mode="valid")
+        d = d[even & np.isfinite(d)]
+        used[c] = d.shape[0]
+        if used[c] < MIN_DIFFERENCES:
+            continue
+        mad = float(np.median(np.abs(d - np.median(d))))
+        sigma[c] = max(MAD_TO_SIGMA * mad / scale, FLOOR_RATIO * fallback[c])
+    return sigma, used

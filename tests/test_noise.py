@@ -1,0 +1,116 @@
+"""Measurement noise from the record (gcs_estimator/noise.py, `measurement_noise =
+"data"`): the estimator of each channel's sigma, and the filters using it from the first
+restart on."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gcs_estimator.cli import main
+from gcs_estimator.config import load_config
+from gcs_estimator.estimator import run_recording
+from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.noise import FLOOR_RATIO, MIN_DIFFERENCES, noise_from_differences
+from gcs_estimator.report import trust_warnings
+from sim.truth import simulate
+from tests.conftest import CONFIGS
+
+
+def _signal(t: np.ndarray) -> np.ndarray:
+    """A smooth manoeuvre with kinks: slow sines and a ramp that turns every 2 s."""
+    ramp = np.abs(((t / 2.0) % 2.0) - 1.0)
+    return np.sin(0.7 * t) + 0.5 * np.sin(2.3 * t + 1.0) + 0.3 * ramp
+
+
+def test_white_noise_on_a_smooth_signal_is_read_within_a_few_percent() -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 50.0, 0.02)  # 2500 samples: the estimate within about 4 %
+    sigma = np.array([0.3, 0.005, 0.0035, 0.0017, 0.05, 0.2, 0.6])
+    y = _signal(t)[:, None] * [5.0, 0.05, 0.1, 0.2, 2.0, 1.0, 3.0]
+    y = y + sigma * rng.standard_normal((t.shape[0], sigma.shape[0]))
+    got, used = noise_from_differences(t, y, 3.0 * sigma)  # a config three times off
+    np.testing.assert_allclose(got, sigma, rtol=0.12)
+    assert np.all(used == t.shape[0] - 4)
+
+
+def test_gaps_uneven_samples_and_empty_channels() -> None:
+    """Only evenly spaced runs of present samples give differences; a channel without
+    enough keeps its fallback, and a constant one gets the floor, never zero."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 50.0, 0.02)  # 2500 samples: the estimate within about 4 %
+    t[1250:] += 0.013  # one uneven interval: the differences across it are skipped
+    y = np.zeros((t.shape[0], 3))
+    y[:, 0] = _signal(t) + 0.3 * rng.standard_normal(t.shape[0])
+    y[::20, 0] = np.nan  # a sample missing now and then
+    y[:, 1] = np.nan
+    y[: MIN_DIFFERENCES + 3, 1] = 0.2 * rng.standard_normal(MIN_DIFFERENCES + 3)
+    y[:, 2] = 1.5  # a channel that never moves
+    fallback = np.array([1.0, 0.7, 0.4])
+    got, used = noise_from_differences(t, y, fallback)
+    assert abs(got[0] / 0.3 - 1.0) < 0.15
+    runs = [np.isfinite(y[k : k + 5, 0]).all() for k in range(t.shape[0] - 4)]
+    assert used[0] == sum(runs) - 4  # the four differences across the uneven interval
+    assert used[1] == MIN_DIFFERENCES - 1 and got[1] == fallback[1]
+    assert got[2] == FLOOR_RATIO * fallback[2]
+
+
+def test_filters_take_each_channels_noise_from_the_data(tmp_path: Path) -> None:
+    """A flight whose pitch-rate gyro and accelerometer are three times noisier than the
+    config says: with measurement_noise = "data" the final pass uses levels within 20 %
+    of those flown (the other channels' within 20 % of theirs), the results say which,
+    and the coefficients stay within 3 sigma of the truth."""
+    over = [
+        "simulation.manoeuvre.duration_s=30",
+        "simulation.sensors.noise_sigma.q_deg=0.3",
+        "simulation.sensors.noise_sigma.a_z=0.6",
+        'filter.measurement_noise="data"',
+    ]
+    config = load_config(CONFIGS / "noc_uav.toml", over)
+    flight = simulate(config, seed=6)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    flown = np.array(config.simulation.sensors.noise_sigma)
+    np.testing.assert_allclose(run.result.measurement_sigma, flown, rtol=0.2)
+    assert run.result.noise_differences is not None
+    assert min(run.result.noise_differences) >= MIN_DIFFERENCES
+    truth = np.array(config.truth)
+    for f in run.result.filters.values():
+        assert np.all(np.abs(f.coefficients - truth) < 3.0 * f.sigma + 1e-3 * np.abs(truth))
+    configured = run_recording(
+        load_config(CONFIGS / "noc_uav.toml", over[:3]),
+        flight.t_s,
+        flight.inputs,
+        flight.measurements,
+    ).result
+    assert configured.noise_differences is None
+    assert configured.measurement_sigma == tuple(load_config("noc_uav").filter.measurement_sigma)
+
+    args = ["simulate", "--out", str(tmp_path), "--seed", "6", "--view", "off"]
+    assert main(args + [a for o in over for a in ("--set", o)]) == 0
+    data = json.loads((tmp_path / "results_sys1.json").read_text())["diagnostics"]
+    assert data["measurement_noise"] == "data"
+    assert list(data["measurement_sigma"]) == list(OBS_NAMES)
+    np.testing.assert_allclose(list(data["measurement_sigma"].values()), flown, rtol=0.2)
+    table = (tmp_path / "results_sys1.md").read_text()
+    assert "measurement noise from the data (σ, SI): V " in table
+
+
+def test_noise_read_in_turbulence_is_named() -> None:
+    """In light turbulence the gusts move pitch acceleration from sample to sample, which
+    reads as noise: the run says so and names the channel; in calm air it says nothing."""
+    warned = {}
+    for preset in ("none", "light"):
+        over = [
+            "simulation.manoeuvre.duration_s=20",
+            f'simulation.turbulence.preset="{preset}"',
+            'filter.measurement_noise="data"',
+        ]
+        config = load_config(CONFIGS / "noc_uav.toml", over)
+        flight = simulate(config, seed=2)
+        run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+        warned[preset] = [w for w in trust_warnings(run) if "read from the data" in w]
+    assert warned["none"] == []
+    (text,) = warned["light"]
+    assert "qdot read" in text and 'measurement_noise = "config"' in text
