@@ -23,22 +23,14 @@ from pathlib import Path
 from typing import Any
 
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from flights import repeated_manoeuvre
 from station import BIN, ROOT, start_listen
 
 LISTEN = ("--idle-exit", "5", "--view", "off", "--out")
 
 
 def manoeuvre(minutes: int) -> list[str]:
-    starts = [m * 60 + s for m in range(minutes) for s in (2.0, 6.0)]
-    pulses = [m * 60 + s for m in range(minutes) for s in (12.0, 30.0)]
-    sets = [
-        f"simulation.manoeuvre.duration_s={minutes * 60}",
-        f"simulation.manoeuvre.multistep_starts_s={starts}",
-        f"simulation.manoeuvre.pulse_starts_s={pulses}",
-        f"simulation.manoeuvre.pulse_durations_s={[2.0] * len(pulses)}",
-        f"simulation.manoeuvre.pulse_amplitudes_deg={[-3.0, 3.0] * minutes}",
-    ]
-    return [arg for s in sets for arg in ("--set", s)]
+    return [arg for s in repeated_manoeuvre(minutes) for arg in ("--set", s)]
 
 
 def _listen(out: Path, sets: list[str], args: argparse.Namespace) -> tuple[int, float]:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from flights import repeated_manoeuvre
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.flightdata import Recording
@@ -39,7 +40,7 @@ from sim.vehicle import SimulatedVehicle
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--minutes", type=int, default=10)
     ap.add_argument("--config", default="noc_uav")
     ap.add_argument("--view", action="store_true", help="also time the Rerun view")
     ap.add_argument(
@@ -57,20 +58,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     seconds = args.minutes * 60
-    # The manoeuvre repeats its multisteps and pulses every minute so the filters work
-    # on real excitation throughout.
-    starts = [m * 60 + s for m in range(int(args.minutes)) for s in (2.0, 6.0)]
-    pulses = [m * 60 + s for m in range(int(args.minutes)) for s in (12.0, 30.0)]
-    config = load_config(
-        args.config,
-        [
-            f"simulation.manoeuvre.duration_s={seconds}",
-            f"simulation.manoeuvre.multistep_starts_s={starts}",
-            f"simulation.manoeuvre.pulse_starts_s={pulses}",
-            f"simulation.manoeuvre.pulse_durations_s={[2.0] * len(pulses)}",
-            f"simulation.manoeuvre.pulse_amplitudes_deg={[-3.0, 3.0] * int(args.minutes)}",
-        ],
-    )
+    config = load_config(args.config, repeated_manoeuvre(args.minutes))
     fl = simulate(config, seed=1)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "long.tlog"

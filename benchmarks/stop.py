@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from flights import repeated_manoeuvre
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
@@ -77,7 +78,7 @@ class Clock:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--vehicles", type=int, default=10)
-    ap.add_argument("--minutes", type=float, default=60.0)
+    ap.add_argument("--minutes", type=int, default=60)
     record.add_argument(ap, "stop")
     args = ap.parse_args(argv)
     with record.recorded("stop", args.record, "Stop: results after a long flight of many vehicles"):
@@ -86,14 +87,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     seconds = args.minutes * 60
-    starts = [m * 60 + s for m in range(int(args.minutes)) for s in (2.0, 6.0)]
-    config = load_config(
-        "noc_uav",
-        [
-            f"simulation.manoeuvre.duration_s={seconds}",
-            f"simulation.manoeuvre.multistep_starts_s={starts}",
-        ],
-    )
+    config = load_config("noc_uav", repeated_manoeuvre(args.minutes))
     flight = simulate(config, seed=1)
     warm_up(config)
     source = FleetSource(flight.t_s, flight.inputs, flight.measurements, args.vehicles)
