@@ -341,8 +341,6 @@ class Estimator:
         }
         self._rerun_tunings = self.tunings
         """The settings of the re-run under way (measurement noise from the data)."""
-        self.noise_sigma = np.array(config.filter.measurement_sigma, float)
-        """Measurement noise sigma per channel the live pass uses."""
         self.noise_differences: tuple[int, ...] | None = None
         """Differences each channel's noise estimate took (None: none made)."""
         self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
@@ -553,7 +551,6 @@ class Estimator:
         assert self._rerun is not None and self._rerun_pos == len(self._buffer)
         self.states = self._rerun
         self.tunings = self._rerun_tunings
-        self.noise_sigma = np.sqrt(np.diag(self.tunings["EKF"].R))
         self._rerun = None
         self.restarts_done += 1
         self.final_pass_from = max(self.frames - 1, 0)
@@ -705,7 +702,7 @@ class Estimator:
             self.out_of_order,
             self.final_pass_from,
             self.model.layout.names,
-            tuple(float(v) for v in self.noise_sigma),
+            tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
             self.noise_differences,
         )
 

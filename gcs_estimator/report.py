@@ -526,7 +526,6 @@ class HistoryCsv:
             + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
             + [f"meas_{n}" for n in OBS_NAMES]
         )
-        self.path = path
         self.rows = 0
         """Frames written so far (per filter)."""
         path.parent.mkdir(parents=True, exist_ok=True)
