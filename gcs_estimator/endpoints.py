@@ -172,7 +172,9 @@ ANCILLARY_BYTES = 64
 
 def kernel_stamps(sock: socket.socket) -> None:
     """Ask for arrival times and the drop counter with every datagram (Linux); elsewhere
-    nothing (receive times are then read after the fact)."""
+    nothing (receive times are then read after the fact). Linux starts stamping from a
+    deferred work item when the first socket on the machine asks, so the first datagrams
+    of a station may still be stamped when read."""
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)

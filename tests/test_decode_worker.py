@@ -5,6 +5,7 @@ what was processed and a clear message."""
 from __future__ import annotations
 
 import io
+import math
 import os
 import signal
 from pathlib import Path
@@ -13,13 +14,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs_estimator.config import AircraftConfig
+from gcs_estimator import decode_worker
+from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.flightdata import Recording
 from gcs_estimator.frames import Frame
 from gcs_estimator.session import Session, warm_up
 from gcs_estimator.sources import SourceError, TlogSource
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import recorded_flight
 
 
@@ -103,8 +108,22 @@ def test_a_bad_file_is_reported_and_the_good_ones_replayed(tmp_path: Path) -> No
     assert len(frames) > len(one)  # both good files' frames arrived
 
 
+def _longer_than_the_queue(tmp_path: Path) -> tuple[AircraftConfig, Path]:
+    """A recorded flight with more frames than the parent's queue, the pipe and the
+    worker's batch in hand together hold: the worker cannot finish before the parent
+    reads, so a stop after the first frames always ends it early."""
+    frames = (decode_worker.QUEUE_BATCHES + 8) * decode_worker.BATCH_FRAMES
+    duration_s = math.ceil(frames / 50.0)  # frames at 50 Hz
+    config = load_config("noc_uav", [f"simulation.manoeuvre.duration_s={duration_s}"])
+    fl = simulate(config, seed=3)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    path = tmp_path / "long.tlog"
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+    return config, path
+
+
 def test_a_stop_ends_the_worker_and_keeps_what_arrived(tmp_path: Path) -> None:
-    config, path = _damaged_tlog(tmp_path)
+    config, path = _longer_than_the_queue(tmp_path)
     full, _, _, _ = _replay(config, [path], workers=False)
     stop = Stop()
     source = TlogSource([path], MavlinkLink(config.link, log=io.StringIO()), workers=True)

@@ -6,6 +6,7 @@ buffer are counted and said once."""
 from __future__ import annotations
 
 import io
+import select
 import socket
 import sys
 import time
@@ -41,11 +42,29 @@ def _packets(tmp_path: Path) -> list[bytes]:
     return [r.packet for r in read_tlog(path)]
 
 
+def _stamping(station: socket.socket, vehicle: socket.socket) -> None:
+    """Wait until the kernel stamps datagrams as they arrive. Linux turns its receive
+    stamps on from a deferred work item when the first socket asks for them; until it
+    has run, a datagram is stamped when it is read (the fallback the station has anyway).
+    A probe is sent, left to wait, and read, until its stamp is earlier than its read."""
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        vehicle.sendto(b"probe", station.getsockname())
+        select.select([station], [], [], 1.0)
+        time.sleep(0.05)  # the probe waits in the buffer
+        _, ancillary, _, _ = station.recvmsg(64, endpoints.ANCILLARY_BYTES)
+        read = time.time()
+        if endpoints.arrival(ancillary, read)[0] < read - 0.025:
+            return
+    pytest.fail("this system gives no kernel receive stamps within 10 s of asking")
+
+
 def test_a_queued_datagram_is_stamped_when_it_arrived(tmp_path: Path) -> None:
     config = load_config("noc_uav", SHORT)
     packets = _packets(tmp_path)[:300]
     station = endpoints.open_socket(endpoints.parse("udpin:127.0.0.1:0", True), RCVBUF_BYTES)
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    _stamping(station, vehicle)
     sent_from = time.time()
     for p in packets:
         vehicle.sendto(p, station.getsockname())
