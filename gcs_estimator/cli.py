@@ -150,6 +150,13 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         help="seconds after the first frame the refinement fits (either side may be empty)",
     )
     p.add_argument(
+        "--hold-noise",
+        action="store_true",
+        help="the refinement keeps the noise levels the filters used (measurement sigmas; "
+        "filter error: the config's process noise) instead of estimating them: for sensors "
+        "and air whose noise you know",
+    )
+    p.add_argument(
         "--backend",
         choices=("fast", "reference"),
         default="fast",
@@ -271,7 +278,13 @@ def _refiner(args: argparse.Namespace) -> Callable[[VehicleResult], Refined | No
         )
         status = RefineStatus()
         try:
-            return refine_run(vehicle.result, method, window_s=window, progress=status)
+            return refine_run(
+                vehicle.result,
+                method,
+                window_s=window,
+                progress=status,
+                hold_noise=bool(getattr(args, "hold_noise", False)),
+            )
         except RefineError as exc:
             print(f"refine: {exc}", file=sys.stderr)
             return None
@@ -663,6 +676,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.argv = None if argv is None else list(argv)
     started = datetime.now(UTC)
     try:
+        if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
+            raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
         if hasattr(args, "out"):
             args.out = str(run_folder(args, started))
             args.started = started

@@ -166,7 +166,8 @@ class Refined:
     """The maximum-likelihood fit of one record."""
 
     method: str
-    """"output error" (no process noise) or "filter error" (process noise estimated)."""
+    """"output error" (no process noise) or "filter error" (process noise estimated);
+    ", noise held" added when the noise levels were held at the configured ones."""
     names: tuple[str, ...]
     """Coefficient names."""
     coefficients: FloatArray
@@ -424,14 +425,17 @@ def refine(
     rounds: int = 8,
     iterations: int = 50,
     progress: Callable[[RefineProgress], None] | None = None,
+    hold_noise: bool = False,
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
     t_s[0], coefficients, biases): the parameters by Gauss-Newton on the whitened
     innovations, the noise levels (measurement sigmas, and the process noise of V, alpha,
     theta, q unless estimate_process_noise is False: output error) by maximising the
-    likelihood between them, until neither moves. `progress` hears after each
-    Gauss-Newton iteration where the fit stands."""
+    likelihood between them, until neither moves. With hold_noise the noise levels stay
+    at noise_sigma and process_noise (the sensors' and the air's known levels) and only
+    the parameters are fitted. `progress` hears after each Gauss-Newton iteration where
+    the fit stands."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -459,10 +463,12 @@ def refine(
     total = 0
     converged = False
     cost = prob.cost(x, q, r)
-    n_rounds = rounds if estimate_process_noise else 1
+    n_rounds = rounds if estimate_process_noise and not hold_noise else 1
     for k in range(1, n_rounds + 1):
         report = None if progress is None else _reporter(progress, prob, k, n_rounds, total)
-        if estimate_process_noise:
+        if hold_noise:
+            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, report=report)
+        elif estimate_process_noise:
             q, r = _fit_noise(prob, x, q, r, observed, True)
             x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, report=report)
         else:
@@ -504,6 +510,8 @@ def refine(
     bs = model.biases
     noise = np.where(observed, np.sqrt(r), np.nan)
     method = "filter error" if estimate_process_noise else "output error"
+    if hold_noise:
+        method += ", noise held"
     msg = "converged" if converged else f"stopped after {total} Gauss-Newton iterations"
     return Refined(
         method=method,
@@ -533,10 +541,14 @@ def refine_run(
     kind: FilterKind = "IEKF",
     window_s: tuple[float | None, float | None] = (None, None),
     progress: Callable[[RefineProgress], None] | None = None,
+    hold_noise: bool = False,
 ) -> Refined:
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
-    coefficients and biases and the first frame's measured flight states."""
+    coefficients and biases and the first frame's measured flight states. hold_noise:
+    the noise levels stay where the filters' final pass had them (the config's [filter]
+    measurement_sigma, or the data's with measurement_noise = "data"; filter error: the
+    config's process_noise) instead of being estimated."""
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     fr = result.filters.get(kind)
@@ -568,12 +580,13 @@ def refine_run(
         tr.u[idx],
         tr.y[idx],
         start,
-        np.asarray(tuning.measurement_sigma, float),
+        np.asarray(result.measurement_sigma or tuning.measurement_sigma, float),
         np.asarray(tuning.process_noise.states, float),
         tuning.max_step_s,
         linear_inputs=config.data.input_hold == "linear",
         estimate_process_noise=method == "filter-error",
         progress=progress,
+        hold_noise=hold_noise,
     )
 
 
