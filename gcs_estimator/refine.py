@@ -466,13 +466,11 @@ def refine(
     n_rounds = rounds if estimate_process_noise and not hold_noise else 1
     for k in range(1, n_rounds + 1):
         report = None if progress is None else _reporter(progress, prob, k, n_rounds, total)
-        if hold_noise:
-            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, report=report)
-        elif estimate_process_noise:
+        if estimate_process_noise and not hold_noise:
             q, r = _fit_noise(prob, x, q, r, observed, True)
-            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, report=report)
-        else:
-            x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, observed, report)
+        # Output error with the noise free: R in closed form inside each iteration.
+        relax = None if hold_noise or estimate_process_noise else observed
+        x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, relax, report)
         total += its
         new = prob.cost(x, q, r)
         done = abs(cost - new) < 1e-6 * max(abs(new), 1.0)
@@ -546,9 +544,9 @@ def refine_run(
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
     coefficients and biases and the first frame's measured flight states. hold_noise:
-    the noise levels stay where the filters' final pass had them (the config's [filter]
-    measurement_sigma, or the data's with measurement_noise = "data"; filter error: the
-    config's process_noise) instead of being estimated."""
+    the noise levels stay instead of being estimated: the measurement noise where the
+    filters' final pass had it (the config's [filter] measurement_sigma, or the data's
+    with measurement_noise = "data"), the process noise at the config's."""
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     fr = result.filters.get(kind)
