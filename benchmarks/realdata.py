@@ -1,6 +1,6 @@
 """Data no filter here was tuned on: the JSBSim validation set and the HFB-320 flight test.
 
-    ./run bench realdata [--seed 1] [--set KEY=VALUE]
+    ./run bench realdata [--seed 1] [--set KEY=VALUE] [--refine METHOD [--hold-noise]]
 
 Flies the validation set first (benchmarks/jsbsim_flights.py: two JSBSim aircraft, calm
 and in light turbulence, noisy sensors, a vane ahead of the CG, a gyro bias), then runs
@@ -13,9 +13,9 @@ fit to the noise-free calm flight (benchmarks/best_fit.py), which serves the tur
 too, with how closely it reproduces each flight flown through its own gusts: the errors
 and z against it show the filter, its distance from JSBSim's linearised aerodynamics
 what the structure misses.
-Beside the filters: `refine` (output error over the whole record, from the IEKF's
-estimate) with its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's
-identifiability mark.
+Beside the filters: `refine` (by default output error over the whole record, from the
+IEKF's estimate; `--refine filter-error`, `--hold-noise` as the command's options) with
+its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's identifiability mark.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from jsbsim_flights import ROOT, generate
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.config import REFINE_METHODS, AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, run_recording
 from gcs_estimator.flightdata import Recording, load_recording
 from gcs_estimator.metrics import IDENTIFIED, correlation_of, identifiability
@@ -52,12 +52,13 @@ def evaluate(
     rec: Recording,
     best: dict[str, float] | None = None,
     best_residual: dict[str, float] | None = None,
+    refine_with: tuple[str, bool] = ("output-error", False),
 ) -> dict[str, float]:
     """Print one record's table; return its worst well-excited error per filter (against
     the best fit where there is one, which is what a filter can reach)."""
     vehicle = run_recording(config, rec.t_s, rec.inputs, rec.measurements)
     res = vehicle.result
-    oe = _refine(name, res)
+    oe = _refine(name, res, *refine_with)
     ref = np.array(config.truth or ())
     fit = None if best is None else np.array([best[n] for n in res.names])
     print(f"\n## {name} ({config.airframe.name})\n")
@@ -213,9 +214,9 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
     return worst
 
 
-def _refine(name: str, res: EstimatorResult) -> Refined | None:
+def _refine(name: str, res: EstimatorResult, method: str, hold_noise: bool) -> Refined | None:
     try:
-        return refine_run(res, "output-error")
+        return refine_run(res, method, hold_noise=hold_noise)
     except RefineError as exc:
         print(f"\n(refine failed on {name}: {exc})")
         return None
@@ -232,6 +233,10 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help='a config override for every record, e.g. filter.turbulence.model="states"',
     )
+    ap.add_argument("--refine", choices=REFINE_METHODS, default="output-error")
+    ap.add_argument(
+        "--hold-noise", action="store_true", help="the refinement keeps the configured noise"
+    )
     record.add_argument(ap, "realdata")
     args = ap.parse_args(argv)
     with record.recorded("realdata", args.record, "Real data: the JSBSim set and HFB-320"):
@@ -247,10 +252,20 @@ def run(args: argparse.Namespace) -> int:
         best = json.loads(csv_path.with_suffix(".best_fit.json").read_text(encoding="utf-8"))
         rec = load_recording(csv_path)[1]
         worst[csv_path.stem] = evaluate(
-            csv_path.stem, config, rec, best["coefficients"], best["residual_sigmas"]
+            csv_path.stem,
+            config,
+            rec,
+            best["coefficients"],
+            best["residual_sigmas"],
+            (args.refine, args.hold_noise),
         )
     hfb = load_config("hfb320", args.set)
-    worst["hfb320"] = evaluate("hfb320", hfb, load_recording("hfb320", hfb.data)[1])
+    worst["hfb320"] = evaluate(
+        "hfb320",
+        hfb,
+        load_recording("hfb320", hfb.data)[1],
+        refine_with=(args.refine, args.hold_noise),
+    )
     print(
         "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "
         "the reference (HFB-320); then over those the flight identified (IEKF's marks); "
