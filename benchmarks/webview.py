@@ -18,6 +18,7 @@ size (per hour of flight: `./run bench replay --view`), and writes the final scr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import subprocess
 import sys
 import tempfile
@@ -48,38 +49,20 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
-        bare = _bare(Path(tmp) / "bare.rrd")
-        times = []
-        for _ in range(args.runs):
-            with served(bare) as url:
-                _, shown = load_until_steady(url, timeout_s=180.0)
-            times.append(shown)
+        _, times = _loads(_bare(Path(tmp) / "bare.rrd"), args.runs)
         print(f"a recording of one scalar (the web viewer alone): shown after {_spread(times)}")
-        empty = _layout_only(Path(tmp) / "layout.rrd")
-        times = []
-        for _ in range(args.runs):
-            with served(empty) as url:
-                _, shown = load_until_steady(url, timeout_s=180.0)
-            times.append(shown)
+        _, times = _loads(_layout_only(Path(tmp) / "layout.rrd"), args.runs)
         print(f"this project's layout and no data: shown after {_spread(times)}")
         boot = _flight(BOOT_FLIGHT_S, Path(tmp) / "boot")
         rrd = _flight(args.seconds, Path(tmp) / "flight")
         for path, seconds in ((boot, BOOT_FLIGHT_S), (rrd, args.seconds)):
-            times = []
-            for _ in range(args.runs):
-                with served(path) as url:
-                    png, shown = load_until_steady(url, timeout_s=180.0)
-                times.append(shown)
+            _, times = _loads(path, args.runs)
             print(
                 f"{seconds:g} s flight: .rrd {path.stat().st_size / 1e6:.2f} MB; a browser "
                 f"opening the web viewer for the first time showed all of it after "
                 f"{_spread(times)}"
             )
-        times = []
-        for _ in range(args.runs):
-            with served(boot) as before, served(rrd) as url:
-                png, shown = load_until_steady(url, timeout_s=180.0, visited=before)
-            times.append(shown)
+        png, times = _loads(rrd, args.runs, visited=boot)
         print(
             f"{args.seconds:g} s flight in a browser that has opened the web viewer before "
             f"(its code compiled and cached; the page on a server of its own): all of it "
@@ -94,6 +77,20 @@ def run(args: argparse.Namespace) -> int:
     Path(args.screenshot).write_bytes(png)
     print(f"screenshot of the {args.seconds:g} s flight: {args.screenshot}")
     return 0
+
+
+def _loads(path: Path, runs: int, visited: Path | None = None) -> tuple[bytes, list[float]]:
+    """Time `runs` loads of a recording in a fresh browser (one that has first opened
+    `visited`, served on its own, when given); the last screenshot and the times."""
+    times = []
+    png = b""
+    for _ in range(runs):
+        with contextlib.ExitStack() as stack:
+            before = None if visited is None else stack.enter_context(served(visited))
+            url = stack.enter_context(served(path))
+            png, shown = load_until_steady(url, timeout_s=180.0, visited=before)
+        times.append(shown)
+    return png, times
 
 
 def _spread(times: list[float]) -> str:
