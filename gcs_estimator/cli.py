@@ -59,7 +59,7 @@ def results_stem(system_id: int) -> str:
     return f"results_sys{system_id}"
 
 
-OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE)
+OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json")
 """What in a folder says a run wrote it."""
 
 
@@ -509,6 +509,12 @@ def _where(endpoint: endpoints.Endpoint, sock: socket.socket) -> str:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
+    if getattr(args, "each", False):
+        from gcs_estimator.batch import run_each
+
+        return run_each(args, stop)
+    if getattr(args, "jobs", None) is not None:
+        raise ConfigError("--jobs: only with --each (the files of one flight are read in order)")
     config = _config(args)
     origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
     session, link = _link_session(config, args, origin, status=False)
@@ -631,7 +637,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="estimate from recorded .tlog files")
     _common(p)
-    p.add_argument("tlogs", nargs="+", help=".tlog files, in order")
+    p.add_argument("tlogs", nargs="+", help=".tlog files, in order (one flight)")
+    p.add_argument(
+        "--each",
+        action="store_true",
+        help="every file is a flight of its own: replayed in parallel processes, each into "
+        "a folder of its own under --out, the results merged in replays.json and replays.md",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="with --each: files replayed at a time (default: the machine's cores)",
+    )
     p.add_argument(
         "--speed",
         type=float,

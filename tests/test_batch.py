@@ -1,0 +1,146 @@
+"""`replay --each`: several recorded flights in parallel processes, each file's results
+the same as its own replay's, merged into one summary; a bad file fails alone; a stop
+starts no more files."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gcs_estimator.config import load_config
+from gcs_estimator.flightdata import Recording
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+
+ROOT = Path(__file__).resolve().parent.parent
+SHORT = ["simulation.manoeuvre.duration_s=12"]
+
+
+def _tlog(path: Path, seed: int) -> Path:
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=seed)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+    return path
+
+
+def _gcs(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "gcs_estimator", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def _estimates(results: dict) -> dict[str, float]:  # type: ignore[type-arg]
+    return {
+        f"{kind} {name}": c["estimate"]
+        for kind, f in results["filters"].items()
+        for name, c in f["estimates"].items()
+    }
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    d = tmp_path_factory.mktemp("flights")
+    # Two files of the same name in different folders: each gets a folder of its own.
+    (d / "a").mkdir()
+    (d / "b").mkdir()
+    return [_tlog(d / "a" / "flight.tlog", 3), _tlog(d / "b" / "flight.tlog", 4)]
+
+
+def test_each_file_is_replayed_on_its_own_and_the_results_merged(
+    tmp_path: Path, flights: list[Path]
+) -> None:
+    out = tmp_path / "batch"
+    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), "--out", str(out),
+                "--view", "off")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "replaying 2 files as separate flights, 2 at a time" in done.stderr
+    summary = json.loads((out / "replays.json").read_text())
+    files = summary["files"]
+    assert [f["file"] for f in files] == [str(p) for p in flights]
+    assert [Path(f["folder"]).name for f in files] == ["flight", "flight_2"]
+    assert all(f["exit_status"] == 0 and len(f["vehicles"]) == 1 for f in files)
+    # Each file's results are exactly those of a replay of that file alone.
+    for f, path in zip(files, flights, strict=True):
+        alone = tmp_path / f"alone_{Path(f['folder']).name}"
+        single = _gcs("replay", str(path), "--out", str(alone), "--view", "off")
+        assert single.returncode == 0, single.stderr
+        own = json.loads((alone / "results_sys1.json").read_text())
+        assert _estimates(f["vehicles"][0]) == _estimates(own)
+        assert (Path(f["folder"]) / "results_sys1_history.csv").is_file()
+    # The two flights differ (other noise seeds): the merge kept them apart.
+    assert _estimates(files[0]["vehicles"][0]) != _estimates(files[1]["vehicles"][0])
+    table = (out / "replays.md").read_text()
+    assert table.count("| flight.tlog | 0 |") == 2
+    assert (
+        "| file | exit | s | vehicle | frames | CLa | Cma | Cmq | Cmde | warnings |" in done.stdout
+    )
+
+
+def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]) -> None:
+    junk = tmp_path / "junk.tlog"
+    junk.write_bytes(os.urandom(4000))
+    out = tmp_path / "batch"
+    done = _gcs("replay", "--each", str(flights[0]), str(junk), "--out", str(out), "--view", "off")
+    assert done.returncode != 0
+    summary = json.loads((out / "replays.json").read_text())
+    good, bad = summary["files"]
+    assert good["exit_status"] == 0 and len(good["vehicles"]) == 1
+    assert bad["exit_status"] == done.returncode and bad["vehicles"] == []
+    # The failing replay's own message, from its log, in the batch's output.
+    assert f"{junk}: exit {done.returncode}" in done.stderr
+    assert "no usable frame" in done.stderr or "error:" in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--each", "--view", "spawn"], "the view can only be save or off"),
+        (["--each", "--rrd", "x.rrd"], "--rrd: not with --each"),
+        (["--each", "--jobs", "0"], "--jobs 0: must be at least 1"),
+        (["--jobs", "2"], "--jobs: only with --each"),
+        (["--each", "--speed", "2"], "--speed: not with --each"),
+    ],
+)
+def test_options_a_batch_cannot_pass_on_are_refused(
+    tmp_path: Path, flights: list[Path], options: list[str], message: str
+) -> None:
+    done = _gcs("replay", *map(str, flights), "--out", str(tmp_path / "o"), *options)
+    assert done.returncode == 2
+    assert message in done.stderr
+
+
+def test_a_stop_starts_no_more_files_and_keeps_what_ended(
+    tmp_path: Path, flights: list[Path]
+) -> None:
+    out = tmp_path / "batch"
+    three = [*map(str, flights), str(flights[0])]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gcs_estimator", "replay", "--each", "--jobs", "1", *three,
+         "--out", str(out), "--view", "off"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if line.startswith("[1/3]"):  # the first file done
+            proc.send_signal(signal.SIGINT)
+            break
+    stdout, _ = proc.communicate(timeout=120)
+    summary = json.loads((out / "replays.json").read_text())
+    first, second, third = summary["files"]
+    assert first["exit_status"] == 0 and len(first["vehicles"]) == 1
+    # The second was started before the stop came, or not: either way the third never.
+    assert third["exit_status"] is None and third["vehicles"] == []
+    assert "| flight.tlog | not run |" in stdout
+    # A replay stopped before its first frame estimated nothing, and says so in its status.
+    assert proc.returncode == (second["exit_status"] or 0)
