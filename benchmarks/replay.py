@@ -50,6 +50,13 @@ def main(argv: list[str] | None = None) -> int:
         help="the vehicle's uptime at the start (over 4295 - flight: its 32-bit servo clock "
         "wraps during the flight)",
     )
+    ap.add_argument(
+        "--files",
+        type=int,
+        default=0,
+        help="also replay this many copies of the flight as separate flights "
+        "(`replay --each`), one at a time and then on all cores",
+    )
     record.add_argument(ap, "replay")
     args = ap.parse_args(argv)
     with record.recorded("replay", args.record, "Replay: .tlog to estimates, as fast as possible"):
@@ -83,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
         if args.view:
             t_view, size = replay_with_view(config, path, Path(tmp) / "replay.rrd", live=False)
             _, size_live = replay_with_view(config, path, Path(tmp) / "live.rrd", live=True)
+        if args.files > 0:
+            batch = _batches(args, path, Path(tmp))
     frames = results[1].result.frames
     print(f"flight {seconds:.0f} s, {n} packets, {frames} frames (both filters each frame)")
     clock = link_stats["vehicles"]["1"]
@@ -121,7 +130,39 @@ def run(args: argparse.Namespace) -> int:
             f"live chunks : .rrd {size_live / 1e6:.1f} MB for {seconds:.0f} s "
             f"-> {hour / 1e6:.0f} MB per hour of flight"
         )
+    if args.files > 0:
+        for jobs, wall in batch:
+            print(
+                f"{args.files} files, {jobs} at a time: {wall:.2f} s for "
+                f"{args.files * seconds / 60:.0f} min of flight, "
+                f"{args.files * seconds / wall:.0f}x real time (`replay --each --jobs {jobs}`,"
+                " the command line's own start-up included)"
+            )
     return 0
+
+
+def _batches(args: argparse.Namespace, tlog: Path, tmp: Path) -> list[tuple[int, float]]:
+    """(jobs, wall-clock seconds) of `replay --each` over args.files copies of the tlog,
+    one at a time and on every core."""
+    import shutil
+    import subprocess
+
+    copies = []
+    for k in range(args.files):
+        copies.append(tmp / f"copy{k}" / "flight.tlog")
+        copies[-1].parent.mkdir()
+        shutil.copy(tlog, copies[-1])
+    out = []
+    for jobs in sorted({1, os.cpu_count() or 1}):
+        cmd = [sys.executable, "-m", "gcs_estimator", "replay", "--each", "--jobs", str(jobs),
+               *map(str, copies), "--config", args.config, "--view", "off",
+               "--out", str(tmp / f"each{jobs}")]  # fmt: skip
+        for item in repeated_manoeuvre(args.minutes):
+            cmd += ["--set", item]
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        out.append((jobs, time.perf_counter() - t0))
+    return out
 
 
 def _timed_replay(
