@@ -142,6 +142,9 @@ class Rows:
         return out
 
 
+BLOCK_MIN_FRAMES = 4
+"""Re-run frames worth one compiled call per filter (fewer: a call per frame)."""
+
 HISTORY_CHUNK = 4096
 """Rows of a history kept in memory before they go to disk."""
 
@@ -336,6 +339,8 @@ class Estimator:
         self.model = build_model(config)
         self.keep_history = keep_history
         self._step = core.stepper(backend)
+        self._block = core.block_stepper(backend)
+        """Many frames of a re-run in one compiled call (None: one at a time)."""
         self.tunings: dict[FilterKind, Tuning] = {
             k: core.tuning_of(config, self.model, k) for k in FILTER_KINDS
         }
@@ -502,22 +507,73 @@ class Estimator:
     ) -> dict[FilterKind, StepOutput]:
         """One frame through both filters of a pass (the live pass's settings unless
         given)."""
-        outs: dict[FilterKind, StepOutput] = {}
-        y_used = y if inputs_known else np.full_like(y, np.nan)
         tunings = self.tunings if tunings is None else tunings
-        for kind in FILTER_KINDS:
-            tuning = tunings[kind]
+        return {
+            kind: self._advance_one(kind, states, t, u, y, inputs_known, tunings[kind])
+            for kind in FILTER_KINDS
+        }
+
+    def _advance_one(
+        self,
+        kind: FilterKind,
+        states: dict[FilterKind, FilterState | None],
+        t: float,
+        u: FloatArray,
+        y: FloatArray,
+        inputs_known: bool,
+        tuning: Tuning,
+    ) -> StepOutput:
+        """One frame through one filter of a pass."""
+        state = states[kind]
+        if state is None:
+            state = core.initial_state(self.model, tuning, t, u, y, *self._starts[kind])
+        elif not inputs_known:
+            state = core.rebase(state, self.model, tuning, t, y)
+        y_used = y if inputs_known else np.full_like(y, np.nan)
+        state, info = self._step(state, t, u, y_used, tuning, self.model)
+        states[kind] = state
+        self.health[kind].count(info)
+        return StepOutput(state.x, info)
+
+    def _advance_block(
+        self,
+        kind: FilterKind,
+        states: dict[FilterKind, FilterState | None],
+        frames: Sequence[tuple[float, FloatArray, FloatArray, bool]],
+        tuning: Tuning,
+    ) -> StepOutput | None:
+        """Frames through one filter of a pass, runs of them in one compiled call each
+        (the same steps as _advance_one's, bit for bit): the output at the last frame.
+        A pass's first frame, a frame whose inputs are a guess and a step the contract
+        must repair or restart go through _advance_one."""
+        assert self._block is not None
+        ts = np.array([f[0] for f in frames])
+        us = np.array([f[1] for f in frames])
+        ys = np.array([f[2] for f in frames])
+        known = [f[3] for f in frames]
+        out: StepOutput | None = None
+        i = 0
+        while i < len(frames):
             state = states[kind]
-            if state is None:
-                start = self._starts[kind]
-                state = core.initial_state(self.model, tuning, t, u, y, *start)
-            elif not inputs_known:
-                state = core.rebase(state, self.model, tuning, t, y)
-            state, info = self._step(state, t, u, y_used, tuning, self.model)
-            states[kind] = state
-            self.health[kind].count(info)
-            outs[kind] = StepOutput(state.x, info)
-        return outs
+            end = i
+            while end < len(frames) and known[end]:
+                end += 1
+            if state is not None and end > i:
+                done, failed, new, info = self._block(
+                    state, ts[i:end], us[i:end], ys[i:end], tuning, self.model
+                )
+                if done:
+                    assert info is not None
+                    states[kind] = new
+                    self.health[kind].failed_updates += failed
+                    out = StepOutput(new.x, info)
+                    i += done
+                    if i == end:
+                        continue
+            t, u, y, inputs_known = frames[i]
+            out = self._advance_one(kind, states, t, u, y, inputs_known, tuning)
+            i += 1
+        return out
 
     def rebase(self, t: float, y: FloatArray) -> None:
         """The vehicle clock restarted: continue the coefficient estimates on a new time
@@ -540,8 +596,15 @@ class Estimator:
         rerun = self._rerun
         assert rerun is not None
         outs: dict[FilterKind, StepOutput] = {}
-        for t, u, y, known in self._buffer[self._rerun_pos : end]:
-            outs = self._advance(rerun, t, u, y, known, self._rerun_tunings)
+        frames = self._buffer[self._rerun_pos : end]
+        if self._block is None or len(frames) < BLOCK_MIN_FRAMES:
+            for t, u, y, known in frames:
+                outs = self._advance(rerun, t, u, y, known, self._rerun_tunings)
+        else:
+            for kind in FILTER_KINDS:
+                out = self._advance_block(kind, rerun, frames, self._rerun_tunings[kind])
+                if out is not None:
+                    outs[kind] = out
         self._rerun_pos = max(self._rerun_pos, end)
         return outs
 

@@ -481,6 +481,24 @@ def _recover(
     )
 
 
+BlockStep = Callable[
+    [FilterState, FloatArray, FloatArray, FloatArray, Tuning, Model],
+    tuple[int, int, FilterState, StepInfo | None],
+]
+"""A backend's steps over many frames in one call, up to the first unhealthy one (for the
+contract): (state, t[k], u[k], y[k], tuning, model) -> (frames done, failed updates
+among them, the state after them, the last one's info; None if none was done)."""
+
+
+def block_stepper(backend: Backend) -> BlockStep | None:
+    """The chosen backend's block step (None: it has none; step frame by frame)."""
+    if backend == "fast":
+        from gcs_estimator.filters import fast
+
+        return fast.kernel_block
+    return None
+
+
 def stepper(backend: Backend) -> StepFn:
     """The step of the chosen backend: "fast" (compiled) or "reference" (numpy)."""
     if backend == "fast":

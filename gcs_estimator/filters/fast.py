@@ -447,6 +447,67 @@ def _kernel(
     )
 
 
+@njit(cache=True, nogil=True)
+def _kernel_block(
+    x: FloatArray,
+    P: FloatArray,
+    u_prev: FloatArray,
+    sens: FloatArray,
+    t_prev: float,
+    t_start: float,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_age: int,
+    ts: FloatArray,
+    us: FloatArray,
+    ys: FloatArray,
+    tf: FloatArray,
+    ti: IntArray,
+) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
+    """_step over the frames ts, us, ys in order, as long as each leaves a healthy belief:
+    the frames done, the failed updates among them, the belief after the last of them and
+    the outputs of that step (of the first frame, unhealthy, when none was done)."""
+    tun, m = _unpack(tf, ti)
+    st = FilterState(
+        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age)
+    )
+    new, info, healthy = _step(st, ts[0], us[0], ys[0], tun, m)
+    last = info
+    done = 0
+    failed = 0
+    while healthy:
+        st = new
+        last = info
+        failed += 1 if info.failed else 0
+        done += 1
+        if done == ts.shape[0]:
+            break
+        new, info, healthy = _step(st, ts[done], us[done], ys[done], tun, m)
+    g = st.gust
+    vec = np.concatenate((st.x, last.sigma, last.innovation, last.innovation_sigma, st.u, g.sens))
+    return (
+        done,
+        failed,
+        st.t,
+        st.P,
+        vec,
+        last.nis,
+        last.n_used,
+        last.iterations,
+        last.gust_sigma,
+        last.failed,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.sens_age,
+    )
+
+
 PACKED_KEPT = 4096
 """Filters whose packed settings are kept: two per vehicle, far more than a station
 estimates at once (link.max_vehicles)."""
@@ -508,3 +569,52 @@ def kernel_step(
         GustState(var, info, gain, num, den, vec[o + u.shape[0] :], age),
     )
     return new, StepInfo(vec[n : 2 * n], nis, used, done, e, s, gust_sigma, failed), healthy
+
+
+def kernel_block(
+    state: FilterState,
+    ts: FloatArray,
+    us: FloatArray,
+    ys: FloatArray,
+    tuning: Tuning,
+    model: Model,
+) -> tuple[int, int, FilterState, StepInfo | None]:
+    """kernel_step over frames (rows of ts, us, ys) in one compiled call, up to the first
+    that leaves an unhealthy belief (for the step contract to handle, kernel_step again):
+    (frames done, failed updates among them, the belief after them, the last one's
+    outputs; None when none was done). Each step is kernel_step's, bit for bit."""
+    tf, ti = _packed(tuning, model)
+    g = state.gust
+    kernel: Any = _kernel_block
+    (done, failed, t, P, vec, nis, used, iterations, gust_sigma, last_failed, *gust) = kernel(
+        state.x,
+        state.P,
+        state.u,
+        g.sens,
+        state.t,
+        state.t_start,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.sens_age,
+        np.ascontiguousarray(ts, dtype=np.float64),
+        np.ascontiguousarray(us, dtype=np.float64),
+        np.ascontiguousarray(ys, dtype=np.float64),
+        tf,
+        ti,
+    )
+    if done == 0:
+        return 0, 0, state, None
+    n = state.x.shape[0]
+    nu = us.shape[1]
+    o = 2 * n + 2 * N_OBS
+    var, info, gain, num, den, age = gust
+    new = FilterState(
+        vec[:n], P, t, vec[o : o + nu], state.t_start,
+        GustState(var, info, gain, num, den, vec[o + nu :], age),
+    )  # fmt: skip
+    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
+    step = StepInfo(vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, last_failed)
+    return done, failed, new, step
