@@ -9,6 +9,9 @@ step), CPU time, best of 5, from a converged state over 2500 frames of a flight:
   noise, prediction, update, health check, gust matching);
 - step contract: the same through filters.core's guarded step, as the estimator's runner
   calls it for each filter and frame (the target figure);
+- blocks: filters.core's block step (filters.fast.kernel_block, one compiled call for
+  many frames), 10 frames a call as a restart's re-run steps its buffered frames beside
+  the live pass, and 100 a call;
 - flops per step: counted from the loop bounds of the step's linear algebra (the model's
   own equations not counted), and the rate they run at as a share of the machine's
   small-matrix rate (a 15 x 15 product through BLAS in a compiled loop, measured here);
@@ -47,6 +50,10 @@ measure its neighbours."""
 WARM = 300
 """Frames stepped before timing, so that the timing is of the steady state."""
 
+BLOCKS = (10, 100)
+"""Frames per block call: a re-run's frames per new frame (filter.restart_frames_per_step),
+and more."""
+
 FILTERS: tuple[tuple[str, str, list[str]], ...] = (
     ("EKF", "EKF", []),
     ("IEKF (default gate)", "IEKF", []),
@@ -84,6 +91,19 @@ class Setup:
             )[:2]
             iterations += info.iterations
         return n / (time.process_time() - t0), iterations / n
+
+    def block_rate(self, block: core.BlockStep, frames: int, size: int) -> float:
+        """Steps per second through the block step, `size` frames a call."""
+        f, s = self.flight, self.state
+        n = min(frames, len(f.t_s) - WARM)
+        t = f.t_s[WARM : WARM + n].astype(float)
+        u, y = f.inputs[WARM : WARM + n], f.measurements[WARM : WARM + n]
+        t0 = time.process_time()
+        for i in range(0, n, size):
+            j = i + size
+            done, _, s, _ = block(s, t[i:j], u[i:j], y[i:j], self.tuning, self.model)
+            assert done == len(t[i:j]), "a healthy flight stops no block"
+        return n / (time.process_time() - t0)
 
     def pattern(self) -> tuple[int, int, int, int]:
         """(n, n_dynamic, channels, non-zeros of H) at the converged state."""
@@ -195,16 +215,24 @@ def run() -> int:
     peak = small_matrix_gflops()
     print(f"small-matrix rate of this machine: {peak:.2f} GFLOP/s (15 x 15 products, BLAS)\n")
     print(
-        "| filter | kernel steps/s | step contract steps/s | iterations/step | kflop/step | "
+        "| filter | kernel steps/s | step contract steps/s | "
+        + "".join(f"blocks of {b} steps/s | " for b in BLOCKS)
+        + "iterations/step | kflop/step | "
         "GFLOP/s (contract) | share of small-matrix rate | numpy reference steps/s | "
         "filterpy EKF steps/s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---" * (9 + len(BLOCKS)) + "|")
+    block = core.block_stepper("fast")
+    assert block is not None
     for label, kind, overrides in FILTERS:
         setup = Setup(kind, overrides)
         kernel = max(setup.rate(fast.kernel_step, 2500)[0] for _ in range(REPEATS))
         runs = [setup.rate(fast_step, 2500) for _ in range(REPEATS)]
         contract = max(r[0] for r in runs)
+        blocks = "".join(
+            f"{max(setup.block_rate(block, 2500, b) for _ in range(REPEATS)):,.0f} | "
+            for b in BLOCKS
+        )
         iterations = runs[0][1]
         # The relinearisation gate linearises a second time to decide, kept or not.
         gated = kind == "IEKF" and setup.tuning.relinearise > 0.0 and setup.tuning.iterations > 1
@@ -214,7 +242,7 @@ def run() -> int:
         fp = filterpy_rate(setup, 300) if kind == "EKF" else None
         fp_text = "-" if fp is None else f"{fp:,.0f}"
         print(
-            f"| {label} | {kernel:,.0f} | {contract:,.0f} | {iterations:.2f} | "
+            f"| {label} | {kernel:,.0f} | {contract:,.0f} | {blocks}{iterations:.2f} | "
             f"{flops / 1e3:.1f} | {gflops:.2f} | {gflops / peak:.1%} | {ref:,.0f} | {fp_text} |"
         )
     fps, n = whole_flight()
