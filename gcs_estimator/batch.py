@@ -155,6 +155,7 @@ def _drive(args: argparse.Namespace, jobs: list[Job], width: int, stop: Stop, lo
             job = waiting.pop(0)
             _start(args, job)
             running.append(job)
+            print(f"started {job.path} -> {job.folder}", file=log, flush=True)
         if stop.requested:
             waiting.clear()  # never started: no status, said in the summary
             if stop.count > forwarded:

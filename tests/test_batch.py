@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording
 from sim.truth import simulate
@@ -65,6 +66,7 @@ def test_each_file_is_replayed_on_its_own_and_the_results_merged(
                 "--view", "off")  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "replaying 2 files as separate flights, 2 at a time" in done.stderr
+    assert f"started {flights[1]} -> {out / 'flight_2'}" in done.stderr
     summary = json.loads((out / "replays.json").read_text())
     files = summary["files"]
     assert [f["file"] for f in files] == [str(p) for p in flights]
@@ -113,11 +115,16 @@ def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]
     ],
 )
 def test_options_a_batch_cannot_pass_on_are_refused(
-    tmp_path: Path, flights: list[Path], options: list[str], message: str
+    tmp_path: Path,
+    flights: list[Path],
+    options: list[str],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
-    done = _gcs("replay", *map(str, flights), "--out", str(tmp_path / "o"), *options)
-    assert done.returncode == 2
-    assert message in done.stderr
+    status = main(["replay", *map(str, flights), "--out", str(tmp_path / "o"), *options])
+    assert status == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # refused before anything was written
 
 
 def test_a_stop_starts_no_more_files_and_keeps_what_ended(
