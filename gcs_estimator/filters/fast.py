@@ -399,6 +399,51 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
     return tun, model
 
 
+@njit(cache=True)
+def _state_of(
+    x: FloatArray,
+    P: FloatArray,
+    u_prev: FloatArray,
+    sens: FloatArray,
+    t_prev: float,
+    t_start: float,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_age: int,
+) -> FilterState:  # pragma: no cover
+    """A FilterState from its fields as _state_args hands them over."""
+    gust = GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age)
+    return FilterState(x, P, t_prev, u_prev, t_start, gust)
+
+
+@njit(cache=True)
+def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
+    """A step's belief and outputs as _belief_and_info takes them: the arrays in one
+    vector (each array returned costs more to hand back than the arithmetic of a row of
+    the update), then the scalars."""
+    g = st.gust
+    vec = np.concatenate((st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens))
+    return (
+        st.t,
+        st.P,
+        vec,
+        info.nis,
+        info.n_used,
+        info.iterations,
+        info.gust_sigma,
+        info.failed,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.sens_age,
+    )
+
+
 @njit(cache=True, nogil=True)
 def _kernel(
     x: FloatArray,
@@ -419,32 +464,12 @@ def _kernel(
     tf: FloatArray,
     ti: IntArray,
 ) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """_step over the fields of FilterState, and Tuning and ModelArrays packed."""
+    """_step over the fields of FilterState, and Tuning and ModelArrays packed:
+    (healthy, the new belief and the step's outputs)."""
     tun, m = _unpack(tf, ti)
-    st = FilterState(
-        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age)
-    )
+    st = _state_of(x, P, u_prev, sens, t_prev, t_start, g_var, g_info, g_gain, g_num, g_den, g_age)
     new, info, healthy = _step(st, t, u, y, tun, m)
-    g = new.gust
-    # The arrays in one vector: each array returned costs more to hand back than the
-    # arithmetic of a row of the update; kernel_step slices it.
-    vec = np.concatenate((new.x, info.sigma, info.innovation, info.innovation_sigma, new.u, g.sens))
-    return (
-        new.P,
-        vec,
-        info.nis,
-        info.n_used,
-        info.iterations,
-        info.gust_sigma,
-        info.failed,
-        healthy,
-        g.var,
-        g.info,
-        g.gain,
-        g.pass_num,
-        g.pass_den,
-        g.sens_age,
-    )
+    return (healthy, *_handed_back(new, info))
 
 
 @njit(cache=True, nogil=True)
@@ -468,12 +493,10 @@ def _kernel_block(
     ti: IntArray,
 ) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
     """_step over the frames ts, us, ys in order, as long as each leaves a healthy belief:
-    the frames done, the failed updates among them, the belief after the last of them and
-    the outputs of that step (of the first frame, unhealthy, when none was done)."""
+    (the frames done, the failed updates among them, the belief after the last of them
+    and the outputs of that step; of the first frame, unhealthy, when none was done)."""
     tun, m = _unpack(tf, ti)
-    st = FilterState(
-        x, P, t_prev, u_prev, t_start, GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age)
-    )
+    st = _state_of(x, P, u_prev, sens, t_prev, t_start, g_var, g_info, g_gain, g_num, g_den, g_age)
     new, info, healthy = _step(st, ts[0], us[0], ys[0], tun, m)
     last = info
     done = 0
@@ -486,26 +509,7 @@ def _kernel_block(
         if done == ts.shape[0]:
             break
         new, info, healthy = _step(st, ts[done], us[done], ys[done], tun, m)
-    g = st.gust
-    vec = np.concatenate((st.x, last.sigma, last.innovation, last.innovation_sigma, st.u, g.sens))
-    return (
-        done,
-        failed,
-        st.t,
-        st.P,
-        vec,
-        last.nis,
-        last.n_used,
-        last.iterations,
-        last.gust_sigma,
-        last.failed,
-        g.var,
-        g.info,
-        g.gain,
-        g.pass_num,
-        g.pass_den,
-        g.sens_age,
-    )
+    return (done, failed, *_handed_back(st, last))
 
 
 PACKED_KEPT = 4096
@@ -529,15 +533,10 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
     return tf, ti
 
 
-def kernel_step(
-    state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
-) -> tuple[FilterState, StepInfo, bool]:
-    """Predict, update with y, adapt the gust level (core contract)."""
-    t = float(t)
-    tf, ti = _packed(tuning, model)
+def _state_args(state: FilterState) -> tuple[Any, ...]:
+    """A FilterState's fields, flat, as the kernels take them (_state_of)."""
     g = state.gust
-    kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
-    (P, vec, nis, used, done, gust_sigma, failed, healthy, *gust) = kernel(
+    return (
         state.x,
         state.P,
         state.u,
@@ -550,25 +549,40 @@ def kernel_step(
         g.pass_num,
         g.pass_den,
         g.sens_age,
-        t,
-        u,
-        y,
-        tf,
-        ti,
     )
-    n = state.x.shape[0]
+
+
+def _belief_and_info(
+    start: FilterState, n_inputs: int, out: tuple[Any, ...], at: int
+) -> tuple[FilterState, StepInfo]:
+    """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
+    views of its vector."""
+    t, P, vec, nis, used, iterations, gust_sigma, failed = out[at : at + 8]
+    gust = out[at + 8 :]
+    n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
-    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
     var, info, gain, num, den, age = gust
     new = FilterState(
         vec[:n],
         P,
         t,
-        vec[o : o + u.shape[0]],
-        state.t_start,
-        GustState(var, info, gain, num, den, vec[o + u.shape[0] :], age),
+        vec[o : o + n_inputs],
+        start.t_start,
+        GustState(var, info, gain, num, den, vec[o + n_inputs :], age),
     )
-    return new, StepInfo(vec[n : 2 * n], nis, used, done, e, s, gust_sigma, failed), healthy
+    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
+    return new, StepInfo(vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, failed)
+
+
+def kernel_step(
+    state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
+) -> tuple[FilterState, StepInfo, bool]:
+    """Predict, update with y, adapt the gust level (core contract)."""
+    tf, ti = _packed(tuning, model)
+    kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
+    out = kernel(*_state_args(state), float(t), u, y, tf, ti)
+    new, info = _belief_and_info(state, u.shape[0], out, 1)
+    return new, info, out[0]
 
 
 def kernel_block(
@@ -584,37 +598,17 @@ def kernel_block(
     (frames done, failed updates among them, the belief after them, the last one's
     outputs; None when none was done). Each step is kernel_step's, bit for bit."""
     tf, ti = _packed(tuning, model)
-    g = state.gust
     kernel: Any = _kernel_block
-    (done, failed, t, P, vec, nis, used, iterations, gust_sigma, last_failed, *gust) = kernel(
-        state.x,
-        state.P,
-        state.u,
-        g.sens,
-        state.t,
-        state.t_start,
-        g.var,
-        g.info,
-        g.gain,
-        g.pass_num,
-        g.pass_den,
-        g.sens_age,
+    out = kernel(
+        *_state_args(state),
         np.ascontiguousarray(ts, dtype=np.float64),
         np.ascontiguousarray(us, dtype=np.float64),
         np.ascontiguousarray(ys, dtype=np.float64),
         tf,
         ti,
     )
+    done, failed = out[0], out[1]
     if done == 0:
         return 0, 0, state, None
-    n = state.x.shape[0]
-    nu = us.shape[1]
-    o = 2 * n + 2 * N_OBS
-    var, info, gain, num, den, age = gust
-    new = FilterState(
-        vec[:n], P, t, vec[o : o + nu], state.t_start,
-        GustState(var, info, gain, num, den, vec[o + nu :], age),
-    )  # fmt: skip
-    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
-    step = StepInfo(vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, last_failed)
-    return done, failed, new, step
+    new, info = _belief_and_info(state, us.shape[1], out, 2)
+    return done, failed, new, info
