@@ -18,6 +18,8 @@ flown.
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -110,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
         wall = time.time() - start
         cpu = time.process_time() - cpu
         sim.wait(timeout=30)
+        used = resource.getrusage(resource.RUSAGE_CHILDREN)
+        sim_cpu = used.ru_utime + used.ru_stime  # the simulator: this process's only child
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
@@ -122,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
         f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s; "
-        f"the station used {cpu:.1f} s of CPU ({cpu / wall:.0%} of one core)"
+        f"the station used {cpu:.1f} s of CPU ({cpu / wall:.0%} of one core), the simulated "
+        f"vehicles {sim_cpu:.1f} s ({sim_cpu / wall:.0%}), on {os.cpu_count()} cores"
     )
     print(
         f"frames: {got} of {flown} flown ({flown - got} lost); packets lost {h.lost} (of "
