@@ -545,7 +545,7 @@ class Estimator:
         """Frames through one filter of a pass, runs of them in one compiled call each
         (the same steps as _advance_one's, bit for bit): the output at the last frame.
         A pass's first frame, a frame whose inputs are a guess and a step the contract
-        must repair or restart go through _advance_one."""
+        must repair or restart go through _advance_one (docs/decisions/0013)."""
         assert self._block is not None
         ts = np.array([f[0] for f in frames])
         us = np.array([f[1] for f in frames])
