@@ -507,8 +507,25 @@ def _where(endpoint: endpoints.Endpoint, sock: socket.socket) -> str:
     return f"listening on udp port {bound}, sending to udp {host}:{endpoint.port} first"
 
 
+def tlog_paths(paths: Sequence[str]) -> list[str]:
+    """The files to replay: each path as given, a folder as the .tlog files in it (by
+    name); a folder without one is refused."""
+    out: list[str] = []
+    for p in paths:
+        folder = Path(p)
+        if not folder.is_dir():
+            out.append(p)
+            continue
+        found = sorted(str(f) for f in folder.glob("*.tlog") if f.is_file())
+        if not found:
+            raise ConfigError(f"{p}: a folder with no .tlog file in it")
+        out += found
+    return out
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
+    args.tlogs = tlog_paths(args.tlogs)
     if getattr(args, "each", False):
         from gcs_estimator.batch import run_each
 
@@ -637,7 +654,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="estimate from recorded .tlog files")
     _common(p)
-    p.add_argument("tlogs", nargs="+", help=".tlog files, in order (one flight)")
+    p.add_argument(
+        "tlogs",
+        nargs="+",
+        help=".tlog files, in order (one flight); a folder stands for the .tlog files in it",
+    )
     p.add_argument(
         "--each",
         action="store_true",

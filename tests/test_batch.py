@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator.cli import main
+from gcs_estimator.cli import main, tlog_paths
 from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording
 from sim.truth import simulate
@@ -151,3 +151,23 @@ def test_a_stop_starts_no_more_files_and_keeps_what_ended(
     assert "| flight.tlog | not run |" in stdout
     # A replay stopped before its first frame estimated nothing, and says so in its status.
     assert proc.returncode == (second["exit_status"] or 0)
+
+
+def test_a_folder_stands_for_its_tlog_files(
+    tmp_path: Path, flights: list[Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for name, src in (("b.tlog", flights[1]), ("a.tlog", flights[0])):
+        (logs / name).write_bytes(src.read_bytes())
+    (logs / "notes.txt").write_text("not a log")
+    (logs / "old.tlog").mkdir()  # a folder named like a log is not one
+    assert tlog_paths([str(logs), str(flights[0])]) == [
+        str(logs / "a.tlog"),
+        str(logs / "b.tlog"),
+        str(flights[0]),
+    ]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["replay", "--each", str(empty), "--out", str(tmp_path / "o")]) == 2
+    assert f"{empty}: a folder with no .tlog file in it" in capsys.readouterr().err
