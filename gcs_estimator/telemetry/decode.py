@@ -8,10 +8,11 @@ sees a MAVLink object.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from gcs_estimator import atmosphere
 from gcs_estimator.config import DataConfig, LinkConfig
@@ -21,8 +22,11 @@ from gcs_estimator.telemetry.mavlink import (
     MAV_TYPE_FIXED_WING,
     MAV_TYPE_GCS,
     Decoder,
+    FieldReader,
     MAVLinkMessage,
     header,
+    read_fields,
+    text,
 )
 
 Ranges = Mapping[Channel, tuple[float, float]]
@@ -143,9 +147,10 @@ def decoded_message(
     """What a packet that decoded means."""
     kind = msg.get_type()
     event: Event
-    extract = _EXTRACT.get(kind)
-    if extract is not None:
-        sample = _sample(msg, kind, extract(msg, link), t_recv_s, stats, ranges)
+    plan = _plans(link).get(kind)
+    if plan is not None:
+        found = plan.make(tuple(getattr(msg, f) for f in plan.reader.fields))
+        sample = _sample(int(msg.get_srcSystem()), kind, found, t_recv_s, stats, ranges)
         event = Ignored() if sample is None else sample
     elif kind == "HEARTBEAT":
         event = Heartbeat(int(msg.type) == MAV_TYPE_GCS, int(msg.type))
@@ -159,6 +164,31 @@ def decoded_message(
         stats.ignored_messages += 1
         event = Ignored()
     return Decoded(int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq()), event)
+
+
+class SampleReader:
+    """The channel-carrying messages straight from their packets: what decoded_message
+    makes of Decoder.decode's message, without the message (mavlink.read_fields reads
+    the fields the table below uses, and nothing else). A replay spends most of its time
+    per packet; this is its common case."""
+
+    def __init__(self, link: LinkConfig, stats: DecodeStats, ranges: Ranges = PLAUSIBLE) -> None:
+        self._plans = {p.reader.msgid: p for p in _plans(link).values()}
+        self._readers = {k: p.reader for k, p in self._plans.items()}
+        self._stats = stats
+        self._ranges = ranges
+
+    def __call__(self, packet: bytes, t_recv_s: float) -> Decoded | bool | None:
+        """The packet's meaning; False if it fails its CRC; None if it is not one of
+        these messages (or is signed): decoded_message(Decoder.decode(...)) then."""
+        got = read_fields(packet, self._readers)
+        if got is None or got is False:
+            return got
+        reader, seq, sysid, compid, fields = got  # type: ignore[misc]
+        kind = reader.msgname
+        found = self._plans[reader.msgid].make(fields)
+        sample = _sample(sysid, kind, found, t_recv_s, self._stats, self._ranges)
+        return Decoded(sysid, compid, seq, Ignored() if sample is None else sample)
 
 
 WRAP_US32_S = 2**32 * 1e-6
@@ -178,60 +208,68 @@ Found = tuple[float | None, list[tuple[Channel, float]]] | None
 """(vehicle time [s] or None, channel values) of a message, None if it carries none."""
 
 
-def _highres_imu(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    return msg.time_usec * 1e-6, [
-        (Channel.AX, msg.xacc),
-        (Channel.AZ, msg.zacc),
-        (Channel.Q, msg.ygyro),
-    ]
+class _Plan(NamedTuple):
+    """How one message type gives channel values: the fields it reads, and what it
+    makes of them (the same for a pymavlink message and for mavlink.read_fields)."""
+
+    reader: FieldReader
+    make: Callable[[tuple[Any, ...]], Found]
 
 
-def _attitude(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    return msg.time_boot_ms * 1e-3, [(Channel.THETA, msg.pitch)]
+def _name(raw: str | bytes) -> str:
+    return (raw if isinstance(raw, str) else text(raw)).rstrip("\x00")
 
 
-def _aoa_ssa(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    return msg.time_usec * 1e-6, [(Channel.ALPHA, math.radians(msg.AOA))]
-
-
-def _vfr_hud(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    return None, [(Channel.V, msg.airspeed)]
-
-
-def _servo_output_raw(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    elev_us = getattr(msg, f"servo{link.elevator_servo}_raw")
-    vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(elev_us)))]
+@functools.lru_cache(maxsize=16)
+def _plans(link: LinkConfig) -> dict[str, _Plan]:
+    """The messages that carry channels, each with what reads them (per link: servo
+    numbers, value names and whether pressure gives the density are the link's)."""
+    servos: tuple[str, ...] = (f"servo{link.elevator_servo}_raw",)
     if link.throttle_servo > 0:
-        thr_us = getattr(msg, f"servo{link.throttle_servo}_raw")
-        vals.append((Channel.POWER, pwm.throttle(link, float(thr_us))))
-    return msg.time_usec * 1e-6, vals
+        servos += (f"servo{link.throttle_servo}_raw",)
 
+    def servo(f: tuple[Any, ...]) -> Found:
+        vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(f[1])))]
+        if len(f) > 2:
+            vals.append((Channel.POWER, pwm.throttle(link, float(f[2]))))
+        return f[0] * 1e-6, vals
 
-def _scaled_pressure(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    if not link.density_from_pressure:
-        return None
-    rho = float(atmosphere.density(100.0 * float(msg.press_abs)))
-    return msg.time_boot_ms * 1e-3, [(Channel.DENSITY, rho)]
+    named = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}
 
+    def named_value(f: tuple[Any, ...]) -> Found:
+        channel = named.get(_name(f[2]))
+        return None if channel is None else (f[0] * 1e-3, [(channel, f[1])])
 
-def _named_value_float(msg: MAVLinkMessage, link: LinkConfig) -> Found:
-    name = msg.name if isinstance(msg.name, str) else msg.name.decode("ascii", "replace")
-    channel = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}.get(
-        name.rstrip("\x00")
+    def pressure(f: tuple[Any, ...]) -> Found:
+        if not link.density_from_pressure:
+            return None
+        p = 100.0 * float(f[1])
+        rho = float(atmosphere.density(p)) if 0.0 < p < math.inf else math.nan  # counted
+        return f[0] * 1e-3, [(Channel.DENSITY, rho)]
+
+    def plan(name: str, fields: tuple[str, ...], make: Callable[[tuple[Any, ...]], Found]) -> _Plan:
+        return _Plan(FieldReader(name, fields), make)
+
+    plans = (
+        plan(
+            "HIGHRES_IMU",
+            ("time_usec", "xacc", "zacc", "ygyro"),
+            lambda f: (f[0] * 1e-6, [(Channel.AX, f[1]), (Channel.AZ, f[2]), (Channel.Q, f[3])]),
+        ),
+        plan(
+            "ATTITUDE", ("time_boot_ms", "pitch"), lambda f: (f[0] * 1e-3, [(Channel.THETA, f[1])])
+        ),
+        plan(
+            "AOA_SSA",
+            ("time_usec", "AOA"),
+            lambda f: (f[0] * 1e-6, [(Channel.ALPHA, math.radians(f[1]))]),
+        ),
+        plan("VFR_HUD", ("airspeed",), lambda f: (None, [(Channel.V, f[0])])),
+        plan("SERVO_OUTPUT_RAW", ("time_usec", *servos), servo),
+        plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure),
+        plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value),
     )
-    return None if channel is None else (msg.time_boot_ms * 1e-3, [(channel, msg.value)])
-
-
-_EXTRACT: dict[str, Callable[[MAVLinkMessage, LinkConfig], Found]] = {
-    "HIGHRES_IMU": _highres_imu,
-    "ATTITUDE": _attitude,
-    "AOA_SSA": _aoa_ssa,
-    "VFR_HUD": _vfr_hud,
-    "SERVO_OUTPUT_RAW": _servo_output_raw,
-    "SCALED_PRESSURE": _scaled_pressure,
-    "NAMED_VALUE_FLOAT": _named_value_float,
-}
-"""The messages that carry channels, each with what reads them."""
+    return {p.reader.msgname: p for p in plans}
 
 
 def decode_message(
@@ -243,15 +281,16 @@ def decode_message(
 ) -> Sample | None:
     """The sample a message carries, or None if it carries none."""
     kind = msg.get_type()
-    extract = _EXTRACT.get(kind)
-    if extract is None:
+    plan = _plans(link).get(kind)
+    if plan is None:
         stats.ignored_messages += 1
         return None
-    return _sample(msg, kind, extract(msg, link), t_recv_s, stats, ranges)
+    found = plan.make(tuple(getattr(msg, f) for f in plan.reader.fields))
+    return _sample(int(msg.get_srcSystem()), kind, found, t_recv_s, stats, ranges)
 
 
 def _sample(
-    msg: MAVLinkMessage,
+    system_id: int,
     kind: str,
     found: Found,
     t_recv_s: float,
@@ -273,4 +312,4 @@ def _sample(
             stats.invalid_values += 1
     if not good:
         return None
-    return Sample(int(msg.get_srcSystem()), kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind))
+    return Sample(system_id, kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind))

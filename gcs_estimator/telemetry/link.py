@@ -23,10 +23,12 @@ from gcs_estimator.telemetry.counters import LinkHealth
 from gcs_estimator.telemetry.decode import (
     PLAUSIBLE,
     CommandAck,
+    Decoded,
     DecodeStats,
     Heartbeat,
     Ranges,
     Sample,
+    SampleReader,
     Unknown,
     decoded_message,
 )
@@ -96,6 +98,7 @@ class MavlinkLink:
         self.decoder = mavlink.Decoder()
         self.health = LinkHealth()
         self.decode_stats = DecodeStats()
+        self.samples = SampleReader(config, self.decode_stats, ranges)
         self.vehicles: dict[int, VehicleLink] = {}
         self.refused_vehicles: dict[int, int] = {}
         """Packets per system id beyond the vehicle cap (counted, not estimated)."""
@@ -185,7 +188,9 @@ class MavlinkLink:
             if isinstance(item, int):
                 self._junk(name, item)
             else:
-                out += self._decoded(item[0], item[1], t_recv_s, address)
+                out += self._decoded(
+                    item[0], item[1], t_recv_s, address, self._fast(item[0], t_recv_s)
+                )
         return out
 
     def _junk(self, name: str, n_bytes: int) -> None:
@@ -198,6 +203,9 @@ class MavlinkLink:
         """Record, decode and synchronise one packet received at t_recv_s [s since epoch]
         (a tlog record); returns the frames it lets go (lists, not generators: this runs
         once per packet)."""
+        decoded = self._fast(packet, t_recv_s)
+        if decoded is not None:
+            return self._decoded(packet, None, t_recv_s, address, decoded)
         msg = self.decoder.decode(packet)
         if msg is None:
             if self.recorder is not None:
@@ -206,9 +214,25 @@ class MavlinkLink:
             return []
         return self._decoded(packet, msg, t_recv_s, address)
 
+    def _fast(self, packet: bytes, t_recv_s: float) -> Decoded | None:
+        """The packet's meaning by decode.SampleReader where it can tell (a channel
+        message that passes its CRC), else None. Not with signing on: there a packet's
+        meaning counts only once its signature has passed."""
+        if self.signatures is not None:
+            return None
+        decoded = self.samples(packet, t_recv_s)
+        return decoded if isinstance(decoded, Decoded) else None
+
     def _decoded(
-        self, packet: bytes, msg: object, t_recv_s: float, address: Address | None
+        self,
+        packet: bytes,
+        msg: Any,
+        t_recv_s: float,
+        address: Address | None,
+        decoded: Decoded | None = None,
     ) -> list[Frame]:
+        """A packet that passed its CRC: its message (msg), or what it means already
+        (decoded)."""
         name = link_name(address)
         if self.signatures is not None and not self._signed(packet, t_recv_s, name):
             return []
@@ -217,9 +241,10 @@ class MavlinkLink:
         if math.isnan(self.t_first_recv):
             self.t_first_recv = t_recv_s
         self.t_last_recv = t_recv_s
-        decoded = decoded_message(
-            msg, packet, t_recv_s, self.config, self.decode_stats, self.ranges
-        )
+        if decoded is None:
+            decoded = decoded_message(
+                msg, packet, t_recv_s, self.config, self.decode_stats, self.ranges
+            )
         event = decoded.event
         t_vehicle = None
         if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:

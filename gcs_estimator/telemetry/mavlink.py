@@ -9,9 +9,10 @@ followed by one raw MAVLink packet.
 from __future__ import annotations
 
 import operator
+import re
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -219,7 +220,7 @@ class _Light(tuple):  # type: ignore[type-arg]
         return int(self[2])
 
 
-def _text(raw: bytes) -> str:
+def text(raw: bytes) -> str:
     """A char[] field as pymavlink gives it: up to the first NUL, ASCII."""
     return raw.split(b"\x00", 1)[0].decode("ascii", errors="replace")
 
@@ -322,8 +323,81 @@ class Decoder:
             payload = (payload + bytes(size))[:size]
         fields = layout.pick(layout.unpacker.unpack(payload))
         if layout.text_fields:
-            fields = tuple(_text(v) if i in layout.text_fields else v for i, v in enumerate(fields))
+            fields = tuple(text(v) if i in layout.text_fields else v for i, v in enumerate(fields))
         return layout.cls((seq, sysid, compid, *fields))
+
+
+class FieldReader:
+    """Chosen fields of one message type read straight from its packets: one struct call
+    over the payload (the other fields skipped as padding), no message object. The
+    fields come in the order asked for; char[] fields as the raw bytes (`text` reads them
+    as pymavlink does)."""
+
+    def __init__(self, msgname: str, fields: tuple[str, ...]) -> None:
+        t = dialect.mavlink_map[getattr(dialect, f"MAVLINK_MSG_ID_{msgname}")]
+        codes = re.findall(r"(\d*)([a-zA-Z?])", t.unpacker.format.lstrip("<"))
+        if len(codes) != len(t.ordered_fieldnames):
+            raise ValueError(f"{msgname}: array fields are left to pymavlink")
+        wire = [f for f in t.ordered_fieldnames if f in fields]
+        missing = set(fields) - set(wire)
+        if missing:
+            raise ValueError(f"{msgname} has no field(s) {sorted(missing)}")
+        fmt = "<"
+        for name, (count, code) in zip(t.ordered_fieldnames, codes, strict=True):
+            item = count + code
+            fmt += item if name in fields else f"{struct.calcsize('<' + item)}x"
+        self.msgid: int = t.id
+        self.msgname: str = msgname
+        self.fields: tuple[str, ...] = fields
+        self.size: int = t.unpacker.size
+        self.crc_extra: bytes = bytes([t.crc_extra])
+        self.unpack: Callable[[bytes], tuple[Any, ...]] = struct.Struct(fmt).unpack
+        order = tuple(wire.index(f) for f in fields)
+        self.pick: Callable[[tuple[Any, ...]], tuple[Any, ...]] | None = (
+            None if order == tuple(range(len(fields))) else _picker(order)
+        )
+
+    def read(self, packet: bytes, head: int) -> tuple[Any, ...]:
+        """The fields of a packet whose CRC passed (MAVLink 2 trims trailing zeros of
+        the payload: they are put back)."""
+        payload = packet[head:-2]
+        if len(payload) != self.size:
+            payload = (payload + bytes(self.size))[: self.size]
+        values = self.unpack(payload)
+        return values if self.pick is None else self.pick(values)
+
+
+def _picker(order: tuple[int, ...]) -> Callable[[tuple[Any, ...]], tuple[Any, ...]]:
+    get = operator.itemgetter(*order)
+    return (lambda v: (get(v),)) if len(order) == 1 else get
+
+
+def read_fields(
+    packet: bytes, readers: dict[int, FieldReader]
+) -> tuple[FieldReader, int, int, int, tuple[Any, ...]] | bool | None:
+    """(reader, sequence, system id, component id, fields) of an unsigned packet of a
+    type in readers; False if its CRC or length fails; None if it is of another type
+    (or signed): then Decoder.decode is the way. The same checks as Decoder._fast."""
+    n = len(packet)
+    if n < 8:
+        return None
+    if packet[0] == STX_V2:
+        if n < 12 or packet[2]:
+            return None
+        reader = readers.get(packet[7] | packet[8] << 8 | packet[9] << 16)
+        head = 10
+        seq, sysid, compid = packet[4], packet[5], packet[6]
+    elif packet[0] == STX_V1:
+        reader = readers.get(packet[5])
+        head = 6
+        seq, sysid, compid = packet[2], packet[3], packet[4]
+    else:
+        return None
+    if reader is None or packet[1] != n - head - 2:
+        return None
+    if _crc(packet[1 : n - 2], reader.crc_extra) != packet[n - 2] | packet[n - 1] << 8:
+        return False
+    return reader, seq, sysid, compid, reader.read(packet, head)
 
 
 MAX_PACKET_BYTES = 280

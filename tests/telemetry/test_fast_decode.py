@@ -1,6 +1,7 @@
 """The struct fast path of mavlink.Decoder reads every message it handles exactly as
 pymavlink does: field by field, header included, MAVLink 1 and 2, payloads trimmed of
-trailing zeros, and it refuses what pymavlink refuses (bad CRC, wrong length)."""
+trailing zeros, and it refuses what pymavlink refuses (bad CRC, wrong length). So does
+decode.SampleReader, which goes from a packet straight to what it means."""
 
 from __future__ import annotations
 
@@ -12,6 +13,14 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
+from gcs_estimator.config import load_config
+from gcs_estimator.telemetry.decode import (
+    Decoded,
+    DecodeStats,
+    SampleReader,
+    decoded_message,
+    ranges_of,
+)
 from gcs_estimator.telemetry.mavlink import FAST_MESSAGES, Decoder
 
 SEED = 20261123
@@ -123,3 +132,97 @@ def test_signed_packets_go_through_pymavlink() -> None:
     assert Decoder._fast(packet) is None
     msg = Decoder().decode(packet)
     assert msg is not None and msg.get_type() == "ATTITUDE" and msg.time_boot_ms == 1234
+
+
+CHANNEL_MESSAGES = (
+    "HIGHRES_IMU",
+    "ATTITUDE",
+    "AOA_SSA",
+    "VFR_HUD",
+    "SERVO_OUTPUT_RAW",
+    "SCALED_PRESSURE",
+    "NAMED_VALUE_FLOAT",
+)
+"""The messages decode.SampleReader reads straight from their packets."""
+
+LINKS = {
+    "default": (),
+    "servo 9, thrust named, density from pressure": (
+        "link.elevator_servo=9",
+        "link.throttle_servo=0",
+        'propulsion.model="measured"',
+        "link.density_from_pressure=true",
+        'link.qdot_name="a"',
+        'link.thrust_name="Z_9"',
+    ),
+}
+
+
+def _named_values(rng: random.Random, names: tuple[str, ...]) -> list[bytes]:
+    """NAMED_VALUE_FLOATs under the names the link reads (random ones rarely are)."""
+    out = []
+    for k in range(CASES_PER_MESSAGE):
+        mav = dialect.MAVLink(None, srcSystem=rng.randint(1, 255), srcComponent=1)
+        mav.seq = k % 256
+        value = _value(rng, "float")
+        msg = dialect.MAVLink_named_value_float_message(k, rng.choice(names).encode(), value)
+        out.append(bytes(msg.pack(mav, force_mavlink1=rng.random() < 0.5)))
+    return out
+
+
+@pytest.mark.parametrize("link_name", LINKS)
+def test_sample_reader_means_what_the_decoded_message_means(link_name: str) -> None:
+    """Every channel message, MAVLink 1 and 2, NaN, infinite and absurd values, trimmed
+    payloads: the reader's meaning and its counts are decoded_message's of pymavlink's
+    message (and of the fast path's)."""
+    config = load_config("noc_uav", list(LINKS[link_name]))
+    ranges = ranges_of(config.data)
+    packets = _named_values(random.Random(SEED), ("QDOT", "THRUST", "a", "Z_9", "other"))
+    for name in CHANNEL_MESSAGES:
+        packets += _packets(name, v1=False) + (_packets(name, v1=True) if _id(name) <= 255 else [])
+    ours, theirs, fast = DecodeStats(), DecodeStats(), DecodeStats()
+    reader = SampleReader(config.link, ours, ranges)
+    decoder = Decoder()
+    meanings = set()
+    for packet in packets:
+        got = reader(packet, 12.5)
+        assert isinstance(got, Decoded), packet.hex()
+        ref = _reference(packet)
+        assert ref is not None
+        assert got == decoded_message(ref, packet, 12.5, config.link, theirs, ranges)
+        light = decoder.decode(packet)
+        assert got == decoded_message(light, packet, 12.5, config.link, fast, ranges)
+        meanings.add(type(got.event).__name__)
+    assert ours == theirs == fast
+    assert meanings == {"Sample", "Ignored"}
+    assert ours.invalid_values > 0 and ours.ignored_messages > 0
+
+
+def test_sample_reader_refuses_what_the_decoder_refuses() -> None:
+    """A flipped bit or a missing byte: the reader says False (CRC) only where the
+    decoder refuses too, and hands over (None) what it cannot frame; a signed packet and
+    a message it does not read go to the decoder."""
+    rng = random.Random(f"{SEED}-reader")
+    config = load_config("noc_uav")
+    reader = SampleReader(config.link, DecodeStats(), ranges_of(config.data))
+    decoder = Decoder()
+    refused = 0
+    for name in CHANNEL_MESSAGES:
+        for packet in _packets(name, v1=False)[:60]:
+            bad = bytearray(packet)
+            bad[rng.randrange(1, len(bad))] ^= 1 << rng.randrange(8)
+            for candidate in (bytes(bad), packet[:-1]):
+                got = reader(candidate, 1.0)
+                if got is False:
+                    refused += 1
+                    assert decoder.decode(candidate) is None, (name, candidate.hex())
+                elif got is not None:
+                    msg = decoder.decode(candidate)
+                    assert msg is not None and msg.get_type() == name
+    assert refused > 0
+    mav = dialect.MAVLink(None, srcSystem=7, srcComponent=1)
+    assert reader(bytes(mav.heartbeat_encode(1, 3, 0, 0, 4).pack(mav)), 1.0) is None
+    mav.signing.secret_key = bytes(range(32))
+    mav.signing.sign_outgoing = True
+    signed = bytes(mav.attitude_encode(1234, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0).pack(mav))
+    assert reader(signed, 1.0) is None
