@@ -122,16 +122,26 @@ def _gap(stream: _Stream, d: int, t: float | None) -> int:
     return d if 0 < d < 128 else 0
 
 
+@dataclass(slots=True)
+class _Copies:
+    """One (system, component)'s recent packets, to recognise copies."""
+
+    seen: OrderedDict[bytes, int] = field(default_factory=OrderedDict)
+    """Recent packets -> their number among its packets."""
+    taken: int = 0
+    """Its packets taken so far."""
+    newest: float = -math.inf
+    """The newest vehicle time among them [s]."""
+
+
 @dataclass
 class LinkHealth:
     """Counters per link, and the copies seen per vehicle stream across links."""
 
     links: dict[str, LinkCounts] = field(default_factory=dict)
     _streams: dict[tuple[str, int, int], _Stream] = field(default_factory=dict)
-    _seen: dict[tuple[int, int], OrderedDict[bytes, int]] = field(default_factory=dict)
-    """Per (system, component): recent packets -> their number among its packets."""
-    _taken: dict[tuple[int, int], int] = field(default_factory=dict)
-    _newest: dict[tuple[int, int], float] = field(default_factory=dict)
+    _copies: dict[tuple[int, int], _Copies] = field(default_factory=dict)
+    """Per (system, component): what recognises copies of its packets."""
 
     def counts(self, link: str) -> LinkCounts:
         c = self.links.get(link)
@@ -171,19 +181,21 @@ class LinkHealth:
         return True
 
     def _is_copy(self, key: tuple[int, int], packet: bytes, t: float | None) -> bool:
-        seen = self._seen.setdefault(key, OrderedDict())
-        n = self._taken.get(key, 0)
-        newest = self._newest.get(key, -math.inf)
+        c = self._copies.get(key)
+        if c is None:
+            c = self._copies[key] = _Copies()
+        seen, n = c.seen, c.taken
         at = seen.get(packet)
-        if at is not None and (n - at < 255 or (t is not None and t <= newest)):
-            return True
+        if at is not None:
+            if n - at < 255 or (t is not None and t <= c.newest):
+                return True
+            seen.move_to_end(packet)  # a new packet goes in at the end anyway
         seen[packet] = n
-        seen.move_to_end(packet)
         if len(seen) > COPIES_KEPT:
             seen.popitem(last=False)
-        self._taken[key] = n + 1
-        if t is not None:
-            self._newest[key] = max(newest, t)
+        c.taken = n + 1
+        if t is not None and t > c.newest:
+            c.newest = t
         return False
 
     def _judge(self, s: _Stream, seq: int, t: float | None, counts: LinkCounts) -> str:

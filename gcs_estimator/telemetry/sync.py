@@ -257,7 +257,8 @@ class Synchronizer:
         return out
 
     def _accept(self, t: float, sample: Sample) -> list[Frame]:
-        self._newest = max(self._newest, t)
+        if t > self._newest:
+            self._newest = t
         window = self.link.frame_window_s
         obs = []
         for ch, v in sample.values:
@@ -308,8 +309,9 @@ class Synchronizer:
         if self._newest > frame.t + self.link.reorder_window_s:
             return True
         y = frame.y
-        if any(y[c] != y[c] for c in self._expected):  # NaN: not arrived
-            return False
+        for c in self._expected:
+            if y[c] != y[c]:  # NaN: not arrived
+                return False
         if frame.t - self._last_emitted > HOLE_PERIODS * self._period:
             return False
         window = self.link.frame_window_s
