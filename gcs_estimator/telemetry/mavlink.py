@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavcrc
@@ -474,8 +474,9 @@ def _unknown_framed(data: bytes, i: int, size: int, decoder: Decoder) -> bool:
 # ------------------------------------------------------------------------------ tlog
 
 
-@dataclass(frozen=True)
-class TlogRecord:
+class TlogRecord(NamedTuple):
+    """One record of a tlog (a named tuple: built once per packet)."""
+
     t_recv_us: int
     packet: bytes
 
@@ -536,21 +537,23 @@ BACK_US = 60_000_000
 """... and at most a minute before it."""
 
 
-def _plausible_record(
-    data: bytes, i: int, n: int, t_us: int, last_t: int | None, checked: bool, decoder: Decoder
-) -> bool:
-    """Whether a record is real. Any 0xFD or 0xFE byte looks like a packet start
-    (timestamps and payloads hold them too), so its time must follow the last good
-    record's; then a record is taken if the next record's header starts where it ends,
-    and otherwise, or after garbage (checked), only if its packet passes its CRC."""
-    if last_t is not None and not last_t - BACK_US <= t_us <= last_t + FORWARD_US:
-        return False
-    end = i + 8 + n
-    framed = end == len(data) or packet_length(data, end + 8) > 0
-    if framed and not checked:
-        return True
+def _checks_out(data: bytes, i: int, end: int, framed: bool, decoder: Decoder) -> bool:
+    """Whether a record that is not plainly framed (or follows garbage) is real: its
+    packet passes its CRC (an unknown message, whose CRC cannot be checked, only where
+    the next record's header starts where it ends)."""
     msg = decoder.decode(data[i + 8 : end])
     return msg is not None and (framed or not is_unknown(msg))
+
+
+def _junk_byte(path: str | Path, st: TlogStats, first: bool, position: int) -> None:
+    """Count a byte that starts no record; a file with none in its first 4 KiB is no tlog."""
+    if first and position >= 4096:
+        raise TlogError(f"{path}: not a tlog (no MAVLink record in the first 4 KiB)")
+    st.junk_bytes += 1
+
+
+_TIME_US = struct.Struct(">Q").unpack_from
+"""A tlog record's 8-byte big-endian receive time [us]."""
 
 
 READ_CHUNK = 1 << 20
@@ -573,6 +576,7 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
     last_t: int | None = None
     data = b""
     offset = i = 0  # data[0] is the file's byte `offset`
+    known = -1  # the next record's packet length, where the last record's check read it
     eof = False
     with open(path, "rb") as fh:
         while True:
@@ -586,22 +590,29 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
                 continue
             if i + 8 >= len(data):
                 break
-            n = packet_length(data, i + 8)
-            if n and i + 8 + n <= len(data):
-                (t_us,) = struct.unpack_from(">Q", data, i)
-                if _plausible_record(data, i, n, t_us, last_t, resyncing, decoder):
-                    first = resyncing = False
-                    last_t = t_us
-                    st.records += 1
-                    yield TlogRecord(t_us, data[i + 8 : i + 8 + n])
-                    i += 8 + n
-                    continue
+            n = packet_length(data, i + 8) if known < 0 else known
+            known = -1
+            end = i + 8 + n
+            if n and end <= len(data):
+                # Any 0xFD or 0xFE byte looks like a packet start (timestamps and
+                # payloads hold them too), so a record's time must follow the last good
+                # record's; then it is taken if the next record's header starts where it
+                # ends, and otherwise, or after garbage, only if its packet checks out.
+                (t_us,) = _TIME_US(data, i)
+                if last_t is None or last_t - BACK_US <= t_us <= last_t + FORWARD_US:
+                    following = packet_length(data, end + 8) if end < len(data) else 0
+                    framed = end == len(data) or following > 0
+                    if (framed and not resyncing) or _checks_out(data, i, end, framed, decoder):
+                        first = resyncing = False
+                        last_t = t_us
+                        st.records += 1
+                        yield TlogRecord(t_us, data[i + 8 : end])
+                        i, known = end, following if following > 0 else -1
+                        continue
             elif n:  # the record runs past the end of the file
                 st.truncated_tail = True
                 return
-            if first and offset + i >= 4096:
-                raise TlogError(f"{path}: not a tlog (no MAVLink record in the first 4 KiB)")
-            st.junk_bytes += 1
+            _junk_byte(path, st, first, offset + i)
             resyncing = True
             i += 1
     if first and len(data) > 0:
