@@ -182,9 +182,9 @@ class SampleReader:
         """The packet's meaning; False if it fails its CRC; None if it is not one of
         these messages (or is signed): decoded_message(Decoder.decode(...)) then."""
         got = read_fields(packet, self._readers)
-        if got is None or got is False:
+        if not isinstance(got, tuple):
             return got
-        reader, seq, sysid, compid, fields = got  # type: ignore[misc]
+        reader, seq, sysid, compid, fields = got
         kind = reader.msgname
         found = self._plans[reader.msgid].make(fields)
         sample = _sample(sysid, kind, found, t_recv_s, self._stats, self._ranges)

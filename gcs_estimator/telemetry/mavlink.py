@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, NamedTuple
+from typing import Any, BinaryIO, NamedTuple, Protocol, TypeVar
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavcrc
@@ -274,6 +274,40 @@ def _crc(data: bytes, extra: bytes) -> int:
     return int(_mcrf4xx(extra, _mcrf4xx(data, 0xFFFF)))
 
 
+class _Checked(Protocol):
+    @property
+    def crc_extra(self) -> bytes: ...
+
+
+K = TypeVar("K", bound=_Checked)
+
+
+def _checked(packet: bytes, table: dict[int, K]) -> tuple[K, int, int, int, int] | bool | None:
+    """(table entry, payload start, sequence, system id, component id) of an unsigned
+    packet of a type in table whose CRC passes; False if its CRC fails; None if it is of
+    another type, signed, or its length does not match its header (pymavlink decides)."""
+    n = len(packet)
+    if n < 8:
+        return None
+    if packet[0] == STX_V2:
+        if n < 12 or packet[2]:
+            return None
+        entry = table.get(packet[7] | packet[8] << 8 | packet[9] << 16)
+        head = 10
+        seq, sysid, compid = packet[4], packet[5], packet[6]
+    elif packet[0] == STX_V1:
+        entry = table.get(packet[5])
+        head = 6
+        seq, sysid, compid = packet[2], packet[3], packet[4]
+    else:
+        return None
+    if entry is None or packet[1] != n - head - 2:
+        return None
+    if _crc(packet[1 : n - 2], entry.crc_extra) != packet[n - 2] | packet[n - 1] << 8:
+        return False
+    return entry, head, seq, sysid, compid
+
+
 class Decoder:
     """Decodes single packets; a packet that fails its CRC or framing comes back None.
 
@@ -298,25 +332,11 @@ class Decoder:
     @staticmethod
     def _fast(packet: bytes) -> _Light | bool | None:
         """The message, False if it fails its CRC, None if it is not for the fast path."""
+        got = _checked(packet, _FAST)
+        if not isinstance(got, tuple):
+            return got
+        layout, head, seq, sysid, compid = got
         n = len(packet)
-        if n < 8:
-            return None
-        if packet[0] == STX_V2:
-            if n < 12 or packet[2]:
-                return None
-            layout = _FAST.get(packet[7] | packet[8] << 8 | packet[9] << 16)
-            head = 10
-            seq, sysid, compid = packet[4], packet[5], packet[6]
-        elif packet[0] == STX_V1:
-            layout = _FAST.get(packet[5])
-            head = 6
-            seq, sysid, compid = packet[2], packet[3], packet[4]
-        else:
-            return None
-        if layout is None or packet[1] != n - head - 2:
-            return None
-        if _crc(packet[1 : n - 2], layout.crc_extra) != packet[n - 2] | packet[n - 1] << 8:
-            return False
         payload = packet[head : n - 2]
         size = layout.unpacker.size
         if len(payload) != size:
@@ -378,25 +398,10 @@ def read_fields(
     """(reader, sequence, system id, component id, fields) of an unsigned packet of a
     type in readers; False if its CRC or length fails; None if it is of another type
     (or signed): then Decoder.decode is the way. The same checks as Decoder._fast."""
-    n = len(packet)
-    if n < 8:
-        return None
-    if packet[0] == STX_V2:
-        if n < 12 or packet[2]:
-            return None
-        reader = readers.get(packet[7] | packet[8] << 8 | packet[9] << 16)
-        head = 10
-        seq, sysid, compid = packet[4], packet[5], packet[6]
-    elif packet[0] == STX_V1:
-        reader = readers.get(packet[5])
-        head = 6
-        seq, sysid, compid = packet[2], packet[3], packet[4]
-    else:
-        return None
-    if reader is None or packet[1] != n - head - 2:
-        return None
-    if _crc(packet[1 : n - 2], reader.crc_extra) != packet[n - 2] | packet[n - 1] << 8:
-        return False
+    got = _checked(packet, readers)
+    if not isinstance(got, tuple):
+        return got
+    reader, head, seq, sysid, compid = got
     return reader, seq, sysid, compid, reader.read(packet, head)
 
 
