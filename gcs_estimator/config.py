@@ -371,12 +371,14 @@ class FilterTuning:
         0.0, ge=0, doc="reject channels beyond this many sigma; 0: off"
     )
     measurement_noise: str = setting(
-        "config",
-        choices=("config", "data"),
-        doc="config: [filter.measurement_sigma] throughout; data: each restart's re-run "
-        "uses each channel's noise estimated from the frames so far (robust fourth "
-        "differences, gcs_estimator/noise.py), measurement_sigma before the first restart "
-        "and for channels with too few samples",
+        "auto",
+        choices=("auto", "config", "data"),
+        doc="where each restart's re-run takes each channel's noise sigma from: auto: the "
+        "data's reading (robust fourth differences, gcs_estimator/noise.py) where it is "
+        "clearly below measurement_sigma (the sensor is better than configured), else "
+        "measurement_sigma; data: the reading throughout; config: measurement_sigma "
+        "throughout. Before the first restart, and for channels with too few samples, "
+        "measurement_sigma",
     )
     initial_coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=0.0)
     initial_sigma: InitialSigma = table(InitialSigma)

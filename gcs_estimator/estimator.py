@@ -307,6 +307,10 @@ class EstimatorResult(NamedTuple):
     data's: [filter] measurement_noise)."""
     noise_differences: tuple[int, ...] | None = None
     """Differences each channel's noise estimate took (None: none made)."""
+    noise_reading: tuple[float, ...] | None = None
+    """Each channel's noise sigma as read from the data (None: none read); with
+    measurement_noise = "auto" the final pass used it only where it was clearly below the
+    configured sigma (noise.reading_z)."""
 
 
 class _Start(NamedTuple):
@@ -348,6 +352,8 @@ class Estimator:
         """The settings of the re-run under way (measurement noise from the data)."""
         self.noise_differences: tuple[int, ...] | None = None
         """Differences each channel's noise estimate took (None: none made)."""
+        self.noise_reading: tuple[float, ...] | None = None
+        """Each channel's noise sigma as read from the data (None: none read)."""
         self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
         self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
@@ -686,19 +692,24 @@ class Estimator:
         self._rerun_pos = 0
 
     def _noise_from_data(self, frames: int) -> dict[FilterKind, Tuning]:
-        """The re-run's settings: with `measurement_noise = "data"`, each channel's noise
-        estimated from the first `frames` buffered frames (gcs_estimator/noise.py), the
-        configured sigma the fallback; else the live pass's."""
-        if self.config.filter.measurement_noise != "data":
+        """The re-run's settings: each channel's noise read from the first `frames`
+        buffered frames (gcs_estimator/noise.py), the configured sigma the fallback; with
+        `measurement_noise = "data"` the reading throughout, with "auto" only where it is
+        clearly below the configured sigma; with "config" the live pass's settings."""
+        policy = self.config.filter.measurement_noise
+        if policy == "config":
             return self.tunings
-        from gcs_estimator.noise import noise_from_differences
+        from gcs_estimator.noise import CLEARLY, noise_from_differences, reading_z
 
         buffered = self._buffer[:frames]
         t = np.array([row[0] for row in buffered])
         y = np.array([row[2] for row in buffered]).reshape(len(buffered), -1)
-        fallback = np.array(self.config.filter.measurement_sigma, float)
-        sigma, used = noise_from_differences(t, y, fallback)
+        configured = np.array(self.config.filter.measurement_sigma, float)
+        sigma, used = noise_from_differences(t, y, configured)
         self.noise_differences = tuple(int(n) for n in used)
+        self.noise_reading = tuple(float(v) for v in sigma)
+        if policy == "auto":
+            sigma = np.where(reading_z(sigma, used, configured) < -CLEARLY, sigma, configured)
         R = np.diag(sigma**2)
         return {k: tn._replace(R=R) for k, tn in self.tunings.items()}
 
@@ -767,6 +778,7 @@ class Estimator:
             self.model.layout.names,
             tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
             self.noise_differences,
+            self.noise_reading,
         )
 
 

@@ -1,4 +1,5 @@
-"""Each sensor's noise level from the record itself (`[filter] measurement_noise = "data"`).
+"""Each sensor's noise level from the record itself (`[filter] measurement_noise`, "auto"
+and "data").
 
 A channel sampled fast against the aircraft's motion is a smooth signal plus white noise.
 The fourth difference y[k] - 4 y[k+1] + 6 y[k+2] - 4 y[k+3] + y[k+4] of the smooth part
@@ -14,6 +15,12 @@ What it cannot tell from noise is motion that is itself rough at the sample rate
 turbulence with a short scale length moves pitch acceleration (and so qdot and q) sample
 to sample, and that motion is counted as noise. docs/decisions/0011 says what it gives on
 the simulator and the validation set.
+
+So a reading can only err high: motion adds to the differences, never takes away. The
+default, "auto", takes the reading only where it is below the
+configured sigma by more than CLEARLY of its standard errors (the sensor is clearly
+better than configured), and keeps the configured sigma elsewhere
+(docs/decisions/0014).
 """
 
 from __future__ import annotations
@@ -35,6 +42,15 @@ FLOOR_RATIO = 0.1
 channel would otherwise get no noise at all, and a filter that trusts it without bound)."""
 MAD_TO_SIGMA = 1.4826
 """sigma over the median absolute deviation, for Gaussian noise."""
+READING_SPREAD = 1.59
+"""A reading from m differences of white noise has a relative standard deviation of
+READING_SPREAD / sqrt(m) (the median absolute deviation's, widened by the overlap of
+neighbouring fourth differences; 1.57-1.60 over 3000 simulated records each of 50 to
+3000 samples, tests/test_noise.py)."""
+CLEARLY = 3.0
+"""Standard errors by which a reading must fall below the configured sigma to replace it
+("auto"); above 3 a record of configured noise is read that low about once in a
+thousand channels."""
 
 
 def noise_from_differences(
@@ -65,3 +81,14 @@ def noise_from_differences(
         mad = float(np.median(np.abs(d - np.median(d))))
         sigma[c] = max(MAD_TO_SIGMA * mad / scale, FLOOR_RATIO * fallback[c])
     return sigma, used
+
+
+def reading_z(sigma: FloatArray, used: np.ndarray, configured: FloatArray) -> FloatArray:
+    """How far each channel's reading (sigma [c], from `used` differences each) lies from
+    the configured sigma, in the reading's standard errors: below -CLEARLY the sensor is
+    clearly better than configured; above CLEARLY it is noisier, or the motion is as rough
+    as noise. NaN for a channel without a reading of its own."""
+    m = np.asarray(used, float)
+    spread = READING_SPREAD / np.sqrt(np.maximum(m, 1.0))
+    z = (np.asarray(sigma, float) / np.asarray(configured, float) - 1.0) / spread
+    return np.where(m >= MIN_DIFFERENCES, z, np.nan)

@@ -29,7 +29,7 @@ from gcs_estimator.metrics import (
     percent_error,
 )
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
-from gcs_estimator.noise import MIN_DIFFERENCES
+from gcs_estimator.noise import CLEARLY, MIN_DIFFERENCES, reading_z
 from gcs_estimator.session import VehicleResult
 
 if TYPE_CHECKING:
@@ -277,15 +277,35 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
 
 
 def _noise_warning(vehicle: VehicleResult) -> list[str]:
-    """Measurement noise read from the data in turbulence: the motion the gusts cause
-    from sample to sample reads as sensor noise (docs/decisions/0011)."""
+    """What the measurement noise read from the data says (docs/decisions/0011, 0014):
+    with "data", that in turbulence the motion the gusts cause from sample to sample
+    reads as sensor noise; with "auto", which channels read clearly noisier than
+    configured (kept at the configured sigma)."""
     result = vehicle.result
-    if result.noise_differences is None:
+    if result.noise_differences is None or result.noise_reading is None:
         return []
+    configured = np.array(result.config.filter.measurement_sigma, float)
+    reading = np.array(result.noise_reading)
+    if result.config.filter.measurement_noise == "auto":
+        z = reading_z(reading, np.array(result.noise_differences), configured)
+        above = [
+            f"{n} {r / c:.1f}×"
+            for n, r, c, zc in zip(OBS_NAMES, reading, configured, z, strict=True)
+            if zc > CLEARLY
+        ]
+        if not above:
+            return []
+        return [
+            "the data read noisier than the configured σ on "
+            + ", ".join(above)
+            + " (the configured σ was kept): noisier sensors than configured, or motion "
+            "as rough as noise (gusts of a short scale length, which the filters' process "
+            "noise carries); if the sensors are that noisy, set [filter.measurement_sigma] "
+            'for them, or measurement_noise = "data"'
+        ]
     gust = max((s.gust_sigma for s in vehicle.summaries.values()), default=0.0)
     if not gust > 0.0:
         return []
-    configured = np.array(result.config.filter.measurement_sigma, float)
     ratio = np.array(result.measurement_sigma) / configured
     c = int(np.argmax(ratio))
     return [
@@ -353,20 +373,35 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
             f"equation-error warm start: fitted CD, CL, Cm on {cd}, {cl}, {cm} of "
             f"{result.warm_start_frames} frames"
         )
-    if result.noise_differences is not None:
-        levels = ", ".join(
-            f"{n} {v:.3g}" + ("" if used >= MIN_DIFFERENCES else " (configured)")
-            for n, v, used in zip(
-                OBS_NAMES, result.measurement_sigma, result.noise_differences, strict=True
-            )
-        )
-        notes.append(f"measurement noise from the data (σ, SI): {levels}")
+    if result.noise_differences is not None and result.noise_reading is not None:
+        notes.append(_noise_note(result))
     table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
     text = table + "".join(f"- {n}\n" for n in notes)
     warnings = trust_warnings(vehicle, refined)
     if warnings:
         text += "\n**Before trusting these numbers:**\n\n" + "".join(f"- {w}\n" for w in warnings)
     return text
+
+
+def _noise_note(result: EstimatorResult) -> str:
+    """The measurement noise the final pass used, per channel, and where it came from."""
+    policy = result.config.filter.measurement_noise
+    assert result.noise_differences is not None and result.noise_reading is not None
+    cells = []
+    for n, used, read, m in zip(
+        OBS_NAMES,
+        result.measurement_sigma,
+        result.noise_reading,
+        result.noise_differences,
+        strict=True,
+    ):
+        if m < MIN_DIFFERENCES:
+            cells.append(f"{n} {used:.3g} (configured: too few samples to read)")
+        elif policy == "data" or math.isclose(used, read, rel_tol=1e-12):
+            cells.append(f"{n} {used:.3g} (read)")
+        else:
+            cells.append(f"{n} {used:.3g} (configured; read {read:.3g})")
+    return f"measurement noise (σ, SI; measurement_noise = {policy!r}): " + ", ".join(cells)
 
 
 def results_dict(
@@ -396,6 +431,9 @@ def results_dict(
             "noise_differences": None
             if result.noise_differences is None
             else dict(zip(OBS_NAMES, result.noise_differences, strict=True)),
+            "noise_reading": None
+            if result.noise_reading is None
+            else dict(zip(OBS_NAMES, result.noise_reading, strict=True)),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
             "covariance_repairs": {

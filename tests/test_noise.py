@@ -1,10 +1,11 @@
-"""Measurement noise from the record (gcs_estimator/noise.py, `measurement_noise =
-"data"`): the estimator of each channel's sigma, and the filters using it from the first
-restart on."""
+"""Measurement noise from the record (gcs_estimator/noise.py, `measurement_noise = "auto"`
+and "data"): the estimator of each channel's sigma, its spread, and the filters using it
+from the first restart on."""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,14 @@ from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.noise import FLOOR_RATIO, MIN_DIFFERENCES, noise_from_differences
+from gcs_estimator.noise import (
+    CLEARLY,
+    FLOOR_RATIO,
+    MIN_DIFFERENCES,
+    READING_SPREAD,
+    noise_from_differences,
+    reading_z,
+)
 from gcs_estimator.report import trust_warnings
 from sim.truth import simulate
 from tests.conftest import CONFIGS
@@ -34,6 +42,68 @@ def test_white_noise_on_a_smooth_signal_is_read_within_a_few_percent() -> None:
     got, used = noise_from_differences(t, y, 3.0 * sigma)  # a config three times off
     np.testing.assert_allclose(got, sigma, rtol=0.12)
     assert np.all(used == t.shape[0] - 4)
+
+
+def test_the_readings_spread_is_the_one_auto_judges_by() -> None:
+    """White noise of the configured sigma, read from 250 samples in 600 records: the
+    readings' relative spread is READING_SPREAD / sqrt(m) within 10 %, and a reading falls
+    CLEARLY standard errors below the configured sigma (auto would take it) in under 1 %
+    of records; noise at a third of the configured sigma always does."""
+    rng = np.random.default_rng(11)
+    n, records = 250, 600
+    t = np.arange(n, dtype=float) * 0.02
+    y = rng.standard_normal((n, records))
+    got, used = noise_from_differences(t, y, np.ones(records))
+    expected = READING_SPREAD / math.sqrt(n - 4)
+    assert abs(np.std(got) / expected - 1.0) < 0.1
+    z = reading_z(got, used, np.ones(records))
+    assert np.mean(z < -CLEARLY) < 0.01
+    third, used = noise_from_differences(t, y / 3.0, np.ones(records))
+    assert np.all(reading_z(third, used, np.ones(records)) < -CLEARLY)
+    # Too few differences for a reading of its own: no verdict either way.
+    assert np.isnan(reading_z(np.array([0.1]), np.array([MIN_DIFFERENCES - 1]), np.ones(1)))[0]
+
+
+def test_auto_takes_the_reading_only_where_the_sensor_is_clearly_better() -> None:
+    """A flight whose accelerometers are three times quieter than configured and whose
+    pitch-acceleration signal is three times noisier: with the default ("auto") the final
+    pass uses the accelerometers' reading (within 20 % of the noise flown) and keeps the
+    configured sigma on every other channel, and the run names qdot as read noisier.
+    Doing what that warning says (qdot's sigma set to the sensor's) puts every
+    coefficient within 3 sigma of the truth, with sigmas no wider than the configured
+    accelerometer noise gives."""
+    over = [
+        "simulation.manoeuvre.duration_s=30",
+        "simulation.sensors.noise_sigma.a_x=0.0667",
+        "simulation.sensors.noise_sigma.a_z=0.0667",
+        "simulation.sensors.noise_sigma.qdot=0.15",
+    ]
+    config = load_config(CONFIGS / "noc_uav.toml", over)
+    assert config.filter.measurement_noise == "auto"
+    flight = simulate(config, seed=5)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    used = np.array(run.result.measurement_sigma)
+    configured = np.array(config.filter.measurement_sigma)
+    quiet = [OBS_NAMES.index("a_x"), OBS_NAMES.index("a_z")]
+    np.testing.assert_allclose(used[quiet], 0.0667, rtol=0.2)
+    rest = [c for c in range(len(OBS_NAMES)) if c not in quiet]
+    np.testing.assert_array_equal(used[rest], configured[rest])
+    (text,) = [w for w in trust_warnings(run) if "read noisier" in w]
+    assert "qdot" in text and "a_z" not in text and "set [filter.measurement_sigma]" in text
+
+    advised = [*over, "filter.measurement_sigma.qdot=0.15"]
+    truth = np.array(config.truth)
+    sigmas = {}
+    for policy in ("auto", "config"):
+        choice = f'filter.measurement_noise="{policy}"'
+        cfg = load_config(CONFIGS / "noc_uav.toml", [*advised, choice])
+        result = run_recording(cfg, flight.t_s, flight.inputs, flight.measurements).result
+        sigmas[policy] = result.filters["EKF"].sigma
+        if policy == "auto":
+            for f in result.filters.values():
+                assert np.all(np.abs(f.coefficients - truth) < 3.0 * f.sigma)
+    assert np.all(sigmas["auto"] <= sigmas["config"] * 1.001)
+    assert np.median(sigmas["auto"] / sigmas["config"]) < 0.9
 
 
 def test_gaps_uneven_samples_and_empty_channels() -> None:
@@ -79,7 +149,7 @@ def test_filters_take_each_channels_noise_from_the_data(tmp_path: Path) -> None:
     for f in run.result.filters.values():
         assert np.all(np.abs(f.coefficients - truth) < 3.0 * f.sigma + 1e-3 * np.abs(truth))
     configured = run_recording(
-        load_config(CONFIGS / "noc_uav.toml", over[:3]),
+        load_config(CONFIGS / "noc_uav.toml", [*over[:3], 'filter.measurement_noise="config"']),
         flight.t_s,
         flight.inputs,
         flight.measurements,
@@ -94,7 +164,7 @@ def test_filters_take_each_channels_noise_from_the_data(tmp_path: Path) -> None:
     assert list(data["measurement_sigma"]) == list(OBS_NAMES)
     np.testing.assert_allclose(list(data["measurement_sigma"].values()), flown, rtol=0.2)
     table = (tmp_path / "results_sys1.md").read_text()
-    assert "measurement noise from the data (σ, SI): V " in table
+    assert "measurement noise (σ, SI; measurement_noise = 'data'): V " in table
 
 
 def test_noise_read_in_turbulence_is_named() -> None:
