@@ -414,5 +414,17 @@ def apply_overrides(data: Mapping[str, Any], overrides: list[str], source: str) 
     return out
 
 
+def merge_tables(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """`over` on top of `base`: tables merge key by key, any other value replaces."""
+    out = _deep_copy(base)
+    for key, value in over.items():
+        below = out.get(key)
+        if isinstance(value, Mapping) and isinstance(below, Mapping):
+            out[key] = merge_tables(below, value)
+        else:
+            out[key] = _deep_copy(value) if isinstance(value, Mapping) else value
+    return out
+
+
 def _deep_copy(data: Mapping[str, Any]) -> dict[str, Any]:
     return {k: _deep_copy(v) if isinstance(v, Mapping) else v for k, v in data.items()}

@@ -232,9 +232,52 @@ def test_shipped_configs_are_found_by_name_from_anywhere(
     assert load_config("hfb320").airframe.name == "HFB-320"
     with pytest.raises(
         ConfigError,
-        match=r"nosuch: no such file, nor a shipped config; shipped: \['hfb320', 'noc_uav'\]",
+        match=r"nosuch: no such file, nor a shipped config; shipped: "
+        r"\['hfb320', 'hfb320_book_noise', 'noc_uav'\]",
     ):
         load_config("nosuch")
+
+
+def test_a_config_extends_another_and_sets_only_what_differs(tmp_path: Path) -> None:
+    """`extends` takes a shipped name or a path beside the file; tables merge key by key
+    (a key set here wins, the base's other keys stay), chains work, and a loop or a base
+    that is not there is refused naming the file and the key."""
+    base = load_config("hfb320")
+    book = load_config("hfb320_book_noise")
+    assert book.airframe == base.airframe and book.truth == base.truth
+    assert book.filter.measurement_noise == "config" != base.filter.measurement_noise
+    assert book.filter.process_noise.states[0] == 1.2856
+    # Keys of a table the file does not touch keep the base's value.
+    assert book.filter.process_noise.coefficients == base.filter.process_noise.coefficients
+    assert "extends" in book.source and book.source.endswith("hfb320.toml)")
+
+    (tmp_path / "plane.toml").write_text(
+        (ROOT / "configs" / "noc_uav.toml").read_text(), encoding="utf-8"
+    )
+    (tmp_path / "heavier.toml").write_text(
+        'extends = "plane.toml"\n[airframe]\nmass_kg = 20.0\n', encoding="utf-8"
+    )
+    (tmp_path / "windy.toml").write_text(
+        'extends = "heavier.toml"\n[filter.turbulence]\nsigma_w_mps = 1.0\n', encoding="utf-8"
+    )
+    windy = load_config(tmp_path / "windy.toml", ["airframe.mass_kg=21.0"])
+    plane = load_config(tmp_path / "plane.toml")
+    assert windy.airframe.mass_kg == 21.0
+    assert windy.airframe.wing_area_m2 == plane.airframe.wing_area_m2
+    assert windy.filter.turbulence.sigma_w_mps == 1.0
+    assert windy.filter.turbulence.length_w_m == plane.filter.turbulence.length_w_m
+    assert windy.raw["airframe"]["mass_kg"] == 21.0 and "extends" not in windy.raw
+
+    (tmp_path / "a.toml").write_text('extends = "b.toml"\n', encoding="utf-8")
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"b.toml: extends: 'a.toml' leads back to this file"):
+        load_config(tmp_path / "a.toml")
+    (tmp_path / "c.toml").write_text('extends = "nosuch"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"c.toml: extends: 'nosuch' is neither a file beside"):
+        load_config(tmp_path / "c.toml")
+    (tmp_path / "d.toml").write_text("extends = 3\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"d.toml: extends: must be a shipped config's name"):
+        load_config(tmp_path / "d.toml")
 
 
 def test_the_configuration_reference_is_generated_from_the_schema() -> None:

@@ -130,24 +130,26 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
 
 
 def test_held_noise_reproduces_the_books_filter_error_fit(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], hfb_config: AircraftConfig
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`refine --method filter-error --hold-noise` on HFB-320: the noise stays at the
-    airframe file's levels (for this record the book's identified ones), and the
-    coefficients the record identifies end within 2 % of the book's filter-error
-    estimates; the JSON says the noise was held."""
+    """`refine --method filter-error --hold-noise` on HFB-320 with the book's identified
+    noise levels (configs/hfb320_book_noise.toml, which extends hfb320): the noise stays
+    at that file's levels, and the coefficients the record identifies end within 2 % of
+    the book's filter-error estimates; the JSON says the noise was held."""
+    book_noise = load_config("hfb320_book_noise")
     out = tmp_path / "held"
-    argv = ["refine", "hfb320", "--method", "filter-error", "--hold-noise"]
+    argv = ["refine", "hfb320", "--config", "hfb320_book_noise"]
+    argv += ["--method", "filter-error", "--hold-noise"]
     assert cli.main([*argv, "--out", str(out), "--view", "off"]) == 0
     capsys.readouterr()
     fit = json.loads((out / "results_sys1.json").read_text())["refined"]
     assert fit["method"] == "filter error, noise held" and fit["converged"]
     sigma = [fit["noise_sigma"][n] for n in ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")]
-    np.testing.assert_allclose(sigma, hfb_config.filter.measurement_sigma, rtol=1e-12)
+    np.testing.assert_allclose(sigma, book_noise.filter.measurement_sigma, rtol=1e-12)
     held_q = [fit["process_noise_density"][n] for n in ("V", "alpha", "theta", "q")]
-    np.testing.assert_allclose(held_q, hfb_config.filter.process_noise.states[:4], rtol=1e-12)
-    assert hfb_config.truth is not None
-    book = dict(zip(hfb_config.coefficient_names, hfb_config.truth, strict=True))
+    np.testing.assert_allclose(held_q, book_noise.filter.process_noise.states[:4], rtol=1e-12)
+    assert book_noise.truth is not None
+    book = dict(zip(book_noise.coefficient_names, book_noise.truth, strict=True))
     for name in ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa"):
         estimate = fit["estimates"][name]["estimate"]
         assert abs(estimate - book[name]) < 0.02 * abs(book[name]), name
