@@ -127,11 +127,15 @@ def evaluate(
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
         )
-    if res.noise_differences is not None:
-        read = ", ".join(
+    if res.noise_reading is not None:
+        used = ", ".join(
             f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.measurement_sigma, strict=True)
         )
-        print(f"\nmeasurement noise read from the data (σ, SI): {read}")
+        read = ", ".join(f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.noise_reading, strict=True))
+        print(
+            f"\nmeasurement noise (σ, SI) the final pass used: {used}; "
+            f"read from the data: {read} ({config.filter.measurement_noise})"
+        )
     if oe is not None:
         summary["OE"] = _oe_summary(oe, goal, well)
     summary.update(_judged_fairly(est, goal, well, marks, best_residual))
