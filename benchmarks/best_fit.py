@@ -18,6 +18,12 @@ turbulent flight at all: `reproduction` flies the calm fit through the flight's 
 (the states the motion over the ground, the aerodynamics and the pitot and vane the
 air-relative V and alpha: equations.fly_step), fits the initial state alone, and returns
 the residual per channel in sensor sigmas.
+
+Where the structure cannot reproduce the flight, what it gets closest to depends on how
+the channels are weighed, and so does the best fit. `spread` says how sharp a target it
+is: how far each coefficient moves when one channel's weight is halved or doubled. An
+estimator that weighs the channels otherwise (a filter's process noise shifts the
+weight between them) can differ from the best fit by that much and still be as right.
 """
 
 from __future__ import annotations
@@ -60,12 +66,14 @@ def _fit(
     coefficients: FloatArray,
     gust: FloatArray | None,
     free_coefficients: bool,
+    sigma: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Output error on the noise-free observations `clean` [N x 7] (sensors at the CG, no
     bias), flown through `gust` [N x 2] (u_g, w_g [m/s]: the air-relative V and alpha
     being V + u_g and alpha + w_g / V; none: calm air), the initial state always free,
-    the coefficients from `coefficients` and free when `free_coefficients`. Returns the
-    coefficients and the RMS residual per channel in units of its measurement sigma."""
+    the coefficients from `coefficients` and free when `free_coefficients`, each channel
+    weighted by 1 / `sigma` (default: the config's measurement sigmas). Returns the
+    coefficients and the RMS residual per channel in units of its sigma."""
     model = build_model(config, gust_states=False)
     u = np.ascontiguousarray(np.array([model.inputs(row) for row in inputs]))
     g = np.zeros((len(t_s), 2)) if gust is None else np.ascontiguousarray(gust, dtype=float)
@@ -74,7 +82,7 @@ def _fit(
     first[1] -= g[0, 1] / first[0]
     x0 = model.augment(first, np.asarray(coefficients, float))
     n_free = x0.shape[0] if free_coefficients else 4
-    weight = 1.0 / np.array(config.filter.measurement_sigma)
+    weight = 1.0 / np.array(config.filter.measurement_sigma if sigma is None else sigma)
     scale = np.maximum(np.abs(x0), 1e-3)
     t = np.ascontiguousarray(t_s, dtype=float)
 
@@ -118,3 +126,27 @@ def reproduction(
     from the initial state that fits best, reproduces its noise-free observations: the
     RMS residual per channel in sensor sigmas."""
     return _fit(config, t_s, inputs, clean, coefficients, gust, False)[1]
+
+
+WEIGHT_FACTORS = (0.5, 2.0)
+"""Each channel's weight is multiplied by these, one channel at a time (`spread`)."""
+
+
+def spread(
+    config: AircraftConfig,
+    t_s: FloatArray,
+    inputs: FloatArray,
+    clean: FloatArray,
+    best: FloatArray,
+) -> FloatArray:
+    """How sharp a target the calm best fit `best` is: per coefficient, the largest move
+    [% of its value] of the best fit when one channel's weight is halved or doubled."""
+    base = np.array(config.filter.measurement_sigma, float)
+    moves = []
+    for c in range(N_OBS):
+        for factor in WEIGHT_FACTORS:
+            sigma = base.copy()
+            sigma[c] /= factor
+            fit, _ = _fit(config, t_s, inputs, clean, best, None, True, sigma)
+            moves.append(np.abs(fit - best) / np.maximum(np.abs(best), 1e-12))
+    return np.asarray(100.0 * np.max(moves, axis=0))

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from best_fit import best_fit, reproduction  # benchmarks/: the script's directory is on sys.path
+from best_fit import best_fit, reproduction, spread  # benchmarks/: the script's dir is on sys.path
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REGRESSOR_SUFFIX, load_config
@@ -273,12 +273,14 @@ def airframe_toml(
 def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
     """Fly every aircraft calm and in light turbulence; (config, csv) per record. Next to
     each, NAME.best_fit.json: the structure's best fit to the noise-free calm flight
-    (benchmarks/best_fit.py), which serves the turbulent one too, and how closely it
-    reproduces this flight (flown through its own gusts)."""
+    (benchmarks/best_fit.py), which serves the turbulent one too, how far it moves with
+    the channels' weighting (its spread), and how closely it reproduces this flight
+    (flown through its own gusts)."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for ac in AIRCRAFT:
         best = np.zeros(0)
+        moves = np.zeros(0)
         for turbulent in (False, True):  # calm first: its best fit serves both
             f = fly(ac, turbulent, seed)
             ref = reference(f, float(f["chord"][0]))
@@ -297,9 +299,12 @@ def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
                 rms = reproduction(config, f["t"], inputs, clean, best, gust)
             else:
                 best, rms = best_fit(config, f["t"], inputs, clean, np.array(config.truth))
+                moves = spread(config, f["t"], inputs, clean, best)
+            names = config.coefficient_names
             fit = {
-                "coefficients": dict(zip(config.coefficient_names, best.tolist(), strict=True)),
+                "coefficients": dict(zip(names, best.tolist(), strict=True)),
                 "residual_sigmas": dict(zip(CLEAN, rms.tolist(), strict=True)),
+                "spread_pct": dict(zip(names, moves.tolist(), strict=True)),
             }
             csv_path.with_suffix(".best_fit.json").write_text(json.dumps(fit), encoding="utf-8")
             records.append((toml_path, csv_path))

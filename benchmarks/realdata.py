@@ -10,9 +10,11 @@ sigma, error in percent and in sigmas; and per record: the worst error over the
 well-excited coefficients, the share within 3 sigma and the mean squared z (an honest
 sigma gives about 1). For the JSBSim records the table also holds the structure's best
 fit to the noise-free calm flight (benchmarks/best_fit.py), which serves the turbulent one
-too, with how closely it reproduces each flight flown through its own gusts: the errors
-and z against it show the filter, its distance from JSBSim's linearised aerodynamics
-what the structure misses.
+too, with how closely it reproduces each flight flown through its own gusts and how far
+it moves when one channel's weight is halved or doubled (its spread: where the structure
+cannot reproduce a flight, the weighting decides what it comes closest to, and a target
+is no sharper than that): the errors and z against it show the filter, its distance
+from JSBSim's linearised aerodynamics what the structure misses.
 Beside the filters: `refine` (by default output error over the whole record, from the
 IEKF's estimate; `--refine filter-error`, `--hold-noise` as the command's options) with
 its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's identifiability mark.
@@ -53,6 +55,7 @@ def evaluate(
     best: dict[str, float] | None = None,
     best_residual: dict[str, float] | None = None,
     refine_with: tuple[str, bool] = ("output-error", False),
+    best_spread: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Print one record's table; return its worst well-excited error per filter (against
     the best fit where there is one, which is what a filter can reach)."""
@@ -61,8 +64,9 @@ def evaluate(
     oe = _refine(name, res, *refine_with)
     ref = np.array(config.truth or ())
     fit = None if best is None else np.array([best[n] for n in res.names])
+    spread = np.array([best_spread[n] for n in res.names]) if best_spread else None
     print(f"\n## {name} ({config.airframe.name})\n")
-    head = _head(config.truth_label, fit is not None, oe is not None)
+    head = _head(config.truth_label, fit is not None, spread is not None, oe is not None)
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     goal = ref if fit is None else fit
@@ -89,6 +93,7 @@ def evaluate(
     )
     for i, n in enumerate(res.names):
         row = [n, f"{ref[i]:.5g}"] + ([] if fit is None else [f"{fit[i]:.5g}"])
+        row += [] if spread is None else [f"{spread[i]:.1f}"]
         row += [marks[i] if oe is None else oe.identifiability[i]]
         for k in FILTER_KINDS:
             f = res.filters[k]
@@ -119,9 +124,11 @@ def evaluate(
             for b, s in zip(res.filters[k].biases, res.filters[k].bias_sigma, strict=True)
         )
         against = "the reference" if fit is None else "the best fit"
+        worst = well[int(np.argmax(err))]
+        spread_note = "" if spread is None else f", whose best fit spreads {spread[worst]:.1f} %"
         print(
             f"\n{k}: against {against}: worst well-excited |err| {summary[k]:.2f} % "
-            f"({res.names[well[int(np.argmax(err))]]}); well-excited within 3σ {within:.0f} %, "
+            f"({res.names[worst]}{spread_note}); well-excited within 3σ {within:.0f} %, "
             f"mean z² {msz:.1f} with the covariance σ; {within_c:.0f} %, {msz_c:.1f} with the "
             "corrected σ"
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
@@ -138,7 +145,7 @@ def evaluate(
         )
     if oe is not None:
         summary["OE"] = _oe_summary(oe, goal, well)
-    summary.update(_judged_fairly(est, goal, well, marks, best_residual))
+    summary.update(_judged_fairly(est, goal, well, marks, best_residual, spread))
     return summary
 
 
@@ -148,11 +155,13 @@ def _judged_fairly(
     well: list[int],
     marks: tuple[str, ...],
     best_residual: dict[str, float] | None,
+    spread: FloatArray | None,
 ) -> dict[str, float]:
     """The worst error over the well-excited coefficients the flight identified (by the
-    IEKF's marks: a coefficient with a sigma of 10 % cannot be held to 5 %), and how
+    IEKF's marks: a coefficient with a sigma of 10 % cannot be held to 5 %), how
     closely the best fit reproduces the flight (its largest residual in sensor sigmas:
-    above 1 the target itself is not sharp)."""
+    above 1 the target itself is not sharp), and the best fit's largest spread over the
+    well-excited coefficients and over those identified."""
     ident = [i for i in well if marks[i] == IDENTIFIED]
     out = {
         f"{k} identified": float(np.max(np.abs(100.0 * (est[k] - goal) / goal)[ident]))
@@ -162,6 +171,9 @@ def _judged_fairly(
     }
     if best_residual:
         out["reproduction"] = max(best_residual.values())
+    if spread is not None:
+        out["spread"] = float(spread[well].max())
+        out["spread identified"] = float(spread[ident].max()) if ident else math.nan
     return out
 
 
@@ -190,8 +202,9 @@ def _print_best_fit(
         )
 
 
-def _head(label: str, fit: bool, oe: bool) -> list[str]:
-    head = ["coefficient", label] + (["best fit"] if fit else []) + ["identified?"]
+def _head(label: str, fit: bool, spread: bool, oe: bool) -> list[str]:
+    head = ["coefficient", label] + (["best fit"] if fit else [])
+    head += (["best fit spread %"] if spread else []) + ["identified?"]
     for k in FILTER_KINDS:
         head += [f"{k} estimate", f"{k} σ", f"{k} σ corrected", f"{k} err %"]
         head += [f"{k} err % (fit)"] if fit else []
@@ -262,6 +275,7 @@ def run(args: argparse.Namespace) -> int:
             best["coefficients"],
             best["residual_sigmas"],
             (args.refine, args.hold_noise),
+            best["spread_pct"],
         )
     hfb = load_config("hfb320", args.set)
     worst["hfb320"] = evaluate(
@@ -273,10 +287,13 @@ def run(args: argparse.Namespace) -> int:
     print(
         "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "
         "the reference (HFB-320); then over those the flight identified (IEKF's marks); "
-        "and how closely the best fit, flown through the flight's gusts, reproduces it "
-        "(largest residual in sensor sigmas; above 1: no sharp target)\n"
+        "how closely the best fit, flown through the flight's gusts, reproduces it "
+        "(largest residual in sensor sigmas; above 1: no sharp target); and how sharp the "
+        "best fit is (the most a well-excited coefficient of it moves, in %, when one "
+        "channel's weight is halved or doubled; then over those identified)\n"
     )
     kinds = [*FILTER_KINDS, "OE", *(f"{k} identified" for k in FILTER_KINDS), "reproduction"]
+    kinds += ["spread", "spread identified"]
     print("| record | " + " | ".join(kinds) + " |")
     print("|---|" + "---|" * len(kinds))
     for name, by_kind in worst.items():
