@@ -77,6 +77,7 @@ def revision() -> str:
 @contextlib.contextmanager
 def recorded(script: str, name: str, title: str) -> Iterator[None]:
     """Print as usual, and on success also write docs/results/NAME.md."""
+    measured = revision()  # before the run: a benchmark may write tracked files (a picture)
     buffer = io.StringIO()
     stdout = sys.stdout
     sys.stdout = _Tee(stdout, buffer)
@@ -90,7 +91,7 @@ def recorded(script: str, name: str, title: str) -> Iterator[None]:
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     head = (
         f"# {title}\n\n"
-        f"- command: `{command}`\n- date: {now}\n- revision: {revision()}\n"
+        f"- command: `{command}`\n- date: {now}\n- revision: {measured}\n"
         f"- machine: {machine()}\n\n"
     )
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    assert CHROMIUM is not None
+    browser = subprocess.run([CHROMIUM, "--version"], capture_output=True, text=True)
+    print(f"browser: {browser.stdout.strip()} (headless, software rendering)")
     with tempfile.TemporaryDirectory() as tmp:
         _, times = _loads(_bare(Path(tmp) / "bare.rrd"), args.runs)
         print(f"a recording of one scalar (the web viewer alone): shown after {_spread(times)}")
