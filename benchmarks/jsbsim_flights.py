@@ -27,7 +27,7 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -270,50 +270,64 @@ def airframe_toml(
     return "\n".join(lines)
 
 
-def generate(out: Path, seed: int = 1) -> list[tuple[Path, Path]]:
-    """Fly every aircraft calm and in light turbulence; (config, csv) per record. Next to
-    each, NAME.best_fit.json: the structure's best fit to the noise-free calm flight
+def generate(out: Path, seeds: Sequence[int] = (1,)) -> list[tuple[Path, Path]]:
+    """Fly every aircraft calm and in light turbulence; (config, csv) per record and seed
+    (the first seed's records are NAME.csv, the others' NAME_sSEED.csv). Next to each,
+    NAME.best_fit.json: the structure's best fit to the noise-free calm flight
     (benchmarks/best_fit.py), which serves the turbulent one too, how far it moves with
     the channels' weighting (its spread), and how closely it reproduces this flight
-    (flown through its own gusts)."""
+    (flown through its own gusts). The calm flight is the same for every seed (only its
+    sensor noise differs), so it is flown and fitted once."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for ac in AIRCRAFT:
-        best = np.zeros(0)
-        moves = np.zeros(0)
-        for turbulent in (False, True):  # calm first: its best fit serves both
-            f = fly(ac, turbulent, seed)
-            ref = reference(f, float(f["chord"][0]))
-            rng = np.random.default_rng(seed)
-            inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
-            rec = Recording(f["t"], inputs, measurements(f, ac, rng), "thrust")
-            name = f"{ac.model}_{'light' if turbulent else 'calm'}"
-            csv_path, toml_path = out / f"{name}.csv", out / f"{name}.toml"
-            write_csv(csv_path, rec)
-            toml = airframe_toml(ac, f, ref, alpha_dot_terms(f))
-            toml_path.write_text(toml, encoding="utf-8")
-            config = load_config(toml_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
-            clean = np.column_stack([f[k] for k in CLEAN])
-            if turbulent:
-                gust = np.column_stack([f["gust_u"], f["gust_w"]])
-                rms = reproduction(config, f["t"], inputs, clean, best, gust)
-            else:
-                best, rms = best_fit(config, f["t"], inputs, clean, np.array(config.truth))
-                moves = spread(config, f["t"], inputs, clean, best)
-            names = config.coefficient_names
-            fit = {
-                "coefficients": dict(zip(names, best.tolist(), strict=True)),
-                "residual_sigmas": dict(zip(CLEAN, rms.tolist(), strict=True)),
-                "spread_pct": dict(zip(names, moves.tolist(), strict=True)),
-            }
-            csv_path.with_suffix(".best_fit.json").write_text(json.dumps(fit), encoding="utf-8")
-            records.append((toml_path, csv_path))
-            print(
-                f"{name}: {len(rec)} samples, largest bank {np.degrees(np.abs(f['phi']).max()):.2f}"
-                f" deg -> {csv_path}",
-                file=sys.stderr,
-            )
+        calm = fly(ac, False, seeds[0])
+        target: tuple[FloatArray, FloatArray, FloatArray] | None = None
+        for seed in seeds:
+            for turbulent in (False, True):
+                f = fly(ac, turbulent, seed) if turbulent else calm
+                name = f"{ac.model}_{'light' if turbulent else 'calm'}"
+                name += "" if seed == seeds[0] else f"_s{seed}"
+                config_path, csv_path = _write_record(out / name, ac, f, seed)
+                config = load_config(config_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
+                inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
+                clean = np.column_stack([f[k] for k in CLEAN])
+                if target is None:  # the calm flight, flown first
+                    best, rms = best_fit(config, f["t"], inputs, clean, np.array(config.truth))
+                    target = best, spread(config, f["t"], inputs, clean, best), rms
+                best, moves, rms = target
+                if turbulent:
+                    gust = np.column_stack([f["gust_u"], f["gust_w"]])
+                    rms = reproduction(config, f["t"], inputs, clean, best, gust)
+                names = config.coefficient_names
+                fit = {
+                    "coefficients": dict(zip(names, best.tolist(), strict=True)),
+                    "residual_sigmas": dict(zip(CLEAN, rms.tolist(), strict=True)),
+                    "spread_pct": dict(zip(names, moves.tolist(), strict=True)),
+                }
+                best_path = csv_path.with_suffix(".best_fit.json")
+                best_path.write_text(json.dumps(fit), encoding="utf-8")
+                records.append((config_path, csv_path))
+                print(
+                    f"{name}: {f['t'].shape[0]} samples, largest bank "
+                    f"{np.degrees(np.abs(f['phi']).max()):.2f} deg -> {csv_path}",
+                    file=sys.stderr,
+                )
     return records
+
+
+def _write_record(
+    stem: Path, ac: Aircraft, f: dict[str, FloatArray], seed: int
+) -> tuple[Path, Path]:
+    """A flight's noisy CSV (sensor noise drawn from `seed`) and its airframe file."""
+    inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
+    rng = np.random.default_rng(seed)
+    rec = Recording(f["t"], inputs, measurements(f, ac, rng), "thrust")
+    csv_path, toml_path = stem.with_suffix(".csv"), stem.with_suffix(".toml")
+    write_csv(csv_path, rec)
+    ref = reference(f, float(f["chord"][0]))
+    toml_path.write_text(airframe_toml(ac, f, ref, alpha_dot_terms(f)), encoding="utf-8")
+    return toml_path, csv_path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -321,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
-    generate(Path(args.out), args.seed)
+    generate(Path(args.out), (args.seed,))
     return 0
 
 

@@ -1,6 +1,7 @@
 """Data no filter here was tuned on: the JSBSim validation set and the HFB-320 flight test.
 
-    ./run bench realdata [--seed 1] [--set KEY=VALUE] [--refine METHOD [--hold-noise]]
+    ./run bench realdata [--seed 1] [--seeds N] [--set KEY=VALUE] [--refine METHOD|none
+                         [--hold-noise]]
 
 Flies the validation set first (benchmarks/jsbsim_flights.py: two JSBSim aircraft, calm
 and in light turbulence, noisy sensors, a vane ahead of the CG, a gyro bias), then runs
@@ -18,11 +19,16 @@ from JSBSim's linearised aerodynamics what the structure misses.
 Beside the filters: `refine` (by default output error over the whole record, from the
 IEKF's estimate; `--refine filter-error`, `--hold-noise` as the command's options) with
 its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's identifiability mark.
+With `--seeds N` the JSBSim set is flown with N noise and turbulence seeds and the
+figures are pooled over them: one seed's eight coefficients say little about a share
+within 3 sigma.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import math
 import sys
@@ -118,6 +124,8 @@ def evaluate(
         within_c = float(np.mean(np.abs(zc[k][judged]) < 3.0)) * 100
         msz_c = float(np.mean(zc[k][judged] ** 2))
         summary[k] = float(err.max())
+        summary[f"{k} within 3σ corrected"] = within_c
+        summary[f"{k} mean z² corrected"] = msz_c
         worst_ref = float(np.abs(pct(est[k], ref)[well]).max())
         biases = ", ".join(
             f"{b:+.4f} ± {s:.1g}"
@@ -232,6 +240,8 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
 
 
 def _refine(name: str, res: EstimatorResult, method: str, hold_noise: bool) -> Refined | None:
+    if method == "none":
+        return None
     try:
         return refine_run(res, method, hold_noise=hold_noise)
     except RefineError as exc:
@@ -241,7 +251,14 @@ def _refine(name: str, res: EstimatorResult, method: str, hold_noise: bool) -> R
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--seed", type=int, default=1, help="noise and turbulence seed")
+    ap.add_argument("--seed", type=int, default=1, help="noise and turbulence seed (the first)")
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="fly the JSBSim set with this many seeds (from --seed): each record's table for "
+        "the first, a summary row for every one, and the figures pooled over the seeds",
+    )
     ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
     ap.add_argument(
         "--set",
@@ -250,7 +267,12 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help='a config override for every record, e.g. filter.turbulence.model="states"',
     )
-    ap.add_argument("--refine", choices=REFINE_METHODS, default="output-error")
+    ap.add_argument(
+        "--refine",
+        choices=(*REFINE_METHODS, "none"),
+        default="output-error",
+        help="the whole-record fit beside the filters (none: no fit, much faster)",
+    )
     ap.add_argument(
         "--hold-noise", action="store_true", help="the refinement keeps the configured noise"
     )
@@ -262,21 +284,26 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    records = generate(Path(args.out), args.seed)
+    if args.seeds < 1:
+        raise SystemExit("realdata: --seeds must be 1 or more")
+    seeds = tuple(range(args.seed, args.seed + args.seeds))
+    records = generate(Path(args.out), seeds)
     worst: dict[str, dict[str, float]] = {}
     for config_path, csv_path in records:
         config = load_config(config_path, args.set)
         best = json.loads(csv_path.with_suffix(".best_fit.json").read_text(encoding="utf-8"))
         rec = load_recording(csv_path)[1]
-        worst[csv_path.stem] = evaluate(
-            csv_path.stem,
-            config,
-            rec,
-            best["coefficients"],
-            best["residual_sigmas"],
-            (args.refine, args.hold_noise),
-            best["spread_pct"],
-        )
+        first_seed = "_s" not in csv_path.stem
+        with contextlib.redirect_stdout(sys.stdout if first_seed else io.StringIO()):
+            worst[csv_path.stem] = evaluate(
+                csv_path.stem,
+                config,
+                rec,
+                best["coefficients"],
+                best["residual_sigmas"],
+                (args.refine, args.hold_noise),
+                best["spread_pct"],
+            )
     hfb = load_config("hfb320", args.set)
     worst["hfb320"] = evaluate(
         "hfb320",
@@ -302,8 +329,36 @@ def run(args: argparse.Namespace) -> int:
             for k in kinds
         ]
         print(f"| {name} | " + " | ".join(cells) + " |")
+    if len(seeds) > 1:
+        _pooled(worst, seeds)
     print(f"\n({time.perf_counter() - start:.1f} s wall)")
     return 0
+
+
+def _pooled(worst: dict[str, dict[str, float]], seeds: tuple[int, ...]) -> None:
+    """Each JSBSim record's figures over the seeds: its worst well-excited error (the
+    largest over the seeds, and the median of each seed's worst), and, with the
+    corrected σ, the share of well-excited coefficients within 3σ and their mean z²."""
+    print(
+        f"\n## Over {len(seeds)} seeds ({seeds[0]}-{seeds[-1]}): worst well-excited |error| in "
+        "% (largest; median of each seed's), and with the corrected σ the share within 3σ "
+        "and the mean z² of the well-excited coefficients\n"
+    )
+    head = [f"{k} {c}" for k in FILTER_KINDS for c in ("worst", "median worst", "within 3σ")]
+    head += [f"{k} mean z²" for k in FILTER_KINDS]
+    print("| record | " + " | ".join(head) + " |")
+    print("|---|" + "---|" * len(head))
+    for name in [n for n in worst if n != "hfb320" and "_s" not in n]:
+        runs = [v for n, v in worst.items() if n == name or n.startswith(f"{name}_s")]
+        cells = []
+        for k in FILTER_KINDS:
+            errors = [r[k] for r in runs]
+            within = float(np.mean([r[f"{k} within 3σ corrected"] for r in runs]))
+            cells += [f"{max(errors):.2f}", f"{np.median(errors):.2f}", f"{within:.0f} %"]
+        cells += [
+            f"{np.mean([r[f'{k} mean z² corrected'] for r in runs]):.1f}" for k in FILTER_KINDS
+        ]
+        print(f"| {name} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
