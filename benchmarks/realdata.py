@@ -146,7 +146,9 @@ def evaluate(
         used = ", ".join(
             f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.measurement_sigma, strict=True)
         )
-        read = ", ".join(f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.noise_reading, strict=True))
+        read = ", ".join(
+            f"{n} {v:.3g}" for n, v in zip(OBS_NAMES, res.noise_reading.sigma, strict=True)
+        )
         print(
             f"\nmeasurement noise (σ, SI) the final pass used: {used}; "
             f"read from the data: {read} ({config.filter.measurement_noise})"

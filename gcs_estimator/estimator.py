@@ -305,12 +305,19 @@ class EstimatorResult(NamedTuple):
     measurement_sigma: tuple[float, ...] = ()
     """Measurement noise sigma per channel the final pass used (the config's, or the
     data's: [filter] measurement_noise)."""
-    noise_differences: tuple[int, ...] | None = None
-    """Differences each channel's noise estimate took (None: none made)."""
-    noise_reading: tuple[float, ...] | None = None
-    """Each channel's noise sigma as read from the data (None: none read); with
+    noise_reading: NoiseReading | None = None
+    """Each channel's noise as read from the data (None: none read); with
     measurement_noise = "auto" the final pass used it only where it was clearly below the
     configured sigma (noise.reading_z)."""
+
+
+class NoiseReading(NamedTuple):
+    """Each channel's noise as a restart read it from the data (gcs_estimator/noise.py)."""
+
+    sigma: tuple[float, ...]
+    differences: tuple[int, ...]
+    """Differences each channel's reading took (below noise.MIN_DIFFERENCES: none of its
+    own, the configured sigma)."""
 
 
 class _Start(NamedTuple):
@@ -350,10 +357,8 @@ class Estimator:
         }
         self._rerun_tunings = self.tunings
         """The settings of the re-run under way (measurement noise from the data)."""
-        self.noise_differences: tuple[int, ...] | None = None
-        """Differences each channel's noise estimate took (None: none made)."""
-        self.noise_reading: tuple[float, ...] | None = None
-        """Each channel's noise sigma as read from the data (None: none read)."""
+        self.noise_reading: NoiseReading | None = None
+        """Each channel's noise as read from the data (None: none read)."""
         self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
         self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
@@ -706,8 +711,9 @@ class Estimator:
         y = np.array([row[2] for row in buffered]).reshape(len(buffered), -1)
         configured = np.array(self.config.filter.measurement_sigma, float)
         sigma, used = noise_from_differences(t, y, configured)
-        self.noise_differences = tuple(int(n) for n in used)
-        self.noise_reading = tuple(float(v) for v in sigma)
+        self.noise_reading = NoiseReading(
+            tuple(float(v) for v in sigma), tuple(int(n) for n in used)
+        )
         if policy == "auto":
             sigma = np.where(reading_z(sigma, used, configured) < -CLEARLY, sigma, configured)
         R = np.diag(sigma**2)
@@ -777,7 +783,6 @@ class Estimator:
             self.final_pass_from,
             self.model.layout.names,
             tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
-            self.noise_differences,
             self.noise_reading,
         )
 

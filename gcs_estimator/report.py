@@ -17,6 +17,7 @@ from gcs_estimator.estimator import (
     Estimator,
     EstimatorResult,
     FilterKind,
+    NoiseReading,
     Track,
 )
 from gcs_estimator.metrics import (
@@ -282,12 +283,12 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
     reads as sensor noise; with "auto", which channels read clearly noisier than
     configured (kept at the configured sigma)."""
     result = vehicle.result
-    if result.noise_differences is None or result.noise_reading is None:
+    if result.noise_reading is None:
         return []
     configured = np.array(result.config.filter.measurement_sigma, float)
-    reading = np.array(result.noise_reading)
+    reading = np.array(result.noise_reading.sigma)
     if result.config.filter.measurement_noise == "auto":
-        z = reading_z(reading, np.array(result.noise_differences), configured)
+        z = reading_z(reading, np.array(result.noise_reading.differences), configured)
         above = [
             f"{n} {r / c:.1f}×"
             for n, r, c, zc in zip(OBS_NAMES, reading, configured, z, strict=True)
@@ -373,8 +374,8 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
             f"equation-error warm start: fitted CD, CL, Cm on {cd}, {cl}, {cm} of "
             f"{result.warm_start_frames} frames"
         )
-    if result.noise_differences is not None and result.noise_reading is not None:
-        notes.append(_noise_note(result))
+    if result.noise_reading is not None:
+        notes.append(_noise_note(result, result.noise_reading))
     table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
     text = table + "".join(f"- {n}\n" for n in notes)
     warnings = trust_warnings(vehicle, refined)
@@ -383,17 +384,12 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
     return text
 
 
-def _noise_note(result: EstimatorResult) -> str:
+def _noise_note(result: EstimatorResult, reading: NoiseReading) -> str:
     """The measurement noise the final pass used, per channel, and where it came from."""
     policy = result.config.filter.measurement_noise
-    assert result.noise_differences is not None and result.noise_reading is not None
     cells = []
     for n, used, read, m in zip(
-        OBS_NAMES,
-        result.measurement_sigma,
-        result.noise_reading,
-        result.noise_differences,
-        strict=True,
+        OBS_NAMES, result.measurement_sigma, reading.sigma, reading.differences, strict=True
     ):
         if m < MIN_DIFFERENCES:
             cells.append(f"{n} {used:.3g} (configured: too few samples to read)")
@@ -429,11 +425,11 @@ def results_dict(
             "measurement_noise": config.filter.measurement_noise,
             "measurement_sigma": dict(zip(OBS_NAMES, result.measurement_sigma, strict=True)),
             "noise_differences": None
-            if result.noise_differences is None
-            else dict(zip(OBS_NAMES, result.noise_differences, strict=True)),
+            if result.noise_reading is None
+            else dict(zip(OBS_NAMES, result.noise_reading.differences, strict=True)),
             "noise_reading": None
             if result.noise_reading is None
-            else dict(zip(OBS_NAMES, result.noise_reading, strict=True)),
+            else dict(zip(OBS_NAMES, result.noise_reading.sigma, strict=True)),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
             "covariance_repairs": {

@@ -143,8 +143,8 @@ def test_filters_take_each_channels_noise_from_the_data(tmp_path: Path) -> None:
     run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
     flown = np.array(config.simulation.sensors.noise_sigma)
     np.testing.assert_allclose(run.result.measurement_sigma, flown, rtol=0.2)
-    assert run.result.noise_differences is not None
-    assert min(run.result.noise_differences) >= MIN_DIFFERENCES
+    assert run.result.noise_reading is not None
+    assert min(run.result.noise_reading.differences) >= MIN_DIFFERENCES
     truth = np.array(config.truth)
     for f in run.result.filters.values():
         assert np.all(np.abs(f.coefficients - truth) < 3.0 * f.sigma + 1e-3 * np.abs(truth))
@@ -154,7 +154,7 @@ def test_filters_take_each_channels_noise_from_the_data(tmp_path: Path) -> None:
         flight.inputs,
         flight.measurements,
     ).result
-    assert configured.noise_differences is None
+    assert configured.noise_reading is None
     assert configured.measurement_sigma == tuple(load_config("noc_uav").filter.measurement_sigma)
 
     args = ["simulate", "--out", str(tmp_path), "--seed", "6", "--view", "off"]
