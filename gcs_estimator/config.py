@@ -324,6 +324,28 @@ class TurbulenceNoise:
     detection_sigma: float = setting(
         3.0, ge=0, doc="applied only once this many standard errors above zero (calm stays calm)"
     )
+    still_band_deg: float = setting(
+        0.2,
+        ge=0,
+        unit="deg",
+        doc="until a level is detected only frames where the inputs are still inform it "
+        "(model-structure error shows in manoeuvres, turbulence everywhere); elevator moves "
+        "within this band leave them still",
+    )
+    settle_s: float = setting(
+        3.0,
+        ge=0,
+        unit="s",
+        doc="time after the elevator's last move before a frame informs the level (0: every "
+        "frame does)",
+    )
+    max_wait_s: float = setting(
+        10.0,
+        gt=0,
+        unit="s",
+        doc="when no frame has informed the level for this long (the inputs never still), "
+        "every frame does",
+    )
 
     def unit(self, airspeed_mps: float) -> tuple[float, float, float, float]:
         """Spectral densities of V, alpha, theta, q per unit sigma_w^2."""

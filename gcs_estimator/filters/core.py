@@ -76,7 +76,8 @@ class GustState(NamedTuple):
     large as predicted, from (e_c^2 - S_c) / G_c per channel, G_c = dt sum_j H_cj^2 unit_j
     the change of S_c per unit gust variance, weighted by G_c^2 / (2 S_c^2) (their Fisher
     information). The running estimate is an exponential average with gain
-    g = dt / adapt_time_s; the pass sums give the average over the whole pass.
+    g = dt / adapt_time_s; the pass sums give the average over the whole pass. Which
+    steps inform it: adapt_gust.
     """
 
     var: float
@@ -91,10 +92,27 @@ class GustState(NamedTuple):
     sens: FloatArray
     """Per-channel G_c / dt [N_OBS], refreshed every GUST_SENSITIVITY_EVERY steps."""
     sens_age: int
+    input_ref: float
+    """Elevator [rad] at its last move beyond the still band (NaN: none seen yet)."""
+    t_moved: float
+    """Vehicle time of that move [s] (-inf: none in this pass)."""
+    t_informed: float
+    """Vehicle time of the last step that informed the level [s] (NaN: none yet)."""
 
     @staticmethod
     def start(var: float) -> GustState:
-        return GustState(var, 0.0, 0.0, 0.0, 0.0, np.zeros(N_OBS), GUST_SENSITIVITY_EVERY)
+        return GustState(
+            var,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            np.zeros(N_OBS),
+            GUST_SENSITIVITY_EVERY,
+            math.nan,
+            -math.inf,
+            math.nan,
+        )
 
     def applied(self, detection2: float) -> float:
         """The level in the process noise: the running estimate where it stands at least
@@ -178,6 +196,12 @@ class Tuning(NamedTuple):
     """Largest magnitude of each flight state [V, alpha, theta, q] a belief may hold
     (twice what an aircraft's signals reach, data.plausible_max); beyond it, or at an
     airspeed not above zero, the belief has run away (see plausible)."""
+    still_band: float
+    """Elevator moves within this band [rad] leave the inputs still (adapt_gust)."""
+    settle_s: float
+    """Time after the elevator's last move before a step informs the gust level [s]."""
+    max_wait_s: float
+    """With no step informing the level for this long [s], every step does."""
 
 
 class StepInfo(NamedTuple):
@@ -251,6 +275,9 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         linear_inputs=config.data.input_hold == "linear",
         state_max=STATE_MARGIN
         * np.array([config.data.plausible(q) for q in ("airspeed", "alpha", "theta", "q")]),
+        still_band=math.radians(turb.still_band_deg),
+        settle_s=turb.settle_s,
+        max_wait_s=turb.max_wait_s,
     )
 
 
@@ -301,7 +328,7 @@ def rebase(
 ) -> FilterState:
     """A new time base (the vehicle clock reset): keep what is known of the coefficients,
     take the flight states afresh from the measurement with their initial uncertainty.
-    The process-noise schedule keeps its age."""
+    The process-noise schedule and the gust estimate's clocks keep their age."""
     fresh = initial_state(model, tuning, t, state.u, y)
     flight = model.flight
     x = state.x.copy()
@@ -310,12 +337,15 @@ def rebase(
     P[flight, :] = 0.0
     P[:, flight] = 0.0
     P[flight, flight] = fresh.P[flight, flight]
+    shift = t - state.t
+    g = state.gust
     return state._replace(
         x=x,
         P=P,
         t=t,
         u=np.full(state.u.shape, np.nan),
-        t_start=t - (state.t - state.t_start),
+        t_start=state.t_start + shift,
+        gust=g._replace(t_moved=g.t_moved + shift, t_informed=g.t_informed + shift),
     )
 
 
@@ -385,6 +415,7 @@ def adapt_gust(
     g: GustState,
     tuning: Tuning,
     model: ModelArrays,
+    t: float,
     dt: float,
     x: FloatArray,
     u: FloatArray,
@@ -393,9 +424,16 @@ def adapt_gust(
     applied: float,
 ) -> GustState:
     """One step of the gust estimate (GustState) from the step's innovations e and their
-    sigmas s at the posterior x, refreshing the channel sensitivities when due. Each step
-    estimates the level as the one its process noise used (applied) plus a correction:
-    averaged over the pass (for the next restart) and running."""
+    sigmas s at the posterior x, at vehicle time t, refreshing the channel sensitivities
+    when due. Each step estimates the level as the one its process noise used (applied)
+    plus a correction: averaged over the pass (for the next restart) and running.
+
+    While no level is applied, a step informs the estimate only once the inputs are
+    still: settle_s after the elevator last moved beyond still_band (or when none has
+    for max_wait_s, the inputs never being still). A model that misses part of the
+    aircraft's response leaves innovations in its manoeuvres and hardly after them;
+    turbulence leaves them everywhere. So the level cannot be switched on by the model's
+    own error, and once turbulence is detected every step informs it."""
     if not tuning.adaptive or not dt > 0.0:
         return g
     sens = g.sens
@@ -405,14 +443,27 @@ def adapt_gust(
         sens = (H * H) @ tuning.gust_unit
         age = 0
     age += 1
+    ref = g.input_ref
+    moved = g.t_moved
+    if not math.isfinite(ref):
+        ref = u[0]
+    elif math.isfinite(u[0]) and abs(u[0] - ref) > tuning.still_band:
+        ref = u[0]
+        moved = t
+    informed = g.t_informed if math.isfinite(g.t_informed) else t
+    informs = applied > 0.0 or t - moved >= tuning.settle_s or t - informed >= tuning.max_wait_s
     num, den = gust_match(e, s, dt * sens)
-    if not den > 0.0:
-        return GustState(g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age)
+    if not (informs and den > 0.0):
+        return GustState(
+            g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age, ref, moved, informed
+        )
     estimate = applied + num / den
     gain = min(1.0, dt / tuning.adapt_time_s)
     info = g.info + gain * (den - g.info) if g.info > 0.0 else den
     var = max(g.var + gain * (estimate - g.var), GUST_VAR_FLOOR)
-    return GustState(var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age)
+    return GustState(
+        var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age, ref, moved, t
+    )
 
 
 def repair_covariance(P: FloatArray, rel_floor: float = 1e-12) -> FloatArray:

@@ -57,7 +57,7 @@ def kernel_step(
         and math.isfinite(float(post.x.sum() + post.P.sum()))
         and core.plausible(post.x, tuning.state_max)
     )
-    gust = core.adapt_gust(state.gust, tuning, model.arrays, dt, post.x, u, e, s, applied)
+    gust = core.adapt_gust(state.gust, tuning, model.arrays, t, dt, post.x, u, e, s, applied)
     new = FilterState(post.x, post.P, t, np.array(u, float), state.t_start, gust)
     info = StepInfo(
         sigma=np.sqrt(np.maximum(variances, 0.0)),

@@ -30,11 +30,13 @@ def test_a_servo_that_moves_between_samples_needs_the_linear_hold() -> None:
     linear = _moment_errors(lagging, "linear")
     held = _moment_errors(lagging, "previous")
     assert max(linear.values()) < 6.0, linear
-    assert min(held.values()) > 15.0, held  # the held input lags the servo by ~20 ms
+    # The held input lags the servo by ~20 ms: every moment derivative is biased.
+    assert min(held.values()) > 5.0 and max(held.values()) > 15.0, held
 
 
 def test_a_servo_that_holds_each_command_needs_the_previous_hold() -> None:
     held = _moment_errors([], "previous")
     linear = _moment_errors([], "linear")
     assert max(held.values()) < 1.0, held
-    assert min(linear.values()) > 15.0, linear  # the ramps smear every step
+    # The ramps smear every step: every moment derivative is biased.
+    assert min(linear.values()) > 5.0 and max(linear.values()) > 15.0, linear
