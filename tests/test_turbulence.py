@@ -6,12 +6,15 @@ shape of the process noise they cause (config [filter.turbulence]).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
 from gcs_estimator.config import AircraftConfig, Turbulence, load_config
 from gcs_estimator.estimator import Estimator, EstimatorResult, run_recording
+from gcs_estimator.filters import core
+from gcs_estimator.model.aircraft import build_model, trim
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
 
@@ -173,3 +176,51 @@ def test_a_model_error_in_the_manoeuvres_is_not_read_as_turbulence() -> None:
     assert on < 0.02, on
     assert on_every_frame > 0.1, on_every_frame
     assert cmq_err < 3.0 and cmq_err_every_frame > 2 * cmq_err, (cmq_err, cmq_err_every_frame)
+
+
+def _informing_steps(elevator: Callable[[float], float], level: float = 0.0) -> np.ndarray:
+    """Times [s] of the steps whose innovations informed the gust estimate, over 14 s at
+    50 Hz with every channel's innovation three times its sigma and the elevator given.
+    Starting from no level, none is ever detected (detection_sigma 1e6); starting from
+    one, the defaults detect it throughout."""
+    detection = [] if level > 0.0 else ["filter.turbulence.detection_sigma=1e6"]
+    config = load_config(CONFIGS / "noc_uav.toml", detection)
+    model = build_model(config)
+    tuning = core.tuning_of(config, model, "EKF")
+    truth = np.array(config.truth)
+    tr = trim(model, truth)
+    x = model.augment(tr.state, truth)
+    s = np.sqrt(np.diag(tuning.R))
+    gust = core.GustState.start(level)
+    moved = []
+    for t in np.arange(0.0, 14.0, 0.02):
+        u = tr.inputs.copy()
+        u[0] += np.radians(elevator(float(t)))
+        applied = gust.applied(tuning.detection2)
+        new = core.adapt_gust(gust, tuning, model.arrays, float(t), 0.02, x, u, 3 * s, s, applied)
+        if new.pass_den != gust.pass_den:
+            moved.append(t)
+        gust = new
+    return np.array(moved)
+
+
+def test_the_gust_level_is_estimated_where_the_inputs_are_still() -> None:
+    """filter.turbulence settle_s = 3, still_band_deg = 0.2, max_wait_s = 10 (the
+    defaults): until a level is applied, a step informs the estimate only 3 s after the
+    elevator last moved by more than 0.2 degrees, or once it has not been still for 10 s;
+    with a level applied, every step does."""
+    steps = np.arange(0.0, 14.0, 0.02)
+    assert len(_informing_steps(lambda t: 0.0)) == len(steps)  # still throughout
+    assert len(_informing_steps(lambda t: 0.1 * np.sin(t))) == len(steps)  # within the band
+    # A step of 1 degree at 2 s: still before it, then 3 s of settling, then still again.
+    stepped = _informing_steps(lambda t: 1.0 if t >= 2.0 else 0.0)
+    expected = (steps < 2.0 - 0.01) | (steps >= 5.0 - 0.01)
+    np.testing.assert_allclose(stepped, steps[expected], atol=1e-9)
+    # Always moving (from the second step on): nothing until the inputs have not been
+    # still for 10 s, then every step.
+    moving = _informing_steps(lambda t: 0.5 if int(round(t / 0.02)) % 2 else -0.5)
+    np.testing.assert_allclose(moving, steps[(steps < 0.01) | (steps >= 10.0 - 0.01)])
+    # A level already applied is tracked through the manoeuvres.
+    assert len(_informing_steps(lambda t: 0.5 if int(round(t / 0.02)) % 2 else -0.5, 0.5)) == len(
+        steps
+    )

@@ -96,8 +96,8 @@ class GustState(NamedTuple):
     """Elevator [rad] at its last move beyond the still band (NaN: none seen yet)."""
     t_moved: float
     """Vehicle time of that move [s] (-inf: none in this pass)."""
-    t_informed: float
-    """Vehicle time of the last step that informed the level [s] (NaN: none yet)."""
+    t_still: float
+    """Vehicle time the inputs were last still [s] (NaN: no step yet)."""
 
     @staticmethod
     def start(var: float) -> GustState:
@@ -345,7 +345,7 @@ def rebase(
         t=t,
         u=np.full(state.u.shape, np.nan),
         t_start=state.t_start + shift,
-        gust=g._replace(t_moved=g.t_moved + shift, t_informed=g.t_informed + shift),
+        gust=g._replace(t_moved=g.t_moved + shift, t_still=g.t_still + shift),
     )
 
 
@@ -429,11 +429,12 @@ def adapt_gust(
     plus a correction: averaged over the pass (for the next restart) and running.
 
     While no level is applied, a step informs the estimate only once the inputs are
-    still: settle_s after the elevator last moved beyond still_band (or when none has
-    for max_wait_s, the inputs never being still). A model that misses part of the
-    aircraft's response leaves innovations in its manoeuvres and hardly after them;
-    turbulence leaves them everywhere. So the level cannot be switched on by the model's
-    own error, and once turbulence is detected every step informs it."""
+    still: settle_s after the elevator last moved beyond still_band; or, when they have
+    not been still for max_wait_s (a flight with the inputs always moving), every step.
+    A model that misses part of the aircraft's response leaves innovations in its
+    manoeuvres and hardly after them; turbulence leaves them everywhere. So the level
+    cannot be switched on by the model's own error, and once turbulence is detected every
+    step informs it."""
     if not tuning.adaptive or not dt > 0.0:
         return g
     sens = g.sens
@@ -450,19 +451,29 @@ def adapt_gust(
     elif math.isfinite(u[0]) and abs(u[0] - ref) > tuning.still_band:
         ref = u[0]
         moved = t
-    informed = g.t_informed if math.isfinite(g.t_informed) else t
-    informs = applied > 0.0 or t - moved >= tuning.settle_s or t - informed >= tuning.max_wait_s
+    still = t - moved >= tuning.settle_s
+    last_still = t if still or not math.isfinite(g.t_still) else g.t_still
+    informs = applied > 0.0 or t - last_still >= tuning.max_wait_s or still
     num, den = gust_match(e, s, dt * sens)
     if not (informs and den > 0.0):
         return GustState(
-            g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age, ref, moved, informed
+            g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age, ref, moved, last_still
         )
     estimate = applied + num / den
     gain = min(1.0, dt / tuning.adapt_time_s)
     info = g.info + gain * (den - g.info) if g.info > 0.0 else den
     var = max(g.var + gain * (estimate - g.var), GUST_VAR_FLOOR)
     return GustState(
-        var, info, gain, g.pass_num + den * estimate, g.pass_den + den, sens, age, ref, moved, t
+        var,
+        info,
+        gain,
+        g.pass_num + den * estimate,
+        g.pass_den + den,
+        sens,
+        age,
+        ref,
+        moved,
+        last_still,
     )
 
 

@@ -429,7 +429,7 @@ def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type
     the arithmetic of a row of the update), then the other scalars."""
     g = st.gust
     gf = np.array(
-        [g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_informed]
+        [g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_still]
     )
     vec = np.concatenate(
         (st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens, gf)
@@ -544,14 +544,14 @@ def _belief_and_info(
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
     g = o + n_inputs + N_OBS
-    var, info, gain, num, den, ref, moved, informed = vec[g:].tolist()
+    var, info, gain, num, den, ref, moved, still = vec[g:].tolist()
     new = FilterState(
         vec[:n],
         P,
         t,
         vec[o : o + n_inputs],
         start.t_start,
-        GustState(var, info, gain, num, den, vec[o + n_inputs : g], age, ref, moved, informed),
+        GustState(var, info, gain, num, den, vec[o + n_inputs : g], age, ref, moved, still),
     )
     e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
     return new, StepInfo(vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, failed)

@@ -72,7 +72,7 @@ def _state(model: Model, truth: np.ndarray, rng: np.random.Generator, spread: fl
         sens_age=int(rng.integers(0, core.GUST_SENSITIVITY_EVERY + 1)),
         input_ref=float(rng.choice([math.nan, rng.uniform(-0.05, 0.05)])),
         t_moved=float(rng.choice([-math.inf, rng.uniform(-5.0, 1.0)])),
-        t_informed=float(rng.choice([math.nan, rng.uniform(-12.0, 1.0)])),
+        t_still=float(rng.choice([math.nan, rng.uniform(-12.0, 1.0)])),
     )
     return FilterState(x, P, 1.0, tr.inputs.copy(), 1.0 - rng.uniform(0.0, 10.0), gust)
 
