@@ -413,27 +413,28 @@ def _state_of(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    gf: FloatArray,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_ref: float,
+    g_moved: float,
+    g_still: float,
     g_age: int,
 ) -> FilterState:  # pragma: no cover
-    """A FilterState from its fields as _state_args hands them over (gf: the gust
-    estimate's scalars, GustState's fields but sens and sens_age, in order)."""
-    gust = GustState(gf[0], gf[1], gf[2], gf[3], gf[4], sens, g_age, gf[5], gf[6], gf[7])
+    """A FilterState from its fields as _state_args hands them over."""
+    gust = GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age, g_ref, g_moved, g_still)
     return FilterState(x, P, t_prev, u_prev, t_start, gust)
 
 
 @njit(cache=True)
 def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """A step's belief and outputs as _belief_and_info takes them: the arrays and the gust
-    estimate's scalars in one vector (each value returned costs more to hand back than
-    the arithmetic of a row of the update), then the other scalars."""
+    """A step's belief and outputs as _belief_and_info takes them: the arrays in one
+    vector (each array returned costs more to hand back than the arithmetic of a row of
+    the update), then the scalars, the gust estimate's in the order _state_of takes them."""
     g = st.gust
-    gf = np.array(
-        [g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_still]
-    )
-    vec = np.concatenate(
-        (st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens, gf)
-    )
+    vec = np.concatenate((st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens))
     return (
         st.t,
         st.P,
@@ -443,6 +444,14 @@ def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type
         info.iterations,
         info.gust_sigma,
         info.failed,
+        g.var,
+        g.info,
+        g.gain,
+        g.pass_num,
+        g.pass_den,
+        g.input_ref,
+        g.t_moved,
+        g.t_still,
         g.sens_age,
     )
 
@@ -455,7 +464,14 @@ def _kernel(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    gf: FloatArray,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_ref: float,
+    g_moved: float,
+    g_still: float,
     g_age: int,
     t: float,
     u: FloatArray,
@@ -466,7 +482,23 @@ def _kernel(
     """_step over the fields of FilterState, and Tuning and ModelArrays packed:
     (healthy, the new belief and the step's outputs)."""
     tun, m = _unpack(tf, ti)
-    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gf, g_age)
+    st = _state_of(
+        x,
+        P,
+        u_prev,
+        sens,
+        t_prev,
+        t_start,
+        g_var,
+        g_info,
+        g_gain,
+        g_num,
+        g_den,
+        g_ref,
+        g_moved,
+        g_still,
+        g_age,
+    )
     new, info, healthy = _step(st, t, u, y, tun, m)
     return (healthy, *_handed_back(new, info))
 
@@ -479,7 +511,14 @@ def _kernel_block(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    gf: FloatArray,
+    g_var: float,
+    g_info: float,
+    g_gain: float,
+    g_num: float,
+    g_den: float,
+    g_ref: float,
+    g_moved: float,
+    g_still: float,
     g_age: int,
     ts: FloatArray,
     us: FloatArray,
@@ -491,7 +530,23 @@ def _kernel_block(
     (the frames done, the failed updates among them, the belief after the last of them
     and the outputs of that step; of the first frame, unhealthy, when none was done)."""
     tun, m = _unpack(tf, ti)
-    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gf, g_age)
+    st = _state_of(
+        x,
+        P,
+        u_prev,
+        sens,
+        t_prev,
+        t_start,
+        g_var,
+        g_info,
+        g_gain,
+        g_num,
+        g_den,
+        g_ref,
+        g_moved,
+        g_still,
+        g_age,
+    )
     new, info, healthy = _step(st, ts[0], us[0], ys[0], tun, m)
     last = info
     done = 0
@@ -531,8 +586,9 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
 def _state_args(state: FilterState) -> tuple[Any, ...]:
     """A FilterState's fields, flat, as the kernels take them (_state_of)."""
     g = state.gust
-    gf = np.array(g[:5] + g[7:])  # the scalars: all but sens and sens_age
-    return (state.x, state.P, state.u, g.sens, state.t, state.t_start, gf, g.sens_age)
+    # GustState's scalars in order: var, info, gain, pass_num, pass_den; then (after sens
+    # and sens_age) input_ref, t_moved, t_still; then sens_age.
+    return (state.x, state.P, state.u, g.sens, state.t, state.t_start, *g[:5], *g[7:], g[6])
 
 
 def _belief_and_info(
@@ -540,18 +596,17 @@ def _belief_and_info(
 ) -> tuple[FilterState, StepInfo]:
     """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
     views of its vector."""
-    t, P, vec, nis, used, iterations, gust_sigma, failed, age = out[at : at + 9]
+    t, P, vec, nis, used, iterations, gust_sigma, failed = out[at : at + 8]
+    var, info, gain, num, den, ref, moved, still, age = out[at + 8 :]
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
-    g = o + n_inputs + N_OBS
-    var, info, gain, num, den, ref, moved, still = vec[g:].tolist()
     new = FilterState(
         vec[:n],
         P,
         t,
         vec[o : o + n_inputs],
         start.t_start,
-        GustState(var, info, gain, num, den, vec[o + n_inputs : g], age, ref, moved, still),
+        GustState(var, info, gain, num, den, vec[o + n_inputs :], age, ref, moved, still),
     )
     e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
     return new, StepInfo(vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, failed)
