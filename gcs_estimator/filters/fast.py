@@ -585,10 +585,9 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
 
 def _state_args(state: FilterState) -> tuple[Any, ...]:
     """A FilterState's fields, flat, as the kernels take them (_state_of)."""
-    g = state.gust
-    # GustState's scalars in order: var, info, gain, pass_num, pass_den; then (after sens
-    # and sens_age) input_ref, t_moved, t_still; then sens_age.
-    return (state.x, state.P, state.u, g.sens, state.t, state.t_start, *g[:5], *g[7:], g[6])
+    x, P, t, u, t_start, g = state
+    var, info, gain, num, den, sens, age, ref, moved, still = g
+    return (x, P, u, sens, t, t_start, var, info, gain, num, den, ref, moved, still, age)
 
 
 def _belief_and_info(
@@ -596,7 +595,7 @@ def _belief_and_info(
 ) -> tuple[FilterState, StepInfo]:
     """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
     views of its vector."""
-    t, P, vec, nis, used, iterations, gust_sigma, failed = out[at : at + 8]
+    (t, P, vec, nis, used, iterations, gust_sigma, failed) = out[at : at + 8]
     var, info, gain, num, den, ref, moved, still, age = out[at + 8 :]
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
