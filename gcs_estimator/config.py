@@ -343,8 +343,8 @@ class TurbulenceNoise:
         10.0,
         gt=0,
         unit="s",
-        doc="when no frame has informed the level for this long (the inputs never still), "
-        "every frame does",
+        doc="when the inputs have not been still for this long (they always move), every "
+        "frame informs the level",
     )
 
     def unit(self, airspeed_mps: float) -> tuple[float, float, float, float]:

@@ -201,7 +201,8 @@ class Tuning(NamedTuple):
     settle_s: float
     """Time after the elevator's last move before a step informs the gust level [s]."""
     max_wait_s: float
-    """With no step informing the level for this long [s], every step does."""
+    """When the inputs have not been still for this long [s], every step informs the
+    level."""
 
 
 class StepInfo(NamedTuple):

@@ -595,7 +595,7 @@ def _belief_and_info(
 ) -> tuple[FilterState, StepInfo]:
     """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
     views of its vector."""
-    (t, P, vec, nis, used, iterations, gust_sigma, failed) = out[at : at + 8]
+    t, P, vec, nis, used, iterations, gust_sigma, failed = out[at : at + 8]
     var, info, gain, num, den, ref, moved, still, age = out[at + 8 :]
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
