@@ -413,26 +413,22 @@ def _state_of(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    g_var: float,
-    g_info: float,
-    g_gain: float,
-    g_num: float,
-    g_den: float,
-    g_ref: float,
-    g_moved: float,
-    g_still: float,
+    gust: tuple[float, ...],
     g_age: int,
 ) -> FilterState:  # pragma: no cover
-    """A FilterState from its fields as _state_args hands them over."""
-    gust = GustState(g_var, g_info, g_gain, g_num, g_den, sens, g_age, g_ref, g_moved, g_still)
-    return FilterState(x, P, t_prev, u_prev, t_start, gust)
+    """A FilterState from its fields as _state_args hands them over: gust holds
+    GustState's float fields in order (all but sens and sens_age), in one tuple so that
+    both kernels take them as one argument (at about the dispatch cost of scalars)."""
+    var, info, gain, num, den, ref, moved, still = gust
+    g = GustState(var, info, gain, num, den, sens, g_age, ref, moved, still)
+    return FilterState(x, P, t_prev, u_prev, t_start, g)
 
 
 @njit(cache=True)
 def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
     """A step's belief and outputs as _belief_and_info takes them: the arrays in one
     vector (each array returned costs more to hand back than the arithmetic of a row of
-    the update), then the scalars, the gust estimate's in the order _state_of takes them."""
+    the update), then the scalars, the gust estimate's as _state_of takes them."""
     g = st.gust
     vec = np.concatenate((st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens))
     return (
@@ -444,14 +440,7 @@ def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type
         info.iterations,
         info.gust_sigma,
         info.failed,
-        g.var,
-        g.info,
-        g.gain,
-        g.pass_num,
-        g.pass_den,
-        g.input_ref,
-        g.t_moved,
-        g.t_still,
+        (g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_still),
         g.sens_age,
     )
 
@@ -464,14 +453,7 @@ def _kernel(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    g_var: float,
-    g_info: float,
-    g_gain: float,
-    g_num: float,
-    g_den: float,
-    g_ref: float,
-    g_moved: float,
-    g_still: float,
+    gust: tuple[float, ...],
     g_age: int,
     t: float,
     u: FloatArray,
@@ -482,23 +464,7 @@ def _kernel(
     """_step over the fields of FilterState, and Tuning and ModelArrays packed:
     (healthy, the new belief and the step's outputs)."""
     tun, m = _unpack(tf, ti)
-    st = _state_of(
-        x,
-        P,
-        u_prev,
-        sens,
-        t_prev,
-        t_start,
-        g_var,
-        g_info,
-        g_gain,
-        g_num,
-        g_den,
-        g_ref,
-        g_moved,
-        g_still,
-        g_age,
-    )
+    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gust, g_age)
     new, info, healthy = _step(st, t, u, y, tun, m)
     return (healthy, *_handed_back(new, info))
 
@@ -511,14 +477,7 @@ def _kernel_block(
     sens: FloatArray,
     t_prev: float,
     t_start: float,
-    g_var: float,
-    g_info: float,
-    g_gain: float,
-    g_num: float,
-    g_den: float,
-    g_ref: float,
-    g_moved: float,
-    g_still: float,
+    gust: tuple[float, ...],
     g_age: int,
     ts: FloatArray,
     us: FloatArray,
@@ -530,23 +489,7 @@ def _kernel_block(
     (the frames done, the failed updates among them, the belief after the last of them
     and the outputs of that step; of the first frame, unhealthy, when none was done)."""
     tun, m = _unpack(tf, ti)
-    st = _state_of(
-        x,
-        P,
-        u_prev,
-        sens,
-        t_prev,
-        t_start,
-        g_var,
-        g_info,
-        g_gain,
-        g_num,
-        g_den,
-        g_ref,
-        g_moved,
-        g_still,
-        g_age,
-    )
+    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gust, g_age)
     new, info, healthy = _step(st, ts[0], us[0], ys[0], tun, m)
     last = info
     done = 0
@@ -587,7 +530,7 @@ def _state_args(state: FilterState) -> tuple[Any, ...]:
     """A FilterState's fields, flat, as the kernels take them (_state_of)."""
     x, P, t, u, t_start, g = state
     var, info, gain, num, den, sens, age, ref, moved, still = g
-    return (x, P, u, sens, t, t_start, var, info, gain, num, den, ref, moved, still, age)
+    return (x, P, u, sens, t, t_start, (var, info, gain, num, den, ref, moved, still), age)
 
 
 def _belief_and_info(
@@ -595,8 +538,8 @@ def _belief_and_info(
 ) -> tuple[FilterState, StepInfo]:
     """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
     views of its vector."""
-    t, P, vec, nis, used, iterations, gust_sigma, failed = out[at : at + 8]
-    var, info, gain, num, den, ref, moved, still, age = out[at + 8 :]
+    t, P, vec, nis, used, iterations, gust_sigma, failed, gust, age = out[at:]
+    var, info, gain, num, den, ref, moved, still = gust
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
     new = FilterState(
