@@ -16,7 +16,8 @@ structure's regressors, such a fit put CLa 5 % below JSBSim's own value while th
 fit is within 1 %. What the gusts do show is how far the structure can follow the
 turbulent flight at all: `reproduction` flies the calm fit through the flight's gusts
 (the states the motion over the ground, the aerodynamics and the pitot and vane the
-air-relative V and alpha: equations.fly_step), fits the initial state alone, and returns
+air-relative V and alpha, the aerodynamics the pitch rate less the pitch gust:
+equations.fly_step), fits the initial state alone, and returns
 the residual per channel in sensor sigmas.
 
 Where the structure cannot reproduce the flight, what it gets closest to depends on how
@@ -50,8 +51,7 @@ def _outputs(
     out = np.empty((t.shape[0], N_OBS))
     x = x0.copy()
     for i in range(t.shape[0]):
-        h, _ = eq.observe(eq.air_relative(x, gust[i]), u[i], m)
-        out[i] = h
+        out[i] = eq.observe_in_gust(x, u[i], gust[i], m)
         if i + 1 < t.shape[0]:
             g = 0.5 * (gust[i] + gust[i + 1])
             x = eq.fly_step(x, u[i], u[i + 1], g, t[i + 1] - t[i], m)
@@ -72,7 +72,8 @@ def _fit(
     bias), flown through `gust` [N x 2] (u_g, w_g [m/s]: the air-relative V and alpha
     being V + u_g and alpha + w_g / V; none: calm air), the initial state always free,
     the coefficients from `coefficients` and free when `free_coefficients`, each channel
-    weighted by 1 / `sigma` (default: the config's measurement sigmas). Returns the
+    weighted by 1 / `sigma` (default: the config's measurement sigmas); a third gust
+    column is the pitch gust q_g [rad/s] (the aerodynamics see q - q_g). Returns the
     coefficients and the RMS residual per channel in units of its sigma."""
     model = build_model(config, gust_states=False)
     u = np.ascontiguousarray(np.array([model.inputs(row) for row in inputs]))

@@ -162,6 +162,7 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         "mass": mass * SLUG,
         "area": g("metrics/Sw-sqft") * FOOT**2,
         "chord": g("metrics/cbarw-ft") * FOOT,
+        "span": g("metrics/bw-ft") * FOOT,
         "iyy": g("inertia/iyy-slugs_ft2") * SLUG * FOOT**2,
         "incl": math.atan2(-g("forces/fbz-prop-lbs"), g("forces/fbx-prop-lbs")),
         # The alpha-dot terms' contributions (coefficients), and alpha-dot c / (2 V).
@@ -171,6 +172,8 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         # The gust: air-relative V and alpha against the motion over the ground.
         "gust_u": (g("velocities/vt-fps") - ground_speed) * FOOT,
         "gust_w": (g("aero/alpha-rad") - ground_alpha) * ground_speed * FOOT,
+        # The pitch gust (MIL-F-8785C's q_g): the aerodynamics see q less it.
+        "gust_q": g("velocities/q-rad_sec") - g("velocities/q-aero-rad_sec"),
     }
     for k, v in values.items():
         out.setdefault(k, []).append(float(v))
@@ -238,6 +241,7 @@ def airframe_toml(
         f"mass_kg = {float(np.mean(f['mass'])):.6g}",
         f"wing_area_m2 = {float(f['area'][0]):.6g}",
         f"mean_chord_m = {float(f['chord'][0]):.6g}",
+        f"wing_span_m = {float(f['span'][0]):.6g}",
         f"inertia_yy_kgm2 = {float(np.mean(f['iyy'])):.6g}",
         f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}  # the CSV has it per sample",
         f"trim_airspeed_mps = {float(f['V'][0]):.6g}",
@@ -297,7 +301,7 @@ def generate(out: Path, seeds: Sequence[int] = (1,)) -> list[tuple[Path, Path]]:
                     target = best, spread(config, f["t"], inputs, clean, best), rms
                 best, moves, rms = target
                 if turbulent:
-                    gust = np.column_stack([f["gust_u"], f["gust_w"]])
+                    gust = np.column_stack([f["gust_u"], f["gust_w"], f["gust_q"]])
                     rms = reproduction(config, f["t"], inputs, clean, best, gust)
                 names = config.coefficient_names
                 fit = {

@@ -95,6 +95,12 @@ class Airframe:
     gravity_mps2: float = setting(9.80665, gt=0, unit="m/s^2")
     thrust_inclination_rad: float = setting(0.0, unit="rad", doc="sigma_T: thrust line to body x")
     thrust_moment_arm_m: float = setting(0.0, unit="m", doc="l_x*sin(sigma_T) + l_z*cos(sigma_T)")
+    wing_span_m: float = setting(
+        0.0,
+        ge=0,
+        unit="m",
+        doc="b: with gust states, the pitch gust's scale (MIL-F-8785C); 0: no pitch gust",
+    )
 
 
 @dataclass(frozen=True)

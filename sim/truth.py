@@ -19,7 +19,7 @@ from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe
+from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe_in_gust
 from gcs_estimator.telemetry import pwm
 
 
@@ -74,13 +74,20 @@ def elevator_offset_rad(manoeuvre: Manoeuvre, t_s: float) -> float:
 
 
 class _GustModel:
-    """Dryden gusts u_g (first order) and w_g (second order), unit-variance shaped.
+    """Dryden gusts u_g (first order) and w_g (second order), unit-variance shaped, and
+    with a wing span b > 0 the pitch gust q_g = (s / V) / (1 + (4 b / (pi V)) s) w_g.
 
     Shaping filters from MIL-F-8785C with frozen airspeed V; the output gain is set from
     the stationary covariance so that the gust standard deviations are exactly sigma.
+    The pitch gust is flown as the filters model it (equations.pitch_gust_rows): its
+    state p = q_g - c w_g, c = pi / (4 b), follows p' = -c V q_g.
     """
 
-    def __init__(self, turb: Turbulence, airspeed: float, rng: np.random.Generator) -> None:
+    def __init__(
+        self, turb: Turbulence, airspeed: float, rng: np.random.Generator, span_m: float = 0.0
+    ) -> None:
+        self.c = math.pi / (4.0 * span_m) if span_m > 0.0 else 0.0
+        self.airspeed = airspeed
         Tu = turb.length_u_m / airspeed
         Tw = turb.length_w_m / airspeed
         self.A = np.array([[-1.0 / Tu, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0 / Tw**2, -2.0 / Tw]])
@@ -98,15 +105,21 @@ class _GustModel:
         self.active = turb.sigma_u > 0.0 or turb.sigma_w > 0.0
         self.z = rng.multivariate_normal(np.zeros(3), Pss) if self.active else np.zeros(3)
         self.rng = rng
+        self.p = -self.c * float(self.C[1] @ self.z)  # q_g = 0 at the start
 
     def step(self, dt: float) -> None:
         if self.active:
+            qg = self.p + self.c * float(self.C[1] @ self.z)
             noise = self.rng.standard_normal(2) * math.sqrt(dt)
             self.z = self.z + self.A @ self.z * dt + self.B @ noise
+            self.p -= self.c * self.airspeed * qg * dt
 
     def gust(self) -> FloatArray:
-        """[u_g, w_g] in m/s."""
-        return np.asarray(self.C @ self.z)
+        """[u_g, w_g] in m/s, then q_g [rad/s] where the span gives a pitch gust."""
+        g = self.C @ self.z
+        if self.c > 0.0:
+            return np.array([g[0], g[1], self.p + self.c * g[1]])
+        return np.asarray(g)
 
 
 MULTISTEP_UNITS = ((0.0, 3.0), (3.0, 5.0), (5.0, 6.0), (6.0, 7.0))
@@ -180,7 +193,7 @@ def simulate(
     rng = np.random.default_rng(sim.seed if seed is None else seed)
     model = build_model(config, gust_states=False)
     trimmed = trim(model, truth)
-    gusts = _GustModel(sim.turbulence, float(trimmed.state[0]), rng)
+    gusts = _GustModel(sim.turbulence, float(trimmed.state[0]), rng, config.airframe.wing_span_m)
 
     dt = sim.integration_step_s
     per_sample = max(1, round(1.0 / (sim.sample_rate_hz * dt)))
@@ -215,7 +228,7 @@ def simulate(
     else:
         u_steps = servo_commands(config, u_steps)
         u_samples = servo_commands(config, u_samples)
-    gust = np.empty((n_steps + 1, 2))
+    gust = np.empty((n_steps + 1, 3 if gusts.c > 0.0 else 2))
     for i in range(n_steps + 1):
         gust[i] = gusts.gust()
         gusts.step(dt)
@@ -286,7 +299,8 @@ def integrate(
     m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     """Fly x0 (the motion over the ground) with classical Runge-Kutta through the air's
-    motion (equations.fly_step), inputs u_steps [steps x 2] and gust [steps + 1 x 2] held
+    motion (equations.fly_step), inputs u_steps [steps x 2] and gust [steps + 1 x 2 or 3]
+    (u_g, w_g and, with a wing span, the pitch gust q_g) held
     over each step of dt [s]; every per_sample steps, sample the air-relative flight
     states and the noise-free observations with u_samples."""
     n_samples = u_samples.shape[0]
@@ -297,8 +311,7 @@ def integrate(
     for i in range(n_samples):
         xa = air_relative(x, gust[step])
         states[i] = xa[:N_FLIGHT]
-        h, _ = observe(xa, u_samples[i], m)
-        clean[i] = h
+        clean[i] = observe_in_gust(x, u_samples[i], gust[step], m)
         if i == n_samples - 1:
             break
         for _ in range(per_sample):

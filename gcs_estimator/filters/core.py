@@ -240,7 +240,8 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     turb = ft.turbulence
     v0 = float(model.k[eq.V0])
     if model.has_gust_states:
-        unit[model.gusts] = gust_state_densities(
+        # The pitch gust's state, where there is one, takes no noise of its own.
+        unit[model.gusts.start : model.gusts.start + 2] = gust_state_densities(
             v0, turb.sigma_u_ratio, turb.length_u_m, turb.length_w_m
         )
         q_final[model.gusts] = GUST_STATE_FLOOR**2 * unit[model.gusts]
@@ -312,8 +313,13 @@ def initial_state(
         # Gust states start at zero with their stationary spread at this level: a
         # first-order process of density q and time constant L/V has variance q L/(2 V).
         lengths = np.array([model.k[eq.GUST_LU], model.k[eq.GUST_LW]])
-        stationary = tuning.gust_unit[gusts] * lengths / (2.0 * model.k[eq.V0])
-        sigma[gusts] = np.sqrt(max(level, GUST_STATE_FLOOR**2) * stationary)
+        ug_wg = slice(gusts.start, gusts.start + 2)
+        stationary = tuning.gust_unit[ug_wg] * lengths / (2.0 * model.k[eq.V0])
+        sigma[ug_wg] = np.sqrt(max(level, GUST_STATE_FLOOR**2) * stationary)
+        if eq.has_pitch_gust(model.arrays):
+            # p_g = q_g - c w_g starts at zero with w_g's spread scaled by c: q_g = 0
+            # within the pitch gust's own spread.
+            sigma[gusts.start + 2] = eq.pitch_gust_scale(model.k) * sigma[gusts.start + 1]
     return FilterState(
         x=x,
         P=np.diag(sigma**2),

@@ -20,6 +20,9 @@ FLIGHT, GUSTS, COEFFICIENTS, BIASES = "flight", "gusts", "coefficients", "biases
 """Names of the augmented state's blocks."""
 GUST_STATES = ("u_g", "w_g")
 """The gust states' names (filter.turbulence.model = "states")."""
+PITCH_GUST_STATE = "p_g"
+"""The pitch gust's state after them, where the airframe gives a wing span
+(equations.pitch_gust_rows)."""
 
 
 @dataclass(frozen=True)
@@ -121,6 +124,7 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     k[eq.ACCEL_X], k[eq.ACCEL_Z] = s.accel_x_m, s.accel_z_m
     turbulence = config.filter.turbulence
     k[eq.GUST_LU], k[eq.GUST_LW] = turbulence.length_u_m, turbulence.length_w_m
+    k[eq.SPAN] = a.wing_span_m
     if p.model == "propeller":
         k[eq.PROP_KIND] = eq.PROP_PROPELLER
         k[eq.PROP_AREA] = p.prop_area_m2
@@ -134,9 +138,10 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     names = config.structure.names
     biases = tuple(f"{c}_bias" for c in s.bias_states)
     gusts = turbulence.model == "states" if gust_states is None else gust_states
+    gust_names = GUST_STATES + ((PITCH_GUST_STATE,) if a.wing_span_m > 0.0 else ())
     layout = StateLayout.assemble(
         [(FLIGHT, FLIGHT_STATES, True)]
-        + ([(GUSTS, GUST_STATES, True)] if gusts else [])
+        + ([(GUSTS, gust_names, True)] if gusts else [])
         + [(COEFFICIENTS, names, False), (BIASES, biases, False)]
     )
     arrays = ModelArrays(

@@ -22,6 +22,9 @@ for _fn in (
     eq.has_alpha_rate,
     eq.coefficients,
     eq.has_gust_states,
+    eq.has_pitch_gust,
+    eq.pitch_gust_scale,
+    eq.pitch_gust_rows,
     eq._gust_chain,
     eq.still_rows,
     eq.dynamics_rows,
@@ -32,6 +35,7 @@ for _fn in (
     eq.air_relative,
     eq.rk4_step,
     eq.wind_slope,
+    eq.observe_in_gust,
     eq.fly_step,
 ):
     register_jitable(_fn)

@@ -34,7 +34,9 @@ PROP_KIND, PROP_AREA, PROP_COEF, MOTOR_K = 9, 10, 11, 12
 VANE_X, VANE_Z, ACCEL_X, ACCEL_Z = 13, 14, 15, 16
 GUST_LU, GUST_LW = 17, 18
 """Scale lengths [m] of the filters' gust states (where the layout has them)."""
-N_CONST = 19
+SPAN = 19
+"""Wing span [m]: the scale of the pitch gust (0: none)."""
+N_CONST = 20
 PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 
 N_STATE = N_FLIGHT
@@ -97,6 +99,11 @@ def aero_coefficients(
     V = x[0]
     alpha = x[1]
     q = x[3]
+    pitch_gust = has_pitch_gust(m)
+    cg = 0.0
+    if pitch_gust:  # the aerodynamic pitch rate: q less the pitch gust (pitch_gust_rows)
+        cg = pitch_gust_scale(k)
+        q = q - x[N_FLIGHT + 2] - cg * x[N_FLIGHT + 1]
     qhat_per_q = k[CHORD] / (2.0 * k[V0])
     r = np.empty(6)
     r[REG_ONE] = 1.0
@@ -118,6 +125,9 @@ def aero_coefficients(
             dC[a, 1] += b
         elif j == REG_QHAT:
             dC[a, 3] += b * qhat_per_q
+            if pitch_gust:
+                dC[a, N_FLIGHT + 2] -= b * qhat_per_q
+                dC[a, N_FLIGHT + 1] -= cg * b * qhat_per_q
         elif j == REG_SPEED:
             dC[a, 0] += b / k[V0]
     return C, dC
@@ -236,6 +246,37 @@ def has_gust_states(model: ModelArrays) -> bool:
     return model.n_dynamic > N_FLIGHT
 
 
+def has_pitch_gust(model: ModelArrays) -> bool:
+    """Whether the gust states go on with the pitch gust's state p_g (a wing span given)."""
+    return model.n_dynamic > N_FLIGHT + 2
+
+
+def pitch_gust_scale(k: FloatArray) -> float:
+    """c = pi / (4 b) [1/m] of the pitch gust (pitch_gust_rows), b the wing span."""
+    return math.pi / (4.0 * float(k[SPAN]))
+
+
+def pitch_gust_rows(x: FloatArray, k: FloatArray, f: FloatArray, F: FloatArray) -> None:
+    """The pitch gust's state p_g: its derivative and Jacobian row (in place).
+
+    MIL-F-8785C's pitch gust is q_g = (s / V) / (1 + (4 b / (pi V)) s) w_g: the rate at
+    which the vertical gust turns the flow, lagged over the span b, which the tail meets
+    after the wing. The aerodynamics see the pitch rate q - q_g (JSBSim's q-aero). With
+    c = pi / (4 b), q_g' = c w_g' - c V q_g, so the state p_g = q_g - c w_g follows
+    p_g' = -c V q_g = -c V (p_g + c w_g) and takes no noise of its own: Q stays diagonal
+    and w_g's noise drives q_g through q_g = p_g + c w_g exactly.
+    """
+    c = pitch_gust_scale(k)
+    p = N_FLIGHT + 2
+    w = N_FLIGHT + 1
+    V = x[0]
+    qg = x[p] + c * x[w]
+    f[p] = -c * V * qg
+    F[p, 0] = -c * qg
+    F[p, p] = -c * V
+    F[p, w] = -c * c * V
+
+
 def _gust_chain(x: FloatArray, J: FloatArray, rows: int) -> None:
     """J (rows x n), the Jacobian of a function of air_relative(x, x[4:6]) with respect
     to the air-relative state, becomes that with respect to x (in place): V_a = V + u_g,
@@ -260,7 +301,8 @@ def dynamics_rows(
     motion over the ground and the aerodynamics see air_relative(x, [u_g, w_g]); the
     equations of still_rows hold at that air-relative state (first order in the gust
     angle: equations.wind_slope has the exact projection), and each gust is a
-    first-order Dryden process, u_g' = -(V/L_u) u_g + noise, w_g' = -(V/L_w) w_g + noise.
+    first-order Dryden process, u_g' = -(V/L_u) u_g + noise, w_g' = -(V/L_w) w_g + noise;
+    with a wing span, the pitch gust's state follows (pitch_gust_rows).
     """
     if not has_gust_states(model):
         return still_rows(x, u, model)
@@ -276,6 +318,8 @@ def dynamics_rows(
     F[g0, g0] = -V / k[GUST_LU]
     F[g0 + 1, 0] = -x[g0 + 1] / k[GUST_LW]
     F[g0 + 1, g0 + 1] = -V / k[GUST_LW]
+    if has_pitch_gust(model):
+        pitch_gust_rows(x, k, f, F)
     return f, F
 
 
@@ -441,8 +485,25 @@ def air_relative(x: FloatArray, gust: FloatArray) -> FloatArray:
     return xa
 
 
+def observe_in_gust(
+    x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArrays
+) -> FloatArray:
+    """What the sensors read of an aircraft whose motion over the ground is x, in a gust
+    [u_g, w_g] or [u_g, w_g, q_g] (the simulators): the observations at the air-relative
+    state, the aerodynamics (and the vane's lever arm, which the gust's gradient along
+    the body turns with them) seeing the pitch rate q - q_g, the gyro the body's q."""
+    xa = air_relative(x, gust)
+    if gust.shape[0] > 2:
+        xa[3] = x[3] - gust[2]
+    h, _ = observe(xa, u, model)
+    h[3] += x[3] - xa[3]
+    return h
+
+
 def wind_slope(x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArrays) -> FloatArray:
-    """State derivative of an aircraft moving through air that moves (the simulators).
+    """State derivative of an aircraft moving through air that moves (the simulators):
+    gust [u_g, w_g] or [u_g, w_g, q_g], q_g the pitch gust (the aerodynamics see the pitch
+    rate q - q_g; pitch_gust_rows).
 
     x holds the motion over the ground: V, alpha of the velocity against the ground, theta,
     q. The aerodynamics (and a propeller) see the air-relative state air_relative(x, gust),
@@ -464,6 +525,8 @@ def wind_slope(x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArray
     """
     k = model.k
     xa = air_relative(x, gust)
+    if gust.shape[0] > 2:  # the pitch gust q_g: the aerodynamics see q - q_g
+        xa[3] = x[3] - gust[2]
     Va = xa[0]
     V = x[0]
     alpha = x[1]

@@ -76,20 +76,29 @@ ALPHA_RATE = [
 """The NOC UAV with alpha-rate terms in lift and moment (JSBSim's CLadot, Cmadot)."""
 GUSTS = ['filter.turbulence.model="states"', "sensors.vane_x_m=0.8", "sensors.accel_z_m=0.05"]
 """The NOC UAV with gust states in the filters' augmented state (and sensors off the CG)."""
+PITCH_GUST = [*GUSTS, "airframe.wing_span_m=2.6"]
+"""The same with a wing span: the pitch gust's state after the gusts."""
 
 
-@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate", "gusts"])
+@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate", "gusts", "pitch gust"])
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_jacobians_match_numerical(
     which: str, data: st.DataObject, noc_config: AircraftConfig, hfb_config: AircraftConfig
 ) -> None:
-    overrides = {"placed": PLACED, "alpha rate": ALPHA_RATE, "gusts": GUSTS}.get(which, [])
+    overrides = {
+        "placed": PLACED,
+        "alpha rate": ALPHA_RATE,
+        "gusts": GUSTS,
+        "pitch gust": PITCH_GUST,
+    }.get(which, [])
     config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", overrides)
     model = build_model(config)
     x, u = data.draw(states(model))
-    if which == "gusts":
-        x[model.gusts] = [data.draw(st.floats(-5.0, 5.0)) for _ in range(2)]
+    if which in ("gusts", "pitch gust"):
+        x[model.gusts] = [data.draw(st.floats(-5.0, 5.0)) for _ in range(2)] + (
+            [data.draw(st.floats(-0.5, 0.5))] if which == "pitch gust" else []
+        )
     if which == "alpha rate":  # CLadot within what keeps alphadot's denominator away from 0
         x[model.coefficients.start + model.names.index("CLadot")] = data.draw(st.floats(-5, 5))
     _, F = model.f(x, u)
@@ -153,6 +162,35 @@ def test_gust_states_are_what_the_air_data_see_and_decay_as_dryden(
     t = noc_config.filter.turbulence
     assert f[4] == pytest.approx(-24.0 / t.length_u_m * 0.8)
     assert f[5] == pytest.approx(-24.0 / t.length_w_m * -1.2)
+
+
+def test_pitch_gust_is_what_the_aerodynamics_take_from_q(noc_config: AircraftConfig) -> None:
+    """With a wing span b the gust states end with p_g, the pitch gust being
+    q_g = p_g + c w_g (c = pi / (4 b)): the aerodynamics see q - q_g, the gyro and the
+    kinematics the body's q, and p_g' = -c V q_g (MIL-F-8785C's lag of w_g' / V)."""
+    span = 2.6
+    model = build_model(load_config("noc_uav", [*GUSTS[:1], f"airframe.wing_span_m={span}"]))
+    gusts = build_model(load_config("noc_uav", GUSTS[:1]))
+    assert model.layout.block("gusts").names == ("u_g", "w_g", "p_g")
+    c = math.pi / (4.0 * span)
+    beta = np.array(noc_config.truth)
+    x = model.augment(np.array([24.0, 0.05, 0.05, 0.1]), beta)
+    x[model.gusts] = [0.8, -1.2, 0.03]
+    qg = 0.03 + c * -1.2
+    u = np.array([0.01, 0.35])
+    # The same aircraft without the pitch gust, at the aerodynamic pitch rate.
+    aero = gusts.augment(np.array([24.0, 0.05, 0.05, 0.1 - qg]), beta)
+    aero[gusts.gusts] = [0.8, -1.2]
+    f, _ = model.f(x, u)
+    fa, _ = gusts.f(aero, u)
+    assert f[3] == pytest.approx(fa[3], rel=1e-12)  # the moment: q - q_g
+    assert f[2] == pytest.approx(0.1)  # theta' = q
+    assert f[1] == pytest.approx(fa[1] + qg, rel=1e-12)  # alpha' = q + ...: the body's q
+    assert f[6] == pytest.approx(-c * 24.0 * qg)
+    h, _ = model.h(x, u)
+    ha, _ = gusts.h(aero, u)
+    assert h[3] == pytest.approx(0.1)  # the gyro
+    np.testing.assert_allclose(h[4:], ha[4:], rtol=1e-12)  # qdot, a_x, a_z
 
 
 def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:

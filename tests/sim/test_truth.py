@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
-from sim.truth import elevator_offset_rad, simulate
+from sim.truth import _GustModel, elevator_offset_rad, simulate
 
 
 def test_trim_matches_the_spec(noc_config: AircraftConfig) -> None:
@@ -89,6 +89,30 @@ def test_turbulence_moves_the_aircraft_with_the_set_intensity(noc_config: Aircra
     assert np.ptp(calm.states[before, 1]) < 1e-9
     # Alpha seen by the vane carries w_g/V: tenths of a degree to degrees at 0.8 m/s.
     assert 0.2 < math.degrees(np.std(rough.states[before, 1])) < 5.0
+
+
+def test_pitch_gust_is_the_lagged_rate_of_the_vertical_gust() -> None:
+    """With a wing span b the simulator's pitch gust is MIL-F-8785C's
+    q_g = (s / V) / (1 + (4 b / (pi V)) s) w_g: here w_g's rate over V, differenced from
+    the samples and lagged by 4 b / (pi V), against the q_g the model flew."""
+    turb = Turbulence(sigma_u_mps=1.0, sigma_w_mps=0.8, length_u_m=200.0, length_w_m=50.0)
+    V, span, dt = 24.0, 2.6, 0.002
+    gusts = _GustModel(turb, V, np.random.default_rng(3), span)
+    g = np.empty((20000, 3))
+    for i in range(len(g)):
+        g[i] = gusts.gust()
+        gusts.step(dt)
+    tau = 4.0 * span / (math.pi * V)
+    lagged = np.zeros(len(g))
+    rate = np.diff(g[:, 1]) / dt / V
+    for i in range(1, len(g)):
+        lagged[i] = lagged[i - 1] + (rate[i - 1] - lagged[i - 1]) * dt / tau
+    gain = float(lagged @ g[:, 2] / (lagged @ lagged))
+    assert np.corrcoef(lagged, g[:, 2])[0, 1] > 0.99
+    assert gain == pytest.approx(1.0, abs=0.02)
+    assert abs(g[0, 2]) < 1e-12  # it starts at rest
+    # Without a span there is no pitch gust.
+    assert _GustModel(turb, V, np.random.default_rng(3)).gust().shape == (2,)
 
 
 def test_seeded_and_reproducible(noc_config: AircraftConfig) -> None:
