@@ -490,13 +490,17 @@ def observe_in_gust(
 ) -> FloatArray:
     """What the sensors read of an aircraft whose motion over the ground is x, in a gust
     [u_g, w_g] or [u_g, w_g, q_g] (the simulators): the observations at the air-relative
-    state, the aerodynamics (and the vane's lever arm, which the gust's gradient along
-    the body turns with them) seeing the pitch rate q - q_g, the gyro the body's q."""
+    state. As in the filters' model, the aerodynamics behind qdot, a_x and a_z see the
+    pitch rate q - q_g, while the gyro and the vane's lever arm see the body's q (the
+    accelerometers' q^2 lever-arm term takes q - q_g, a second-order difference)."""
     xa = air_relative(x, gust)
-    if gust.shape[0] > 2:
-        xa[3] = x[3] - gust[2]
     h, _ = observe(xa, u, model)
-    h[3] += x[3] - xa[3]
+    if gust.shape[0] > 2:
+        xq = xa.copy()
+        xq[3] = x[3] - gust[2]
+        ha, _ = observe(xq, u, model)
+        for c in range(4, N_OBS):
+            h[c] = ha[c]
     return h
 
 
