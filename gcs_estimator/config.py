@@ -99,7 +99,8 @@ class Airframe:
         0.0,
         ge=0,
         unit="m",
-        doc="b: with gust states, the pitch gust's scale (MIL-F-8785C); 0: no pitch gust",
+        doc="b: the pitch gust's scale (MIL-F-8785C), which the simulator flies and the "
+        "filters model (filter.turbulence.pitch_gust); 0: no pitch gust",
     )
 
 
@@ -321,6 +322,11 @@ class TurbulenceNoise:
         "noise on the flight states",
     )
     adaptive: bool = setting(True, doc="estimate sigma_w^2 online from the V and alpha innovations")
+    pitch_gust: bool = setting(
+        True,
+        doc="with airframe.wing_span_m, the pitch gust's state p_g (MIL-F-8785C; "
+        "docs/decisions/0016); false: none",
+    )
     sigma_w_mps: float = setting(0.0, ge=0, unit="m/s", doc="initial (adaptive) or fixed level")
     sigma_u_ratio: float = setting(1.5, gt=0)
     length_u_m: float = setting(200.0, gt=0, unit="m")

@@ -320,9 +320,19 @@ def initial_state(
             # p_g = q_g - c w_g starts at zero with w_g's spread scaled by c: q_g = 0
             # within the pitch gust's own spread.
             sigma[gusts.start + 2] = eq.pitch_gust_scale(model.k) * sigma[gusts.start + 1]
+    P = np.diag(sigma**2)
+    if eq.has_pitch_gust(model.arrays) and not model.has_gust_states:
+        # p_g = q_g - c V alpha: q_g = 0 within c sigma_w, p_g tied to alpha's belief.
+        p, a = gusts.start, flight.start + 1
+        c_v = eq.pitch_gust_scale(model.k) * x[flight.start]
+        x[p] = -c_v * x[a]
+        P[p, p] = c_v**2 * P[a, a] + eq.pitch_gust_scale(model.k) ** 2 * max(
+            level, GUST_STATE_FLOOR**2
+        )
+        P[p, a] = P[a, p] = -c_v * P[a, a]
     return FilterState(
         x=x,
-        P=np.diag(sigma**2),
+        P=P,
         t=t,
         u=np.array(u, float),
         t_start=t,

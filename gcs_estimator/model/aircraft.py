@@ -21,8 +21,9 @@ FLIGHT, GUSTS, COEFFICIENTS, BIASES = "flight", "gusts", "coefficients", "biases
 GUST_STATES = ("u_g", "w_g")
 """The gust states' names (filter.turbulence.model = "states")."""
 PITCH_GUST_STATE = "p_g"
-"""The pitch gust's state after them, where the airframe gives a wing span
-(equations.pitch_gust_rows)."""
+"""The pitch gust's state, where the airframe gives a wing span: after the gust states
+(equations.pitch_gust_rows), or alone where turbulence is white process noise
+(equations.white_pitch_gust_rows)."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,8 @@ class Model:
 
     @property
     def gusts(self) -> slice:
-        """Where the gust states [u_g, w_g] sit (empty when turbulence is process noise)."""
+        """Where the gust states [u_g, w_g] and the pitch gust's p_g sit ([p_g] alone when
+        turbulence is process noise; empty without a wing span then)."""
         for b in self.layout.blocks:
             if b.name == GUSTS:
                 return b.slice
@@ -105,8 +107,10 @@ class Model:
 def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Model:
     """Pack an aircraft configuration for the equations: the state is the flight block
     (dynamic), the gust states where the filters model turbulence as states
-    (`gust_states`; default: as filter.turbulence.model says), then the coefficients of
-    the configured structure and the sensor biases (constant)."""
+    (`gust_states`; default: as filter.turbulence.model says) and the pitch gust's state
+    where the airframe gives a wing span (none with gust_states=False: the still-air
+    model the simulators and output error fly), then the coefficients of the configured
+    structure and the sensor biases (constant)."""
     a = config.airframe
     p = config.propulsion
     k = np.zeros(eq.N_CONST)
@@ -138,10 +142,13 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     names = config.structure.names
     biases = tuple(f"{c}_bias" for c in s.bias_states)
     gusts = turbulence.model == "states" if gust_states is None else gust_states
-    gust_names = GUST_STATES + ((PITCH_GUST_STATE,) if a.wing_span_m > 0.0 else ())
+    # The pitch gust's state with a wing span (unless turned off), but never in the
+    # still-air model the simulators and output error fly (gust_states=False).
+    pitch = a.wing_span_m > 0.0 and gust_states is not False and turbulence.pitch_gust
+    gust_names = (GUST_STATES if gusts else ()) + ((PITCH_GUST_STATE,) if pitch else ())
     layout = StateLayout.assemble(
         [(FLIGHT, FLIGHT_STATES, True)]
-        + ([(GUSTS, gust_names, True)] if gusts else [])
+        + ([(GUSTS, gust_names, True)] if gust_names else [])
         + [(COEFFICIENTS, names, False), (BIASES, biases, False)]
     )
     arrays = ModelArrays(

@@ -99,11 +99,12 @@ def aero_coefficients(
     V = x[0]
     alpha = x[1]
     q = x[3]
-    pitch_gust = has_pitch_gust(m)
+    pg = pitch_gust_index(m)
+    states = has_gust_states(m)
     cg = 0.0
-    if pitch_gust:  # the aerodynamic pitch rate: q less the pitch gust (pitch_gust_rows)
+    if pg >= 0:  # the aerodynamic pitch rate: q less the pitch gust (pitch_gust_rows)
         cg = pitch_gust_scale(k)
-        q = q - x[N_FLIGHT + 2] - cg * x[N_FLIGHT + 1]
+        q = q - x[pg] - (cg * x[N_FLIGHT + 1] if states else cg * V * alpha)
     qhat_per_q = k[CHORD] / (2.0 * k[V0])
     r = np.empty(6)
     r[REG_ONE] = 1.0
@@ -125,9 +126,13 @@ def aero_coefficients(
             dC[a, 1] += b
         elif j == REG_QHAT:
             dC[a, 3] += b * qhat_per_q
-            if pitch_gust:
-                dC[a, N_FLIGHT + 2] -= b * qhat_per_q
-                dC[a, N_FLIGHT + 1] -= cg * b * qhat_per_q
+            if pg >= 0:
+                dC[a, pg] -= b * qhat_per_q
+                if states:
+                    dC[a, N_FLIGHT + 1] -= cg * b * qhat_per_q
+                else:
+                    dC[a, 0] -= cg * alpha * b * qhat_per_q
+                    dC[a, 1] -= cg * V * b * qhat_per_q
         elif j == REG_SPEED:
             dC[a, 0] += b / k[V0]
     return C, dC
@@ -242,13 +247,25 @@ def dynamics(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArr
 
 
 def has_gust_states(model: ModelArrays) -> bool:
-    """Whether the augmented state holds gust states [u_g, w_g] after the flight states."""
-    return model.n_dynamic > N_FLIGHT
+    """Whether the augmented state holds gust states [u_g, w_g] after the flight states
+    (the dynamic states: flight states, then [u_g, w_g] or [u_g, w_g, p_g] with gust
+    states, or [p_g] alone with white gust noise and a pitch gust)."""
+    return model.n_dynamic >= N_FLIGHT + 2
+
+
+def pitch_gust_index(model: ModelArrays) -> int:
+    """Where the pitch gust's state p_g sits (a wing span given), or -1: after the gust
+    states, or right after the flight states when turbulence is white process noise."""
+    if model.n_dynamic == N_FLIGHT + 3:
+        return N_FLIGHT + 2
+    if model.n_dynamic == N_FLIGHT + 1:
+        return N_FLIGHT
+    return -1
 
 
 def has_pitch_gust(model: ModelArrays) -> bool:
-    """Whether the gust states go on with the pitch gust's state p_g (a wing span given)."""
-    return model.n_dynamic > N_FLIGHT + 2
+    """Whether the augmented state holds the pitch gust's state p_g."""
+    return pitch_gust_index(model) >= 0
 
 
 def pitch_gust_scale(k: FloatArray) -> float:
@@ -275,6 +292,31 @@ def pitch_gust_rows(x: FloatArray, k: FloatArray, f: FloatArray, F: FloatArray) 
     F[p, 0] = -c * qg
     F[p, p] = -c * V
     F[p, w] = -c * c * V
+
+
+def white_pitch_gust_rows(x: FloatArray, k: FloatArray, f: FloatArray, F: FloatArray) -> None:
+    """The pitch gust's state where turbulence is white process noise on the air-relative
+    states (in place; f and F hold the flight states' rows).
+
+    The noise on alpha stands for the gust angle's rate w_g' / V, so the pitch gust is
+    q_g' = c V (noise_alpha - q_g) (pitch_gust_rows). The state p_g = q_g - c V alpha
+    follows, alpha' being f_alpha + noise_alpha and V' f_V (+ noise, whose product with
+    alpha is second order),
+
+        p_g' = -c V q_g - c alpha f_V - c V f_alpha,    q_g = p_g + c V alpha,
+
+    with no noise of its own: Q stays diagonal, and alpha's noise drives q_g."""
+    c = pitch_gust_scale(k)
+    p = N_FLIGHT
+    V = x[0]
+    alpha = x[1]
+    qg = x[p] + c * V * alpha
+    f[p] = -c * V * qg - c * alpha * f[0] - c * V * f[1]
+    for j in range(F.shape[1]):
+        F[p, j] = -c * alpha * F[0, j] - c * V * F[1, j]
+    F[p, p] += -c * V
+    F[p, 0] += -c * qg - c * c * V * alpha - c * f[1]
+    F[p, 1] += -c * c * V * V - c * f[0]
 
 
 def _gust_chain(x: FloatArray, J: FloatArray, rows: int) -> None:
@@ -305,7 +347,10 @@ def dynamics_rows(
     with a wing span, the pitch gust's state follows (pitch_gust_rows).
     """
     if not has_gust_states(model):
-        return still_rows(x, u, model)
+        f, F = still_rows(x, u, model)
+        if has_pitch_gust(model):
+            white_pitch_gust_rows(x, model.k, f, F)
+        return f, F
     g0 = N_FLIGHT
     xa = air_relative(x, x[g0 : g0 + 2])
     f, F = still_rows(xa, u, model)

@@ -78,9 +78,14 @@ GUSTS = ['filter.turbulence.model="states"', "sensors.vane_x_m=0.8", "sensors.ac
 """The NOC UAV with gust states in the filters' augmented state (and sensors off the CG)."""
 PITCH_GUST = [*GUSTS, "airframe.wing_span_m=2.6"]
 """The same with a wing span: the pitch gust's state after the gusts."""
+WHITE_PITCH_GUST = [*PLACED, "airframe.wing_span_m=2.6"]
+"""White gust noise with a wing span: the pitch gust's state alone after the flight states
+(and the sensors off the CG, with biases)."""
 
 
-@pytest.mark.parametrize("which", ["noc", "hfb", "placed", "alpha rate", "gusts", "pitch gust"])
+@pytest.mark.parametrize(
+    "which", ["noc", "hfb", "placed", "alpha rate", "gusts", "pitch gust", "white pitch gust"]
+)
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_jacobians_match_numerical(
@@ -91,6 +96,7 @@ def test_jacobians_match_numerical(
         "alpha rate": ALPHA_RATE,
         "gusts": GUSTS,
         "pitch gust": PITCH_GUST,
+        "white pitch gust": WHITE_PITCH_GUST,
     }.get(which, [])
     config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", overrides)
     model = build_model(config)
@@ -99,6 +105,8 @@ def test_jacobians_match_numerical(
         x[model.gusts] = [data.draw(st.floats(-5.0, 5.0)) for _ in range(2)] + (
             [data.draw(st.floats(-0.5, 0.5))] if which == "pitch gust" else []
         )
+    if which == "white pitch gust":
+        x[model.gusts] = data.draw(st.floats(-3.0, 3.0))
     if which == "alpha rate":  # CLadot within what keeps alphadot's denominator away from 0
         x[model.coefficients.start + model.names.index("CLadot")] = data.draw(st.floats(-5, 5))
     _, F = model.f(x, u)
@@ -191,6 +199,44 @@ def test_pitch_gust_is_what_the_aerodynamics_take_from_q(noc_config: AircraftCon
     ha, _ = gusts.h(aero, u)
     assert h[3] == pytest.approx(0.1)  # the gyro
     np.testing.assert_allclose(h[4:], ha[4:], rtol=1e-12)  # qdot, a_x, a_z
+
+
+def test_white_pitch_gust_rides_on_alpha(noc_config: AircraftConfig) -> None:
+    """With white gust noise and a wing span the state holds p_g alone, the pitch gust
+    being q_g = p_g + c V alpha: the aerodynamics see q - q_g, and p_g' takes alpha's
+    own rate out (white_pitch_gust_rows), so that q_g decays as the lag says."""
+    span = 2.6
+    model = build_model(load_config("noc_uav", [f"airframe.wing_span_m={span}"]))
+    still = build_model(noc_config)
+    assert model.layout.block("gusts").names == ("p_g",) and model.n == still.n + 1
+    c = math.pi / (4.0 * span)
+    beta = np.array(noc_config.truth)
+    x = model.augment(np.array([24.0, 0.05, 0.05, 0.1]), beta)
+    x[4] = 0.02 - c * 24.0 * 0.05  # q_g = 0.02
+    u = np.array([0.01, 0.35])
+    f, _ = model.f(x, u)
+    fa, _ = still.f(still.augment(np.array([24.0, 0.05, 0.05, 0.1 - 0.02]), beta), u)
+    assert f[3] == pytest.approx(fa[3], rel=1e-12)
+    assert f[1] == pytest.approx(fa[1] + 0.02, rel=1e-12)  # alpha' = q + ...
+    # d(q_g)/dt = p_g' + c (V' alpha + V alpha') = -c V q_g
+    qg_rate = f[4] + c * (f[0] * 0.05 + 24.0 * f[1])
+    assert qg_rate == pytest.approx(-c * 24.0 * 0.02, rel=1e-9)
+
+
+def test_the_still_air_model_has_no_pitch_gust_state() -> None:
+    """The simulators and output error fly build_model(gust_states=False): no gust states
+    and no pitch gust's state, whatever the span and the filters' turbulence model (a
+    p_g left at 0 there would turn their aerodynamics by c V alpha)."""
+    for kind in ("noise", "states"):
+        config = load_config(
+            "noc_uav", ["airframe.wing_span_m=2.6", f'filter.turbulence.model="{kind}"']
+        )
+        model = build_model(config, gust_states=False)
+        assert model.gusts == slice(0, 0) and not eq.has_pitch_gust(model.arrays)
+        off = load_config(
+            "noc_uav", ["airframe.wing_span_m=2.6", "filter.turbulence.pitch_gust=false"]
+        )
+        assert build_model(off).gusts == slice(0, 0)
 
 
 def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:
