@@ -344,16 +344,20 @@ def rebase(
     state: FilterState, model: Model, tuning: Tuning, t: float, y: FloatArray
 ) -> FilterState:
     """A new time base (the vehicle clock reset): keep what is known of the coefficients,
-    take the flight states afresh from the measurement with their initial uncertainty.
+    take the flight states (and a pitch gust's state tied to alpha) afresh from the
+    measurement with their initial uncertainty.
     The process-noise schedule and the gust estimate's clocks keep their age."""
     fresh = initial_state(model, tuning, t, state.u, y)
-    flight = model.flight
+    # The flight states, and a pitch gust's state tied to alpha (white gust noise).
+    afresh = list(range(model.flight.start, model.flight.stop))
+    if eq.has_pitch_gust(model.arrays) and not model.has_gust_states:
+        afresh.append(model.gusts.start)
     x = state.x.copy()
     P = state.P.copy()
-    x[flight] = fresh.x[flight]
-    P[flight, :] = 0.0
-    P[:, flight] = 0.0
-    P[flight, flight] = fresh.P[flight, flight]
+    x[afresh] = fresh.x[afresh]
+    P[afresh, :] = 0.0
+    P[:, afresh] = 0.0
+    P[np.ix_(afresh, afresh)] = fresh.P[np.ix_(afresh, afresh)]
     shift = t - state.t
     g = state.gust
     return state._replace(

@@ -324,3 +324,28 @@ def test_forces_act_on_the_ground_path_in_a_gust(noc_config: AircraftConfig) -> 
     V, a = x[0], x[1]
     assert f[0] == pytest.approx(ax_air * math.cos(a) + az_air * math.sin(a), rel=1e-9)
     assert f[1] - x[3] == pytest.approx((az_air * math.cos(a) - ax_air * math.sin(a)) / V, rel=1e-9)
+
+
+def test_a_clock_reset_takes_the_white_pitch_gust_afresh_with_alpha() -> None:
+    """core.rebase takes the flight states afresh from the measurement; the pitch gust's
+    state of white gust noise rides on alpha (q_g = p_g + c V alpha), so it is taken
+    afresh with them: q_g = 0 and p_g tied to alpha's belief, the coefficients kept."""
+    from gcs_estimator.filters import core
+
+    config = load_config("noc_uav", ["airframe.wing_span_m=2.6"])
+    model = build_model(config)
+    tuning = core.tuning_of(config, model, "EKF")
+    u = np.array([0.01, 0.35])
+    y = np.array([24.0, 0.05, 0.04, 0.0, 0.0, 0.0, -9.8])
+    state = core.initial_state(model, tuning, 0.0, u, y)
+    x = state.x.copy()
+    x[model.coefficients] = 1.0
+    x[4] = 0.3  # some pitch gust state before the reset
+    old = state._replace(x=x)
+    y2 = y.copy()
+    y2[0], y2[1] = 26.0, 0.08
+    new = core.rebase(old, model, tuning, 100.0, y2)
+    c = math.pi / (4.0 * 2.6)
+    assert new.x[4] + c * new.x[0] * new.x[1] == pytest.approx(0.0, abs=1e-12)
+    assert new.P[4, 1] == pytest.approx(-c * new.x[0] * new.P[1, 1])
+    np.testing.assert_array_equal(new.x[model.coefficients], 1.0)
