@@ -10,8 +10,9 @@ elevator (throttle fixed) with the wings held level by aileron (as a test pilot 
 longitudinal manoeuvre flown in a bank is not longitudinal), calm and in light Dryden
 turbulence, and is sampled at 50 Hz. The CSVs carry sensor noise, an angle-of-attack vane
 ahead of the CG, a rate-gyro bias and the air density of each sample; the airframe files
-state the vane position and estimate the bias, and carry no filter tuning at all (the
-project's defaults).
+state the vane position, estimate the bias and give the wing span (so the filters model
+turbulence's pitch gust, which JSBSim flies: docs/decisions/0016), and carry no filter
+tuning at all (the project's defaults).
 
 Reference coefficients: JSBSim's own aerodynamic force and moment coefficients over the
 flown samples, linearised by least squares on the estimator's coefficient structure
