@@ -322,14 +322,18 @@ def initial_state(
             sigma[gusts.start + 2] = eq.pitch_gust_scale(model.k) * sigma[gusts.start + 1]
     P = np.diag(sigma**2)
     if eq.has_pitch_gust(model.arrays) and not model.has_gust_states:
-        # p_g = q_g - c V alpha: q_g = 0 within c sigma_w, p_g tied to alpha's belief.
-        p, a = gusts.start, flight.start + 1
-        c_v = eq.pitch_gust_scale(model.k) * x[flight.start]
-        x[p] = -c_v * x[a]
-        P[p, p] = c_v**2 * P[a, a] + eq.pitch_gust_scale(model.k) ** 2 * max(
-            level, GUST_STATE_FLOOR**2
+        # p_g = q_g - c V alpha: q_g = 0 within c sigma_w, independent of the flight
+        # states, so p_g is tied to the beliefs of V and alpha.
+        p, v, a = gusts.start, flight.start, flight.start + 1
+        c = eq.pitch_gust_scale(model.k)
+        x[p] = -c * x[v] * x[a]
+        P[p, v] = P[v, p] = -c * x[a] * P[v, v]
+        P[p, a] = P[a, p] = -c * x[v] * P[a, a]
+        P[p, p] = (
+            (c * x[a]) ** 2 * P[v, v]
+            + (c * x[v]) ** 2 * P[a, a]
+            + c**2 * max(level, GUST_STATE_FLOOR**2)
         )
-        P[p, a] = P[a, p] = -c_v * P[a, a]
     return FilterState(
         x=x,
         P=P,

@@ -348,4 +348,5 @@ def test_a_clock_reset_takes_the_white_pitch_gust_afresh_with_alpha() -> None:
     c = math.pi / (4.0 * 2.6)
     assert new.x[4] + c * new.x[0] * new.x[1] == pytest.approx(0.0, abs=1e-12)
     assert new.P[4, 1] == pytest.approx(-c * new.x[0] * new.P[1, 1])
+    assert new.P[4, 0] == pytest.approx(-c * new.x[1] * new.P[0, 0])
     np.testing.assert_array_equal(new.x[model.coefficients], 1.0)
