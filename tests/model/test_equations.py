@@ -233,10 +233,8 @@ def test_the_still_air_model_has_no_pitch_gust_state() -> None:
         )
         model = build_model(config, gust_states=False)
         assert model.gusts == slice(0, 0) and not eq.has_pitch_gust(model.arrays)
-        off = load_config(
-            "noc_uav", ["airframe.wing_span_m=2.6", "filter.turbulence.pitch_gust=false"]
-        )
-        assert build_model(off).gusts == slice(0, 0)
+    off = load_config("noc_uav", ["airframe.wing_span_m=2.6", "filter.turbulence.pitch_gust=false"])
+    assert build_model(off).gusts == slice(0, 0)
 
 
 def test_coefficients_have_no_dynamics(noc_config: AircraftConfig) -> None:
