@@ -52,6 +52,16 @@ CLEAN = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")
 """The noise-free observations at the CG, in channel order."""
 STRUCTURE = {"CD": ["1", "alpha"], "CL": ["1", "alpha", "qhat", "elevator"]}
 STRUCTURE["Cm"] = ["1", "alpha", "qhat", "elevator"]
+ALPHA_DOT_STRUCTURE = {
+    axis: [*regs, "adhat"] if axis != "CD" else regs for axis, regs in STRUCTURE.items()
+}
+"""The structure with JSBSim's alpha-dot terms (CLadot, Cmadot) as well: `--alpha-dot`."""
+
+
+def structure(alpha_dot: bool) -> dict[str, list[str]]:
+    """The coefficient structure the airframe files give: the paper's, or with the
+    alpha-dot terms the JSBSim aircraft carry."""
+    return ALPHA_DOT_STRUCTURE if alpha_dot else STRUCTURE
 
 
 @dataclass(frozen=True)
@@ -188,9 +198,12 @@ def _term(g: Callable[[str], float], prop: str) -> float:
         return 0.0
 
 
-def reference(f: dict[str, FloatArray], chord_m: float) -> dict[str, tuple[float, float]]:
+def reference(
+    f: dict[str, FloatArray], chord_m: float, alpha_dot: bool = False
+) -> dict[str, tuple[float, float]]:
     """JSBSim's aerodynamic coefficients over the flown samples, linearised by least
-    squares on the structure's regressors: name -> (value, fit residual RMS)."""
+    squares on the structure's regressors (structure(alpha_dot)): name -> (value, fit
+    residual RMS)."""
     regressors = {
         "1": np.ones_like(f["t"]),
         "alpha": f["alpha"],
@@ -200,7 +213,7 @@ def reference(f: dict[str, FloatArray], chord_m: float) -> dict[str, tuple[float
     }
     suffix = REGRESSOR_SUFFIX
     out: dict[str, tuple[float, float]] = {}
-    for axis, regs in STRUCTURE.items():
+    for axis, regs in structure(alpha_dot).items():
         X = np.column_stack([regressors[r] for r in regs])
         beta, *_ = np.linalg.lstsq(X, f[axis], rcond=None)
         rms = float(np.sqrt(np.mean((f[axis] - X @ beta) ** 2)))
@@ -232,8 +245,18 @@ def airframe_toml(
     f: dict[str, FloatArray],
     ref: dict[str, tuple[float, float]],
     adot: dict[str, float],
+    alpha_dot: bool = False,
 ) -> str:
-    """The airframe file a user would write: geometry, structure, sensors; no tuning."""
+    """The airframe file a user would write: geometry, structure (with the alpha-dot
+    terms when alpha_dot), sensors; no tuning."""
+    note = (
+        "# (fit residual RMS per axis in the comments), the alpha-dot terms with the rest."
+        if alpha_dot
+        else "# (fit residual RMS per axis in the comments). JSBSim's alpha-dot terms, which the\n"
+        "# structure lacks and the fit takes in as they come: "
+        + ", ".join(f"{n} = {v:.4g}" for n, v in adot.items())
+        + "."
+    )
     lines = [
         f"# {ac.label}: JSBSim '{ac.model}', written by benchmarks/jsbsim_flights.py.",
         "",
@@ -253,7 +276,7 @@ def airframe_toml(
         'model = "measured"',
         "",
         "[coefficients]",
-        *(f"{axis} = {regs}".replace("'", '"') for axis, regs in STRUCTURE.items()),
+        *(f"{axis} = {regs}".replace("'", '"') for axis, regs in structure(alpha_dot).items()),
         "",
         "[sensors]",
         f"vane_x_m = {ac.vane_x_m}",
@@ -263,10 +286,7 @@ def airframe_toml(
         "throttle_servo = 0",
         "",
         "# JSBSim's own aerodynamics over the flown samples, linearised on the structure above",
-        "# (fit residual RMS per axis in the comments). JSBSim's alpha-dot terms, which the",
-        "# structure lacks and the fit takes in as they come: "
-        + ", ".join(f"{n} = {v:.4g}" for n, v in adot.items())
-        + ".",
+        note,
         "[truth]",
         'label = "JSBSim"',
         *(f"{n} = {v:.6g}  # residual {r:.2g}" for n, (v, r) in ref.items()),
@@ -275,9 +295,12 @@ def airframe_toml(
     return "\n".join(lines)
 
 
-def generate(out: Path, seeds: Sequence[int] = (1,)) -> list[tuple[Path, Path]]:
+def generate(
+    out: Path, seeds: Sequence[int] = (1,), alpha_dot: bool = False
+) -> list[tuple[Path, Path]]:
     """Fly every aircraft calm and in light turbulence; (config, csv) per record and seed
-    (the first seed's records are NAME.csv, the others' NAME_sSEED.csv). Next to each,
+    (the first seed's records are NAME.csv, the others' NAME_sSEED.csv), the airframe
+    files with structure(alpha_dot). Next to each,
     NAME.best_fit.json: the structure's best fit to the noise-free calm flight
     (benchmarks/best_fit.py), which serves the turbulent one too, how far it moves with
     the channels' weighting (its spread), and how closely it reproduces this flight
@@ -293,7 +316,7 @@ def generate(out: Path, seeds: Sequence[int] = (1,)) -> list[tuple[Path, Path]]:
                 f = fly(ac, turbulent, seed) if turbulent else calm
                 name = f"{ac.model}_{'light' if turbulent else 'calm'}"
                 name += "" if seed == seeds[0] else f"_s{seed}"
-                config_path, csv_path = _write_record(out / name, ac, f, seed)
+                config_path, csv_path = _write_record(out / name, ac, f, seed, alpha_dot)
                 config = load_config(config_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
                 inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
                 clean = np.column_stack([f[k] for k in CLEAN])
@@ -322,7 +345,7 @@ def generate(out: Path, seeds: Sequence[int] = (1,)) -> list[tuple[Path, Path]]:
 
 
 def _write_record(
-    stem: Path, ac: Aircraft, f: dict[str, FloatArray], seed: int
+    stem: Path, ac: Aircraft, f: dict[str, FloatArray], seed: int, alpha_dot: bool = False
 ) -> tuple[Path, Path]:
     """A flight's noisy CSV (sensor noise drawn from `seed`) and its airframe file."""
     inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
@@ -330,8 +353,9 @@ def _write_record(
     rec = Recording(f["t"], inputs, measurements(f, ac, rng), "thrust")
     csv_path, toml_path = stem.with_suffix(".csv"), stem.with_suffix(".toml")
     write_csv(csv_path, rec)
-    ref = reference(f, float(f["chord"][0]))
-    toml_path.write_text(airframe_toml(ac, f, ref, alpha_dot_terms(f)), encoding="utf-8")
+    ref = reference(f, float(f["chord"][0]), alpha_dot)
+    toml = airframe_toml(ac, f, ref, alpha_dot_terms(f), alpha_dot)
+    toml_path.write_text(toml, encoding="utf-8")
     return toml_path, csv_path
 
 
@@ -339,8 +363,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--alpha-dot",
+        action="store_true",
+        help="airframe files with JSBSim's alpha-dot terms (CLadot, Cmadot) in the structure",
+    )
     args = ap.parse_args(argv)
-    generate(Path(args.out), (args.seed,))
+    generate(Path(args.out), (args.seed,), args.alpha_dot)
     return 0
 
 

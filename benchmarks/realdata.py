@@ -261,7 +261,15 @@ def main(argv: list[str] | None = None) -> int:
         help="fly the JSBSim set with this many seeds (from --seed): each record's table for "
         "the first, a summary row for every one, and the figures pooled over the seeds",
     )
-    ap.add_argument("--out", default=str(ROOT / "out" / "realdata"))
+    ap.add_argument(
+        "--out",
+        help="the validation set's folder (default: out/realdata; out/realdata_adot)",
+    )
+    ap.add_argument(
+        "--alpha-dot",
+        action="store_true",
+        help="the JSBSim airframe files give CL and Cm JSBSim's alpha-dot terms (adhat)",
+    )
     ap.add_argument(
         "--set",
         action="append",
@@ -289,7 +297,12 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise SystemExit("realdata: --seeds must be 1 or more")
     seeds = tuple(range(args.seed, args.seed + args.seeds))
-    records = generate(Path(args.out), seeds)
+    out = (
+        Path(args.out)
+        if args.out
+        else ROOT / "out" / ("realdata_adot" if args.alpha_dot else "realdata")
+    )
+    records = generate(out, seeds, args.alpha_dot)
     worst: dict[str, dict[str, float]] = {}
     for config_path, csv_path in records:
         config = load_config(config_path, args.set)
