@@ -12,6 +12,8 @@ whole of its q terms where JSBSim credits it to a part.
 
 For each aircraft of the validation set (benchmarks/jsbsim_flights.py) and seed, this
 flies the calm and the light-turbulence flight and prints:
+- the vertical gust's standard deviation and correlation time (where its autocorrelation
+  falls below 1/e), and the pitch gust's standard deviation;
 - how JSBSim's alpha-dot follows the rate of alpha over the ground and through the air
   (correlation);
 - the share of the pitch gust each of the structure's equations (CL, Cm) would have to
@@ -44,6 +46,13 @@ SHARES = (0.0, 0.5, 1.0)
 
 def _correlation(a: FloatArray, b: FloatArray) -> float:
     return float(np.corrcoef(a, b)[0, 1])
+
+
+def _correlation_time(x: FloatArray, t: FloatArray) -> float:
+    """Where x's autocorrelation first falls below 1/e [s]."""
+    c = x - x.mean()
+    acf = np.correlate(c, c, "full")[c.shape[0] - 1 :] / float(c @ c)
+    return float(t[int(np.argmax(acf < np.exp(-1.0)))] - t[0])
 
 
 def _gust_share(
@@ -98,7 +107,8 @@ def run(seeds: int) -> None:
                 + ", ".join(f"{k} {fit[k]:.4g}" for k in ("CLq", "Cmq"))
                 + "; JSBSim's alpha-dot terms (per alpha-dot c / (2 V)) in its airframe file\n"
             )
-            head = ["seed", "alpha-dot ~ ground rate", "alpha-dot ~ air rate"]
+            head = ["seed", "σ(w_g) m/s", "w_g correlation time s", "σ(q_g) rad/s"]
+            head += ["alpha-dot ~ ground rate", "alpha-dot ~ air rate"]
             for axis in ("CL", "Cm"):
                 head += [f"{axis} share of q_g", f"{axis} eq. error RMS (share 1 / fitted)"]
             head += [f"reproduction, share {s:g}" for s in SHARES]
@@ -111,6 +121,9 @@ def run(seeds: int) -> None:
                 ground_alpha = f["alpha"] - f["gust_w"] / (f["V"] - f["gust_u"])
                 row = [
                     str(seed),
+                    f"{float(np.std(f['gust_w'])):.3f}",
+                    f"{_correlation_time(f['gust_w'], f['t']):.1f}",
+                    f"{float(np.std(f['gust_q'])):.4f}",
                     f"{_correlation(alpha_dot, np.gradient(ground_alpha, f['t'])):.4f}",
                     f"{_correlation(alpha_dot, np.gradient(f['alpha'], f['t'])):.2f}",
                 ]

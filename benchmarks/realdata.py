@@ -141,6 +141,7 @@ def evaluate(
             "corrected σ"
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
+            + _turbulence_note(res, k)
         )
     if res.noise_reading is not None:
         used = ", ".join(
@@ -185,6 +186,21 @@ def _judged_fairly(
         out["spread"] = float(spread[well].max())
         out["spread identified"] = float(spread[ident].max()) if ident else math.nan
     return out
+
+
+def _turbulence_note(res: EstimatorResult, kind: FilterKind) -> str:
+    """The turbulence level the filter ended with, and over the final pass how often a
+    level was applied and its median where it was."""
+    f = res.filters[kind]
+    note = f"; turbulence σ_w {f.gust_sigma:.2f} m/s at the end"
+    if f.track is None:
+        return note
+    level = f.track.gust_sigma[res.final_pass_from :]
+    on = level[level > 0.0]
+    if on.size == 0:
+        return note + ", none applied in the final pass"
+    share = 100.0 * on.size / level.size
+    return note + f", applied in {share:.0f} % of the final pass (median {np.median(on):.2f})"
 
 
 def _print_best_fit(
