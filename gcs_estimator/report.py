@@ -227,6 +227,10 @@ the final pass: on and off. Calm simulated flights stay below 1 %, turbulent one
 model misfit during manoeuvres reads as bursts (docs/decisions/0004)."""
 COLOUR_LIMIT = 5.0
 """Residual colour above this on a channel: the model misses something the data hold."""
+DISAGREE_SIGMAS = 3.0
+"""The EKF and the IEKF ending further apart on a coefficient than this many of the larger
+of their trusted sigmas: the data do not settle it (both filters read the same frames, so
+their estimates differ by far less than either sigma where the data fix a value)."""
 
 
 def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
@@ -270,11 +274,43 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
         if weak:
             out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+    out += _disagreement_warning(vehicle)
     out += _noise_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
         out += _refined_warnings(refined)
     return out
+
+
+def _disagreement_warning(vehicle: VehicleResult) -> list[str]:
+    """The coefficients on which the two filters end more than DISAGREE_SIGMAS apart.
+
+    Both read the same frames, so where the data fix a coefficient they end close
+    together. Where they leave a ridge (coefficients whose combination alone the flight
+    fixes: CLq and CLadot, say), the IEKF's relinearisation can follow it far from where
+    the EKF stays, while each filter's covariance, taken at its own point, still calls the
+    coefficient identified. Not-identified coefficients are left out: the table says so
+    already."""
+    summaries = [vehicle.summaries[k] for k in FILTER_KINDS if k in vehicle.summaries]
+    if len(summaries) < 2:
+        return []
+    a, b = summaries[0], summaries[1]
+    apart = []
+    for ca, cb in zip(a.coefficients, b.coefficients, strict=True):
+        if NOT_IDENTIFIED in (ca.identifiability, cb.identifiability):
+            continue
+        sigma = max(ca.trusted_sigma, cb.trusted_sigma)
+        if abs(ca.estimate - cb.estimate) > DISAGREE_SIGMAS * sigma:
+            apart.append(f"{ca.name} {_fmt(ca.estimate)} against {_fmt(cb.estimate)}")
+    if not apart:
+        return []
+    return [
+        f"the {a.kind} and the {b.kind} end more than {DISAGREE_SIGMAS:g} σ apart on "
+        + ", ".join(apart)
+        + ": the data do not settle these coefficients (a ridge of the fit, or one filter "
+        "led off by a bad stretch of data), whatever their σ say; compare `refine` and a "
+        "run with fewer coefficients"
+    ]
 
 
 def _noise_warning(vehicle: VehicleResult) -> list[str]:

@@ -5,14 +5,16 @@ corrected sigma honest on a flight read with a known model error."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
-from gcs_estimator.metrics import movement_start, sigma_inflation
-from gcs_estimator.report import GUST_BURSTS, results_dict, trust_warnings
+from gcs_estimator.metrics import NOT_IDENTIFIED, movement_start, sigma_inflation
+from gcs_estimator.report import DISAGREE_SIGMAS, GUST_BURSTS, results_dict, trust_warnings
+from gcs_estimator.session import VehicleResult
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
@@ -152,3 +154,40 @@ def test_a_turbulence_level_switched_on_and_off_by_what_the_model_misses_is_name
         fitted = simulate(air, seed=1)
         run = run_recording(air, fitted.t_s, fitted.inputs, fitted.measurements)
         assert not any("on and off" in w for w in trust_warnings(run)), preset
+
+
+def test_filters_that_end_apart_are_named_and_filters_that_agree_are_not() -> None:
+    """Both filters read the same frames, so where the data fix a coefficient they end
+    close together, and a NOC flight raises nothing. Moved apart by more than
+    DISAGREE_SIGMAS of the larger trusted sigma (as an IEKF that follows a ridge of the
+    fit ends), a coefficient is named with both estimates; by less, it is not. A
+    coefficient the data do not identify is left to the table."""
+    config = load_config("noc_uav")
+    flight = simulate(config, seed=3)
+    vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    assert not any("end more than" in w for w in trust_warnings(vehicle))
+
+    def moved(name: str, sigmas: float, mark: str | None = None) -> VehicleResult:
+        iekf = vehicle.summaries["IEKF"]
+        ekf = {c.name: c for c in vehicle.summaries["EKF"].coefficients}
+        coefficients = tuple(
+            c
+            if c.name != name
+            else replace(
+                c,
+                estimate=ekf[name].estimate
+                + sigmas * max(c.trusted_sigma, ekf[name].trusted_sigma),
+                identifiability=mark or c.identifiability,
+            )
+            for c in iekf.coefficients
+        )
+        summaries = {**vehicle.summaries, "IEKF": replace(iekf, coefficients=coefficients)}
+        return replace(vehicle, summaries=summaries)
+
+    def apart(v: VehicleResult) -> list[str]:
+        return [w for w in trust_warnings(v) if "end more than" in w]
+
+    named = apart(moved("Cma", 1.1 * DISAGREE_SIGMAS))
+    assert len(named) == 1 and "Cma" in named[0] and "Cmq" not in named[0], named
+    assert not apart(moved("Cma", 0.9 * DISAGREE_SIGMAS))
+    assert not apart(moved("CDa", 10 * DISAGREE_SIGMAS, NOT_IDENTIFIED))
