@@ -279,7 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--out",
-        help="the validation set's folder (default: out/realdata; out/realdata_adot)",
+        help="the validation set's folder (default: out/realdata, or out/realdata_adot "
+        "with --alpha-dot)",
     )
     ap.add_argument(
         "--alpha-dot",
