@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 from best_fit import best_fit, reproduction  # benchmarks/: the script's dir is on sys.path
-from jsbsim_flights import AIRCRAFT, CLEAN, _write_record, fly
+from jsbsim_flights import AIRCRAFT, CLEAN, _write_record, alpha_dot_terms, fly
 from record import add_argument, recorded
 
 from gcs_estimator.arrays import FloatArray
@@ -105,7 +105,9 @@ def run(seeds: int) -> None:
             print(
                 "calm best fit: "
                 + ", ".join(f"{k} {fit[k]:.4g}" for k in ("CLq", "Cmq"))
-                + "; JSBSim's alpha-dot terms (per alpha-dot c / (2 V)) in its airframe file\n"
+                + "; JSBSim's alpha-dot terms (per alpha-dot c / (2 V)): "
+                + ", ".join(f"{k} {v:.4g}" for k, v in alpha_dot_terms(calm).items())
+                + "\n"
             )
             head = ["seed", "σ(w_g) m/s", "w_g correlation time s", "σ(q_g) rad/s"]
             head += ["alpha-dot ~ ground rate", "alpha-dot ~ air rate"]
