@@ -316,7 +316,7 @@ def generate(
                 f = fly(ac, turbulent, seed) if turbulent else calm
                 name = f"{ac.model}_{'light' if turbulent else 'calm'}"
                 name += "" if seed == seeds[0] else f"_s{seed}"
-                config_path, csv_path = _write_record(out / name, ac, f, seed, alpha_dot)
+                config_path, csv_path = write_record(out / name, ac, f, seed, alpha_dot)
                 config = load_config(config_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
                 inputs = np.column_stack([f["de"], f["thrust"], f["rho"]])
                 clean = np.column_stack([f[k] for k in CLEAN])
@@ -344,7 +344,7 @@ def generate(
     return records
 
 
-def _write_record(
+def write_record(
     stem: Path, ac: Aircraft, f: dict[str, FloatArray], seed: int, alpha_dot: bool = False
 ) -> tuple[Path, Path]:
     """A flight's noisy CSV (sensor noise drawn from `seed`) and its airframe file."""

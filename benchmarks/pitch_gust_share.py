@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 from best_fit import best_fit, reproduction  # benchmarks/: the script's dir is on sys.path
-from jsbsim_flights import AIRCRAFT, CLEAN, _write_record, alpha_dot_terms, fly
+from jsbsim_flights import AIRCRAFT, CLEAN, alpha_dot_terms, fly, write_record
 from record import add_argument, recorded
 
 from gcs_estimator.arrays import FloatArray
@@ -91,7 +91,7 @@ def run(seeds: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for ac in AIRCRAFT:
             calm = fly(ac, False, 1)
-            config_path, _ = _write_record(Path(tmp) / ac.model, ac, calm, 1)
+            config_path, _ = write_record(Path(tmp) / ac.model, ac, calm, 1)
             config = load_config(config_path, ["sensors.vane_x_m=0", "sensors.bias_states=[]"])
 
             def columns(f: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
