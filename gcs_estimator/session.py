@@ -96,6 +96,9 @@ class Session:
         self.elapsed_s = 0.0
         """Wall-clock duration of the last run [s]."""
         self._results: dict[int, VehicleResult] | None = None
+        self._ahead_turn = -1
+        """The system id whose restart work work_ahead did last (the next turn is the
+        following one)."""
 
     def estimator(self, system_id: int) -> Estimator:
         est = self.estimators.get(system_id)
@@ -137,11 +140,24 @@ class Session:
 
     def work_ahead(self, budget_s: float) -> None:
         """Restart work from idle time (the source had nothing ready): the vehicles'
-        re-runs in turn, WORK_AHEAD_FRAMES at a time, for up to about budget_s."""
-        busy = [e for e in self.estimators.values() if e.restart_under_way]
+        re-runs in turn, one unit at a time (a warm start's fit, or WORK_AHEAD_FRAMES
+        frames), until about budget_s has passed. The budget is checked after every
+        unit, not after a round of every vehicle: with many vehicles restarting together,
+        a round is many fits, and a packet arriving meanwhile would wait for all of them.
+        The turn goes on where the last call stopped, so every vehicle's work advances."""
         end = time.perf_counter() + budget_s
-        while busy and time.perf_counter() < end:
-            busy = [e for e in busy if e.work_ahead(WORK_AHEAD_FRAMES) > 0]
+        busy = [sid for sid, e in self.estimators.items() if e.restart_under_way]
+        if not busy:
+            return
+        later = [sid for sid in busy if sid > self._ahead_turn]
+        order = later + [sid for sid in busy if sid <= self._ahead_turn]
+        while order:
+            for sid in list(order):
+                self._ahead_turn = sid
+                if self.estimators[sid].work_ahead(WORK_AHEAD_FRAMES) == 0:
+                    order.remove(sid)
+                if time.perf_counter() >= end:
+                    return
 
     def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
         est = self.estimator(frame.system_id)

@@ -98,3 +98,36 @@ def test_a_grace_period_leaves_the_receive_path_alone_then_swaps_later_to_the_sa
         other = spread.states[kind]
         assert s is not None and other is not None
         np.testing.assert_array_equal(other.x, s.x)
+
+
+def test_idle_restart_work_stops_at_its_budget_and_takes_vehicles_in_turn() -> None:
+    """Session.work_ahead checks its budget after every unit of work (a warm start's fit,
+    or a few frames of one vehicle's re-run), not after a round of every vehicle: with
+    many vehicles restarting together a round is many fits, and a packet arriving
+    meanwhile would wait for all of them. The next call goes on with the next vehicle."""
+    from gcs_estimator.session import Session
+
+    config = load_config(
+        "noc_uav",
+        ["simulation.manoeuvre.duration_s=8", "filter.restart_grace_frames=1000"],
+    )
+    fl = simulate(config, seed=5)
+    session = Session(config, keep_history=False)
+    vehicles = (3, 7, 11)
+    begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
+    for t, u, y in zip(fl.t_s[: begin + 1], fl.inputs, fl.measurements, strict=False):
+        for sid in vehicles:
+            session.estimator(sid).step(float(t), u, y)
+    ests = [session.estimators[sid] for sid in vehicles]
+    assert all(e.restart_under_way for e in ests)
+    assert [e.worked_ahead for e in ests] == [0, 0, 0]
+    turns = []
+    for _ in range(6):
+        before = [e.worked_ahead for e in ests]
+        session.work_ahead(0.0)
+        moved = [i for i, e in enumerate(ests) if e.worked_ahead != before[i]]
+        assert len(moved) == 1  # one unit, then the spent budget stops it
+        turns.append(moved[0])
+    # Each vehicle's fit first, then its re-run's frames, in turn.
+    assert turns == [0, 1, 2, 0, 1, 2]
+    assert [e.worked_ahead for e in ests] == [1 + 5] * 3
