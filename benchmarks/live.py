@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from speed import small_matrix_gflops
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
@@ -88,6 +89,17 @@ def run(args: argparse.Namespace) -> int:
             args.config, [override, f"link.max_vehicles={args.vehicles}", *args.set]
         )
 
+    # The yardstick of this machine on the day: the speed records print it too, so
+    # figures from different days can be compared.
+    print(f"small-matrix rate of this machine: {small_matrix_gflops():.2f} GFLOP/s")
+    ft = config.filter
+    times = ", ".join(f"{t:g}" for t in ft.restart_times_s) or "none"
+    print(
+        f"restarts at {times} s; a re-run waits for idle time for "
+        f"{ft.restart_grace_frames} frames (filter.restart_grace_frames), then steps at "
+        f"least {ft.restart_frames_per_step} frames per new frame "
+        "(filter.restart_frames_per_step)"
+    )
     latency = Latency()
     warm_up(config)  # compiles the kernels before binding
     session = Session(config)
