@@ -344,17 +344,26 @@ class Estimator:
     """EKF and IEKF side by side for one vehicle; the place that owns the filter passes."""
 
     def __init__(
-        self, config: AircraftConfig, backend: Backend = "fast", keep_history: bool = True
+        self,
+        config: AircraftConfig,
+        backend: Backend = "fast",
+        keep_history: bool = True,
+        noise_scale: FloatArray | None = None,
     ) -> None:
         self.config = config
         self.model = build_model(config)
         self.keep_history = keep_history
+        self.backend: Backend = backend
         self._step = core.stepper(backend)
         self._block = core.block_stepper(backend)
         """Many frames of a re-run in one compiled call (None: one at a time)."""
-        self.tunings: dict[FilterKind, Tuning] = {
-            k: core.tuning_of(config, self.model, k) for k in FILTER_KINDS
-        }
+        self.noise_scale = None if noise_scale is None else np.asarray(noise_scale, float)
+        """Each channel's measurement variance multiplied by this in every pass, after
+        the noise is read from the data (the structure check's re-runs: weighting.py);
+        None: as configured and read."""
+        self.tunings: dict[FilterKind, Tuning] = self._scaled(
+            {k: core.tuning_of(config, self.model, k) for k in FILTER_KINDS}
+        )
         self._rerun_tunings = self.tunings
         """The settings of the re-run under way (measurement noise from the data)."""
         self.noise_reading: NoiseReading | None = None
@@ -393,6 +402,45 @@ class Estimator:
     @property
     def names(self) -> tuple[str, ...]:
         return self.model.names
+
+    def _scaled(self, tunings: dict[FilterKind, Tuning]) -> dict[FilterKind, Tuning]:
+        """The tunings with each channel's measurement variance times noise_scale."""
+        if self.noise_scale is None:
+            return tunings
+        root = np.sqrt(self.noise_scale)
+        return {k: tn._replace(R=tn.R * np.outer(root, root)) for k, tn in tunings.items()}
+
+    def replay_final_pass(
+        self, source: Estimator, t: FloatArray, u: FloatArray, y: FloatArray
+    ) -> None:
+        """The final pass of `source` (the pass that ran to its end) again, over its frames
+        (t, u, y as its history holds them), with this estimator's noise_scale on that
+        pass's settings: from the same start, the flight states started afresh after every
+        gap longer than filter.max_gap_s as the run did, each run of frames in one compiled
+        call per filter (the same steps as frame by frame, bit for bit:
+        docs/decisions/0013). With no noise_scale it ends where source did. Keeps no
+        history of its own."""
+        self._starts = dict(source._starts)
+        self.tunings = self._scaled(dict(source.tunings))
+        gap = self.config.filter.max_gap_s
+        i, n = 0, len(t)
+        while i < n:
+            end = i + 1
+            while end < n and t[end] - t[end - 1] <= gap:
+                end += 1
+            frames = [
+                (float(t[j]), self.model.inputs(u[j]), np.array(y[j], float), True)
+                for j in range(i, end)
+            ]
+            for kind in FILTER_KINDS:
+                state = self.states[kind]
+                if state is not None:
+                    self.states[kind] = core.rebase(
+                        state, self.model, self.tunings[kind], frames[0][0], frames[0][2]
+                    )
+                self._advance_block(kind, self.states, frames, self.tunings[kind])
+            self.frames += end - i
+            i = end
 
     @property
     def restarts_pending(self) -> bool:
@@ -717,7 +765,7 @@ class Estimator:
         if policy == "auto":
             sigma = np.where(reading_z(sigma, used, configured) < -CLEARLY, sigma, configured)
         R = np.diag(sigma**2)
-        return {k: tn._replace(R=R) for k, tn in self.tunings.items()}
+        return self._scaled({k: tn._replace(R=R) for k, tn in self.tunings.items()})
 
     def snapshot(self) -> dict[FilterKind, Snapshot]:
         """Current coefficient estimates and sigmas per filter (empty before data)."""

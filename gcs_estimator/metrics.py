@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -141,9 +142,13 @@ class CoefficientSummary:
     """That correlation."""
     corrected_sigma: float = math.nan
     """sigma corrected for how far the estimate moved against its covariance
-    (sigma_inflation(); NaN: the run was too short to tell)."""
+    (sigma_inflation()) and, where the structure check was made, with its structure sigma
+    added in quadrature (weighting.py); NaN: the run was too short to tell."""
     sigma_inflation: float = math.nan
     """corrected_sigma / sigma (at least 1; NaN: the run was too short to tell)."""
+    structure_sigma: float = math.nan
+    """How far the estimate depends on how much each channel is trusted, beyond what its
+    covariance allows (weighting.structure_check; NaN: not checked)."""
 
     @property
     def trusted_sigma(self) -> float:
@@ -195,8 +200,14 @@ def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: flo
     return float(t[0]) if len(idx) == 0 else float(t[idx[-1] + 1])
 
 
-def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterKind, FilterSummary]:
-    """Figures for each filter of a finished run (needs the estimator's history)."""
+def summarise(
+    result: EstimatorResult,
+    truth: FloatArray | None,
+    structure: Mapping[FilterKind, FloatArray] | None = None,
+) -> dict[FilterKind, FilterSummary]:
+    """Figures for each filter of a finished run (needs the estimator's history);
+    structure: each filter's structure sigma per coefficient (weighting.py), where the
+    check was made."""
     out: dict[FilterKind, FilterSummary] = {}
     for kind, fr in result.filters.items():
         track = fr.track
@@ -207,8 +218,12 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
         corr = correlation_of(fr.covariance)
         start = movement_start(len(track.t), result.final_pass_from)
         ratio = sigma_inflation(track.coefficients, track.coefficient_sigma, start)
-        factor = np.sqrt(np.maximum(ratio, 1.0))
-        corrected = fr.sigma * factor
+        corrected = fr.sigma * np.sqrt(np.maximum(ratio, 1.0))
+        struct = None if structure is None else structure.get(kind)
+        if struct is not None:
+            corrected = np.hypot(np.where(np.isfinite(corrected), corrected, fr.sigma), struct)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factor = corrected / fr.sigma
         trusted = np.where(np.isfinite(corrected), corrected, fr.sigma)
         marks = identifiability(
             x, trusted, corr, np.asarray(result.config.filter.initial_sigma.coefficients)
@@ -238,6 +253,7 @@ def summarise(result: EstimatorResult, truth: FloatArray | None) -> dict[FilterK
                     correlation=rho,
                     corrected_sigma=float(corrected[i]),
                     sigma_inflation=float(factor[i]),
+                    structure_sigma=math.nan if struct is None else float(struct[i]),
                 )
             )
         used = track.n_used > 0

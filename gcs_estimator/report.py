@@ -32,6 +32,7 @@ from gcs_estimator.metrics import (
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
 from gcs_estimator.noise import CLEARLY, MIN_DIFFERENCES, reading_z
 from gcs_estimator.session import VehicleResult
+from gcs_estimator.weighting import VARIANCE_FACTOR
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -130,7 +131,10 @@ def _legend(truth_label: str, has_truth: bool, refined: bool) -> str:
     text = (
         "σ: one standard deviation from the filter covariance; σ corrected: that σ times "
         "the factor by which the estimate moved over the second half of the run more "
-        "than the covariance said it would (1.0: as it said; on real data, the one to trust)"
+        "than the covariance said it would, with, where the structure check ran, how far "
+        "the estimate moves beyond its covariance when one channel at a time is trusted "
+        "half as much added in quadrature (×1.0: as the covariance said; on real data, "
+        "the one to trust)"
     )
     if refined:
         text += (
@@ -266,7 +270,8 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         ]
         if moved:
             out.append(
-                f"{kind}: estimates moved more than the covariance allows ("
+                f"{kind}: estimates moved more than the covariance allows, over the run or "
+                "with the channels weighted otherwise ("
                 + ", ".join(moved)
                 + "): the model misses something in these data (unmodelled aerodynamics, "
                 "turbulence, sensor errors); trust the corrected σ, not the covariance's"
@@ -412,6 +417,14 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
         )
     if result.noise_reading is not None:
         notes.append(_noise_note(result, result.noise_reading))
+    check = vehicle.structure
+    if check is not None:
+        notes.append(
+            f"structure check: not made: {check.skipped}"
+            if check.skipped
+            else f"structure check: {', '.join(check.channels)} each re-run trusted half as "
+            "much; how far that moved the estimates is in σ corrected"
+        )
     table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
     text = table + "".join(f"- {n}\n" for n in notes)
     warnings = trust_warnings(vehicle, refined)
@@ -466,6 +479,7 @@ def results_dict(
             "noise_reading": None
             if result.noise_reading is None
             else dict(zip(OBS_NAMES, result.noise_reading.sigma, strict=True)),
+            "structure_check": _structure_dict(vehicle),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
             "covariance_repairs": {
@@ -490,6 +504,7 @@ def results_dict(
                     "sigma": c.sigma,
                     "corrected_sigma": _num(c.corrected_sigma),
                     "sigma_inflation": _num(c.sigma_inflation),
+                    "structure_sigma": _num(c.structure_sigma),
                     "truth": c.truth,
                     "error_pct": _num(c.error_pct),
                     "error_sigmas": _num(c.z),
@@ -517,6 +532,29 @@ def results_dict(
     if extra:
         out.update(extra)
     return out
+
+
+def _structure_dict(vehicle: VehicleResult) -> dict[str, Any] | None:
+    """The structure check (weighting.py): the channels re-weighted and how far each
+    moved each estimate, or why it was not made."""
+    check = vehicle.structure
+    if check is None:
+        return None
+    if check.skipped:
+        return {"skipped": check.skipped}
+    names = vehicle.result.names
+    return {
+        "skipped": None,
+        "variance_factor": VARIANCE_FACTOR,
+        "channels": list(check.channels),
+        "moves": {
+            kind: {
+                ch: dict(zip(names, (float(v) for v in row), strict=True))
+                for ch, row in zip(check.channels, moves, strict=True)
+            }
+            for kind, moves in check.moves.items()
+        },
+    }
 
 
 def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:

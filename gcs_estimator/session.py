@@ -10,6 +10,7 @@ what was processed.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -17,12 +18,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from gcs_estimator import weighting
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimator import Backend, Estimator, EstimatorResult, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.metrics import FilterSummary, summarise
 from gcs_estimator.stop import Stop
+from gcs_estimator.weighting import StructureCheck
 
 WORK_AHEAD_S = 0.002
 """Restart work done each time the source had nothing ready [s]: small enough that a
@@ -53,6 +56,9 @@ class VehicleResult:
     result: EstimatorResult
     summaries: dict[FilterKind, FilterSummary]
     truth: FloatArray | None
+    structure: StructureCheck | None = None
+    """The structure check (weighting.py); None: not asked about (a result made
+    without a session)."""
 
 
 class Sink(Protocol):
@@ -179,8 +185,24 @@ class Session:
         for sid, est in self.estimators.items():
             result = est.result()
             truth = self.truth_of(sid)
-            out[sid] = VehicleResult(sid, result, summarise(result, truth), truth)
+            check = self.structure_check(sid, est)
+            summaries = summarise(result, truth, check.sigma if not check.skipped else None)
+            out[sid] = VehicleResult(sid, result, summaries, truth, check)
         return out
+
+    def structure_check(self, system_id: int, est: Estimator) -> StructureCheck:
+        """The structure check of one vehicle's run (weighting.py), or why it was not
+        made. It re-runs the record several times: a line on stderr says so."""
+        reason = weighting.why_not(self.config, est.history_rows, est.keep_history)
+        if reason:
+            return weighting.skipped(reason)
+        t, u, y = est.frame_history.arrays()
+        print(
+            f"vehicle {system_id}: structure check, {weighting.runs(y)} replays of the final "
+            f"pass over its {len(t)} frames (filter.structure_check)",
+            file=sys.stderr,
+        )
+        return weighting.structure_check(est, t, u, y)
 
     def truth_of(self, system_id: int) -> FloatArray | None:
         """What a vehicle is scored against: its entry of the truth file; without one,

@@ -1,0 +1,171 @@
+"""The structure check (gcs_estimator/weighting.py, docs/decisions/0017): each channel
+trusted half as much in a re-run of the record; how far the estimates move beyond their
+covariance widens the corrected sigma. Small where the model holds, large enough where
+it does not to cover an error the movement correction (0008) leaves uncovered."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import load_config
+from gcs_estimator.estimator import Estimator, FilterKind, run_recording
+from gcs_estimator.report import final_table, results_dict
+from gcs_estimator.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.weighting import VARIANCE_FACTOR, structure_check
+from sim.truth import Flight, simulate
+
+WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
+
+
+def _z(vehicle: VehicleResult, kind: FilterKind) -> np.ndarray:
+    """Errors of the well-excited coefficients in corrected sigmas."""
+    return np.array(
+        [
+            (c.estimate - (c.truth or 0.0)) / c.corrected_sigma
+            for c in vehicle.summaries[kind].coefficients
+            if c.name in WELL_EXCITED
+        ]
+    )
+
+
+def test_the_final_pass_replayed_from_the_history_ends_where_the_run_did() -> None:
+    """The check's base: the run's final pass replayed over its history in compiled
+    blocks (Estimator.replay_final_pass) ends bit for bit where the run, frame by frame
+    with its restarts, did; across a gap longer than filter.max_gap_s too."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=25"])
+    fl = simulate(config, seed=4)
+    keep = (fl.t_s < 14.0) | (fl.t_s > 17.0)  # a 3 s gap: the flight states start afresh
+    t, u, y = fl.t_s[keep], fl.inputs[keep], fl.measurements[keep]
+    session = Session(config)
+    session.run(RecordingSource(t, u, y))
+    est = session.estimators[RecordingSource.SYSTEM_ID]
+    assert est.gaps == 1 and est.restarts_done == 2
+    again = Estimator(config, keep_history=False)
+    again.replay_final_pass(est, *est.frame_history.arrays())
+    for kind, state in est.states.items():
+        other = again.states[kind]
+        assert state is not None and other is not None
+        np.testing.assert_array_equal(other.x, state.x)
+        np.testing.assert_array_equal(other.P, state.P)
+
+
+def test_a_channel_trusted_less_has_its_variance_scaled_in_every_pass() -> None:
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    fl = simulate(config, seed=1)
+    scale = np.ones(7)
+    scale[3] = VARIANCE_FACTOR
+    plain = Estimator(config, keep_history=False)
+    less = Estimator(config, keep_history=False, noise_scale=scale)
+    for est in (plain, less):
+        for row in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
+            est.step(*row)
+        assert est.restarts_done == 2  # the final pass's settings came from the data
+    for kind in plain.tunings:
+        ratio = np.diag(less.tunings[kind].R) / np.diag(plain.tunings[kind].R)
+        np.testing.assert_allclose(ratio, scale)
+    replayed = Estimator(config, keep_history=False, noise_scale=scale)
+    replayed.replay_final_pass(plain, fl.t_s, fl.inputs, fl.measurements)
+    for kind in plain.tunings:
+        np.testing.assert_array_equal(replayed.tunings[kind].R, less.tunings[kind].R)
+
+
+@pytest.fixture(scope="module")
+def unstated_vane() -> Flight:
+    """Calm air; the vane 1 m ahead of the CG, and the airframe file read by the filters
+    does not say so: alpha reads alpha + q x / V, a model error that stays put."""
+    return simulate(load_config("noc_uav", ["sensors.vane_x_m=1.0"]), seed=1)
+
+
+def test_an_error_the_channels_disagree_on_is_covered_by_the_structure_sigma(
+    unstated_vane: Flight,
+) -> None:
+    fl = unstated_vane
+    without = run_recording(
+        load_config("noc_uav", ['filter.structure_check="off"']),
+        fl.t_s,
+        fl.inputs,
+        fl.measurements,
+    )
+    checked = run_recording(load_config("noc_uav"), fl.t_s, fl.inputs, fl.measurements)
+    assert without.structure is not None and without.structure.skipped
+    assert checked.structure is not None and not checked.structure.skipped
+    for kind in checked.summaries:
+        # The estimates settle on the error, so how they moved over the run misses it.
+        assert np.abs(_z(without, kind)).max() > 2.5, kind
+        z = _z(checked, kind)
+        assert np.mean(z**2) < 1.5, (kind, z.round(1))
+        assert np.all(np.abs(z) < 2.5), (kind, z.round(1))
+        # Estimates unchanged: only their sigmas.
+        for a, b in zip(
+            without.summaries[kind].coefficients, checked.summaries[kind].coefficients, strict=True
+        ):
+            assert a.estimate == b.estimate
+            assert b.corrected_sigma >= a.corrected_sigma
+    # The vane's error is in alpha, so alpha and the normal acceleration disagree on
+    # the lift: trusting either less pulls CLde (its worst error) the other way.
+    moves = checked.structure.moves["EKF"]
+    clde = checked.result.names.index("CLde")
+    sigma = checked.result.filters["EKF"].sigma[clde]
+    alpha = moves[checked.structure.channels.index("alpha"), clde] / sigma
+    a_z = moves[checked.structure.channels.index("a_z"), clde] / sigma
+    assert alpha * a_z < 0.0 and min(abs(alpha), abs(a_z)) > 1.0, (alpha, a_z)
+
+
+def test_where_the_model_holds_the_structure_sigma_is_small() -> None:
+    config = load_config("noc_uav")
+    fl = simulate(config, seed=3)
+    vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
+    assert vehicle.structure is not None and not vehicle.structure.skipped
+    for kind, s in vehicle.summaries.items():
+        ratio = np.array(
+            [c.structure_sigma / c.sigma for c in s.coefficients if c.name in WELL_EXCITED]
+        )
+        assert np.all(np.isfinite(ratio)), kind
+        assert float(np.median(ratio)) < 0.5, (kind, ratio.round(2))
+
+
+def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None:
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    fl = simulate(config, seed=2)
+    vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
+    d = results_dict(vehicle)
+    check = d["diagnostics"]["structure_check"]
+    assert check["skipped"] is None and check["variance_factor"] == VARIANCE_FACTOR
+    assert check["channels"] == ["V", "alpha", "theta", "q", "qdot", "a_x", "a_z"]
+    assert set(check["moves"]["EKF"]["q"]) == set(vehicle.result.names)
+    for est in d["filters"]["IEKF"]["estimates"].values():
+        assert est["structure_sigma"] is not None and est["structure_sigma"] >= 0.0
+        assert est["corrected_sigma"] >= est["structure_sigma"]
+    assert "structure check: V, alpha, theta" in final_table(vehicle)
+
+    frames = len(fl.t_s)
+    short = load_config(
+        "noc_uav",
+        ["simulation.manoeuvre.duration_s=12", f"filter.structure_check_max_frames={frames - 1}"],
+    )
+    skipped = run_recording(short, fl.t_s, fl.inputs, fl.measurements)
+    reason = results_dict(skipped)["diagnostics"]["structure_check"]["skipped"]
+    assert "structure_check_max_frames" in reason and str(frames) in reason
+    assert all(np.isnan(c.structure_sigma) for c in skipped.summaries["EKF"].coefficients)
+    assert "structure check: not made" in final_table(skipped)
+    forced = load_config(
+        "noc_uav",
+        [
+            "simulation.manoeuvre.duration_s=12",
+            f"filter.structure_check_max_frames={frames - 1}",
+            'filter.structure_check="on"',
+        ],
+    )
+    assert not run_recording(forced, fl.t_s, fl.inputs, fl.measurements).structure.skipped  # type: ignore[union-attr]
+
+
+def test_a_record_whose_clock_restarted_is_not_checked() -> None:
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])
+    fl = simulate(config, seed=2)
+    t = np.concatenate([fl.t_s, fl.t_s[:50]])
+    u = np.concatenate([fl.inputs, fl.inputs[:50]])
+    y = np.concatenate([fl.measurements, fl.measurements[:50]])
+    est = Estimator(config, keep_history=False)
+    check = structure_check(est, t, u, y)
+    assert "clock restarted" in check.skipped and not check.sigma
