@@ -417,9 +417,9 @@ class Estimator:
         (t, u, y as its history holds them), with this estimator's noise_scale on that
         pass's settings: from the same start, the flight states started afresh after every
         gap longer than filter.max_gap_s as the run did, each run of frames in one compiled
-        call per filter (the same steps as frame by frame, bit for bit:
-        docs/decisions/0013). With no noise_scale it ends where source did. Keeps no
-        history of its own."""
+        call per filter where the backend has blocks (the same steps as frame by frame, bit
+        for bit: docs/decisions/0013). With no noise_scale it ends where source did. Keeps
+        no history of its own."""
         self._starts = dict(source._starts)
         self.tunings = self._scaled(dict(source.tunings))
         gap = self.config.filter.max_gap_s
@@ -438,7 +438,11 @@ class Estimator:
                     self.states[kind] = core.rebase(
                         state, self.model, self.tunings[kind], frames[0][0], frames[0][2]
                     )
-                self._advance_block(kind, self.states, frames, self.tunings[kind])
+                if self._block is None:  # a backend without blocks: frame by frame
+                    for frame in frames:
+                        self._advance_one(kind, self.states, *frame, self.tunings[kind])
+                else:
+                    self._advance_block(kind, self.states, frames, self.tunings[kind])
             self.frames += end - i
             i = end
 

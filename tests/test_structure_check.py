@@ -160,6 +160,20 @@ def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None
     assert not run_recording(forced, fl.t_s, fl.inputs, fl.measurements).structure.skipped  # type: ignore[union-attr]
 
 
+def test_the_reference_backend_checks_the_same_structure() -> None:
+    """The numpy backend has no block step: its replays go frame by frame, to the same
+    structure sigma as the compiled backend's."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=7"])
+    fl = simulate(config, seed=6)
+    fast = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
+    numpy = run_recording(config, fl.t_s, fl.inputs, fl.measurements, backend="reference")
+    for kind, s in fast.summaries.items():
+        a = np.array([c.structure_sigma for c in s.coefficients])
+        b = np.array([c.structure_sigma for c in numpy.summaries[kind].coefficients])
+        assert np.all(np.isfinite(a)) and np.any(a > 0.0), kind
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-9 * float(np.abs(a).max()))
+
+
 def test_a_record_whose_clock_restarted_is_not_checked() -> None:
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])
     fl = simulate(config, seed=2)
