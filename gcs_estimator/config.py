@@ -419,7 +419,7 @@ class FilterTuning:
     structure_check: str = setting(
         "auto",
         choices=("auto", "on", "off"),
-        doc="at the end of a run, re-run the record once per channel with that channel "
+        doc="at the end of a run, replay its final pass once per channel with that channel "
         "trusted half as much, and widen each coefficient's corrected sigma by how far the "
         "estimate moves beyond what the covariance predicts (what the model's structure "
         "misses: gcs_estimator/weighting.py); auto: when the run kept its history and has "
@@ -429,7 +429,7 @@ class FilterTuning:
         30000,
         ge=0,
         doc="longest run the structure check takes on with structure_check = auto (it "
-        "costs about eight re-runs of the record)",
+        "costs a replay of the final pass per channel, and one more)",
     )
     initial_coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=0.0)
     initial_sigma: InitialSigma = table(InitialSigma)

@@ -422,8 +422,9 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
         notes.append(
             f"structure check: not made: {check.skipped}"
             if check.skipped
-            else f"structure check: {', '.join(check.channels)} each re-run trusted half as "
-            "much; how far that moved the estimates is in σ corrected"
+            else f"structure check: the final pass replayed with each of "
+            f"{', '.join(check.channels)} trusted half as much; how far that moved the "
+            "estimates is in σ corrected"
         )
     table = markdown_table(vehicle.summaries, result.config.truth_label, refined)
     text = table + "".join(f"- {n}\n" for n in notes)

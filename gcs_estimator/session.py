@@ -192,7 +192,7 @@ class Session:
 
     def structure_check(self, system_id: int, est: Estimator) -> StructureCheck:
         """The structure check of one vehicle's run (weighting.py), or why it was not
-        made. It re-runs the record several times: a line on stderr says so."""
+        made. It replays the run's final pass several times: a line on stderr says so."""
         reason = weighting.why_not(self.config, est.history_rows, est.keep_history)
         if reason:
             return weighting.skipped(reason)

@@ -10,10 +10,11 @@ pull towards different values, and the estimate is a compromise set by the weigh
 moves further than the covariance predicts, and no data from the same manoeuvre can say
 which weighting is right.
 
-So, at the end of a run, the record is run again through both filters once per channel
-the data carry, with that channel's measurement variance doubled (its weight halved):
-d_i, the move of the estimates in run i, beyond the variance the covariance predicts for
-it, is the estimate's sensitivity to that channel's weight. Each weight is taken as
+So, at the end of a run, its final pass is replayed through both filters over the run's
+history, once as it ran and once per channel the data carry with that channel's
+measurement variance doubled (its weight halved): d_i, the move of the estimates in
+replay i, beyond the variance the covariance predicts for it, is the estimate's
+sensitivity to that channel's weight. Each weight is taken as
 known within a factor of 2 either way (log-uniform: Var(ln w) = (ln 2)^2 / 3), so to
 first order the estimate's variance from the weights is
 

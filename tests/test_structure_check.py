@@ -137,7 +137,7 @@ def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None
     for est in d["filters"]["IEKF"]["estimates"].values():
         assert est["structure_sigma"] is not None and est["structure_sigma"] >= 0.0
         assert est["corrected_sigma"] >= est["structure_sigma"]
-    assert "structure check: V, alpha, theta" in final_table(vehicle)
+    assert "with each of V, alpha, theta, q, qdot, a_x, a_z trusted half" in final_table(vehicle)
 
     frames = len(fl.t_s)
     short = load_config(
