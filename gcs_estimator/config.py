@@ -422,14 +422,16 @@ class FilterTuning:
         doc="at the end of a run, replay its final pass once per channel with that channel "
         "trusted half as much, and widen each coefficient's corrected sigma by how far the "
         "estimate moves beyond what the covariance predicts (what the model's structure "
-        "misses: gcs_estimator/weighting.py); auto: when the run kept its history and has "
-        "at most structure_check_max_frames frames",
+        "misses: gcs_estimator/weighting.py); auto: when the run kept its history and its "
+        "frames stay within structure_check_max_frames",
     )
     structure_check_max_frames: int = setting(
         30000,
         ge=0,
-        doc="longest run the structure check takes on with structure_check = auto (it "
-        "costs a replay of the final pass per channel, and one more)",
+        doc="most frames the structure check takes on with structure_check = auto, over "
+        "all the vehicles of a run (a vehicle that would go past it is not checked, and its "
+        "results say so); the check costs a replay of the final pass per channel, and one "
+        "more",
     )
     initial_coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=0.0)
     initial_sigma: InitialSigma = table(InitialSigma)

@@ -182,18 +182,24 @@ class Session:
         if self._results is not None:
             return self._results
         out = {}
+        checked = 0
         for sid, est in self.estimators.items():
             result = est.result()
             truth = self.truth_of(sid)
-            check = self.structure_check(sid, est)
+            check = self.structure_check(sid, est, checked)
+            if not check.skipped:
+                checked += est.history_rows
             summaries = summarise(result, truth, check.sigma if not check.skipped else None)
             out[sid] = VehicleResult(sid, result, summaries, truth, check)
         return out
 
-    def structure_check(self, system_id: int, est: Estimator) -> StructureCheck:
+    def structure_check(self, system_id: int, est: Estimator, checked: int = 0) -> StructureCheck:
         """The structure check of one vehicle's run (weighting.py), or why it was not
-        made. It replays the run's final pass several times: a line on stderr says so."""
-        reason = weighting.why_not(self.config, est.history_rows, est.keep_history)
+        made; `checked`: the frames of the session's vehicles checked before it (with
+        structure_check = auto, filter.structure_check_max_frames bounds their sum, so a
+        station with many vehicles still stops in seconds). It replays the run's final
+        pass several times: a line on stderr says so."""
+        reason = weighting.why_not(self.config, est.history_rows, est.keep_history, checked)
         if reason:
             return weighting.skipped(reason)
         t, u, y = est.frame_history.arrays()

@@ -65,20 +65,22 @@ def skipped(reason: str) -> StructureCheck:
     return StructureCheck({}, {}, (), reason)
 
 
-def why_not(config: AircraftConfig, frames: int, history: bool) -> str:
-    """Why the check is not made for a run of `frames` frames ("" when it is)."""
+def why_not(config: AircraftConfig, frames: int, history: bool, checked: int = 0) -> str:
+    """Why the check is not made for a vehicle's run of `frames` frames, `checked` frames
+    of the session's other vehicles having been checked before it ("" when it is)."""
     mode = config.filter.structure_check
     if mode == "off":
         return "filter.structure_check is off"
     if not history:
-        return "the run kept no history to re-run"
+        return "the run kept no history to replay"
     if frames < 2:
         return "too few frames"
     limit = config.filter.structure_check_max_frames
-    if mode == "auto" and frames > limit:
+    if mode == "auto" and checked + frames > limit:
+        others = f" (with the {checked} of the vehicles checked before it)" if checked else ""
         return (
-            f"{frames} frames, more than filter.structure_check_max_frames = {limit} "
-            '(set it higher, or filter.structure_check = "on")'
+            f"{frames} frames{others}, more than filter.structure_check_max_frames = "
+            f'{limit} (set it higher, or filter.structure_check = "on")'
         )
     return ""
 

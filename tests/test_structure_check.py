@@ -5,6 +5,8 @@ it does not to cover an error the movement correction (0008) leaves uncovered.""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -183,3 +185,26 @@ def test_a_record_whose_clock_restarted_is_not_checked() -> None:
     est = Estimator(config, keep_history=False)
     check = structure_check(est, t, u, y)
     assert "clock restarted" in check.skipped and not check.sigma
+
+
+def test_the_frame_budget_is_shared_by_the_vehicles_of_a_run() -> None:
+    """With structure_check = auto, filter.structure_check_max_frames bounds the frames
+    checked over all the vehicles, so a station with many stops in seconds: the vehicles
+    that would go past it are not checked, and their results say why."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=7"])
+    fl = simulate(config, seed=2)
+    frames = len(fl.t_s)
+    budget = replace(
+        config, filter=replace(config.filter, structure_check_max_frames=2 * frames - 1)
+    )
+    session = Session(budget)
+    for sid in (4, 5):
+        for row in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
+            session.estimator(sid).step(*row)
+    results = session.results()
+    first, second = results[4].structure, results[5].structure
+    assert first is not None and not first.skipped
+    assert second is not None and f"with the {frames} of the vehicles checked before" in (
+        second.skipped
+    )
+    assert np.isnan(results[5].summaries["EKF"].coefficients[0].structure_sigma)
