@@ -1,6 +1,6 @@
-"""The structure check (gcs_estimator/weighting.py, docs/decisions/0017): each channel
-trusted half as much in a re-run of the record; how far the estimates move beyond their
-covariance widens the corrected sigma. Small where the model holds, large enough where
+"""The structure check (gcs_estimator/weighting.py, docs/decisions/0017): the run's final
+pass replayed with each channel trusted half as much; how far the estimates move beyond
+their covariance widens the corrected sigma. Small where the model holds, large enough where
 it does not to cover an error the movement correction (0008) leaves uncovered."""
 
 from __future__ import annotations
