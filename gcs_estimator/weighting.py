@@ -106,7 +106,7 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     once per channel with data, that channel's weight halved."""
     if np.any(np.diff(t) <= 0.0):
         return skipped("the vehicle clock restarted during the run (its frames are not one record)")
-    channels = [i for i in range(N_OBS) if np.isfinite(y[:, i]).any()]
+    channels = _with_data(y)
     if not channels:
         return skipped("no channel has data")
     scales: list[FloatArray | None] = [None]
@@ -133,6 +133,11 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     return StructureCheck(sigma, moves, tuple(OBS_NAMES[i] for i in channels))
 
 
+def _with_data(y: FloatArray) -> list[int]:
+    """The channels the check re-weights: those with data."""
+    return [i for i in range(N_OBS) if np.isfinite(y[:, i]).any()]
+
+
 def runs(y: FloatArray) -> int:
     """How many replays of the final pass the check takes."""
-    return 1 + sum(1 for i in range(N_OBS) if np.isfinite(y[:, i]).any())
+    return 1 + len(_with_data(y))
