@@ -96,7 +96,9 @@ def run(args: argparse.Namespace) -> int:
     times = ", ".join(f"{t:g}" for t in ft.restart_times_s) or "none"
     print(
         f"restarts at {times} s; a re-run waits for idle time for "
-        f"{ft.restart_grace_frames} frames (filter.restart_grace_frames), then steps at "
+        f"{ft.restart_grace_frames} frames (filter.restart_grace_frames) and "
+        f"{ft.restart_grace_per_peer} more for each other vehicle restarting when it "
+        "begins (filter.restart_grace_per_peer), then steps at "
         f"least {ft.restart_frames_per_step} frames per new frame "
         "(filter.restart_frames_per_step)"
     )

@@ -391,6 +391,13 @@ class FilterTuning:
         "path (until then idle time only): spreads the work of many vehicles restarting "
         "together",
     )
+    restart_grace_per_peer: int = setting(
+        3,
+        ge=0,
+        doc="frames of grace added for each other vehicle of the station whose restart is "
+        "under way when this one's begins: vehicles restarting together take turns on the "
+        "receive path (a lone vehicle gets restart_grace_frames only)",
+    )
     max_gap_s: float = setting(
         2.0,
         gt=0,

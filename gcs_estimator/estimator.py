@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, BinaryIO, NamedTuple
 
@@ -349,8 +349,13 @@ class Estimator:
         backend: Backend = "fast",
         keep_history: bool = True,
         noise_scale: FloatArray | None = None,
+        peers_restarting: Callable[[], int] | None = None,
     ) -> None:
         self.config = config
+        self.peers_restarting = peers_restarting
+        """How many other vehicles of the station have a restart under way (Session);
+        each adds filter.restart_grace_per_peer frames to a restart's grace. None: a
+        vehicle on its own."""
         self.model = build_model(config)
         self.keep_history = keep_history
         self.backend: Backend = backend
@@ -385,6 +390,8 @@ class Estimator:
         """A restart begun whose re-run has not started yet (its warm start not fitted)."""
         self._since_begin = 0
         """Frames since the restart under way began, that one included."""
+        self._grace = 0
+        """Frames of grace of the restart under way (set where it began)."""
         self.worked_ahead = 0
         """Restart work done in idle time (work_ahead): frames, and 1 per warm start."""
         self._rerun: dict[FilterKind, FilterState | None] | None = None
@@ -520,14 +527,16 @@ class Estimator:
 
     def _follow_schedule(self) -> dict[FilterKind, StepOutput] | None:
         """The re-run's progress this frame must have made, whatever was done ahead in
-        idle time (work_ahead): restart_frames_per_step frames per frame once
-        restart_grace_frames have passed (0: all of it now). When that reaches the newest
-        frame the re-run takes over: at a frame fixed by the data and the settings alone,
-        never by how busy the machine was, so a replay swaps where the live run did."""
+        idle time (work_ahead): restart_frames_per_step frames per frame once the grace
+        has passed (restart_grace_frames, plus restart_grace_per_peer for each other
+        vehicle restarting when this restart began; 0: all of it now). When that reaches
+        the newest frame the re-run takes over: at a frame fixed by the data (the link's,
+        every vehicle's, in the order they came) and the settings alone, never by how
+        busy the machine was, so a replay swaps where the live run did."""
         ft = self.config.filter
         n = len(self._buffer)
         per = ft.restart_frames_per_step
-        due = n if per <= 0 else min(n, max(0, self._since_begin - ft.restart_grace_frames) * per)
+        due = n if per <= 0 else min(n, max(0, self._since_begin - self._grace) * per)
         if due == 0:
             return None
         outs = self._advance_rerun(due)
@@ -712,6 +721,8 @@ class Estimator:
                 gust[kind] = max(state.gust.var, 0.0) if first else state.gust.pass_average()
         self._pending = _Pending(len(self._buffer), means, gust)
         self._since_begin = 0
+        peers = self.peers_restarting() if self.peers_restarting is not None else 0
+        self._grace = tuning.restart_grace_frames + tuning.restart_grace_per_peer * peers
 
     def _start_rerun(self) -> None:
         """The re-run's first states: from the warm start's fit to the frames buffered

@@ -110,9 +110,20 @@ class Session:
         est = self.estimators.get(system_id)
         if est is None:
             est = self.estimators[system_id] = Estimator(
-                self.config, backend=self.backend, keep_history=self.keep_history
+                self.config,
+                backend=self.backend,
+                keep_history=self.keep_history,
+                peers_restarting=lambda: self._restarting(but=system_id),
             )
         return est
+
+    def _restarting(self, but: int) -> int:
+        """How many vehicles other than `but` have a restart under way: each adds
+        filter.restart_grace_per_peer frames to the grace of a restart that begins now,
+        so vehicles restarting together take turns on the receive path. It counts from
+        the frames the session was given, in their order, so a replay of the link's
+        recording counts as the live run did."""
+        return sum(e.restart_under_way for sid, e in self.estimators.items() if sid != but)
 
     def add_sink(self, sink: Sink) -> None:
         self.sinks.append(sink)

@@ -131,3 +131,48 @@ def test_idle_restart_work_stops_at_its_budget_and_takes_vehicles_in_turn() -> N
     # Each vehicle's fit first, then its re-run's frames, in turn.
     assert turns == [0, 1, 2, 0, 1, 2]
     assert [e.worked_ahead for e in ests] == [1 + 5] * 3
+
+
+def test_vehicles_restarting_together_take_turns_and_end_alike() -> None:
+    """Each vehicle whose restart begins while others' are under way gets
+    filter.restart_grace_per_peer more frames of grace for each of them: the receive path
+    is not asked for every vehicle's re-run at once. The count comes from the frames the
+    session was given, in their order (not from the machine's load), and the estimates
+    end where a lone vehicle's do."""
+    from gcs_estimator.session import Session
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
+    per_peer = config.filter.restart_grace_per_peer
+    assert per_peer > 0 and config.filter.restart_grace_frames == 0  # the defaults
+    fl = simulate(config, seed=5)
+    lone, _ = _run(config)
+    session = Session(config, keep_history=False)
+    vehicles = (4, 9, 2)
+    frames = list(zip(fl.t_s, fl.inputs, fl.measurements, strict=True))
+    for t, u, y in frames:
+        for sid in vehicles:
+            session.estimator(sid).step(float(t), u, y)
+    for sid in vehicles:
+        session.estimators[sid].finish_restarts()
+    swaps = [session.estimators[sid].final_pass_from for sid in vehicles]
+    # Each later vehicle swaps later, by the grace its turn gave (a swap's frame moves
+    # by whole re-run schedules, so by at least per_peer frames for each peer).
+    assert swaps[0] == lone.final_pass_from
+    assert swaps[0] < swaps[1] < swaps[2]
+    assert swaps[2] - swaps[0] >= 2 * per_peer
+    for sid in vehicles:
+        for kind, s in lone.states.items():
+            other = session.estimators[sid].states[kind]
+            assert s is not None and other is not None
+            np.testing.assert_array_equal(other.x, s.x)
+    # Live, idle time between packets does restart work ahead; the turns and the swaps
+    # stay where a replay (no idle time) puts them.
+    again = Session(config, keep_history=False)
+    for t, u, y in frames:
+        for sid in vehicles:
+            again.estimator(sid).step(float(t), u, y)
+            again.work_ahead(0.0)
+    assert sum(again.estimators[sid].worked_ahead for sid in vehicles) > 0
+    for sid in vehicles:
+        again.estimators[sid].finish_restarts()
+    assert [again.estimators[sid].final_pass_from for sid in vehicles] == swaps
