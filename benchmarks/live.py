@@ -32,6 +32,7 @@ import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 from speed import small_matrix_gflops
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
@@ -53,11 +54,17 @@ class Latency:
     def __init__(self) -> None:
         self.complete: dict[int, list[float]] = {}
         self.partial: list[float] = []
+        self.flight_s: dict[int, list[float]] = {}
+        """Each complete frame's time into its vehicle's flight [s] (where the slow
+        frames were: at the restarts or elsewhere)."""
+        self._t0: dict[int, float] = {}
 
     def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
         late = time.time() - frame.t_recv_s
         if np.all(np.isfinite(frame.y)):
             self.complete.setdefault(frame.system_id, []).append(late)
+            t0 = self._t0.setdefault(frame.system_id, frame.t_vehicle_s)
+            self.flight_s.setdefault(frame.system_id, []).append(frame.t_vehicle_s - t0)
         else:
             self.partial.append(late)
 
@@ -154,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
             f"complete frames: median {np.median(lat):.3f} ms, p99 "
             f"{np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms ({_target(args.vehicles)})"
         )
+        _slow_frames(lat, np.concatenate([latency.flight_s[sid] for sid in by_vehicle]))
         print("\n| vehicle | frames | median ms | p99 ms | max ms |\n|---|---|---|---|---|")
         for sid, v in by_vehicle.items():
             print(
@@ -161,6 +169,22 @@ def run(args: argparse.Namespace) -> int:
                 f"{v.max():.3f} |"
             )
     return 0
+
+
+def _slow_frames(lat_ms: FloatArray, flight_s: FloatArray, over_ms: float = 20.0) -> None:
+    """Where in the flights the frames slower than over_ms were: by whole second of
+    each vehicle's flight, the seconds with most of them."""
+    slow = lat_ms > over_ms
+    if not slow.any():
+        print(f"frames slower than {over_ms:g} ms: none")
+        return
+    seconds, counts = np.unique(np.floor(flight_s[slow]).astype(int), return_counts=True)
+    top = np.argsort(counts)[::-1][:5]
+    where = ", ".join(f"{seconds[i]}-{seconds[i] + 1} s: {counts[i]}" for i in sorted(top))
+    print(
+        f"frames slower than {over_ms:g} ms: {int(slow.sum())}, by second of their "
+        f"vehicle's flight (the busiest): {where}"
+    )
 
 
 def _target(vehicles: int) -> str:

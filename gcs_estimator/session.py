@@ -10,6 +10,7 @@ what was processed.
 
 from __future__ import annotations
 
+import gc
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -266,9 +267,17 @@ class RecordingSource:
 def warm_up(config: AircraftConfig, backend: Backend = "fast") -> None:
     """Compile (or load) the filter kernels and import what a restart needs (the
     equation-error warm start, first used at the first restart: over half a second in a
-    fresh process) now, not while packets queue up."""
-    if backend != "fast":
-        return
+    fresh process) now, not while packets queue up. Then the objects of start-up
+    (modules, compiled kernels, the config) are frozen out of the garbage collector: its
+    first full collection over them, early in a run, stalled every vehicle's packets at
+    once (`bench live` prints where in the flights its slow frames were)."""
+    if backend == "fast":
+        _compile(config)
+    gc.collect()
+    gc.freeze()
+
+
+def _compile(config: AircraftConfig) -> None:
     from dataclasses import replace
 
     from gcs_estimator.model.aircraft import trim
