@@ -392,7 +392,7 @@ class FilterTuning:
         "together",
     )
     restart_grace_per_peer: int = setting(
-        3,
+        5,
         ge=0,
         doc="frames of grace added for each other vehicle of the station whose restart is "
         "under way when this one's begins: vehicles restarting together take turns on the "
