@@ -161,7 +161,12 @@ class MavlinkLink:
 
     def datagram(self, data: bytes, t_recv_s: float, address: Address | None = None) -> list[Frame]:
         """Frames completed by one received datagram (one or more packets, found by
-        mavlink.scan; each run of junk between them counts as one corrupt packet)."""
+        mavlink.scan; each run of junk between them counts as one corrupt packet).
+        A datagram that is exactly one channel message passing its CRC (what a vehicle
+        sends, nearly always) is read once, as packet() reads it, without the scan."""
+        decoded = self._fast(data, t_recv_s)
+        if decoded is not None:
+            return self._decoded(data, None, t_recv_s, address, decoded)
         return self._items(list(mavlink.scan(data, self.decoder)), t_recv_s, address)
 
     def stream(self, data: bytes, t_recv_s: float, address: Address) -> list[Frame]:

@@ -354,3 +354,37 @@ def test_a_signal_during_start_up_ends_the_run_cleanly(tmp_path: Path) -> None:
     _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 1, err  # ended cleanly: nothing to estimate, and it says so
     assert "no usable frame arrived" in err and "Traceback" not in err
+
+
+def test_a_datagram_of_one_packet_is_read_as_the_scan_reads_it(tmp_path: Path) -> None:
+    """A datagram that is exactly one channel message is read directly (link.datagram's
+    short way); the same packets in datagrams of three, where the scan finds them, give
+    the same frames and the same counts. A corrupt one-packet
+    datagram still goes to the scan and is counted."""
+    config, recs = recorded_flight(tmp_path)
+    recs = recs[:900]
+    corrupt = bytearray(recs[400][1])
+    corrupt[-1] ^= 0xFF
+    recs[400] = (recs[400][0], bytes(corrupt))
+    single = Ground(config)
+    batched = Ground(config)
+    got_single: list[Frame] = []
+    got_batched: list[Frame] = []
+    for t_us, pkt in recs:
+        got_single += single.link.datagram(pkt, t_us * 1e-6, ("127.0.0.1", 5760))
+    for i in range(0, len(recs), 3):
+        group = recs[i : i + 3]
+        data = b"".join(p for _, p in group)
+        got_batched += batched.link.datagram(data, group[-1][0] * 1e-6, ("127.0.0.1", 5760))
+    assert len(got_single) == len(got_batched) > 100
+    for a, b in zip(got_single, got_batched, strict=True):
+        assert (a.system_id, a.t_vehicle_s) == (b.system_id, b.t_vehicle_s)
+        np.testing.assert_array_equal(a.y, b.y)
+        np.testing.assert_array_equal(a.inputs, b.inputs)
+    one, three = single.link.health.total(), batched.link.health.total()
+    assert one.corrupt == three.corrupt == 1
+    assert (one.received, one.lost, one.duplicates) == (
+        three.received,
+        three.lost,
+        three.duplicates,
+    )
