@@ -181,9 +181,15 @@ def _share_on(gust_sigma: FloatArray) -> float:
     return float(np.mean(gust_sigma > 0.0)) if len(gust_sigma) else 0.0
 
 
+ZERO_REFERENCE = 1e-9
+"""A reference value this small is zero up to rounding (a least-squares reference of a
+term the aerodynamics lack comes out near 1e-14): no error in percent of it."""
+
+
 def percent_error(estimate: float, reference: float) -> float | None:
-    """100 * (estimate - reference) / |reference|; None for a zero reference."""
-    if reference == 0.0:
+    """100 * (estimate - reference) / |reference|; None for a zero reference (one within
+    ZERO_REFERENCE of zero)."""
+    if abs(reference) < ZERO_REFERENCE:
         return None
     return 100.0 * (estimate - reference) / abs(reference)
 
@@ -191,7 +197,7 @@ def percent_error(estimate: float, reference: float) -> float | None:
 def stay_within_time(t: FloatArray, values: FloatArray, target: float, band: float) -> float:
     """First time after which values stay within band*|target| of target [s]; NaN if the
     last value is outside. A target of 0 has no relative band: NaN."""
-    if len(values) == 0 or target == 0.0 or not math.isfinite(target):
+    if len(values) == 0 or abs(target) < ZERO_REFERENCE or not math.isfinite(target):
         return math.nan
     outside = np.abs(values - target) > band * abs(target)
     if outside[-1]:

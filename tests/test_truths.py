@@ -86,3 +86,25 @@ def test_a_bad_truth_file_names_the_key(tmp_path: Path) -> None:
     bad.write_text("[vehicles.1]\nCD0 = 1\n")
     with pytest.raises(ConfigError, match="vehicles: unknown key"):
         load_truths(bad, names)
+
+
+def test_a_reference_that_is_zero_up_to_rounding_gets_no_percent_error() -> None:
+    """A reference linearised from aerodynamics that lack a term comes out near 1e-14,
+    not 0: an error in percent of it would be a number of 17 digits. It is scored as
+    the zero it is (no percent), and the others as before."""
+    from gcs_estimator.estimator import run_recording
+    from gcs_estimator.metrics import percent_error
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])
+    flight = simulate(config, seed=2)
+    tiny = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8", "truth.CLq=-9.8e-15"])
+    result = run_recording(tiny, flight.t_s, flight.inputs, flight.measurements)
+    for kind, summary in result.summaries.items():
+        by_name = {c.name: c for c in summary.coefficients}
+        assert by_name["CLq"].error_pct is None, kind
+        assert by_name["CLa"].error_pct == percent_error(
+            float(result.result.filters[kind].coefficients[result.result.names.index("CLa")]),
+            config.truth[config.coefficient_names.index("CLa")],
+        )
+    assert percent_error(1.0, 1e-3) == 99900.0  # small, not zero: still in percent
