@@ -100,6 +100,7 @@ def test_a_reference_that_is_zero_up_to_rounding_gets_no_percent_error() -> None
     flight = simulate(config, seed=2)
     tiny = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8", "truth.CLq=-9.8e-15"])
     result = run_recording(tiny, flight.t_s, flight.inputs, flight.measurements)
+    assert config.truth is not None
     for kind, summary in result.summaries.items():
         by_name = {c.name: c for c in summary.coefficients}
         assert by_name["CLq"].error_pct is None, kind
