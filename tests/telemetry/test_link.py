@@ -359,8 +359,8 @@ def test_a_signal_during_start_up_ends_the_run_cleanly(tmp_path: Path) -> None:
 def test_a_datagram_of_one_packet_is_read_as_the_scan_reads_it(tmp_path: Path) -> None:
     """A datagram that is exactly one channel message is read directly (link.datagram's
     short way); the same packets in datagrams of three, where the scan finds them, give
-    the same frames and the same counts. A corrupt one-packet
-    datagram still goes to the scan and is counted."""
+    the same frames and the same counts. A corrupt one-packet datagram still goes to the
+    scan and is counted."""
     config, recs = recorded_flight(tmp_path)
     recs = recs[:900]
     corrupt = bytearray(recs[400][1])
