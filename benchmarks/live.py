@@ -1,7 +1,7 @@
 """Live link: latency from packet arrival to updated estimate, and load with many vehicles.
 
     python benchmarks/live.py --vehicles 1 --seconds 30
-    python benchmarks/live.py --vehicles 10 --seconds 30 [--view]
+    python benchmarks/live.py --vehicles 10 --seconds 30 [--view] [--repeat N]
 
 The simulated vehicles fly in real time in their own process (`gcs-sim --vehicles N`),
 streaming MAVLink 2 over UDP on loopback to one port; the ground station listens in this
@@ -12,12 +12,15 @@ view's, with --view). Prints median, p99 and max latency per vehicle and overall
 p99 <= 5 ms with 10 vehicles; p99 <= 20 ms and max <= 100 ms with 50), the station's CPU
 time, the datagrams the kernel dropped for a full socket buffer, and frames received
 against frames flown (target: none lost). link.max_vehicles is raised to the vehicles
-flown.
+flown. With --repeat N the flight is flown N times in a row into a new station each time
+(this machine is shared and its speed varies between runs): the figures of every run, and
+the worst of each.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import resource
 import subprocess
@@ -25,6 +28,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +37,7 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from speed import small_matrix_gflops
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import load_config
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.session import Session, VehicleResult, warm_up
@@ -82,10 +86,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", default="noc_uav")
     ap.add_argument("--view", action="store_true", help="with the Rerun view saving an .rrd")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="runs in a row (the machine's noise shows between them); with more than one, "
+        "a table over the runs and the worst of each figure",
+    )
     record.add_argument(ap, "live")
     args = ap.parse_args(argv)
     with record.recorded("live", args.record, "Live link: latency and load on loopback UDP"):
         return run(args)
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """What one run measured, for the table over repeated runs."""
+
+    frames_lost: int
+    socket_drops: int
+    p99_ms: float
+    max_ms: float
+    station_cpu: float
+    """The station's CPU time over the run's wall time (share of one core)."""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,8 +132,36 @@ def run(args: argparse.Namespace) -> int:
         f"least {ft.restart_frames_per_step} frames per new frame "
         "(filter.restart_frames_per_step)"
     )
-    latency = Latency()
     warm_up(config)  # compiles the kernels before binding
+    runs = []
+    for k in range(args.repeat):
+        if args.repeat > 1:
+            print(f"\n### Run {k + 1} of {args.repeat}\n")
+        runs.append(one_run(args, config, override, vehicle_table=args.repeat == 1))
+    if args.repeat > 1:
+        print(
+            "\n### Over the runs\n\n| run | frames lost | socket drops | p99 ms | max ms | "
+            "station CPU (one core) |\n|---|---|---|---|---|---|"
+        )
+        for k, r in enumerate(runs):
+            print(
+                f"| {k + 1} | {r.frames_lost} | {r.socket_drops} | {r.p99_ms:.3f} | "
+                f"{r.max_ms:.3f} | {r.station_cpu:.0%} |"
+            )
+        print(
+            f"\nworst of {len(runs)} runs: p99 {max(r.p99_ms for r in runs):.3f} ms, max "
+            f"{max(r.max_ms for r in runs):.3f} ms, frames lost "
+            f"{max(r.frames_lost for r in runs)}, socket drops "
+            f"{max(r.socket_drops for r in runs)} ({_target(args.vehicles)})"
+        )
+    return 0
+
+
+def one_run(
+    args: argparse.Namespace, config: AircraftConfig, override: str, vehicle_table: bool
+) -> RunFigures:
+    """The simulated vehicles into a station on loopback once; its figures printed."""
+    latency = Latency()
     session = Session(config)
     link = MavlinkLink(config.link)
     with tempfile.TemporaryDirectory() as tmp:
@@ -120,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         session.add_sink(latency)  # after the view: the time includes its work
         sock = open_udp("127.0.0.1", 0)
         port = sock.getsockname()[1]
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         sim = subprocess.Popen(
             vehicle_command(args.config, f"127.0.0.1:{port}", 1.0, [override], args.vehicles),
             cwd=ROOT,
@@ -134,7 +186,8 @@ def run(args: argparse.Namespace) -> int:
         cpu = time.process_time() - cpu
         sim.wait(timeout=30)
         used = resource.getrusage(resource.RUSAGE_CHILDREN)
-        sim_cpu = used.ru_utime + used.ru_stime  # the simulator: this process's only child
+        # The simulator: this process's only child in the run.
+        sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
@@ -155,20 +208,23 @@ def run(args: argparse.Namespace) -> int:
         f"them dropped by this machine's socket buffer: {dropped}), out of order "
         f"{h.out_of_order}, corrupt {h.corrupt}; partial frames {len(partial)}"
     )
+    p99 = peak = math.nan
     if len(lat):
+        p99, peak = float(np.percentile(lat, 99)), float(lat.max())
         print(
             f"latency, packet arrival (kernel time) -> both filters updated, over {len(lat)} "
             f"complete frames: median {np.median(lat):.3f} ms, p99 "
-            f"{np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms ({_target(args.vehicles)})"
+            f"{p99:.3f} ms, max {peak:.3f} ms ({_target(args.vehicles)})"
         )
         _slow_frames(lat, np.concatenate([latency.flight_s[sid] for sid in by_vehicle]))
-        print("\n| vehicle | frames | median ms | p99 ms | max ms |\n|---|---|---|---|---|")
-        for sid, v in by_vehicle.items():
-            print(
-                f"| {sid} | {len(v)} | {np.median(v):.3f} | {np.percentile(v, 99):.3f} | "
-                f"{v.max():.3f} |"
-            )
-    return 0
+        if vehicle_table:
+            print("\n| vehicle | frames | median ms | p99 ms | max ms |\n|---|---|---|---|---|")
+            for sid, v in by_vehicle.items():
+                print(
+                    f"| {sid} | {len(v)} | {np.median(v):.3f} | {np.percentile(v, 99):.3f} | "
+                    f"{v.max():.3f} |"
+                )
+    return RunFigures(flown - got, int(dropped), p99, peak, cpu / wall)
 
 
 def _slow_frames(lat_ms: FloatArray, flight_s: FloatArray, over_ms: float = 20.0) -> None:
