@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     record.add_argument(ap, "live")
     args = ap.parse_args(argv)
+    if args.repeat < 1:
+        ap.error(f"--repeat {args.repeat}: at least 1 run")
     with record.recorded("live", args.record, "Live link: latency and load on loopback UDP"):
         return run(args)
 
