@@ -86,6 +86,10 @@ def _assert_same(
     """Same decisions; states within rtol of their sigma, covariances within rtol of
     sqrt(P_ii P_jj) (the scale each entry is judged on) or P_atol, statistics within rtol."""
     (sa, ia, ha), (sb, ib, hb) = a, b
+    # Every field of every tuple, as its type declares them (the fast backend builds them
+    # from their fields in order).
+    for got, typ in ((sa, FilterState), (sa.gust, GustState), (ia, StepInfo)):
+        assert type(got) is typ and len(got) == len(typ._fields)
     assert ha == hb
     assert ia.failed == ib.failed and ia.n_used == ib.n_used and ia.iterations == ib.iterations
     scale = np.sqrt(np.abs(np.diag(sb.P))) + 1e-300
