@@ -1,7 +1,7 @@
 """Live link: latency from packet arrival to updated estimate, and load with many vehicles.
 
     python benchmarks/live.py --vehicles 1 --seconds 30
-    python benchmarks/live.py --vehicles 10 --seconds 30 [--view] [--repeat N]
+    python benchmarks/live.py --vehicles 10 --seconds 30 [--view] [--repeat N] [--link-worker]
 
 The simulated vehicles fly in real time in their own process (`gcs-sim --vehicles N`),
 streaming MAVLink 2 over UDP on loopback to one port; the ground station listens in this
@@ -14,7 +14,9 @@ time, the datagrams the kernel dropped for a full socket buffer, and frames rece
 against frames flown (target: none lost). link.max_vehicles is raised to the vehicles
 flown. With --repeat N the flight is flown N times in a row into a new station each time
 (this machine is shared and its speed varies between runs): the figures of every run, and
-the worst of each.
+the worst of each. With --link-worker the link runs in a second process, as
+`listen --link-worker` runs it (gcs_estimator/link_worker.py), and its CPU is printed
+beside the station's.
 """
 
 from __future__ import annotations
@@ -38,8 +40,10 @@ from speed import small_matrix_gflops
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.decode_worker import LinkArgs
 from gcs_estimator.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
+from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.session import Session, VehicleResult, warm_up
 from gcs_estimator.sources import UdpSource, open_udp
 from gcs_estimator.telemetry.link import MavlinkLink
@@ -87,6 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--view", action="store_true", help="with the Rerun view saving an .rrd")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config")
     ap.add_argument(
+        "--link-worker",
+        action="store_true",
+        help="the link in a second process, as `listen --link-worker` runs it",
+    )
+    ap.add_argument(
         "--repeat",
         type=int,
         default=1,
@@ -111,6 +120,8 @@ class RunFigures:
     max_ms: float
     station_cpu: float
     """The station's CPU time over the run's wall time (share of one core)."""
+    link_cpu: float
+    """Its link process's, with --link-worker (else 0)."""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,12 +154,12 @@ def run(args: argparse.Namespace) -> int:
     if args.repeat > 1:
         print(
             "\n### Over the runs\n\n| run | frames lost | socket drops | p99 ms | max ms | "
-            "station CPU (one core) |\n|---|---|---|---|---|---|"
+            "station CPU (one core) | link process CPU |\n|---|---|---|---|---|---|---|"
         )
         for k, r in enumerate(runs):
             print(
                 f"| {k + 1} | {r.frames_lost} | {r.socket_drops} | {r.p99_ms:.3f} | "
-                f"{r.max_ms:.3f} | {r.station_cpu:.0%} |"
+                f"{r.max_ms:.3f} | {r.station_cpu:.0%} | {r.link_cpu:.0%} |"
             )
         print(
             f"\nworst of {len(runs)} runs: p99 {max(r.p99_ms for r in runs):.3f} ms, max "
@@ -182,14 +193,22 @@ def one_run(
         )
         start = time.time()
         cpu = time.process_time()
-        source = UdpSource(sock, link, idle_exit_s=2.0, max_seconds=args.seconds * 3)
+        source: UdpSource | WorkerUdpSource
+        if args.link_worker:
+            args_ = LinkArgs(link.config, link.linear_inputs, link.ranges)
+            job = LiveJob(sock.fileno(), args_, None, None, 2.0, args.seconds * 3, None)
+            source = WorkerUdpSource(sock, job, link)
+        else:
+            source = UdpSource(sock, link, idle_exit_s=2.0, max_seconds=args.seconds * 3)
         results = session.run(source)
         wall = time.time() - start
         cpu = time.process_time() - cpu
+        dropped = source.link_stats()["dropped_by_this_machine"]  # ends the link worker
+        link_cpu = source.worker_cpu_s if isinstance(source, WorkerUdpSource) else 0.0
         sim.wait(timeout=30)
         used = resource.getrusage(resource.RUSAGE_CHILDREN)
-        # The simulator: this process's only child in the run.
-        sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime
+        # The simulator: this process's children in the run but the link worker.
+        sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime - link_cpu
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
@@ -197,13 +216,17 @@ def one_run(
     by_vehicle = {sid: np.array(v) * 1e3 for sid, v in sorted(latency.complete.items())}
     lat = np.concatenate(list(by_vehicle.values())) if by_vehicle else np.zeros(0)
     partial = latency.partial
-    dropped = source.link_stats()["dropped_by_this_machine"]
     h = link.health.total()
+    worker = (
+        f" and its link process {link_cpu:.1f} s ({link_cpu / wall:.0%})"
+        if args.link_worker
+        else ""
+    )
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
         f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s; "
-        f"the station used {cpu:.1f} s of CPU ({cpu / wall:.0%} of one core), the simulated "
-        f"vehicles {sim_cpu:.1f} s ({sim_cpu / wall:.0%}), on {os.cpu_count()} cores"
+        f"the station used {cpu:.1f} s of CPU ({cpu / wall:.0%} of one core){worker}, the "
+        f"simulated vehicles {sim_cpu:.1f} s ({sim_cpu / wall:.0%}), on {os.cpu_count()} cores"
     )
     print(
         f"frames: {got} of {flown} flown ({flown - got} lost); packets lost {h.lost} (of "
@@ -226,7 +249,7 @@ def one_run(
                     f"| {sid} | {len(v)} | {np.median(v):.3f} | {np.percentile(v, 99):.3f} | "
                     f"{v.max():.3f} |"
                 )
-    return RunFigures(flown - got, int(dropped), p99, peak, cpu / wall)
+    return RunFigures(flown - got, int(dropped), p99, peak, cpu / wall, link_cpu / wall)
 
 
 def _slow_frames(lat_ms: FloatArray, flight_s: FloatArray, over_ms: float = 20.0) -> None:

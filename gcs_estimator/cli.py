@@ -26,7 +26,9 @@ from gcs_estimator.config import (
     load_reference,
     load_truths,
 )
+from gcs_estimator.decode_worker import LinkArgs
 from gcs_estimator.flightdata import FlightDataError, load_recording
+from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.report import live_table
 from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
 from gcs_estimator.sinks import ProgressSink, RefineStatus, ResultsSink, StatusSink
@@ -435,16 +437,18 @@ def _link_session(
     origin: str | None,
     record: Path | None = None,
     status: bool = True,
+    recorder: bool = True,
 ) -> tuple[Session, MavlinkLink]:
     """A session over a MAVLink link, with its view and result sinks (and, live, its
-    status line)."""
+    status line); recorder False: the link records nothing here (a link worker records
+    `record`)."""
     warm_up(config, args.backend)
     truth_file = getattr(args, "truth", None)
     truths = None if truth_file is None else load_truths(truth_file, config.coefficient_names)
     session = Session(config, backend=args.backend, truths=truths)
     link = MavlinkLink(
         config.link,
-        recorder=TlogWriter(record) if record else None,
+        recorder=TlogWriter(record) if record and recorder else None,
         linear_inputs=config.data.input_hold == "linear",
         ranges=ranges_of(config.data),
         rejected_path=record.with_name(record.stem + ".rejected.tlog") if record else None,
@@ -466,6 +470,9 @@ def cmd_listen(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     config = _config(args)
     endpoint = endpoints.parse(args.endpoint, default_listen=True)
+    worker = getattr(args, "link_worker", False)
+    if worker and (endpoint.serial or endpoint.tcp):
+        raise ConfigError("--link-worker: UDP endpoints only (udpin:, udpout:)")
     record = Path(args.record) if args.record else Path(args.out) / TLOG_FILE
     if args.record and record.exists() and not args.force:
         raise ConfigError(f"--record {record}: the file exists; --force to overwrite it")
@@ -478,9 +485,23 @@ def cmd_listen(args: argparse.Namespace) -> int:
             if endpoint.tcp
             else endpoints.open_socket(endpoint, RCVBUF_BYTES)
         )
-    session, link = _link_session(config, args, args.endpoint, record)
-    source: LiveSource
-    if endpoint.serial:
+    session, link = _link_session(config, args, args.endpoint, record, recorder=not worker)
+    source: LiveSource | WorkerUdpSource
+    if worker:
+        where = _where(endpoint, sock)
+        job = LiveJob(
+            sock.fileno(),
+            LinkArgs(link.config, link.linear_inputs, link.ranges),
+            str(record),
+            str(link.rejected_path) if link.rejected_path else None,
+            args.idle_exit,
+            args.duration,
+            None if endpoint.listen else endpoint.address,
+        )
+        source = WorkerUdpSource(sock, job, link)
+        source.start()
+        where += " (the link in a second process)"
+    elif endpoint.serial:
         where = f"reading serial {endpoint.device} at {endpoint.port} baud"
         source = SerialSource(port, link, args.idle_exit, args.duration)
     elif endpoint.tcp:
@@ -649,6 +670,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop after this many seconds without data (once data came)",
     )
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument(
+        "--link-worker",
+        action="store_true",
+        help="UDP only: receive, decode and record in a second process while this one runs "
+        "the filters (two cores; the same frames and estimates)",
+    )
     _truth_option(p)
     p.set_defaults(func=cmd_listen)
 

@@ -14,8 +14,10 @@ replays would need a `__main__` guard.
 
 from __future__ import annotations
 
+import os
 import pickle
 import queue
+import select
 import signal
 import struct
 import subprocess
@@ -190,27 +192,73 @@ def main() -> None:
     _work(paths, args, _writer(sys.stdout.buffer))
 
 
-class DecodeWorker:
-    """The parent's end: starts the worker and yields its frames in order."""
+class WorkerProcess:
+    """The parent's end of a worker (`python -m MODULE`, its job pickled on stdin, its
+    messages on stdout): a thread reads the messages onto a bounded queue, or, with
+    threaded False, the caller reads them (`messages`) without one."""
 
-    def __init__(self, paths: Sequence[Path], args: LinkArgs, log: TextIO | None = None) -> None:
-        self.log = sys.stderr if log is None else log
+    def __init__(
+        self, module: str, job: Any, pass_fds: Sequence[int] = (), threaded: bool = True
+    ) -> None:
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "gcs_estimator.decode_worker"],
+            [sys.executable, "-m", module],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
+            pass_fds=tuple(pass_fds),
+            bufsize=0 if not threaded else -1,
         )
         assert self._process.stdin is not None and self._process.stdout is not None
-        self._process.stdin.write(pickle.dumps(([str(p) for p in paths], args)))
+        self._process.stdin.write(pickle.dumps(job))
         self._process.stdin.close()
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(QUEUE_BATCHES)
         self._reader = threading.Thread(
-            target=self._read, args=(self._process.stdout,), name="decode-worker", daemon=True
+            target=self._read, args=(self._process.stdout,), name=module, daemon=True
         )
-        self._reader.start()
-        self.progress: Progress | None = None
-        self.stats: dict[str, Any] | None = None
-        self.errors: list[str] = []
+        self._buffer = b""
+        self._ended = False
+        if threaded:
+            self._reader.start()
+
+    def ready(self) -> bool:
+        """Without the thread: whether a message (or the pipe's end) is waiting."""
+        stdout = self._process.stdout
+        assert stdout is not None
+        if self._ended:
+            return True
+        if len(self._buffer) >= _LENGTH.size:
+            (n,) = _LENGTH.unpack_from(self._buffer)
+            if len(self._buffer) >= _LENGTH.size + n:
+                return True
+        return bool(select.select([stdout], [], [], 0)[0])
+
+    def messages(self, timeout_s: float) -> list[tuple[Any, ...] | None]:
+        """Without the thread: the messages complete within timeout_s (waiting only while
+        none is), None last at the pipe's end. A thread that waits for the pipe takes the
+        interpreter's lock from the filters at every message, so a live link's frames
+        would wait up to its switch interval (5 ms); read here, they wait for nothing."""
+        stdout = self._process.stdout
+        assert stdout is not None
+        if self._ended:
+            return [None]
+        out: list[tuple[Any, ...] | None] = []
+        wait = timeout_s
+        while select.select([stdout], [], [], wait)[0]:
+            chunk = os.read(stdout.fileno(), 1 << 20)
+            if not chunk:
+                self._ended = True
+                break
+            self._buffer += chunk
+            wait = 0.0
+        while len(self._buffer) >= _LENGTH.size:
+            (n,) = _LENGTH.unpack_from(self._buffer)
+            end = _LENGTH.size + n
+            if len(self._buffer) < end:
+                break
+            out.append(pickle.loads(self._buffer[_LENGTH.size : end]))
+            self._buffer = self._buffer[end:]
+        if self._ended:
+            out.append(None)
+        return out
 
     def _read(self, stream: Any) -> None:
         """Messages from the pipe onto the queue (a thread: its reads wait without the
@@ -225,6 +273,41 @@ class DecodeWorker:
             self._queue.put(msg)
             if msg is None:
                 return
+
+    def _signal(self, signum: int) -> None:
+        if self._process.poll() is None:
+            self._process.send_signal(signum)
+
+    def close(self) -> None:
+        """End the worker (if it is still running) and wait for it; what it still sends
+        is read and dropped, so that it never waits on a full pipe."""
+        self._signal(signal.SIGTERM)
+        deadline = time.monotonic() + CLOSE_S
+        if self._reader.ident is None:  # not threaded: read to the end here
+            while not self._ended and time.monotonic() < deadline:
+                self.messages(0.05)
+        while self._reader.is_alive() and time.monotonic() < deadline:
+            try:
+                self._queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+        if self._process.poll() is None:
+            try:
+                self._process.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait()
+
+
+class DecodeWorker(WorkerProcess):
+    """The parent's end: starts the worker and yields its frames in order."""
+
+    def __init__(self, paths: Sequence[Path], args: LinkArgs, log: TextIO | None = None) -> None:
+        self.log = sys.stderr if log is None else log
+        super().__init__("gcs_estimator.decode_worker", ([str(p) for p in paths], args))
+        self.progress: Progress | None = None
+        self.stats: dict[str, Any] | None = None
+        self.errors: list[str] = []
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         """Frames in order; None while waiting (a tick for the sinks). Raises
@@ -263,27 +346,6 @@ class DecodeWorker:
                     raise RuntimeError(f"decoding process: {msg[1]}")
         finally:
             self.close()
-
-    def _signal(self, signum: int) -> None:
-        if self._process.poll() is None:
-            self._process.send_signal(signum)
-
-    def close(self) -> None:
-        """End the worker (if it is still running) and wait for it; what it still sends
-        is read and dropped, so that it never waits on a full pipe."""
-        self._signal(signal.SIGTERM)
-        deadline = time.monotonic() + CLOSE_S
-        while self._reader.is_alive() and time.monotonic() < deadline:
-            try:
-                self._queue.get(timeout=0.05)
-            except queue.Empty:
-                continue
-        if self._process.poll() is None:
-            try:
-                self._process.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                self._process.kill()
-                self._process.wait()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,174 @@
+"""`listen --link-worker`: the link in a second process, end to end on loopback (real
+vehicle process, real UDP, real .tlog), against the station in one process."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gcs_estimator.cli import main as gcs_main
+from gcs_estimator.config import load_config
+from gcs_estimator.decode_worker import LinkArgs
+from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.flightdata import Recording
+from gcs_estimator.frames import Frame
+from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
+from gcs_estimator.session import Session, VehicleResult
+from gcs_estimator.sources import SourceError, open_udp
+from gcs_estimator.telemetry.link import MavlinkLink
+from sim.cli import command as vehicle_command
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+
+ROOT = Path(__file__).resolve().parents[2]
+SHORT = ["simulation.manoeuvre.duration_s=12"]
+QUICK = ["--set", "filter.structure_check=off", "--view", "off"]
+
+
+def _results(folder: Path) -> dict[str, Any]:
+    out: dict[str, Any] = json.loads((folder / "results_sys1.json").read_text())
+    return out
+
+
+def test_a_station_with_its_link_in_a_worker_gives_what_its_recording_replays_to(
+    tmp_path: Path,
+) -> None:
+    """Vehicle process -> UDP -> `listen --link-worker`: every frame arrives, the worker
+    records the tlog and answers the vehicle, and a replay of that recording ends with
+    the same estimates, sigmas and history."""
+    live = tmp_path / "live"
+    listen = ["listen", "udpin:127.0.0.1:0", "--link-worker", "--idle-exit", "1.5"]
+    station = subprocess.Popen(
+        [sys.executable, "-m", "gcs_estimator.cli", *listen, "--out", str(live), *QUICK],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert station.stderr is not None
+    port = None
+    for line in station.stderr:
+        if line.startswith("listening on"):
+            found = re.search(r"127\.0\.0\.1:(\d+)", line)
+            assert found and "the link in a second process" in line, line
+            port = int(found.group(1))
+            break
+    assert port is not None, "the station never listened"
+    vehicle = subprocess.run(
+        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert vehicle.returncode == 0, vehicle.stderr
+    assert " 0 GCS heartbeats" not in vehicle.stderr  # the worker spoke to the vehicle
+    _out, err = station.communicate(timeout=120)
+    assert station.returncode == 0, err
+    got = _results(live)
+    assert got["diagnostics"]["frames"] == 601  # 12 s at 50 Hz, every frame
+    assert got["link"]["lost"] == 0 and got["link"]["received"] > 3000
+
+    again = tmp_path / "again"
+    assert gcs_main(["replay", str(live / "telemetry.tlog"), "--out", str(again), *QUICK]) == 0
+    want = _results(again)
+    assert got["filters"] == want["filters"]
+    assert got["diagnostics"] == want["diagnostics"]
+    assert (live / "results_sys1_history.csv").read_bytes() == (
+        again / "results_sys1_history.csv"
+    ).read_bytes()
+
+
+class _KillAfter:
+    """A sink that kills the link's worker process after `frames` frames."""
+
+    def __init__(self, source: WorkerUdpSource, frames: int) -> None:
+        self.source = source
+        self.frames = frames
+        self.seen = 0
+
+    def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
+        self.seen += 1
+        if self.seen == self.frames:
+            worker = self.source._worker
+            assert worker is not None
+            os.kill(worker._process.pid, signal.SIGKILL)
+
+    def tick(self) -> None:
+        pass
+
+    def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
+        pass
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
+def test_a_link_worker_that_dies_is_reported_and_the_frames_it_gave_are_kept() -> None:
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=1)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    link = MavlinkLink(config.link)
+    sock = open_udp("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    job = LiveJob(
+        sock.fileno(),
+        LinkArgs(link.config, link.linear_inputs, link.ranges),
+        None,
+        None,
+        1.0,
+        60.0,
+        None,
+    )
+    source = WorkerUdpSource(sock, job, link)
+    session = Session(config)
+    killer = _KillAfter(source, 200)
+    session.add_sink(killer)
+    vehicle = SimulatedVehicle(rec, config.link, ("127.0.0.1", port), speed=4.0)
+    thread = threading.Thread(target=vehicle.run)
+    thread.start()
+    try:
+        with pytest.raises(SourceError, match="link process ended early"):
+            session.run(source)
+    finally:
+        thread.join()
+    # What arrived before the worker died was estimated, and the results say so.
+    assert killer.seen >= 200
+    assert session.estimators[1].frames == killer.seen
+    assert session.results()[1].result.frames == killer.seen
+
+
+def test_a_link_worker_is_refused_on_tcp(capsys: pytest.CaptureFixture[str]) -> None:
+    assert gcs_main(["listen", "tcp:127.0.0.1:9", "--link-worker", *QUICK]) != 0
+    assert "--link-worker: UDP endpoints only" in capsys.readouterr().err
+
+
+def test_sigterm_stops_a_station_and_its_link_worker_cleanly(tmp_path: Path) -> None:
+    record = tmp_path / "x.tlog"
+    listen = ["listen", "udpin:127.0.0.1:0", "--link-worker", "--record", str(record)]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gcs_estimator.cli", *listen, "--out", str(tmp_path), *QUICK],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if line.startswith("listening on"):
+            break
+    proc.terminate()
+    _out, err = proc.communicate(timeout=60)
+    # Stopped cleanly (the worker too: its recording is closed), and says (exit 1) that
+    # nothing arrived to estimate from.
+    assert proc.returncode == 1, err
+    assert "no vehicle data received" in err and "no usable frame arrived" in err
+    assert record.exists()
