@@ -499,7 +499,11 @@ def cmd_listen(args: argparse.Namespace) -> int:
             None if endpoint.listen else endpoint.address,
         )
         source = WorkerUdpSource(sock, job, link)
-        source.start()
+        try:
+            source.start()
+        except SourceError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         where += " (the link in a second process)"
     elif endpoint.serial:
         where = f"reading serial {endpoint.device} at {endpoint.port} baud"

@@ -43,6 +43,8 @@ BATCH_FRAMES = 512
 BATCH_S = 0.1
 QUEUE_BATCHES = 32
 """Batches the worker may be ahead of the filters (bounds memory)."""
+READ_BYTES = 1 << 20
+"""Most bytes one read of a worker's pipe takes (without the thread)."""
 POLL_S = 0.1
 """Longest wait for a batch before the sinks get a tick and the worker is checked [s]."""
 CLOSE_S = 5.0
@@ -214,6 +216,7 @@ class WorkerProcess:
         self._reader = threading.Thread(
             target=self._read, args=(self._process.stdout,), name=module, daemon=True
         )
+        self._threaded = threaded
         self._buffer = b""
         self._ended = False
         if threaded:
@@ -232,30 +235,36 @@ class WorkerProcess:
         return bool(select.select([stdout], [], [], 0)[0])
 
     def messages(self, timeout_s: float) -> list[tuple[Any, ...] | None]:
-        """Without the thread: the messages complete within timeout_s (waiting only while
-        none is), None last at the pipe's end. A thread that waits for the pipe takes the
-        interpreter's lock from the filters at every message, so a live link's frames
-        would wait up to its switch interval (5 ms); read here, they wait for nothing."""
+        """Without the thread: the messages complete after one read of what the pipe holds
+        (waiting up to timeout_s for it), None last at the pipe's end. A thread that waits
+        for the pipe takes the interpreter's lock from the filters at every message, so a
+        live link's frames would wait up to its switch interval (5 ms); read here, they
+        wait for nothing."""
         stdout = self._process.stdout
         assert stdout is not None
         if self._ended:
             return [None]
-        out: list[tuple[Any, ...] | None] = []
-        wait = timeout_s
-        while select.select([stdout], [], [], wait)[0]:
-            chunk = os.read(stdout.fileno(), 1 << 20)
-            if not chunk:
+        if select.select([stdout], [], [], timeout_s)[0]:
+            chunk = os.read(stdout.fileno(), READ_BYTES)
+            if chunk:
+                self._buffer += chunk
+            else:
                 self._ended = True
-                break
-            self._buffer += chunk
-            wait = 0.0
-        while len(self._buffer) >= _LENGTH.size:
-            (n,) = _LENGTH.unpack_from(self._buffer)
-            end = _LENGTH.size + n
+        out: list[tuple[Any, ...] | None] = []
+        at = 0
+        while len(self._buffer) - at >= _LENGTH.size:
+            (n,) = _LENGTH.unpack_from(self._buffer, at)
+            end = at + _LENGTH.size + n
             if len(self._buffer) < end:
                 break
-            out.append(pickle.loads(self._buffer[_LENGTH.size : end]))
-            self._buffer = self._buffer[end:]
+            try:
+                out.append(pickle.loads(self._buffer[at + _LENGTH.size : end]))
+            except Exception as exc:  # the worker's end, as the thread takes it
+                out.append(("failed", f"unreadable message from the worker: {exc}", False))
+                self._ended = True
+                break
+            at = end
+        self._buffer = self._buffer[at:]
         if self._ended:
             out.append(None)
         return out
@@ -283,7 +292,7 @@ class WorkerProcess:
         is read and dropped, so that it never waits on a full pipe."""
         self._signal(signal.SIGTERM)
         deadline = time.monotonic() + CLOSE_S
-        if self._reader.ident is None:  # not threaded: read to the end here
+        if not self._threaded:  # read to the end here
             while not self._ended and time.monotonic() < deadline:
                 self.messages(0.05)
         while self._reader.is_alive() and time.monotonic() < deadline:

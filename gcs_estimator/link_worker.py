@@ -35,6 +35,7 @@ from gcs_estimator.decode_worker import (
     _writer,
 )
 from gcs_estimator.frames import Frame
+from gcs_estimator.sources import SourceError, UdpSource
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.counters import LinkCounts
 from gcs_estimator.telemetry.link import MavlinkLink
@@ -75,47 +76,25 @@ def _work(job: LiveJob, send: Any) -> None:
     """The worker: receive on the socket through a link, send each receive round's frames,
     then ("end", link stats, its CPU time [s]). SIGINT and SIGTERM end it cleanly: what
     arrived is still decoded and sent, and the recording closed."""
-    from gcs_estimator.sources import UdpSource
     from gcs_estimator.telemetry.mavlink import TlogWriter
 
     stop = Stop().install()
     log: Any = _Lines(send)
-    sock = socket.socket(fileno=job.fd)
-    args = job.link
-    link = MavlinkLink(
-        args.config,
-        recorder=TlogWriter(job.record) if job.record else None,
-        log=log,
-        linear_inputs=args.linear_inputs,
-        ranges=args.ranges,
-        rejected_path=Path(job.rejected) if job.rejected else None,
-    )
-    source = UdpSource(sock, link, job.idle_exit_s, job.max_seconds, job.peer)
-    send(("ready",))
-
-    def state() -> LinkState:
-        return LinkState(
-            link.t_first_recv, link.t_last_recv, link.health.links, source.kernel_dropped
-        )
-
-    batch: list[Frame] = []
-    mirrored = -math.inf
     try:
+        sock = socket.socket(fileno=job.fd)
+        args = job.link
+        link = MavlinkLink(
+            args.config,
+            recorder=TlogWriter(job.record) if job.record else None,
+            log=log,
+            linear_inputs=args.linear_inputs,
+            ranges=args.ranges,
+            rejected_path=Path(job.rejected) if job.rejected else None,
+        )
+        source = UdpSource(sock, link, job.idle_exit_s, job.max_seconds, job.peer)
+        send(("ready",))
         try:
-            for frame in source.frames(stop):
-                if frame is not None:
-                    batch.append(frame)
-                    continue
-                # The counters (one entry per address: many with many vehicles) go at
-                # most every MIRROR_S, the frames as soon as a receive round ends.
-                now = time.monotonic()
-                mirror = now - mirrored > MIRROR_S
-                if batch or mirror:
-                    send(("frames", Batch.of(batch), state() if mirror else None))
-                    batch = []
-                    if mirror:
-                        mirrored = now
-            send(("frames", Batch.of(batch), state()))
+            _receive(source, stop, send)
             stats = source.link_stats()
         finally:
             source.close()
@@ -124,6 +103,32 @@ def _work(job: LiveJob, send: Any) -> None:
         pass  # the parent has gone: nobody to tell
     except Exception as exc:  # reported by the parent, which keeps what it had
         send(("failed", f"{type(exc).__name__}: {exc}", False))
+
+
+def _receive(source: UdpSource, stop: Stop, send: Any) -> None:
+    """Each receive round's frames as soon as it ends; the link's counters (one entry per
+    address: many with many vehicles) at most every MIRROR_S, and with the last frames."""
+    link = source.link
+
+    def state() -> LinkState:
+        return LinkState(
+            link.t_first_recv, link.t_last_recv, link.health.links, source.kernel_dropped
+        )
+
+    batch: list[Frame] = []
+    mirrored = -math.inf
+    for frame in source.frames(stop):
+        if frame is not None:
+            batch.append(frame)
+            continue
+        now = time.monotonic()
+        mirror = now - mirrored > MIRROR_S
+        if batch or mirror:
+            send(("frames", Batch.of(batch), state() if mirror else None))
+            batch = []
+            if mirror:
+                mirrored = now
+    send(("frames", Batch.of(batch), state()))
 
 
 def main() -> None:
@@ -148,8 +153,6 @@ class LinkWorker(WorkerProcess):
     def wait_ready(self) -> None:
         """Wait until the worker has its link and recording open and its signal handlers
         in place. Raises SourceError if it ended or failed first."""
-        from gcs_estimator.sources import SourceError
-
         deadline = time.monotonic() + READY_S
         while time.monotonic() < deadline:
             for msg in self.messages(POLL_S):
@@ -190,8 +193,6 @@ class LinkWorker(WorkerProcess):
     def _end(self, msg: tuple[Any, ...] | None, told: bool) -> None:
         """The worker's end: its final counts, or (the pipe ended without them) an error
         unless it was told to stop (a signal during its start)."""
-        from gcs_estimator.sources import SourceError
-
         if msg is not None:
             self.stats, self.cpu_s = msg[1], msg[2]
             return
@@ -200,8 +201,6 @@ class LinkWorker(WorkerProcess):
             raise SourceError(f"the link process ended early (exit code {code})")
 
     def _frames_of(self, msg: tuple[Any, ...]) -> Iterator[Frame]:
-        from gcs_estimator.sources import SourceError
-
         if msg[0] == "log":
             print(msg[1], file=self.log)
             return iter(())

@@ -172,3 +172,17 @@ def test_sigterm_stops_a_station_and_its_link_worker_cleanly(tmp_path: Path) -> 
     assert proc.returncode == 1, err
     assert "no vehicle data received" in err and "no usable frame arrived" in err
     assert record.exists()
+
+
+def test_a_link_worker_that_cannot_start_says_why(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recording it cannot open (its folder is a file) ends the run before it listens,
+    with the worker's reason and no traceback."""
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("")
+    listen = ["listen", "udpin:127.0.0.1:0", "--link-worker", "--record", str(blocker / "x.tlog")]
+    assert gcs_main([*listen, "--out", str(tmp_path / "out"), *QUICK]) == 2
+    err = capsys.readouterr().err
+    assert "error: the link process failed" in err and "before it could receive" in err
+    assert "listening on" not in err
