@@ -27,7 +27,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
@@ -70,6 +70,25 @@ class Progress:
     t_first_recv: float
     t_last_recv: float
     links: dict[str, LinkCounts]
+
+
+class Counters(Protocol):
+    """A worker's link clock and counters as it last sent them (Progress, LinkState)."""
+
+    @property
+    def t_first_recv(self) -> float: ...
+    @property
+    def t_last_recv(self) -> float: ...
+    @property
+    def links(self) -> dict[str, LinkCounts]: ...
+
+
+def mirror(link: Any, counters: Counters) -> None:
+    """Set this process's MavlinkLink to a worker's clock and counters: the status line
+    and the view read them as the run goes."""
+    link.t_first_recv = counters.t_first_recv
+    link.t_last_recv = counters.t_last_recv
+    link.health.links = counters.links
 
 
 @dataclass(frozen=True)

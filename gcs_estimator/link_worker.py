@@ -33,6 +33,7 @@ from gcs_estimator.decode_worker import (
     WorkerProcess,
     _Lines,
     _writer,
+    mirror,
 )
 from gcs_estimator.frames import Frame
 from gcs_estimator.sources import SourceError, UdpSource
@@ -259,15 +260,12 @@ class WorkerUdpSource:
         self.start()
         worker = self._worker
         assert worker is not None
-        link = self.link
         mirrored = None
         for frame in worker.frames(stop):
             state = worker.state
             if state is not mirrored and state is not None:
                 mirrored = state
-                link.t_first_recv = state.t_first_recv
-                link.t_last_recv = state.t_last_recv
-                link.health.links = state.links
+                mirror(self.link, state)
             yield frame
 
     def link_stats(self) -> dict[str, Any]:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from gcs_estimator import endpoints
-from gcs_estimator.decode_worker import DecodeWorker, LinkArgs
+from gcs_estimator.decode_worker import DecodeWorker, LinkArgs, mirror
 from gcs_estimator.frames import Frame
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry import mavlink
@@ -359,11 +359,8 @@ class TlogSource:
         for frame in worker.frames(stop):
             progress = worker.progress
             if progress is not mirrored and progress is not None:
-                # The view reads the link's clock and counters as the replay goes.
                 mirrored = progress
-                link.t_first_recv = progress.t_first_recv
-                link.t_last_recv = progress.t_last_recv
-                link.health.links = progress.links
+                mirror(link, progress)
             yield frame
         self.errors = worker.errors  # each already said by the worker, through self.log
 

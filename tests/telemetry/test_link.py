@@ -26,6 +26,7 @@ from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
 from sim.cli import command as vehicle_command
 from sim.vehicle import SimulatedVehicle
+from tests.telemetry.station import start_listen
 
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
@@ -291,28 +292,9 @@ def test_truncated_and_garbage_tlogs(tmp_path: Path, capsys: pytest.CaptureFixtu
 
 
 def test_sigterm_stops_cleanly_with_results(tmp_path: Path) -> None:
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gcs_estimator.cli",
-            "listen",
-            "udpin:127.0.0.1:0",
-            "--out",
-            str(tmp_path),
-            "--record",
-            str(tmp_path / "x.tlog"),
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc, _line = start_listen(
+        "udpin:127.0.0.1:0", "--out", str(tmp_path), "--record", str(tmp_path / "x.tlog")
     )
-    assert proc.stderr is not None
-    # Wait for the station to say it listens (kernels compiled, handlers installed).
-    for line in proc.stderr:
-        if line.startswith("listening on"):
-            break
     proc.terminate()
     _out, err = proc.communicate(timeout=60)
     # Stopped cleanly, and says (exit 1) that nothing arrived to estimate from.

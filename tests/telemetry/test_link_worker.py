@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
-import sys
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -29,6 +27,7 @@ from gcs_estimator.telemetry.link import MavlinkLink
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
+from tests.telemetry.station import bound_port, start_listen
 
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
@@ -47,23 +46,11 @@ def test_a_station_with_its_link_in_a_worker_gives_what_its_recording_replays_to
     records the tlog and answers the vehicle, and a replay of that recording ends with
     the same estimates, sigmas and history."""
     live = tmp_path / "live"
-    listen = ["listen", "udpin:127.0.0.1:0", "--link-worker", "--idle-exit", "1.5"]
-    station = subprocess.Popen(
-        [sys.executable, "-m", "gcs_estimator.cli", *listen, "--out", str(live), *QUICK],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    station, line = start_listen(
+        "udpin:127.0.0.1:0", "--link-worker", "--idle-exit", "1.5", "--out", str(live), *QUICK
     )
-    assert station.stderr is not None
-    port = None
-    for line in station.stderr:
-        if line.startswith("listening on"):
-            found = re.search(r"127\.0\.0\.1:(\d+)", line)
-            assert found and "the link in a second process" in line, line
-            port = int(found.group(1))
-            break
-    assert port is not None, "the station never listened"
+    assert "the link in a second process" in line, line
+    port = bound_port(line)
     vehicle = subprocess.run(
         vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT),
         cwd=ROOT,
@@ -153,18 +140,9 @@ def test_a_link_worker_is_refused_on_tcp(capsys: pytest.CaptureFixture[str]) -> 
 
 def test_sigterm_stops_a_station_and_its_link_worker_cleanly(tmp_path: Path) -> None:
     record = tmp_path / "x.tlog"
-    listen = ["listen", "udpin:127.0.0.1:0", "--link-worker", "--record", str(record)]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "gcs_estimator.cli", *listen, "--out", str(tmp_path), *QUICK],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc, _line = start_listen(
+        "udpin:127.0.0.1:0", "--link-worker", "--record", str(record), "--out", str(tmp_path)
     )
-    assert proc.stderr is not None
-    for line in proc.stderr:
-        if line.startswith("listening on"):
-            break
     proc.terminate()
     _out, err = proc.communicate(timeout=60)
     # Stopped cleanly (the worker too: its recording is closed), and says (exit 1) that
