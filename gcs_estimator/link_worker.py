@@ -118,17 +118,20 @@ def _receive(source: UdpSource, stop: Stop, send: Any) -> None:
 
     batch: list[Frame] = []
     mirrored = -math.inf
+    clock_sent = False
     for frame in source.frames(stop):
         if frame is not None:
             batch.append(frame)
             continue
         now = time.monotonic()
-        mirror = now - mirrored > MIRROR_S
+        # The first frames go with the link's clock: the view times frames from it.
+        mirror = now - mirrored > MIRROR_S or (bool(batch) and not clock_sent)
         if batch or mirror:
             send(("frames", Batch.of(batch), state() if mirror else None))
             batch = []
             if mirror:
                 mirrored = now
+                clock_sent = not math.isnan(link.t_first_recv)
     send(("frames", Batch.of(batch), state()))
 
 

@@ -4,6 +4,7 @@ vehicle process, real UDP, real .tlog), against the station in one process."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -12,8 +13,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
+from gcs_estimator import link_worker
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_config
 from gcs_estimator.decode_worker import LinkArgs
@@ -22,12 +25,15 @@ from gcs_estimator.flightdata import Recording
 from gcs_estimator.frames import Frame
 from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.session import Session, VehicleResult
-from gcs_estimator.sources import SourceError, open_udp
+from gcs_estimator.sources import SourceError, UdpSource, open_udp
+from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.view import layout as lay
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.station import bound_port, start_listen
+from tests.view.test_rerun import read_scalars
 
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
@@ -46,9 +52,8 @@ def test_a_station_with_its_link_in_a_worker_gives_what_its_recording_replays_to
     records the tlog and answers the vehicle, and a replay of that recording ends with
     the same estimates, sigmas and history."""
     live = tmp_path / "live"
-    station, line = start_listen(
-        "udpin:127.0.0.1:0", "--link-worker", "--idle-exit", "1.5", "--out", str(live), *QUICK
-    )
+    listen = ["udpin:127.0.0.1:0", "--link-worker", "--idle-exit", "1.5", "--out", str(live)]
+    station, line = start_listen(*listen, "--set", "filter.structure_check=off", "--view", "save")
     assert "the link in a second process" in line, line
     port = bound_port(line)
     vehicle = subprocess.run(
@@ -65,6 +70,16 @@ def test_a_station_with_its_link_in_a_worker_gives_what_its_recording_replays_to
     got = _results(live)
     assert got["diagnostics"]["frames"] == 601  # 12 s at 50 Hz, every frame
     assert got["link"]["lost"] == 0 and got["link"]["received"] > 3000
+
+    # The view has every frame on the link's receive clock too (the worker sends the
+    # clock with the first frames; without it they had none, and were dropped).
+    config = load_config(ROOT / "configs/noc_uav.toml")
+    axis = config.structure.axes[config.coefficient_names.index("Cma")]
+    entity = lay.coefficient_path(1, "Cma", axis)
+    t_flight, _ = read_scalars(live / "view.rrd", entity)
+    t_recv, _ = read_scalars(live / "view.rrd", entity, lay.RECEIVE_TIMELINE)
+    assert len(t_recv) == len(t_flight) > 0 and np.all(np.isfinite(t_recv))
+    assert t_recv[0] < 1.0  # seconds since the first packet
 
     again = tmp_path / "again"
     assert gcs_main(["replay", str(live / "telemetry.tlog"), "--out", str(again), *QUICK]) == 0
@@ -164,3 +179,34 @@ def test_a_link_worker_that_cannot_start_says_why(
     err = capsys.readouterr().err
     assert "error: the link process failed" in err and "before it could receive" in err
     assert "listening on" not in err
+
+
+def test_the_first_frames_go_with_the_link_clock() -> None:
+    """The worker's receive loop (on a real socket and link): it reports the counters
+    while idle, before any packet; when the first frames come soon after, they still go
+    with the link's clock (the view times frames from it)."""
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=1)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    sock = open_udp("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    source = UdpSource(sock, MavlinkLink(config.link), idle_exit_s=0.5, max_seconds=30)
+    vehicle = SimulatedVehicle(rec, config.link, ("127.0.0.1", port), speed=4.0)
+    thread = threading.Thread(target=vehicle.run)
+    messages: list[tuple[Any, ...]] = []
+
+    def send(msg: tuple[Any, ...]) -> None:
+        if not messages:  # the idle report, before anything was sent: now fly
+            assert math.isnan(msg[2].t_first_recv)
+            thread.start()
+        messages.append(msg)
+
+    try:
+        link_worker._receive(source, Stop(), send)
+    finally:
+        thread.join()
+        source.close()
+    with_frames = [m for m in messages if len(m[1].system_id)]
+    assert with_frames and with_frames[0][2] is not None
+    assert math.isfinite(with_frames[0][2].t_first_recv)
+    assert sum(len(m[1].system_id) for m in messages) == 601
