@@ -229,7 +229,9 @@ class WorkerProcess:
             bufsize=0 if not threaded else -1,
         )
         assert self._process.stdin is not None and self._process.stdout is not None
-        self._process.stdin.write(pickle.dumps(job))
+        data = memoryview(pickle.dumps(job))
+        while data:  # unbuffered (threaded False), a write may take only part
+            data = data[self._process.stdin.write(data) or 0 :]
         self._process.stdin.close()
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(QUEUE_BATCHES)
         self._reader = threading.Thread(
