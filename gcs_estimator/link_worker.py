@@ -26,9 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
+
 from gcs_estimator.decode_worker import (
     POLL_S,
-    Batch,
     LinkArgs,
     WorkerProcess,
     _Lines,
@@ -36,6 +37,7 @@ from gcs_estimator.decode_worker import (
     mirror,
 )
 from gcs_estimator.frames import Frame
+from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.sources import SourceError, UdpSource
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.counters import LinkCounts
@@ -71,6 +73,41 @@ class LinkState:
     t_last_recv: float
     links: dict[str, LinkCounts]
     kernel_dropped: int
+
+
+def pack(frames: list[Frame]) -> tuple[bytes, int]:
+    """Frames as the rows of one float64 matrix, in bytes, and the inputs per frame:
+    system id, vehicle time, receive time, inputs, observations, clock reset, inputs known.
+    Exact (a system id is far below 2^53), and about fifty times cheaper per message than
+    pickling the frames: with many vehicles most messages hold one frame."""
+    if not frames:
+        return b"", 0
+    n_in = len(frames[0].inputs)
+    rows = []
+    for f in frames:
+        if len(f.inputs) != n_in:
+            raise ValueError(f"frames with {len(f.inputs)} and {n_in} inputs in one batch")
+        head = (f.system_id, f.t_vehicle_s, f.t_recv_s)
+        rows.append((*head, *f.inputs, *f.y, f.clock_reset, f.inputs_known))
+    return np.array(rows, np.float64).tobytes(), n_in
+
+
+def unpack(data: bytes, n_in: int) -> Iterator[Frame]:
+    """pack's frames."""
+    if not data:
+        return
+    rows = np.frombuffer(data, np.float64).reshape(-1, 3 + n_in + N_OBS + 2)
+    y0 = 3 + n_in
+    for row in rows:
+        yield Frame(
+            int(row[0]),
+            float(row[1]),
+            float(row[2]),
+            row[3:y0].copy(),
+            row[y0 : y0 + N_OBS].copy(),
+            bool(row[-2]),
+            bool(row[-1]),
+        )
 
 
 def _work(job: LiveJob, send: Any) -> None:
@@ -127,12 +164,12 @@ def _receive(source: UdpSource, stop: Stop, send: Any) -> None:
         # The first frames go with the link's clock: the view times frames from it.
         mirror = now - mirrored > MIRROR_S or (bool(batch) and not clock_sent)
         if batch or mirror:
-            send(("frames", Batch.of(batch), state() if mirror else None))
+            send(("frames", *pack(batch), state() if mirror else None))
             batch = []
             if mirror:
                 mirrored = now
                 clock_sent = not math.isnan(link.t_first_recv)
-    send(("frames", Batch.of(batch), state()))
+    send(("frames", *pack(batch), state()))
 
 
 def main() -> None:
@@ -209,10 +246,9 @@ class LinkWorker(WorkerProcess):
             print(msg[1], file=self.log)
             return iter(())
         if msg[0] == "frames":
-            if msg[2] is not None:
-                self.state = msg[2]
-            frames: Iterator[Frame] = msg[1].frames()
-            return frames
+            if msg[3] is not None:
+                self.state = msg[3]
+            return unpack(msg[1], msg[2])
         raise SourceError(f"link process: {msg[1]}")
 
 

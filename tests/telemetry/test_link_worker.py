@@ -10,6 +10,7 @@ import signal
 import subprocess
 import threading
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -197,7 +198,7 @@ def test_the_first_frames_go_with_the_link_clock() -> None:
 
     def send(msg: tuple[Any, ...]) -> None:
         if not messages:  # the idle report, before anything was sent: now fly
-            assert math.isnan(msg[2].t_first_recv)
+            assert math.isnan(msg[3].t_first_recv)
             thread.start()
         messages.append(msg)
 
@@ -206,7 +207,16 @@ def test_the_first_frames_go_with_the_link_clock() -> None:
     finally:
         thread.join()
         source.close()
-    with_frames = [m for m in messages if len(m[1].system_id)]
-    assert with_frames and with_frames[0][2] is not None
-    assert math.isfinite(with_frames[0][2].t_first_recv)
-    assert sum(len(m[1].system_id) for m in messages) == 601
+    frames = [list(link_worker.unpack(m[1], m[2])) for m in messages]
+    first = next(k for k, f in enumerate(frames) if f)
+    assert messages[first][3] is not None and math.isfinite(messages[first][3].t_first_recv)
+    every = [f for batch in frames for f in batch]
+    assert len(every) == 601
+    # The frames' bytes give them back exactly, flags and all.
+    every[5] = replace(every[5], clock_reset=True, inputs_known=False)
+    again = list(link_worker.unpack(*link_worker.pack(every)))
+    for a, b in zip(every, again, strict=True):
+        assert (a.system_id, a.t_vehicle_s, a.t_recv_s) == (b.system_id, b.t_vehicle_s, b.t_recv_s)
+        assert (a.clock_reset, a.inputs_known) == (b.clock_reset, b.inputs_known)
+        np.testing.assert_array_equal(a.inputs, b.inputs)
+        np.testing.assert_array_equal(a.y, b.y)
