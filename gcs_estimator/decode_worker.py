@@ -234,13 +234,15 @@ class WorkerProcess:
             data = data[self._process.stdin.write(data) or 0 :]
         self._process.stdin.close()
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(QUEUE_BATCHES)
-        self._reader = threading.Thread(
-            target=self._read, args=(self._process.stdout,), name=module, daemon=True
-        )
-        self._threaded = threaded
+        """The reader thread's messages (threaded only)."""
+        self._reader: threading.Thread | None = None
         self._buffer = b""
+        """What `messages` read of the pipe and has not parsed yet (unthreaded only)."""
         self._ended = False
         if threaded:
+            self._reader = threading.Thread(
+                target=self._read, args=(self._process.stdout,), name=module, daemon=True
+            )
             self._reader.start()
 
     def ready(self) -> bool:
@@ -304,6 +306,14 @@ class WorkerProcess:
             if msg is None:
                 return
 
+    def _pass_on(self, stop: Stop, told: bool) -> bool:
+        """A stop requested here goes to the worker once (SIGTERM): it ends as on its own
+        signal, and what it still sends comes. Returns whether it was told."""
+        if stop.requested and not told:
+            self._signal(signal.SIGTERM)
+            return True
+        return told
+
     def _signal(self, signum: int) -> None:
         if self._process.poll() is None:
             self._process.send_signal(signum)
@@ -313,10 +323,10 @@ class WorkerProcess:
         is read and dropped, so that it never waits on a full pipe."""
         self._signal(signal.SIGTERM)
         deadline = time.monotonic() + CLOSE_S
-        if not self._threaded:  # read to the end here
+        if self._reader is None:  # unthreaded: read to the end here
             while not self._ended and time.monotonic() < deadline:
                 self.messages(0.05)
-        while self._reader.is_alive() and time.monotonic() < deadline:
+        while self._reader is not None and self._reader.is_alive() and time.monotonic() < deadline:
             try:
                 self._queue.get(timeout=0.05)
             except queue.Empty:
@@ -347,9 +357,7 @@ class DecodeWorker(WorkerProcess):
         told = False
         try:
             while True:
-                if stop.requested and not told:
-                    told = True  # it ends as on its own signal: the rest still comes
-                    self._signal(signal.SIGTERM)
+                told = self._pass_on(stop, told)
                 try:
                     msg = self._queue.get(timeout=POLL_S)
                 except queue.Empty:

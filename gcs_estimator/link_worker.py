@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 import pickle
-import signal
 import socket
 import sys
 import time
@@ -213,9 +212,7 @@ class LinkWorker(WorkerProcess):
         told = False
         try:
             while True:
-                if stop.requested and not told:
-                    told = True  # it ends as on its own signal: the rest still comes
-                    self._signal(signal.SIGTERM)
+                told = self._pass_on(stop, told)
                 msgs = self.messages(POLL_S)
                 if not msgs:
                     self.idle = True
