@@ -7,13 +7,11 @@ import hashlib
 import json
 import socket
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from gcs_estimator import endpoints
 from gcs_estimator.config import (
@@ -27,11 +25,19 @@ from gcs_estimator.config import (
     load_truths,
 )
 from gcs_estimator.decode_worker import LinkArgs
+from gcs_estimator.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.flightdata import FlightDataError, load_recording
 from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.report import live_table
+from gcs_estimator.report import LiveEstimate, live_table
 from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
-from gcs_estimator.sinks import ProgressSink, RefineStatus, ResultsSink, StatusSink
+from gcs_estimator.sinks import (
+    ProgressSink,
+    RefineAsk,
+    ResultsSink,
+    StatusSink,
+    results_stem,
+    vehicle_heading,
+)
 from gcs_estimator.sources import (
     RCVBUF_BYTES,
     LiveSource,
@@ -49,16 +55,12 @@ from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 
 if TYPE_CHECKING:
-    from gcs_estimator.refine import Refined
+    pass
 
 DEFAULT_CONFIG = "noc_uav"
 VIEW_FILE = "view.rrd"
 TLOG_FILE = "telemetry.tlog"
 """The same file names from every command, in the run's own folder."""
-
-
-def results_stem(system_id: int) -> str:
-    return f"results_sys{system_id}"
 
 
 OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json")
@@ -203,6 +205,28 @@ def _truth_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _filter_workers_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--filter-workers",
+        type=_positive_int,
+        default=None,
+        metavar="K",
+        help="the vehicles' filters in K processes (the n-th vehicle heard in process n mod "
+        "K): a station with many vehicles on more than one core; a replay with the same K "
+        "gives the same estimates and history",
+    )
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: at least 1")
+    return value
+
+
 def _config(args: argparse.Namespace) -> AircraftConfig:
     """The config with --set overrides, --reference values and view options applied."""
     config = load_config(args.config, args.set)
@@ -232,7 +256,7 @@ def _config(args: argparse.Namespace) -> AircraftConfig:
 def _view_sink(
     config: AircraftConfig,
     args: argparse.Namespace,
-    session: Session,
+    session: Session | ShardedSession,
     link: MavlinkLink | None = None,
 ) -> ViewSink | None:
     """The live view as chosen on the command line or in the config (None: no view)."""
@@ -262,45 +286,19 @@ def _window(text: str | None) -> tuple[float | None, float | None]:
         raise ConfigError(f"--window {text!r}: expected FROM:TO in seconds, e.g. 0:60") from None
 
 
-def _refiner(args: argparse.Namespace) -> Callable[[VehicleResult], Refined | None] | None:
+def _refiner(args: argparse.Namespace) -> RefineAsk | None:
     """The whole-record fit the command line asked for (None: not asked)."""
     method = getattr(args, "refine", None)
     if method is None:
         return None
-    window = _window(args.window)
-
-    def run(vehicle: VehicleResult) -> Refined | None:
-        from gcs_estimator.refine import RefineError, refine_run
-
-        print(
-            f"refining: {method} over {vehicle.result.frames} frames of vehicle "
-            f"{vehicle.system_id} ...",
-            file=sys.stderr,
-            flush=True,
-        )
-        status = RefineStatus()
-        try:
-            return refine_run(
-                vehicle.result,
-                method,
-                window_s=window,
-                progress=status,
-                hold_noise=bool(getattr(args, "hold_noise", False)),
-            )
-        except RefineError as exc:
-            print(f"refine: {exc}", file=sys.stderr)
-            return None
-        finally:
-            status.end()
-
-    return run
+    return RefineAsk(method, _window(args.window), bool(getattr(args, "hold_noise", False)))
 
 
 EXIT_NOTHING_ESTIMATED = 1
 """The run ended without a usable frame, or no frame's observations matched the config."""
 
 
-def _run(session: Session, source: Source, stop: Stop) -> int:
+def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
     """Drive the session; a source that fails still leaves the results of what it gave.
     Exit status: 0, or 2 when a source failed, or EXIT_NOTHING_ESTIMATED with the reason."""
     try:
@@ -308,12 +306,12 @@ def _run(session: Session, source: Source, stop: Stop) -> int:
     except SourceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if getattr(source, "errors", None):
+    if getattr(source, "errors", None) or getattr(session, "errors", None):
         return 2
     if not results or all(v.result.frames == 0 for v in results.values()):
         print("error: no usable frame arrived: nothing was estimated", file=sys.stderr)
         return EXIT_NOTHING_ESTIMATED
-    unmatched = [sid for sid, v in results.items() if _no_update(v)]
+    unmatched = [sid for sid, v in results.items() if not v.any_update()]
     if len(unmatched) == len(results):
         print(
             "error: no frame's observations could be used (every update had no channel): "
@@ -322,14 +320,6 @@ def _run(session: Session, source: Source, stop: Stop) -> int:
         )
         return EXIT_NOTHING_ESTIMATED
     return 0
-
-
-def _no_update(vehicle: VehicleResult) -> bool:
-    """No frame of this vehicle updated either filter with any channel."""
-    for f in vehicle.result.filters.values():
-        if f.track is None or bool(np.any(f.track.n_used > 0)):
-            return False
-    return True
 
 
 def _results_sink(
@@ -407,14 +397,17 @@ STATUS_VEHICLES = 12
 STATUS_COEFFICIENTS = ("CLa", "Cma", "Cmq", "Cmde")
 
 
-def _status_lines(link: MavlinkLink, session: Session, elapsed_s: float) -> list[str]:
+def _status_lines(
+    link: MavlinkLink, session: Session | ShardedSession, elapsed_s: float
+) -> list[str]:
     """The link's counters, then one line per vehicle (frames, key coefficients)."""
     h = link.health.total()
+    estimators: Mapping[int, LiveEstimate] = session.estimators
     lines = [
         f"{elapsed_s:7.1f} s  packets {h.received}  lost {h.lost}  dup {h.duplicates}  "
-        f"late {h.out_of_order}  bad {h.corrupt}  vehicles {len(session.estimators)}"
+        f"late {h.out_of_order}  bad {h.corrupt}  vehicles {len(estimators)}"
     ]
-    for sid, est in list(session.estimators.items())[:STATUS_VEHICLES]:
+    for sid, est in list(estimators.items())[:STATUS_VEHICLES]:
         line = f"  sys {sid:3d}: {est.frames:7d} frames"
         cur = est.snapshot().get("IEKF")
         if cur is not None:
@@ -425,7 +418,7 @@ def _status_lines(link: MavlinkLink, session: Session, elapsed_s: float) -> list
                 if n in names
             )
         lines.append(line)
-    more = len(session.estimators) - STATUS_VEHICLES
+    more = len(estimators) - STATUS_VEHICLES
     if more > 0:
         lines.append(f"  ... and {more} more vehicle{'s' if more > 1 else ''}")
     return lines
@@ -438,14 +431,29 @@ def _link_session(
     record: Path | None = None,
     status: bool = True,
     recorder: bool = True,
-) -> tuple[Session, MavlinkLink]:
+) -> tuple[Session | ShardedSession, MavlinkLink]:
     """A session over a MAVLink link, with its view and result sinks (and, live, its
     status line); recorder False: the link records nothing here (a link worker records
-    `record`)."""
-    warm_up(config, args.backend)
+    `record`). With --filter-workers the vehicles' filters run in worker processes
+    (filter_worker.py), which write their results."""
+    workers = getattr(args, "filter_workers", None)
     truth_file = getattr(args, "truth", None)
     truths = None if truth_file is None else load_truths(truth_file, config.coefficient_names)
-    session = Session(config, backend=args.backend, truths=truths)
+    session: Session | ShardedSession
+    if workers:
+        warm_up(config, args.backend, compile_kernels=False)  # the workers compile theirs
+        session = ShardedSession(
+            config,
+            workers,
+            args.out,
+            backend=args.backend,
+            truths=truths,
+            refine=_refiner(args),
+            run_info=lambda: run_info(args, config, origin),
+        )
+    else:
+        warm_up(config, args.backend)
+        session = Session(config, backend=args.backend, truths=truths)
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record and recorder else None,
@@ -458,11 +466,10 @@ def _link_session(
         session.add_sink(view)
     if status:
         session.add_sink(StatusSink(lambda elapsed: _status_lines(link, session, elapsed)))
-
-    def heading(v: VehicleResult, elapsed: float) -> str:
-        return f"vehicle {v.system_id}: {v.result.frames} frames in {elapsed:.2f} s"
-
-    session.add_sink(_results_sink(args, config, session, heading, origin))
+    if isinstance(session, ShardedSession):
+        session.add_sink(TablesSink(session))
+    else:
+        session.add_sink(_results_sink(args, config, session, vehicle_heading, origin))
     return session, link
 
 
@@ -486,6 +493,15 @@ def cmd_listen(args: argparse.Namespace) -> int:
             else endpoints.open_socket(endpoint, RCVBUF_BYTES)
         )
     session, link = _link_session(config, args, args.endpoint, record, recorder=not worker)
+    sharded = ""
+    if isinstance(session, ShardedSession):
+        try:
+            session.start()
+        except SourceError as exc:
+            link.close()
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        sharded = f", the filters in {len(session.shards)} processes"
     source: LiveSource | WorkerUdpSource
     if worker:
         where = _where(endpoint, sock)
@@ -515,7 +531,7 @@ def cmd_listen(args: argparse.Namespace) -> int:
         where = _where(endpoint, sock)
         peer = None if endpoint.listen else endpoint.address
         source = UdpSource(sock, link, args.idle_exit, args.duration, peer)
-    print(f"{where}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
+    print(f"{where}{sharded}, recording to {record} (Ctrl-C to stop)", file=sys.stderr)
     return _run(session, source, stop)
 
 
@@ -680,6 +696,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="UDP only: receive, decode and record in a second process while this one runs "
         "the filters (two cores; the same frames and estimates)",
     )
+    _filter_workers_option(p)
     _truth_option(p)
     p.set_defaults(func=cmd_listen)
 
@@ -709,6 +726,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="0 = as fast as possible (default), else a multiple of real time",
     )
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    _filter_workers_option(p)
     _truth_option(p)
     p.set_defaults(func=cmd_replay)
 

@@ -147,13 +147,33 @@ class _Lines:
 _LENGTH = struct.Struct("<I")
 
 
+def _message(msg: Any) -> bytes:
+    """A message as it goes down a pipe: its length, then its pickle."""
+    data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+    return _LENGTH.pack(len(data)) + data
+
+
 def _writer(stream: Any) -> Any:
     def send(msg: tuple[Any, ...]) -> None:
-        data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
-        stream.write(_LENGTH.pack(len(data)) + data)
+        stream.write(_message(msg))
         stream.flush()
 
     return send
+
+
+def read_messages(buffer: bytes) -> tuple[list[Any], bytes]:
+    """The complete messages at the start of what was read of a pipe, and the rest.
+    Raises pickle's errors for a message that does not unpickle."""
+    out = []
+    at = 0
+    while len(buffer) - at >= _LENGTH.size:
+        (n,) = _LENGTH.unpack_from(buffer, at)
+        end = at + _LENGTH.size + n
+        if len(buffer) < end:
+            break
+        out.append(pickle.loads(buffer[at + _LENGTH.size : end]))
+        at = end
+    return out, buffer[at:]
 
 
 def _read_message(stream: Any) -> tuple[Any, ...] | None:
@@ -219,7 +239,12 @@ class WorkerProcess:
     threaded False, the caller reads them (`messages`) without one."""
 
     def __init__(
-        self, module: str, job: Any, pass_fds: Sequence[int] = (), threaded: bool = True
+        self,
+        module: str,
+        job: Any,
+        pass_fds: Sequence[int] = (),
+        threaded: bool = True,
+        keep_input: bool = False,
     ) -> None:
         self._process = subprocess.Popen(
             [sys.executable, "-m", module],
@@ -229,10 +254,17 @@ class WorkerProcess:
             bufsize=0 if not threaded else -1,
         )
         assert self._process.stdin is not None and self._process.stdout is not None
-        data = memoryview(pickle.dumps(job))
-        while data:  # unbuffered (threaded False), a write may take only part
-            data = data[self._process.stdin.write(data) or 0 :]
-        self._process.stdin.close()
+        self._input = bytearray()
+        """Messages to the worker not yet written (keep_input: `post`, `write_input`)."""
+        if keep_input:  # the job is the first message; more follow (read_messages)
+            self._input += _message(job)
+            self.write_input(block=True)
+            os.set_blocking(self._process.stdin.fileno(), False)
+        else:
+            data = memoryview(pickle.dumps(job))
+            while data:  # unbuffered (threaded False), a write may take only part
+                data = data[self._process.stdin.write(data) or 0 :]
+            self._process.stdin.close()
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(QUEUE_BATCHES)
         """The reader thread's messages (threaded only)."""
         self._reader: threading.Thread | None = None
@@ -244,6 +276,45 @@ class WorkerProcess:
                 target=self._read, args=(self._process.stdout,), name=module, daemon=True
             )
             self._reader.start()
+
+    def post(self, msg: tuple[Any, ...]) -> None:
+        """A message for the worker (keep_input), written by write_input."""
+        self._input += _message(msg)
+
+    @property
+    def input_pending(self) -> int:
+        """Bytes of posted messages not yet written to the worker."""
+        return len(self._input)
+
+    def write_input(self, block: bool = False) -> int:
+        """Write what the worker's pipe takes of the posted messages (all of them, with
+        block); returns the bytes still pending. A worker that has gone takes nothing:
+        its messages are dropped (its end is read from its output)."""
+        stdin = self._process.stdin
+        assert stdin is not None
+        while self._input:
+            try:
+                n = os.write(stdin.fileno(), self._input)
+            except BlockingIOError:
+                if not block:
+                    break
+                select.select([], [stdin], [], POLL_S)
+                continue
+            except (BrokenPipeError, ValueError):  # the worker has gone, or input closed
+                self._input.clear()
+                break
+            del self._input[:n]
+        return len(self._input)
+
+    def input_fd(self) -> int:
+        stdin = self._process.stdin
+        assert stdin is not None
+        return stdin.fileno()
+
+    def output_fd(self) -> int:
+        stdout = self._process.stdout
+        assert stdout is not None
+        return stdout.fileno()
 
     def ready(self) -> bool:
         """Without the thread: whether a message (or the pipe's end) is waiting."""
@@ -257,18 +328,21 @@ class WorkerProcess:
                 return True
         return bool(select.select([stdout], [], [], 0)[0])
 
-    def messages(self, timeout_s: float) -> list[tuple[Any, ...] | None]:
+    def messages(
+        self, timeout_s: float, wake_fds: Sequence[int] = ()
+    ) -> list[tuple[Any, ...] | None]:
         """Without the thread: the messages complete after one read of what the pipe holds
         (waiting up to timeout_s for it), None last at the pipe's end. A thread that waits
         for the pipe takes the interpreter's lock from the filters at every message, so a
         live link's frames would wait up to its switch interval (5 ms); read here, they
-        wait for nothing."""
+        wait for nothing. Data on one of wake_fds ends the wait too."""
         stdout = self._process.stdout
         assert stdout is not None
         if self._ended:
             return [None]
-        if select.select([stdout], [], [], timeout_s)[0]:
-            chunk = os.read(stdout.fileno(), READ_BYTES)
+        fd = stdout.fileno()
+        if fd in select.select([fd, *wake_fds], [], [], timeout_s)[0]:
+            chunk = os.read(fd, READ_BYTES)
             if chunk:
                 self._buffer += chunk
             else:

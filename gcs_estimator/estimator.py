@@ -788,9 +788,16 @@ class Estimator:
         out: dict[FilterKind, Snapshot] = {}
         for kind, s in self.states.items():
             if s is not None:
-                gust = s.gust.applied(self.tunings[kind].detection2)
-                out[kind] = Snapshot(s.x[coef].copy(), np.sqrt(np.diag(s.P))[coef], math.sqrt(gust))
+                gust = self.gust_level(kind)
+                out[kind] = Snapshot(s.x[coef].copy(), np.sqrt(np.diag(s.P))[coef], gust)
         return out
+
+    def gust_level(self, kind: FilterKind) -> float:
+        """The turbulence level a filter applies now [m/s] (NaN before data)."""
+        s = self.states.get(kind)
+        if s is None:
+            return math.nan
+        return math.sqrt(s.gust.applied(self.tunings[kind].detection2))
 
     @property
     def history_rows(self) -> int:

@@ -189,6 +189,8 @@ class LinkWorker(WorkerProcess):
         """The worker's CPU time [s], once it ended."""
         self.idle = False
         """Nothing from the worker was waiting when the last None was yielded."""
+        self.wake_fds: list[int] = []
+        """Descriptors whose data end a wait for the worker's as well."""
 
     def wait_ready(self) -> None:
         """Wait until the worker has its link and recording open and its signal handlers
@@ -213,7 +215,7 @@ class LinkWorker(WorkerProcess):
         try:
             while True:
                 told = self._pass_on(stop, told)
-                msgs = self.messages(POLL_S)
+                msgs = self.messages(POLL_S, self.wake_fds)
                 if not msgs:
                     self.idle = True
                     yield None
@@ -267,6 +269,8 @@ class WorkerUdpSource:
         self.link = link
         self.log = log
         self._worker: LinkWorker | None = None
+        self.wake_fds: list[int] = []
+        """Descriptors whose data end a wait for the link's as well (LiveSource's)."""
 
     @property
     def idle(self) -> bool:
@@ -296,6 +300,7 @@ class WorkerUdpSource:
         self.start()
         worker = self._worker
         assert worker is not None
+        worker.wake_fds = self.wake_fds
         mirrored = None
         for frame in worker.frames(stop):
             state = worker.state

@@ -6,18 +6,18 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import POWER_COLUMNS
+from gcs_estimator.config import POWER_COLUMNS, AircraftConfig
 from gcs_estimator.estimator import (
     FILTER_KINDS,
-    Estimator,
     EstimatorResult,
     FilterKind,
     NoiseReading,
+    Snapshot,
     Track,
 )
 from gcs_estimator.metrics import (
@@ -190,7 +190,20 @@ def channel_text(values: FloatArray) -> str:
     )
 
 
-def live_table(estimator: Estimator, truth: Sequence[float] | FloatArray | None = ()) -> str:
+class LiveEstimate(Protocol):
+    """What the live table and the status line read of a vehicle's estimator (an
+    Estimator, or the station's view of one a filter worker runs)."""
+
+    @property
+    def config(self) -> AircraftConfig: ...
+    @property
+    def names(self) -> tuple[str, ...]: ...
+    @property
+    def frames(self) -> int: ...
+    def snapshot(self) -> dict[FilterKind, Snapshot]: ...
+
+
+def live_table(estimator: LiveEstimate, truth: Sequence[float] | FloatArray | None = ()) -> str:
     """The current estimates as a Markdown table (cheap: no history is read), against
     truth (None: none; by default the config's)."""
     current = estimator.snapshot()

@@ -14,7 +14,7 @@ import gc
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -60,6 +60,27 @@ class VehicleResult:
     structure: StructureCheck | None = None
     """The structure check (weighting.py); None: not asked about (a result made
     without a session)."""
+    updated: bool | None = None
+    """Whether any frame updated a filter with a channel, where the result's tracks were
+    left where they were made (a filter worker's, without_tracks); None: read the
+    tracks."""
+
+    def without_tracks(self) -> VehicleResult:
+        """This result without its time histories (what a filter worker sends back: they
+        are in the history CSV it wrote), with whether any frame updated a filter."""
+        filters = {k: f._replace(track=None) for k, f in self.result.filters.items()}
+        result = self.result._replace(filters=filters)
+        return replace(self, result=result, updated=self.any_update())
+
+    def any_update(self) -> bool:
+        """Whether any frame updated either filter with a channel (a result without
+        tracks counts as updated)."""
+        if self.updated is not None:
+            return self.updated
+        return any(
+            f.track is None or bool(np.any(f.track.n_used > 0))
+            for f in self.result.filters.values()
+        )
 
 
 class Sink(Protocol):
@@ -90,11 +111,15 @@ class Session:
         backend: Backend = "fast",
         keep_history: bool = True,
         truths: Mapping[int, Sequence[float]] | None = None,
+        config_truth: bool = True,
     ) -> None:
         self.config = config
         self.truths = truths
         """Each vehicle's true coefficients by system id (a truth file); None: the
         config's [truth] describes one vehicle, the first heard (see truth_of)."""
+        self.config_truth = config_truth
+        """Whether the config's [truth] scores the session's first vehicle (a filter
+        worker's first is the station's first in worker 0 only)."""
         self.sinks = list(sinks)
         self.backend = backend
         self.keep_history = keep_history
@@ -231,7 +256,7 @@ class Session:
             values = self.truths.get(system_id)
             return None if values is None else np.array(values, float)
         first = next(iter(self.estimators), system_id)
-        return config_truth(self.config) if system_id == first else None
+        return config_truth(self.config) if system_id == first and self.config_truth else None
 
 
 class RecordingSource:
@@ -264,14 +289,16 @@ class RecordingSource:
         pass
 
 
-def warm_up(config: AircraftConfig, backend: Backend = "fast") -> None:
+def warm_up(
+    config: AircraftConfig, backend: Backend = "fast", compile_kernels: bool = True
+) -> None:
     """Compile (or load) the filter kernels and import what a restart needs (the
     equation-error warm start, first used at the first restart: over half a second in a
     fresh process) now, not while packets queue up. Then the objects of start-up
     (modules, compiled kernels, the config) are frozen out of the garbage collector: its
     first full collection over them, early in a run, stalled every vehicle's packets at
     once (`bench live` prints where in the flights its slow frames were)."""
-    if backend == "fast":
+    if backend == "fast" and compile_kernels:
         _compile(config)
     gc.collect()
     gc.freeze()

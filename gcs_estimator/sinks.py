@@ -7,6 +7,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -77,24 +78,47 @@ class ResultsSink:
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
         if not results:
             print("no vehicle data received", file=sys.stderr)
-        for sid, vehicle in results.items():
-            heading = self.heading(vehicle, self.elapsed())
-            refined = None if self.refine is None else self.refine(vehicle)
-            print(f"\n{heading}\n", file=self.out)
-            print(final_table(vehicle, refined), file=self.out)
-            extra: dict[str, Any] = {"system_id": sid}
-            if link is not None:
-                extra["link"] = dict(link)
-            if self.run is not None:
-                extra["run"] = self.run()
-            history = self.histories.pop(sid, None)
-            paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
-            print("results: " + ", ".join(str(p) for p in paths.values()), file=self.out)
+        for vehicle in results.values():
+            self.vehicle(vehicle, link, self.out)
         for csv in self.histories.values():  # vehicles without a result (none so far)
             csv.close()
         if link is not None:
-            counts = ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
-            print("link: " + counts, file=self.out)
+            print(link_line(link), file=self.out)
+
+    def vehicle(
+        self, vehicle: VehicleResult, link: Mapping[str, Any] | None, out: TextIO
+    ) -> Refined | None:
+        """One vehicle's end: its table on `out`, its files (the rest of its history
+        CSV); returns the whole-record fit, where one was asked for."""
+        sid = vehicle.system_id
+        heading = self.heading(vehicle, self.elapsed())
+        refined = None if self.refine is None else self.refine(vehicle)
+        print(f"\n{heading}\n", file=out)
+        print(final_table(vehicle, refined), file=out)
+        extra: dict[str, Any] = {"system_id": sid}
+        if link is not None:
+            extra["link"] = dict(link)
+        if self.run is not None:
+            extra["run"] = self.run()
+        history = self.histories.pop(sid, None)
+        paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
+        print("results: " + ", ".join(str(p) for p in paths.values()), file=out)
+        return refined
+
+
+def link_line(link: Mapping[str, Any]) -> str:
+    """The link's final counts on one line (after the tables)."""
+    return "link: " + ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
+
+
+def results_stem(system_id: int) -> str:
+    """The stem of a link session's result files of one vehicle."""
+    return f"results_sys{system_id}"
+
+
+def vehicle_heading(vehicle: VehicleResult, elapsed_s: float) -> str:
+    """A link session's heading of a vehicle's table."""
+    return f"vehicle {vehicle.system_id}: {vehicle.result.frames} frames in {elapsed_s:.2f} s"
 
 
 STATUS_WIDTH = 100
@@ -215,6 +239,40 @@ class ProgressSink:
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
         if self.shown >= 0:
             print(file=self.out)
+
+
+@dataclass(frozen=True)
+class RefineAsk:
+    """A whole-record fit asked for on the command line, as a results sink's `refine`
+    (a value, so a filter worker can be given it)."""
+
+    method: str
+    window_s: tuple[float | None, float | None]
+    hold_noise: bool
+
+    def __call__(self, vehicle: VehicleResult) -> Refined | None:
+        from gcs_estimator.refine import RefineError, refine_run
+
+        print(
+            f"refining: {self.method} over {vehicle.result.frames} frames of vehicle "
+            f"{vehicle.system_id} ...",
+            file=sys.stderr,
+            flush=True,
+        )
+        status = RefineStatus()
+        try:
+            return refine_run(
+                vehicle.result,
+                self.method,
+                window_s=self.window_s,
+                progress=status,
+                hold_noise=self.hold_noise,
+            )
+        except RefineError as exc:
+            print(f"refine: {exc}", file=sys.stderr)
+            return None
+        finally:
+            status.end()
 
 
 class RefineStatus:

@@ -68,6 +68,9 @@ class LiveSource:
         self.idle = False
         """Nothing was waiting to be read when the last None was yielded (the session
         then does restart work ahead: Session.work_ahead)."""
+        self.wake_fds: list[int] = []
+        """Descriptors whose data end a wait for the link's as well (a sharded session's
+        workers' outputs: filter_worker.ShardedSession)."""
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         start = time.time()
@@ -135,8 +138,9 @@ class UdpSource(LiveSource):
         kernel's counter, as of the last datagram that carried it)."""
 
     def _receive(self) -> Iterator[Frame]:
-        ready, _, _ = select.select([self.sock], [], [], POLL_S)
-        if ready:
+        fd = self.sock.fileno()
+        ready, _, _ = select.select([fd, *self.wake_fds], [], [], POLL_S)
+        if fd in ready:
             yield from self._drain()
 
     def _drain(self) -> Iterator[Frame]:
@@ -218,8 +222,9 @@ class TcpSource(LiveSource):
 
     def _receive(self) -> Iterator[Frame]:
         assert self._conn is not None and self._address is not None
-        ready, _, _ = select.select([self._conn], [], [], POLL_S)
-        if not ready:
+        fd = self._conn.fileno()
+        ready, _, _ = select.select([fd, *self.wake_fds], [], [], POLL_S)
+        if fd not in ready:
             return
         for _ in range(DRAIN_READS):
             try:
