@@ -2,6 +2,7 @@
 
     python benchmarks/live.py --vehicles 1 --seconds 30
     python benchmarks/live.py --vehicles 10 --seconds 30 [--view] [--repeat N] [--link-worker]
+        [--filter-workers K]
 
 The simulated vehicles fly in real time in their own process (`gcs-sim --vehicles N`),
 streaming MAVLink 2 over UDP on loopback to one port; the ground station listens in this
@@ -16,7 +17,10 @@ flown. With --repeat N the flight is flown N times in a row into a new station e
 (this machine is shared and its speed varies between runs): the figures of every run, and
 the worst of each. With --link-worker the link runs in a second process, as
 `listen --link-worker` runs it (gcs_estimator/link_worker.py), and its CPU is printed
-beside the station's.
+beside the station's. With --filter-workers K the vehicles' filters run in K processes, as
+`listen --filter-workers K` runs them (gcs_estimator/filter_worker.py): the latency is
+then to the moment both filters' outputs are back in the station, and the processes' CPU
+is printed too.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.decode_worker import LinkArgs
 from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.filter_worker import ShardedSession
 from gcs_estimator.frames import Frame
 from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.session import Session, VehicleResult, warm_up
@@ -96,6 +101,13 @@ def main(argv: list[str] | None = None) -> int:
         help="the link in a second process, as `listen --link-worker` runs it",
     )
     ap.add_argument(
+        "--filter-workers",
+        type=int,
+        default=0,
+        metavar="K",
+        help="the vehicles' filters in K processes, as `listen --filter-workers K` runs them",
+    )
+    ap.add_argument(
         "--repeat",
         type=int,
         default=1,
@@ -122,6 +134,8 @@ class RunFigures:
     """The station's CPU time over the run's wall time (share of one core)."""
     link_cpu: float
     """Its link process's, with --link-worker (else 0)."""
+    filters_cpu: float
+    """Its filter processes', with --filter-workers (else 0)."""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,12 +168,14 @@ def run(args: argparse.Namespace) -> int:
     if args.repeat > 1:
         print(
             "\n### Over the runs\n\n| run | frames lost | socket drops | p99 ms | max ms | "
-            "station CPU (one core) | link process CPU |\n|---|---|---|---|---|---|---|"
+            "station CPU (one core) | link process CPU | filter processes CPU |\n"
+            "|---|---|---|---|---|---|---|---|"
         )
         for k, r in enumerate(runs):
             print(
                 f"| {k + 1} | {r.frames_lost} | {r.socket_drops} | {r.p99_ms:.3f} | "
-                f"{r.max_ms:.3f} | {r.station_cpu:.0%} | {r.link_cpu:.0%} |"
+                f"{r.max_ms:.3f} | {r.station_cpu:.0%} | {r.link_cpu:.0%} | "
+                f"{r.filters_cpu:.0%} |"
             )
         print(
             f"\nworst of {len(runs)} runs: p99 {max(r.p99_ms for r in runs):.3f} ms, max "
@@ -175,7 +191,12 @@ def one_run(
 ) -> RunFigures:
     """The simulated vehicles into a station on loopback once; its figures printed."""
     latency = Latency()
-    session = Session(config)
+    session: Session | ShardedSession
+    if args.filter_workers:
+        session = ShardedSession(config, args.filter_workers, None)
+        session.start()  # as listen does before it says it listens
+    else:
+        session = Session(config)
     link = MavlinkLink(config.link)
     with tempfile.TemporaryDirectory() as tmp:
         if args.view:
@@ -205,10 +226,12 @@ def one_run(
         cpu = time.process_time() - cpu
         dropped = source.link_stats()["dropped_by_this_machine"]  # ends the link worker
         link_cpu = source.worker_cpu_s if isinstance(source, WorkerUdpSource) else 0.0
+        filters_cpu = session.workers_cpu_s if isinstance(session, ShardedSession) else 0.0
         sim.wait(timeout=30)
         used = resource.getrusage(resource.RUSAGE_CHILDREN)
-        # The simulator: this process's children in the run but the link worker.
-        sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime - link_cpu
+        # The simulator: this process's children in the run but the link and filter workers.
+        sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime
+        sim_cpu -= link_cpu + filters_cpu
 
     per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
@@ -222,6 +245,11 @@ def one_run(
         if args.link_worker
         else ""
     )
+    if args.filter_workers:
+        worker += (
+            f"{',' if worker else ''} and its {args.filter_workers} filter processes "
+            f"{filters_cpu:.1f} s ({filters_cpu / wall:.0%})"
+        )
     print(
         f"{args.vehicles} vehicle(s) x {args.seconds:.0f} s at the default rates on one port"
         f"{' with the view' if args.view else ''}: {h.received} packets in {wall:.1f} s; "
@@ -249,7 +277,9 @@ def one_run(
                     f"| {sid} | {len(v)} | {np.median(v):.3f} | {np.percentile(v, 99):.3f} | "
                     f"{v.max():.3f} |"
                 )
-    return RunFigures(flown - got, int(dropped), p99, peak, cpu / wall, link_cpu / wall)
+    return RunFigures(
+        flown - got, int(dropped), p99, peak, cpu / wall, link_cpu / wall, filters_cpu / wall
+    )
 
 
 def _slow_frames(lat_ms: FloatArray, flight_s: FloatArray, over_ms: float = 20.0) -> None:
