@@ -265,6 +265,8 @@ class EndSink:
         self.writer = writer
         """None: no files and no tables (ShardJob.out_dir)."""
         self.send = send
+        self.started_cpu_s = time.process_time()
+        """The worker's CPU time [s] when it was ready (its start: imports, kernels)."""
 
     def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
         if self.writer is not None:
@@ -283,7 +285,7 @@ class EndSink:
             for csv in self.writer.histories.values():
                 csv.close()
         ended = {sid: v.without_tracks() for sid, v in results.items()}
-        self.send(("end", ended, texts, time.process_time()))
+        self.send(("end", ended, texts, time.process_time() - self.started_cpu_s))
 
 
 def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
@@ -312,8 +314,10 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
             estimators=lambda: session.estimators,
         )
     session.add_sink(OutputsSink(source, session, build_model(config).n, send))
-    session.add_sink(EndSink(writer, send))
-    send(("ready",))
+    end = EndSink(writer, send)
+    session.add_sink(end)
+    end.started_cpu_s = time.process_time()
+    send(("ready", end.started_cpu_s))
     session.run(source, stop)
 
 
@@ -468,7 +472,10 @@ class ShardedSession:
         """Each vehicle's table, as its worker printed it."""
         self.errors: list[str] = []
         self.workers_cpu_s = 0.0
-        """The workers' CPU time [s], once they ended."""
+        """The workers' CPU time [s] from when they were ready to their end (once they
+        ended)."""
+        self.workers_start_cpu_s = 0.0
+        """The workers' CPU time [s] to when they were ready (imports, kernels)."""
         self.started = time.perf_counter()
         self.elapsed_s = 0.0
         self._results: dict[int, VehicleResult] | None = None
@@ -512,6 +519,7 @@ class ShardedSession:
                             why = "ended" if msg is None else f"failed: {msg[1]}"
                             raise SourceError(f"filter process {shard.index} {why} at its start")
                         shard.ready_seen = True
+                        self.workers_start_cpu_s += float(msg[1])
         except BaseException:
             for shard in self.shards:
                 shard.close()
