@@ -97,7 +97,7 @@ def output_width(n: int) -> int:
     """Floats per frame: sequence number, the estimator's frames, then per filter kind:
     present, gust level now, x [n], sigma [n], innovation and its sigma [N_OBS each], the
     step report's scalars."""
-    return 2 + len(FILTER_KINDS) * (2 + 2 * n + 2 * N_OBS + len(_INFO_SCALARS))
+    return 2 + len(FILTER_KINDS) * _kind_width(n)
 
 
 def output_row(
@@ -107,63 +107,64 @@ def output_row(
     gusts: Mapping[FilterKind, float],
     n: int,
 ) -> FloatArray:
-    row = np.full(output_width(n), np.nan)
-    row[0], row[1] = seq, frames
-    at = 2
+    parts: list[Any] = [(seq, frames)]
     for kind in FILTER_KINDS:
         out = outs.get(kind)
-        end = at + 2 + 2 * n + 2 * N_OBS + len(_INFO_SCALARS)
-        if out is not None:
-            info = out.info
-            row[at] = 1.0
-            row[at + 1] = gusts[kind]
-            row[at + 2 : end] = np.concatenate(
-                [
-                    out.x,
-                    info.sigma,
-                    info.innovation,
-                    info.innovation_sigma,
-                    [float(getattr(info, name)) for name in _INFO_SCALARS],
-                ]
-            )
-        else:
-            row[at] = 0.0
-        at = end
-    return row
+        if out is None:
+            absent = np.full(_kind_width(n), np.nan)
+            absent[0] = 0.0
+            parts.append(absent)
+            continue
+        info = out.info
+        parts += [
+            (1.0, gusts[kind]),
+            out.x,
+            info.sigma,
+            info.innovation,
+            info.innovation_sigma,
+            [getattr(info, name) for name in _INFO_SCALARS],
+        ]
+    return np.concatenate(parts, dtype=np.float64)
+
+
+def _kind_width(n: int) -> int:
+    return 2 + 2 * n + 2 * N_OBS + len(_INFO_SCALARS)
 
 
 def read_row(
     row: FloatArray, n: int
 ) -> tuple[int, int, dict[FilterKind, StepOutput], dict[FilterKind, float]]:
-    """output_row's (sequence number, frames, outputs, gust levels now)."""
+    """output_row's (sequence number, frames, outputs, gust levels now); the outputs'
+    arrays are views of the row."""
     outs: dict[FilterKind, StepOutput] = {}
     gusts: dict[FilterKind, float] = {}
+    values = row.tolist()
     at = 2
     for kind in FILTER_KINDS:
-        end = at + 2 + 2 * n + 2 * N_OBS + len(_INFO_SCALARS)
-        if row[at] == 1.0:
+        end = at + _kind_width(n)
+        if values[at] == 1.0:
             x0 = at + 2
             s0 = x0 + n
             i0 = s0 + n
             j0 = i0 + N_OBS
             k0 = j0 + N_OBS
-            nis, n_used, iterations, gust, failed, repaired, diverged = row[k0:end]
+            nis, n_used, iterations, gust, failed, repaired, diverged = values[k0:end]
             info = StepInfo(
-                row[s0:i0].copy(),
-                float(nis),
+                row[s0:i0],
+                nis,
                 int(n_used),
                 int(iterations),
-                row[i0:j0].copy(),
-                row[j0:k0].copy(),
-                float(gust),
+                row[i0:j0],
+                row[j0:k0],
+                gust,
                 bool(failed),
                 bool(repaired),
                 bool(diverged),
             )
-            outs[kind] = StepOutput(row[x0:s0].copy(), info)
-            gusts[kind] = float(row[at + 1])
+            outs[kind] = StepOutput(row[x0:s0], info)
+            gusts[kind] = values[at + 1]
         at = end
-    return int(row[0]), int(row[1]), outs, gusts
+    return int(values[0]), int(values[1]), outs, gusts
 
 
 # ---- the worker ---------------------------------------------------------------------
@@ -607,7 +608,9 @@ class ShardedSession:
                         "(their history CSV holds what it wrote)"
                     )
             elif msg[0] == "outs":
-                for row in np.frombuffer(msg[1], np.float64).reshape(-1, width):
+                # One copy of the block: the outputs are views of its rows, writable.
+                block = np.frombuffer(msg[1], np.float64).reshape(-1, width).copy()
+                for row in block:
                     seq, frames, outs, gusts = read_row(row, self._n)
                     frame = shard.answered(seq)
                     self.estimators[frame.system_id].update(frames, outs, gusts)
