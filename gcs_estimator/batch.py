@@ -99,6 +99,7 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
         ("--backend", args.backend),
         ("--reference", args.reference),
         ("--truth", args.truth),
+        ("--filter-workers", args.filter_workers),
     ):
         if value is not None:
             cmd += [option, str(value)]

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator.cli import main, tlog_paths
+from gcs_estimator.batch import child_command
+from gcs_estimator.cli import build_parser, main, tlog_paths
 from gcs_estimator.config import load_config
 from gcs_estimator.flightdata import Recording
 from sim.truth import simulate
@@ -102,6 +103,19 @@ def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]
     # The failing replay's own message, from its log, in the batch's output.
     assert f"{junk}: exit {done.returncode}" in done.stderr
     assert "no usable frame" in done.stderr or "error:" in done.stderr
+
+
+def test_each_files_replay_gets_the_batchs_options(tmp_path: Path) -> None:
+    """What a file's replay is given: the batch's options (filter workers too), its own
+    folder."""
+    argv = ["replay", "--each", "a.tlog", "--filter-workers", "2", "--set", "filter.x=1"]
+    args = build_parser().parse_args([*argv, "--refine", "output-error", "--view", "off"])
+    cmd = child_command(args, Path("a.tlog"), tmp_path / "a")
+    assert cmd[cmd.index("--filter-workers") + 1] == "2"
+    assert cmd[cmd.index("--set") + 1] == "filter.x=1"
+    assert cmd[cmd.index("--refine") + 1] == "output-error"
+    assert cmd[cmd.index("--out") + 1] == str(tmp_path / "a")
+    assert "--each" not in cmd
 
 
 @pytest.mark.parametrize(
