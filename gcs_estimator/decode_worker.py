@@ -161,9 +161,9 @@ def _writer(stream: Any) -> Any:
     return send
 
 
-def read_messages(buffer: bytes) -> tuple[list[Any], bytes]:
-    """The complete messages at the start of what was read of a pipe, and the rest.
-    Raises pickle's errors for a message that does not unpickle."""
+def read_messages(buffer: bytes) -> tuple[list[Any], bytes, str | None]:
+    """The complete messages at the start of what was read of a pipe, the rest, and why
+    reading stopped early (a message that does not unpickle; None: it did not)."""
     out = []
     at = 0
     while len(buffer) - at >= _LENGTH.size:
@@ -171,9 +171,12 @@ def read_messages(buffer: bytes) -> tuple[list[Any], bytes]:
         end = at + _LENGTH.size + n
         if len(buffer) < end:
             break
-        out.append(pickle.loads(buffer[at + _LENGTH.size : end]))
+        try:
+            out.append(pickle.loads(buffer[at + _LENGTH.size : end]))
+        except Exception as exc:
+            return out, buffer[at:], str(exc)
         at = end
-    return out, buffer[at:]
+    return out, buffer[at:], None
 
 
 def _read_message(stream: Any) -> tuple[Any, ...] | None:
@@ -347,21 +350,11 @@ class WorkerProcess:
                 self._buffer += chunk
             else:
                 self._ended = True
-        out: list[tuple[Any, ...] | None] = []
-        at = 0
-        while len(self._buffer) - at >= _LENGTH.size:
-            (n,) = _LENGTH.unpack_from(self._buffer, at)
-            end = at + _LENGTH.size + n
-            if len(self._buffer) < end:
-                break
-            try:
-                out.append(pickle.loads(self._buffer[at + _LENGTH.size : end]))
-            except Exception as exc:  # the worker's end, as the thread takes it
-                out.append(("failed", f"unreadable message from the worker: {exc}", False))
-                self._ended = True
-                break
-            at = end
-        self._buffer = self._buffer[at:]
+        msgs, self._buffer, error = read_messages(self._buffer)
+        out: list[tuple[Any, ...] | None] = list(msgs)
+        if error is not None:  # the worker's end, as the thread takes it
+            out.append(("failed", f"unreadable message from the worker: {error}", False))
+            self._ended = True
         if self._ended:
             out.append(None)
         return out

@@ -38,10 +38,10 @@ import signal
 import sys
 import time
 from collections import deque
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -51,6 +51,7 @@ from gcs_estimator.decode_worker import (
     POLL_S,
     READ_BYTES,
     WorkerProcess,
+    _writer,
     read_messages,
 )
 from gcs_estimator.estimator import Backend, FilterKind, Snapshot, StepOutput
@@ -59,8 +60,14 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.link_worker import pack, unpack
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import N_OBS
-from gcs_estimator.session import Session, Sink, Source, VehicleResult, warm_up
-from gcs_estimator.sinks import RefineAsk, ResultsSink, results_stem, vehicle_heading
+from gcs_estimator.session import Session, Sink, Source, VehicleResult, truth_of, warm_up
+from gcs_estimator.sinks import (
+    RefineAsk,
+    ResultsSink,
+    link_line,
+    results_stem,
+    vehicle_heading,
+)
 from gcs_estimator.sources import SourceError
 from gcs_estimator.stop import Stop
 
@@ -196,8 +203,10 @@ class PipeSource:
             chunk = os.read(self.fd, READ_BYTES)
             if not chunk:
                 return False
-            msgs, self.buffer = read_messages(self.buffer + chunk)
+            msgs, self.buffer, error = read_messages(self.buffer + chunk)
             self._messages.extend(msgs)
+            if error is not None:
+                raise RuntimeError(f"unreadable message from the station: {error}")
         return True
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
@@ -300,7 +309,7 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
         backend=job.backend,
         keep_history=job.keep_history,
         truths=job.truths,
-        config_truth=job.index == 0,
+        truth_for_first=job.index == 0,
     )
     source.busy = lambda: any(e.restart_under_way for e in session.estimators.values())
     writer = None
@@ -317,7 +326,6 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
     session.add_sink(OutputsSink(source, session, build_model(config).n, send))
     end = EndSink(writer, send)
     session.add_sink(end)
-    end.started_cpu_s = time.process_time()
     send(("ready", end.started_cpu_s))
     session.run(source, stop)
 
@@ -329,8 +337,6 @@ def main() -> None:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     sys.stdout = sys.stderr
-    from gcs_estimator.decode_worker import _writer
-
     send = _writer(out)
     buffer = b""
     msgs: list[Any] = []
@@ -338,7 +344,9 @@ def main() -> None:
         chunk = os.read(0, READ_BYTES)
         if not chunk:
             return
-        msgs, buffer = read_messages(buffer + chunk)
+        msgs, buffer, error = read_messages(buffer + chunk)
+        if error is not None:
+            sys.exit(f"filter worker: unreadable job: {error}")
     try:
         _work(msgs[0], PipeSource(0, buffer, msgs[1:]), send)
     except BrokenPipeError:
@@ -446,8 +454,8 @@ class ShardedSession:
         keep_history: bool = True,
         truths: Mapping[int, Sequence[float]] | None = None,
         refine: RefineAsk | None = None,
-        run_info: Any = None,
-        log: Any = None,
+        run_info: Callable[[], dict[str, Any]] | None = None,
+        log: TextIO | None = None,
     ) -> None:
         if workers < 1:
             raise ValueError(f"filter workers: {workers} (at least 1)")
@@ -477,9 +485,6 @@ class ShardedSession:
         ended)."""
         self.workers_start_cpu_s = 0.0
         """The workers' CPU time [s] to when they were ready (imports, kernels)."""
-        self.started = time.perf_counter()
-        self.elapsed_s = 0.0
-        self._results: dict[int, VehicleResult] | None = None
 
     def add_sink(self, sink: Sink) -> None:
         self.sinks.append(sink)
@@ -495,13 +500,7 @@ class ShardedSession:
 
     def truth_of(self, system_id: int) -> FloatArray | None:
         """As Session.truth_of."""
-        if self.truths is not None:
-            values = self.truths.get(system_id)
-            return None if values is None else np.array(values, float)
-        first = next(iter(self.estimators), system_id)
-        if system_id != first or self.config.truth is None:
-            return None
-        return np.array(self.config.truth, float)
+        return truth_of(self.config, self.truths, self.estimators, system_id)
 
     def start(self) -> None:
         """Start the workers and wait until each has its kernels ready. Raises
@@ -530,8 +529,6 @@ class ShardedSession:
         """As Session.run, the frames going to the workers."""
         stop = stop if stop is not None else Stop()
         self.start()
-        self.started = time.perf_counter()
-        self._results = None
         if hasattr(source, "wake_fds"):  # the source's waits end when outputs come back
             source.wake_fds = [s.output_fd() for s in self.shards]
         try:
@@ -545,8 +542,7 @@ class ShardedSession:
         finally:
             try:
                 link = source.link_stats()
-                results = self._results = self._finish(link)
-                self.elapsed_s = time.perf_counter() - self.started
+                results = self._finish(link)
                 for sink in self.sinks:
                     sink.finish(results, link)
             finally:
@@ -554,10 +550,6 @@ class ShardedSession:
                 for shard in self.shards:
                     shard.close()
         return results
-
-    def results(self) -> dict[int, VehicleResult]:
-        """The results the last run ended with (empty before its end)."""
-        return dict(self._results or {})
 
     def process(self, frame: Frame) -> None:
         """Send the frame to its vehicle's worker (its outputs come back later)."""
@@ -666,8 +658,6 @@ class TablesSink:
         pass
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
-        from gcs_estimator.sinks import link_line
-
         if not results:
             print("no vehicle data received", file=sys.stderr)
         for sid in results:

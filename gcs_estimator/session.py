@@ -101,6 +101,22 @@ def config_truth(config: AircraftConfig) -> FloatArray | None:
     return None if config.truth is None else np.array(config.truth, float)
 
 
+def truth_of(
+    config: AircraftConfig,
+    truths: Mapping[int, Sequence[float]] | None,
+    heard: Mapping[int, Any],
+    system_id: int,
+) -> FloatArray | None:
+    """What a vehicle is scored against: its entry of the truth file; without one, the
+    config's [truth] for the first vehicle heard only (`heard`: the vehicles in the order
+    heard)."""
+    if truths is not None:
+        values = truths.get(system_id)
+        return None if values is None else np.array(values, float)
+    first = next(iter(heard), system_id)
+    return config_truth(config) if system_id == first else None
+
+
 class Session:
     """Estimators per vehicle between one source and its sinks."""
 
@@ -111,13 +127,13 @@ class Session:
         backend: Backend = "fast",
         keep_history: bool = True,
         truths: Mapping[int, Sequence[float]] | None = None,
-        config_truth: bool = True,
+        truth_for_first: bool = True,
     ) -> None:
         self.config = config
         self.truths = truths
         """Each vehicle's true coefficients by system id (a truth file); None: the
         config's [truth] describes one vehicle, the first heard (see truth_of)."""
-        self.config_truth = config_truth
+        self.truth_for_first = truth_for_first
         """Whether the config's [truth] scores the session's first vehicle (a filter
         worker's first is the station's first in worker 0 only)."""
         self.sinks = list(sinks)
@@ -252,11 +268,9 @@ class Session:
         the config's [truth] for the first vehicle heard only (a config describes one
         aircraft: a second vehicle on the link is another, whose values it does not
         know)."""
-        if self.truths is not None:
-            values = self.truths.get(system_id)
-            return None if values is None else np.array(values, float)
-        first = next(iter(self.estimators), system_id)
-        return config_truth(self.config) if system_id == first and self.config_truth else None
+        if not self.truth_for_first and self.truths is None:
+            return None
+        return truth_of(self.config, self.truths, self.estimators, system_id)
 
 
 class RecordingSource:
