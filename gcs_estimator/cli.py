@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from gcs_estimator import endpoints
 from gcs_estimator.config import (
@@ -53,9 +53,6 @@ from gcs_estimator.telemetry.decode import ranges_of
 from gcs_estimator.telemetry.link import MavlinkLink
 from gcs_estimator.telemetry.mavlink import TlogWriter
 from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
-
-if TYPE_CHECKING:
-    pass
 
 DEFAULT_CONFIG = "noc_uav"
 VIEW_FILE = "view.rrd"

@@ -85,11 +85,9 @@ class ResultsSink:
         if link is not None:
             print(link_line(link), file=self.out)
 
-    def vehicle(
-        self, vehicle: VehicleResult, link: Mapping[str, Any] | None, out: TextIO
-    ) -> Refined | None:
-        """One vehicle's end: its table on `out`, its files (the rest of its history
-        CSV); returns the whole-record fit, where one was asked for."""
+    def vehicle(self, vehicle: VehicleResult, link: Mapping[str, Any] | None, out: TextIO) -> None:
+        """One vehicle's end: its whole-record fit where one was asked for, its table on
+        `out`, its files (the rest of its history CSV)."""
         sid = vehicle.system_id
         heading = self.heading(vehicle, self.elapsed())
         refined = None if self.refine is None else self.refine(vehicle)
@@ -103,7 +101,6 @@ class ResultsSink:
         history = self.histories.pop(sid, None)
         paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
         print("results: " + ", ".join(str(p) for p in paths.values()), file=out)
-        return refined
 
 
 def link_line(link: Mapping[str, Any]) -> str:
