@@ -11,15 +11,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def start_listen(*args: str) -> tuple[subprocess.Popen[str], str]:
+def start_listen(*args: str, own_group: bool = False) -> tuple[subprocess.Popen[str], str]:
     """`listen` with args; (the process, its listening line). Its stdout and the rest of
-    its stderr are left for communicate()."""
+    its stderr are left for communicate(). own_group: in a process group of its own, with
+    the processes it starts (a terminal's Ctrl-C goes to all of them)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "gcs_estimator.cli", "listen", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        process_group=0 if own_group else None,
     )
     assert proc.stderr is not None
     for line in proc.stderr:

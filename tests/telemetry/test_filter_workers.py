@@ -253,6 +253,34 @@ def test_output_rows_carry_a_steps_outputs_exactly() -> None:
             assert back_gusts == {k: gusts[k] for k in given}
 
 
+def test_ctrl_c_ends_a_station_and_its_workers_with_every_result(tmp_path: Path) -> None:
+    """Ctrl-C in a terminal reaches the station and its workers alike: the workers go on
+    until the station has told them the run is over, so every vehicle's results are
+    written."""
+    out = tmp_path / "out"
+    station, line = start_listen(
+        "udpin:127.0.0.1:0", "--filter-workers", "2", "--out", str(out), *QUICK, own_group=True
+    )
+    port = bound_port(line)
+    vehicles = subprocess.run(
+        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT, 2),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert vehicles.returncode == 0, vehicles.stderr
+    os.killpg(station.pid, signal.SIGINT)
+    _out, err = station.communicate(timeout=120)
+    assert station.returncode == 0, err
+    assert "Traceback" not in err
+    for sid in (1, 2):
+        got = _results(out, sid)
+        assert got["diagnostics"]["frames"] == 601
+        # The link's counts come with the station's word that the run is over.
+        assert got["link"]["received"] > 3000
+
+
 def test_sigterm_stops_a_station_and_its_filter_workers_cleanly(tmp_path: Path) -> None:
     proc, line = start_listen(
         "udpin:127.0.0.1:0", "--filter-workers", "2", "--out", str(tmp_path), *QUICK
