@@ -75,7 +75,7 @@ BATCH_FRAMES = 64
 """Frames of one worker sent at a time at most (a batch also goes at each turn of the
 source's loop)."""
 MAX_PENDING_BYTES = 1 << 20
-"""Frames waiting to be written to one worker before this process waits for it."""
+"""Bytes of frames waiting to be written to one worker before this process waits for it."""
 READY_S = 120.0
 """Longest wait for the workers to start (imports and compiled kernels, on a cold machine,
 all at once) [s]."""
