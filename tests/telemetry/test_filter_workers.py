@@ -45,6 +45,18 @@ def _estimates(result: dict[str, Any]) -> dict[str, list[float]]:
     }
 
 
+def _fly(port: int, vehicles: int) -> None:
+    """Simulated vehicles (system ids 1..N) fly a short flight at 4x to the port."""
+    done = subprocess.run(
+        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT, vehicles),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+
+
 def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_to(
     tmp_path: Path,
 ) -> None:
@@ -59,15 +71,7 @@ def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_
         *listen, "--out", str(live), "--set", "filter.structure_check=off", "--view", "save"
     )
     assert "the filters in 2 processes" in line, line
-    port = bound_port(line)
-    vehicles = subprocess.run(
-        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT, 3),
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert vehicles.returncode == 0, vehicles.stderr
+    _fly(bound_port(line), 3)
     out, err = station.communicate(timeout=120)
     assert station.returncode == 0, err
     headings = [ln.split(" in ")[0] for ln in out.splitlines() if ln.startswith("vehicle ")]
@@ -261,15 +265,7 @@ def test_ctrl_c_ends_a_station_and_its_workers_with_every_result(tmp_path: Path)
     station, line = start_listen(
         "udpin:127.0.0.1:0", "--filter-workers", "2", "--out", str(out), *QUICK, own_group=True
     )
-    port = bound_port(line)
-    vehicles = subprocess.run(
-        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{port}", 4.0, SHORT, 2),
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert vehicles.returncode == 0, vehicles.stderr
+    _fly(bound_port(line), 2)
     os.killpg(station.pid, signal.SIGINT)
     _out, err = station.communicate(timeout=120)
     assert station.returncode == 0, err
