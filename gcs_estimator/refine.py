@@ -1,16 +1,31 @@
-"""Output-error maximum likelihood over a whole record: `gcs-estimator refine`.
+"""Maximum likelihood over a whole record: `gcs-estimator refine`.
 
 The filters give an estimate and a covariance online. Once the flight is over, the
-record can be fitted as a whole: the initial state, the coefficients and the sensor
-biases that make the model, flown through the record's inputs from its first frame,
-reproduce the observations best. Output error: with the noise covariance R unknown, each
-Gauss-Newton iteration first sets R to the residuals' covariance (the relaxation method;
-Jategaonkar 2015, ch. 4). Filter error: a Kalman filter on the flight states runs inside
-the fit, and the process noise densities are estimated with R by maximising the
-likelihood between Gauss-Newton passes. Both run through one kernel (`innovations`; with
-no process noise its innovations are the output errors), which integrates the model as
-the filters predict (Runge-Kutta steps of at most max_step_s, the configured input hold,
-air density per sample, sensor placement); the sensitivities are forward differences.
+record can be fitted as a whole: the coefficients and the sensor biases (and for output
+error the initial state) that make the model, flown through the record's inputs from its
+first frame, reproduce the observations best. All fits integrate the model as the filters
+predict (Runge-Kutta steps of at most max_step_s, the configured input hold, air density
+per sample, sensor placement); the sensitivities are forward differences.
+
+- Output error (calm air): the model flies open loop (`innovations` with no process
+  noise: its innovations are the output errors). With the noise unknown, each
+  Gauss-Newton iteration first sets each channel's variance to its mean squared output
+  error (the relaxation method; Jategaonkar 2015, ch. 4).
+- Filter error (turbulence, or anything the model misses): the classical formulation
+  (Maine and Iliff 1981; Jategaonkar 2015, ch. 5). A Kalman filter with a steady-state
+  gain corrects the flight states inside the fit. The gain comes from the continuous
+  Riccati equation A P + P A' - P C' R^-1 C P / dt + F F' = 0, linearised at the first
+  frame, where F is the process noise's distribution (diagonal, estimated with the
+  coefficients) and R the innovations' covariance (diagonal), which each iteration sets
+  to the innovations' mean square (relaxation again). Gauss-Newton steps are kept where
+  the gain corrects no state by more than its own innovation says (diag(K C) <= 1): at
+  that edge the record's measurement noise of a channel is spent, and the book's fit of
+  HFB-320 lies on it. Estimating the innovations' covariance directly, rather than the
+  sensors' and the air's noise apart, is what makes the noise identifiable from one
+  record: the split between the two is what a record tells least.
+- With the noise held (`hold_noise`: the sensors' and the air's levels known), filter
+  error runs the time-varying extended Kalman filter on the flight states at those levels
+  (`innovations`), the exact likelihood for them.
 
 Uncertainty, two ways:
 - the Cramer-Rao bound, M^-1 with M = sum S^T R^-1 S: right when the residuals are
@@ -20,8 +35,8 @@ Uncertainty, two ways:
   residuals (turbulence, what the structure misses) carry less information than white
   ones, and this bound says how much less. It is the sigma to trust on real data.
 
-Output error assumes calm air: in turbulence the filters' estimates are the better ones,
-and the residual colour shows it (the corrected sigma grows).
+Output error assumes calm air: in turbulence the filters' and filter error's estimates
+are the better ones, and the residual colour shows it (the corrected sigma grows).
 """
 
 from __future__ import annotations
@@ -33,6 +48,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
 from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
@@ -161,13 +177,55 @@ def innovations(
     return e, logdet, raw, True
 
 
+@njit(cache=True)
+def steady_innovations(
+    x0: FloatArray,
+    t: FloatArray,
+    u: FloatArray,
+    y: FloatArray,
+    mask: FloatArray,
+    m: eq.ModelArrays,
+    K: FloatArray,
+    max_step: float,
+    linear: bool,
+) -> tuple[FloatArray, bool]:  # pragma: no cover
+    """A Kalman filter with the constant gain K [n_dynamic x 7] on the flight states, the
+    coefficients and biases held at x0's: from x0 at t[0], predicting with Runge-Kutta
+    steps of at most max_step (inputs as in `innovations`), correcting with the observed
+    channels (mask > 0; a channel without a sample corrects nothing). Returns the
+    innovations [N x 7] (0 where not observed) and whether the run stayed finite."""
+    N = t.shape[0]
+    nd = m.n_dynamic
+    raw = np.zeros((N, N_OBS))
+    x = x0.copy()
+    for i in range(N):
+        if i > 0:
+            u0 = u[i - 1]
+            u1 = u[i] if linear else u0
+            span = t[i] - t[i - 1]
+            steps = max(1, int(math.ceil(span / max_step - 1e-9)))
+            for s in range(steps):
+                ua = u0 + (u1 - u0) * (s / steps)
+                ub = u0 + (u1 - u0) * ((s + 1) / steps)
+                x = eq.rk4_step(x, ua, ub, span / steps, m)[0]
+            if not np.all(np.isfinite(x)):
+                return raw, False
+        hx, _ = eq.observe(x, u[i], m)
+        for c in range(N_OBS):
+            if mask[i, c] > 0.0:
+                raw[i, c] = y[i, c] - hx[c]
+        x[:nd] += K @ raw[i]
+    return raw, True
+
+
 @dataclass(frozen=True)
 class Refined:
     """The maximum-likelihood fit of one record."""
 
     method: str
-    """"output error" (no process noise) or "filter error" (process noise estimated);
-    ", noise held" added when the noise levels were held at the configured ones."""
+    """"output error" (no process noise) or "filter error" (process noise estimated:
+    steady-state gain); ", noise held" added when the noise levels were held at the
+    configured ones (filter error then runs the time-varying filter)."""
     names: tuple[str, ...]
     """Coefficient names."""
     coefficients: FloatArray
@@ -185,9 +243,12 @@ class Refined:
     state0: FloatArray
     """Fitted initial flight state [V, alpha, theta, q]."""
     noise_sigma: FloatArray
-    """Measurement noise sigma per observation channel [7] (NaN: not observed)."""
+    """Measurement noise sigma per observation channel [7] (NaN: not observed). Filter
+    error with the noise estimated: what the innovations' variance leaves after the
+    state's own uncertainty, sqrt(max(R - diag(C P C'), 0))."""
     process_noise: FloatArray
-    """Process noise spectral density of V, alpha, theta, q (0 for output error)."""
+    """Process noise spectral density of V, alpha, theta, q (0 for output error; filter
+    error: diag(F F'))."""
     residual_colour: FloatArray
     """Per channel: the information its residuals' autocorrelation leaves, relative to
     white residuals of the same variance, as seen through the parameters' sensitivities
@@ -202,13 +263,11 @@ class Refined:
 class RefineProgress(NamedTuple):
     """Where a fit stands, after each Gauss-Newton iteration."""
 
-    round: int
-    """Noise-estimation round (filter error: up to `rounds`; output error: 1)."""
-    rounds: int
     iterations: int
-    """Gauss-Newton iterations so far, over all rounds."""
+    """Gauss-Newton iterations so far."""
     cost: float
-    """Negative log-likelihood (without its constant) the iteration started from."""
+    """Negative log-likelihood (times 2, without its constant) the iteration started
+    from."""
     step_sigma: float
     """Largest parameter step of the iteration, in sigmas (about); 0: none accepted."""
     runs: int
@@ -224,6 +283,13 @@ STEP_TOLERANCE = 1e-3
 """Gauss-Newton stops when no parameter moves by more than this share of its sigma."""
 Q_FLOOR = 1e-14
 """Smallest process noise density the fit considers (below it: output error)."""
+LOG_F_RANGE = (math.log(1e-7), math.log(1e3))
+"""Bounds on the logarithm of each process noise distribution F_jj [SI / sqrt(s)] that
+filter error searches within."""
+EDGE = 1e-7
+"""How far inside diag(K C) <= 1 a projected step aims (the edge's curvature)."""
+COST_TOLERANCE = 1e-3
+"""Filter error stops when an iteration changes the cost (-2 log likelihood) by less."""
 
 
 class _Problem:
@@ -305,7 +371,7 @@ def _gauss_newton(
     lam = 1e-3
     for it in range(1, iterations + 1):
         if relax is not None:
-            _, r = _fit_noise(prob, x, q, r, relax, False)
+            r = _fit_noise(prob, x, r, relax)
         e, logdet, _, ok = prob.run(x, q, r)
         if not ok:
             raise RefineError(
@@ -345,50 +411,253 @@ def _gauss_newton(
 
 
 def _reporter(
-    progress: Callable[[RefineProgress], None], prob: _Problem, k: int, rounds: int, before: int
+    progress: Callable[[RefineProgress], None], prob: _Problem
 ) -> Callable[[int, float, float], None]:
-    """_gauss_newton's report of round k, its iterations counted after `before`."""
+    """A fit's report (iteration, cost, step) as RefineProgress with the runs so far."""
 
     def report(it: int, cost: float, step: float) -> None:
-        progress(RefineProgress(k, rounds, before + it, cost, step, prob.runs))
+        progress(RefineProgress(it, cost, step, prob.runs))
 
     return report
 
 
-def _fit_noise(
-    prob: _Problem,
-    x: FloatArray,
-    q: FloatArray,
-    r: FloatArray,
-    observed: BoolArray,
-    estimate_q: bool,
-) -> tuple[FloatArray, FloatArray]:
-    """The noise levels that maximise the likelihood at fixed parameters. Output error:
-    each channel's variance is the mean squared output error (closed form). Filter
-    error: the process noise densities and the measurement variances together, on their
-    logarithms."""
+def _fit_noise(prob: _Problem, x: FloatArray, r: FloatArray, observed: BoolArray) -> FloatArray:
+    """Output error's noise levels that maximise the likelihood at fixed parameters: each
+    observed channel's variance is its mean squared output error (closed form)."""
     ro = np.flatnonzero(observed)
-    if not estimate_q:
-        _, _, raw, _ = prob.run(x, q, r)
-        n_c = np.maximum(prob.mask.sum(axis=0), 1.0)
-        r = r.copy()
-        r[ro] = np.maximum(np.sum(raw * raw, axis=0)[ro] / n_c[ro], 1e-300)
-        return q, r
-    nq = len(q)
+    _, _, raw, _ = prob.run(x, np.zeros(prob.model.arrays.n_dynamic), r)
+    n_c = np.maximum(prob.mask.sum(axis=0), 1.0)
+    r = r.copy()
+    r[ro] = np.maximum(np.sum(raw * raw, axis=0)[ro] / n_c[ro], 1e-300)
+    return r
 
-    def unpack(z: FloatArray) -> tuple[FloatArray, FloatArray]:
-        rr = r.copy()
-        rr[ro] = np.exp(z[nq:])
-        return np.exp(z[:nq]), rr
 
-    def f(z: FloatArray) -> float:
-        return prob.cost(x, *unpack(z))
+class _SteadyFilterError:
+    """Filter error with a steady-state gain (the module's docstring): the parameters are
+    theta = [x[free], log diag F]; the innovations' covariance R is held within each
+    Gauss-Newton iteration and set to their mean square between them."""
 
-    z0 = np.concatenate([np.log(np.maximum(q, Q_FLOOR)), np.log(r[ro])])
-    lo = np.concatenate([np.full(nq, math.log(Q_FLOOR)), np.log(r[ro]) - 20.0])
-    hi = np.concatenate([np.full(nq, math.log(1e3)), np.log(r[ro]) + 20.0])
-    sol = minimize(f, np.clip(z0, lo, hi), method="L-BFGS-B", bounds=list(zip(lo, hi, strict=True)))
-    return unpack(sol.x)
+    def __init__(self, prob: _Problem, x: FloatArray, free: IntArray, observed: BoolArray) -> None:
+        self.prob = prob
+        self.x = x.copy()
+        self.free = free
+        self.obs = np.flatnonzero(observed)
+        self.nd = prob.model.arrays.n_dynamic
+        span = np.diff(prob.t)
+        self.dt = float(np.median(span))
+        self.counts = np.maximum(prob.mask.sum(axis=0), 1.0)
+
+    def unpack(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The augmented state and diag F of theta."""
+        x = self.x.copy()
+        x[self.free] = theta[: len(self.free)]
+        return x, np.exp(theta[len(self.free) :])
+
+    def gain(
+        self, theta: FloatArray, r: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """The steady-state gain K [n_dynamic x 7], diag(K C) [n_dynamic] and the state's
+        covariance P, linearised at the first frame; None where the Riccati equation has
+        no stabilising solution."""
+        x, f = self.unpack(theta)
+        m = self.prob.model.arrays
+        u0 = self.prob.u[0]
+        _, A = eq.dynamics(x, u0, m)
+        _, H = eq.observe(x, u0, m)
+        nd, o = self.nd, self.obs
+        C = H[o][:, :nd]
+        try:
+            P = solve_continuous_are(A[:nd, :nd].T, C.T, np.diag(f * f), np.diag(r[o]) * self.dt)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+        if not np.all(np.isfinite(P)):
+            return None
+        K = np.zeros((nd, N_OBS))
+        K[:, o] = P @ C.T / r[o]
+        return K, np.diag(K[:, o] @ C), P
+
+    def run(self, theta: FloatArray, r: FloatArray, bounded: bool = True) -> FloatArray | None:
+        """The innovations [N x 7], or None where the gain does not exist, the flight
+        leaves finite numbers or (when bounded) the gain over-corrects (diag(K C) > 1)."""
+        g = self.gain(theta, r)
+        if g is None or (bounded and np.max(g[1]) > 1.0):
+            return None
+        x, _ = self.unpack(theta)
+        p = self.prob
+        p.runs += 1
+        raw, ok = steady_innovations(
+            x, p.t, p.u, p.y, p.mask, p.model.arrays, g[0], p.max_step, p.linear
+        )
+        return raw if ok else None
+
+    def variances(self, raw: FloatArray, r: FloatArray) -> FloatArray:
+        """R set to the innovations' mean square on the observed channels."""
+        out = r.copy()
+        o = self.obs
+        out[o] = np.maximum(np.sum(raw * raw, axis=0)[o] / self.counts[o], 1e-300)
+        return out
+
+    def cost(self, r: FloatArray) -> float:
+        """-2 log likelihood without its constant, R at the innovations' mean square."""
+        return float(np.sum(self.counts[self.obs] * np.log(r[self.obs])))
+
+    def stable(self, theta: FloatArray, r: FloatArray) -> bool:
+        """Whether the gain at theta and R exists and does not over-correct."""
+        g = self.gain(theta, r)
+        return g is not None and bool(np.max(g[1]) <= 1.0)
+
+    def feasible(self, theta: FloatArray, r: FloatArray) -> FloatArray | None:
+        """theta, or with F scaled down (by bisection on a common factor) until the gain
+        at R no longer over-corrects; None when no scale gives a run."""
+        k = len(self.free)
+        out = theta.copy()
+        if not self.stable(theta, r):
+            lo, hi = LOG_F_RANGE[0] - float(np.max(theta[k:])), 0.0
+            shifted = theta.copy()
+            shifted[k:] += lo
+            if not self.stable(shifted, r):
+                return None
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                trial = theta.copy()
+                trial[k:] += mid
+                if self.stable(trial, r):
+                    lo = mid
+                else:
+                    hi = mid
+            out[k:] += lo
+        return out if self.run(out, r) is not None else None
+
+    def relaxed(self, theta: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """R set to the innovations' mean square at theta (feasible at r), and theta
+        with F scaled down where the gain at the new R would over-correct."""
+        raw = self.run(theta, r)
+        assert raw is not None
+        r = self.variances(raw, r)
+        out = self.feasible(theta, r)
+        if out is None:
+            raise RefineError("the filter-error fit lost a stable gain; start nearer")
+        return out, r
+
+    def whitened(self, raw: FloatArray, r: FloatArray) -> FloatArray:
+        out: FloatArray = raw / np.sqrt(r)
+        return out
+
+    def jacobian(self, theta: FloatArray, r: FloatArray, e0: FloatArray) -> FloatArray:
+        """d e / d theta [N*7 x len(theta)] of the whitened innovations, by forward
+        differences (backward where the forward point has no gain), across the
+        diag(K C) <= 1 edge that a fit can end on."""
+        J = np.empty((e0.size, theta.shape[0]))
+        k = len(self.free)
+        for j in range(theta.shape[0]):
+            step = 1e-6 * max(abs(theta[j]), 1e-3) if j < k else 1e-5
+            for sign in (1.0, -1.0):
+                tp = theta.copy()
+                tp[j] += sign * step
+                raw = self.run(tp, r, bounded=False)
+                if raw is not None:
+                    J[:, j] = (self.whitened(raw, r) - e0).ravel() / (sign * step)
+                    break
+            else:
+                J[:, j] = 0.0
+        return J
+
+    def constraint(self, theta: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """diag(K C) - 1 [n_dynamic] (kept <= 0) and its gradient in theta."""
+        g0 = self.gain(theta, r)
+        assert g0 is not None
+        c0 = g0[1] - 1.0
+        G = np.zeros((c0.shape[0], theta.shape[0]))
+        k = len(self.free)
+        for j in range(theta.shape[0]):
+            step = 1e-6 * max(abs(theta[j]), 1e-3) if j < k else 1e-5
+            tp = theta.copy()
+            tp[j] += step
+            g = self.gain(tp, r)
+            if g is not None:
+                G[:, j] = (g[1] - 1.0 - c0) / step
+        return c0, G
+
+    def step(
+        self,
+        An: FloatArray,
+        gn: FloatArray,
+        d: FloatArray,
+        lam: float,
+        c0: FloatArray,
+        G: FloatArray,
+    ) -> FloatArray:
+        """The Levenberg-Marquardt step in theta, projected so that the linearised
+        diag(K C) stays <= 1 (a small quadratic programme when the free step would cross
+        it)."""
+        M = An + lam * np.eye(len(gn))
+        z = np.linalg.solve(M, gn)
+        Gz = -G / d[None, :]  # constraint change per unit of the scaled step
+        if np.all(c0 + Gz @ z <= 0.0):
+            out: FloatArray = -z / d
+            return out
+        sol = minimize(
+            lambda v: 0.5 * v @ M @ v - gn @ v,
+            np.zeros_like(z),
+            jac=lambda v: M @ v - gn,
+            constraints=[
+                {"type": "ineq", "fun": lambda v: -(c0 + Gz @ v) - EDGE, "jac": lambda v: -Gz}
+            ],
+            method="SLSQP",
+            options={"maxiter": 200, "ftol": 1e-12},
+        )
+        projected: FloatArray = -np.asarray(sol.x) / d
+        return projected
+
+    def fit(
+        self,
+        theta: FloatArray,
+        r: FloatArray,
+        iterations: int,
+        report: Callable[[int, float, float], None] | None,
+    ) -> tuple[FloatArray, FloatArray, int, bool]:
+        """Constrained Levenberg-Marquardt on theta with R relaxed between iterations;
+        returns theta, R, iterations used, converged."""
+        lo, hi = LOG_F_RANGE
+        k = len(self.free)
+        start = self.feasible(theta, r)
+        if start is None:
+            raise RefineError("no process noise level gives a stable filter from the start values")
+        theta, r = self.relaxed(start, r)
+        cost = self.cost(r)
+        lam = 1e-3
+        for it in range(1, iterations + 1):
+            raw = self.run(theta, r)
+            assert raw is not None  # relaxed() left theta feasible at r
+            e0 = self.whitened(raw, r)
+            J = self.jacobian(theta, r, e0)
+            g = J.T @ e0.ravel()
+            A = J.T @ J
+            d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+            An = A / np.outer(d, d)
+            gn = g / d
+            c0, G = self.constraint(theta, r)
+            base = float(np.sum(e0 * e0))
+            moved = 0.0
+            for _ in range(12):
+                trial = theta + self.step(An, gn, d, lam, c0, G)
+                trial[k:] = np.clip(trial[k:], lo, hi)
+                raw_t = self.run(trial, r)
+                if raw_t is not None and float(np.sum(self.whitened(raw_t, r) ** 2)) < base:
+                    moved = float(np.max(np.abs((trial - theta) * d)))
+                    theta = trial
+                    lam = max(lam / 10.0, 1e-9)
+                    break
+                lam *= 10.0
+            if report is not None:
+                report(it, cost, moved)
+            theta, r = self.relaxed(theta, r)
+            new = self.cost(r)
+            done = abs(new - cost) < COST_TOLERANCE
+            cost = new
+            if done:
+                return theta, r, it, True
+        return theta, r, iterations, False
 
 
 def _toeplitz_apply(rho: FloatArray, a: FloatArray) -> FloatArray:
@@ -411,6 +680,30 @@ def _autocorrelation(r: FloatArray) -> FloatArray:
     return np.asarray(np.fft.irfft(f * np.conj(f), n=size)[:N] / N)
 
 
+def _sandwich(
+    J: FloatArray, e: FloatArray, mask: FloatArray, observed: BoolArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """From the whitened residuals e [N x 7] and their sensitivities J [N x 7 x p]: the
+    Cramer-Rao covariance M^-1, the Morelli-Klein covariance and each channel's residual
+    colour (Refined.residual_colour)."""
+    N = e.shape[0]
+    M = np.einsum("ncp,ncq->pq", J, J)
+    Minv = np.linalg.inv(M)
+    middle = np.zeros_like(M)
+    colour = np.full(N_OBS, np.nan)
+    for c in range(N_OBS):
+        if not observed[c]:
+            continue
+        n_c = max(float(mask[:, c].sum()), 1.0)
+        rho = _autocorrelation(e[:, c]) * (N / n_c)
+        part = J[:, c, :].T @ _toeplitz_apply(rho, J[:, c, :])
+        middle += part
+        white = float(rho[0]) * float(np.sum(J[:, c, :] ** 2))
+        colour[c] = float(np.trace(part)) / white if white > 0.0 else math.nan
+    cov_mk = Minv @ middle @ Minv
+    return Minv, 0.5 * (cov_mk + cov_mk.T), colour
+
+
 def refine(
     model: Model,
     t_s: FloatArray,
@@ -422,20 +715,19 @@ def refine(
     max_step_s: float,
     linear_inputs: bool = True,
     estimate_process_noise: bool = True,
-    rounds: int = 8,
-    iterations: int = 50,
+    iterations: int = 100,
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
-    t_s[0], coefficients, biases): the parameters by Gauss-Newton on the whitened
-    innovations, the noise levels (measurement sigmas, and the process noise of V, alpha,
-    theta, q unless estimate_process_noise is False: output error) by maximising the
-    likelihood between them, until neither moves. With hold_noise the noise levels stay
-    at noise_sigma and process_noise (the sensors' and the air's known levels) and only
-    the parameters are fitted. `progress` hears after each Gauss-Newton iteration where
-    the fit stands."""
+    t_s[0], coefficients, biases), by the module docstring's methods: output error
+    (estimate_process_noise False), filter error with a steady-state gain (the process
+    noise distribution and the innovations' covariance estimated with the parameters), or
+    with hold_noise the noise levels kept at noise_sigma and process_noise (the sensors'
+    and the air's known levels; filter error then runs the time-varying filter) and only
+    the parameters fitted. `progress` hears after each Gauss-Newton iteration where the
+    fit stands."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -448,11 +740,7 @@ def refine(
     prob = _Problem(model, t, u, y, mask, max_step_s, linear_inputs)
     x = np.asarray(start, float).copy()
     nd = model.arrays.n_dynamic
-    q = (
-        np.maximum(np.asarray(process_noise, float)[:nd], Q_FLOOR)
-        if estimate_process_noise
-        else np.zeros(nd)
-    )
+    q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
     e0, _, _, ok = prob.run(x, q, r)
     if not ok:
@@ -460,53 +748,49 @@ def refine(
     # Parameters the observations do not see (a bias of a channel without data) stay.
     probe = prob.jacobian(x, np.arange(x.shape[0]), q, r, e0)
     free = np.flatnonzero(np.linalg.norm(probe, axis=0) > 0.0)
-    total = 0
-    converged = False
-    cost = prob.cost(x, q, r)
-    n_rounds = rounds if estimate_process_noise and not hold_noise else 1
-    for k in range(1, n_rounds + 1):
-        report = None if progress is None else _reporter(progress, prob, k, n_rounds, total)
-        if estimate_process_noise and not hold_noise:
-            q, r = _fit_noise(prob, x, q, r, observed, True)
-        # Output error with the noise free: R in closed form inside each iteration.
-        relax = None if hold_noise or estimate_process_noise else observed
-        x, r, its, converged = _gauss_newton(prob, x, free, q, r, iterations, relax, report)
-        total += its
-        new = prob.cost(x, q, r)
-        done = abs(cost - new) < 1e-6 * max(abs(new), 1.0)
-        cost = new
-        if done:
-            break
-    e, _, _, _ = prob.run(x, q, r)
-    J = prob.jacobian(x, free, q, r, e).reshape(e.shape[0], N_OBS, len(free))
-    M = np.einsum("ncp,ncq->pq", J, J)
-    Minv = np.linalg.inv(M)
-    middle = np.zeros_like(M)
-    colour = np.full(N_OBS, np.nan)
-    for c in range(N_OBS):
-        if not observed[c]:
-            continue
-        n_c = max(float(mask[:, c].sum()), 1.0)
-        rho = _autocorrelation(e[:, c]) * (t.shape[0] / n_c)
-        part = J[:, c, :].T @ _toeplitz_apply(rho, J[:, c, :])
-        middle += part
-        white = float(rho[0]) * float(np.sum(J[:, c, :] ** 2))
-        colour[c] = float(np.trace(part)) / white if white > 0.0 else math.nan
-    cov_mk = Minv @ middle @ Minv
-    cov_mk = 0.5 * (cov_mk + cov_mk.T)
+    report = None if progress is None else _reporter(progress, prob)
+    steady = estimate_process_noise and not hold_noise
     n = x.shape[0]
+    if steady:
+        # The filter corrects the initial state: it stays at the first frame's.
+        free = free[free >= N_FLIGHT]
+        fe = _SteadyFilterError(prob, x, free, observed)
+        theta0 = np.concatenate([x[free], np.log(np.sqrt(np.maximum(q, Q_FLOOR)))])
+        theta, r, total, converged = fe.fit(theta0, r, iterations, report)
+        x, f = fe.unpack(theta)
+        raw = fe.run(theta, r)
+        assert raw is not None
+        e = fe.whitened(raw, r)
+        J = fe.jacobian(theta, r, e)
+        gain = fe.gain(theta, r)
+        assert gain is not None
+        C = eq.observe(x, u[0], model.arrays)[1][:, :nd]
+        state_var = np.einsum("ij,jk,ik->i", C, gain[2], C)
+        q = f * f
+        noise = np.where(observed, np.sqrt(np.maximum(r - state_var, 0.0)), np.nan)
+    else:
+        # Output error with the noise free: R in closed form inside each iteration; with
+        # the noise held, output error or the time-varying filter at the held levels.
+        relax = None if hold_noise else observed
+        x, r, total, converged = _gauss_newton(prob, x, free, q, r, iterations, relax, report)
+        e, _, _, _ = prob.run(x, q, r)
+        J = prob.jacobian(x, free, q, r, e)
+        noise = np.where(observed, np.sqrt(r), np.nan)
+    J3 = J.reshape(e.shape[0], N_OBS, J.shape[1])
+    Minv, cov_mk, colour = _sandwich(J3, e, mask, observed)
+    # The state's free entries lead the parameters (filter error's log F follow them).
+    k = len(free)
     crb = np.full(n, np.nan)
     mk = np.full(n, np.nan)
-    crb[free] = np.sqrt(np.diag(Minv))
+    crb[free] = np.sqrt(np.diag(Minv)[:k])
     # The correction never makes the bound smaller than Cramer-Rao's.
-    mk[free] = np.maximum(np.sqrt(np.maximum(np.diag(cov_mk), 0.0)), crb[free])
+    mk[free] = np.maximum(np.sqrt(np.maximum(np.diag(cov_mk)[:k], 0.0)), crb[free])
     full = np.zeros((n, n))
-    full[np.ix_(free, free)] = cov_mk
+    full[np.ix_(free, free)] = cov_mk[:k, :k]
     cs = model.coefficients
     corr = correlation_of(full[cs, cs])
     coefficients = x[cs].copy()
     bs = model.biases
-    noise = np.where(observed, np.sqrt(r), np.nan)
     method = "filter error" if estimate_process_noise else "output error"
     if hold_noise:
         method += ", noise held"

@@ -292,10 +292,9 @@ class RefineStatus:
         self.latest: RefineProgress | None = None
 
     def line(self, p: RefineProgress) -> str:
-        rounds = "" if p.rounds == 1 else f"round {p.round} of at most {p.rounds}, "
         step = f"last step {p.step_sigma:.2g} σ" if p.step_sigma > 0 else "no step taken"
         return (
-            f"refining: {rounds}iteration {p.iterations}, cost {p.cost:.6g}, {step}, "
+            f"refining: iteration {p.iterations}, cost {p.cost:.6g}, {step}, "
             f"{p.runs} filter runs, {_duration(self.clock() - self.start)}"
         )[:STATUS_WIDTH]
 
