@@ -401,9 +401,15 @@ def _refined_warnings(refined: Refined) -> list[str]:
         if math.isfinite(v) and v > COLOUR_LIMIT
     ]
     if coloured:
+        hint = (
+            "; in turbulence, `--method filter-error` lets a filter follow the gusts"
+            if refined.method == "output error"
+            else ""
+        )
         out.append(
             "OE residuals far from white (" + ", ".join(coloured) + "): the model misses "
             "something (turbulence, unmodelled aerodynamics); trust OE σ, not Cramer-Rao's"
+            + hint
         )
     if not refined.converged:
         out.append(f"OE: {refined.message}")

@@ -55,7 +55,8 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
     assert np.all(refined.sigma >= refined.crb_sigma)
     assert np.median(refined.sigma / refined.crb_sigma) > 1.5
     assert np.nanmax(refined.residual_colour) > 5.0
-    assert any("far from white" in w for w in trust_warnings(run, refined))
+    coloured = [w for w in trust_warnings(run, refined) if "far from white" in w]
+    assert len(coloured) == 1 and "--method filter-error" in coloured[0]
     # A window with too few frames is refused with the reason.
     with pytest.raises(RefineError, match="frames in the window"):
         refine_run(run.result, window_s=(10.0, 10.5))
