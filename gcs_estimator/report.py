@@ -408,8 +408,7 @@ def _refined_warnings(refined: Refined) -> list[str]:
         )
         out.append(
             "OE residuals far from white (" + ", ".join(coloured) + "): the model misses "
-            "something (turbulence, unmodelled aerodynamics); trust OE σ, not Cramer-Rao's"
-            + hint
+            "something (turbulence, unmodelled aerodynamics); trust OE σ, not Cramer-Rao's" + hint
         )
     if not refined.converged:
         out.append(f"OE: {refined.message}")
