@@ -72,7 +72,7 @@ def evaluate(
     fit = None if best is None else np.array([best[n] for n in res.names])
     spread = np.array([best_spread[n] for n in res.names]) if best_spread else None
     print(f"\n## {name} ({config.airframe.name})\n")
-    head = _head(config.truth_label, fit is not None, spread is not None, oe is not None)
+    head = _head(config.truth_label, fit is not None, spread is not None, oe)
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     goal = ref if fit is None else fit
@@ -155,7 +155,7 @@ def evaluate(
             f"read from the data: {read} ({config.filter.measurement_noise})"
         )
     if oe is not None:
-        summary["OE"] = _oe_summary(oe, goal, well)
+        summary["refine"] = _oe_summary(oe, goal, well)
     summary.update(_judged_fairly(est, goal, well, marks, best_residual, spread))
     return summary
 
@@ -228,15 +228,17 @@ def _print_best_fit(
         )
 
 
-def _head(label: str, fit: bool, spread: bool, oe: bool) -> list[str]:
+def _head(label: str, fit: bool, spread: bool, oe: Refined | None) -> list[str]:
     head = ["coefficient", label] + (["best fit"] if fit else [])
     head += (["best fit spread %"] if spread else []) + ["identified?"]
     for k in FILTER_KINDS:
         head += [f"{k} estimate", f"{k} σ", f"{k} σ corrected", f"{k} err %"]
         head += [f"{k} err % (fit)"] if fit else []
         head += [f"{k} z{' (fit)' if fit else ''}", f"{k} z corrected"]
-    if oe:
-        head += ["OE estimate", "OE σ (corrected)", "OE σ (Cramer-Rao)", "OE err %", "OE z"]
+    if oe is not None:
+        f = oe.label
+        head += [f"{f} estimate", f"{f} σ (corrected)", f"{f} σ (Cramer-Rao)", f"{f} err %"]
+        head += [f"{f} z"]
     return head
 
 
@@ -249,7 +251,7 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
     worst = float(err.max())
     within = float(np.mean(np.abs(z) < 3)) * 100
     print(
-        f"\nOE ({oe.method}, {oe.message}): worst well-excited |err| {worst:.2f} % "
+        f"\n{oe.label} ({oe.method}, {oe.message}): worst well-excited |err| {worst:.2f} % "
         f"({oe.names[well[int(np.argmax(err))]]}); well-excited within 3σ {within:.0f} %, "
         f"mean z² {np.mean(z**2):.1f} with the corrected σ, {np.mean(zc**2):.1f} with "
         f"Cramer-Rao's; residual colour: {channel_text(oe.residual_colour)}"
@@ -351,9 +353,10 @@ def run(args: argparse.Namespace) -> int:
         "best fit is (the most a well-excited coefficient of it moves, in %, when one "
         "channel's weight is halved or doubled; then over those identified)\n"
     )
-    kinds = [*FILTER_KINDS, "OE", *(f"{k} identified" for k in FILTER_KINDS), "reproduction"]
-    kinds += ["spread", "spread identified"]
-    print("| record | " + " | ".join(kinds) + " |")
+    kinds = [*FILTER_KINDS, "refine", *(f"{k} identified" for k in FILTER_KINDS)]
+    kinds += ["reproduction", "spread", "spread identified"]
+    fit = "FE" if args.refine == "filter-error" else "OE"
+    print("| record | " + " | ".join(fit if k == "refine" else k for k in kinds) + " |")
     print("|---|" + "---|" * len(kinds))
     for name, by_kind in worst.items():
         cells = [

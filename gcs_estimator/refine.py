@@ -259,6 +259,11 @@ class Refined:
     converged: bool
     message: str
 
+    @property
+    def label(self) -> str:
+        """The fit's short name in tables and notes: "OE" (output error) or "FE"."""
+        return "FE" if self.method.startswith("filter error") else "OE"
+
 
 class RefineProgress(NamedTuple):
     """Where a fit stands, after each Gauss-Newton iteration."""

@@ -70,9 +70,10 @@ def markdown_table(
         head += [f"{k} {settle}"]
     head += ["identified?"]
     if refined is not None:
-        head += ["OE estimate", "OE σ", "OE Cramer-Rao σ"]
+        fit = refined.label
+        head += [f"{fit} estimate", f"{fit} σ", f"{fit} Cramer-Rao σ"]
         if has_truth:
-            head += ["OE error %", "OE error/σ"]
+            head += [f"{fit} error %", f"{fit} error/σ"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     marks_from = summaries.get("IEKF", first)
     for i, c0 in enumerate(first.coefficients):
@@ -84,7 +85,7 @@ def markdown_table(
             row += _refined_cells(refined, i, c0.truth, has_truth)
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
-    lines.append(_legend(truth_label, has_truth, refined is not None))
+    lines.append(_legend(truth_label, has_truth, refined))
     lines += [f"- {n}" for n in _run_notes(summaries, kinds, refined)]
     return "\n".join(lines) + "\n"
 
@@ -127,7 +128,7 @@ def _refined_cells(refined: Refined, i: int, truth: float | None, has_truth: boo
     return row
 
 
-def _legend(truth_label: str, has_truth: bool, refined: bool) -> str:
+def _legend(truth_label: str, has_truth: bool, refined: Refined | None) -> str:
     text = (
         "σ: one standard deviation from the filter covariance; σ corrected: that σ times "
         "the factor by which the estimate moved over the second half of the run more "
@@ -136,10 +137,11 @@ def _legend(truth_label: str, has_truth: bool, refined: bool) -> str:
         "half as much added in quadrature (×1.0: as the covariance said; on real data, "
         "the one to trust)"
     )
-    if refined:
+    if refined is not None:
         text += (
-            "; OE σ: the output-error fit's Cramer-Rao bound corrected for the colour of its "
-            "residuals (Morelli-Klein), the one to trust on real data"
+            f"; {refined.label} σ: the {refined.method.split(',')[0]} fit's Cramer-Rao bound "
+            "corrected for the colour of its residuals (Morelli-Klein), the one to trust on "
+            "real data"
         )
     if has_truth:
         text += (
@@ -175,7 +177,8 @@ def _run_notes(
         notes.append(note)
     if refined is not None:
         notes.append(
-            f"OE ({refined.method}, {refined.frames} frames, {refined.message}): noise σ "
+            f"{refined.label} ({refined.method}, {refined.frames} frames, {refined.message}): "
+            "noise σ "
             + channel_text(refined.noise_sigma)
             + "; residual colour (1 = white) "
             + channel_text(refined.residual_colour)
@@ -406,12 +409,14 @@ def _refined_warnings(refined: Refined) -> list[str]:
             if refined.method == "output error"
             else ""
         )
+        fit = refined.label
         out.append(
-            "OE residuals far from white (" + ", ".join(coloured) + "): the model misses "
-            "something (turbulence, unmodelled aerodynamics); trust OE σ, not Cramer-Rao's" + hint
+            f"{fit} residuals far from white (" + ", ".join(coloured) + "): the model misses "
+            f"something (turbulence, unmodelled aerodynamics); trust {fit} σ, not "
+            "Cramer-Rao's" + hint
         )
     if not refined.converged:
-        out.append(f"OE: {refined.message}")
+        out.append(f"{refined.label}: {refined.message}")
     return out
 
 

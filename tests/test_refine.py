@@ -171,12 +171,14 @@ def test_filter_error_estimates_the_noise_as_the_book_does(
     innovations' covariance with the coefficients, from the IEKF's estimate, and lands
     where the book's filter-error method did: the coefficients the record identifies
     within 2 %, each state's process noise within 25 %, the measurement noise below the
-    defaults' sigmas, and every Morelli-Klein sigma at least the Cramer-Rao one."""
+    defaults' sigmas, and every Morelli-Klein sigma at least the Cramer-Rao one; the
+    table heads its column FE."""
     config = load_config("hfb320")
     out = tmp_path / "fe"
     argv = ["refine", "hfb320", "--method", "filter-error", "--out", str(out), "--view", "off"]
     assert cli.main(argv) == 0
-    capsys.readouterr()
+    table = capsys.readouterr().out
+    assert "| FE estimate | FE σ | FE Cramer-Rao σ |" in table and "OE estimate" not in table
     fit = json.loads((out / "results_sys1.json").read_text())["refined"]
     assert fit["method"] == "filter error" and fit["converged"]
     assert config.truth is not None
