@@ -37,6 +37,7 @@ import select
 import signal
 import sys
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -330,6 +331,23 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
     session.run(source, stop)
 
 
+def name_warnings(index: int) -> None:
+    """Python warnings raised in this process name worker `index`: the workers share the
+    station's stderr, and an unnamed warning cannot be told from the station's own."""
+    plain = warnings.formatwarning
+
+    def named(
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        line: str | None = None,
+    ) -> str:
+        return f"filter worker {index}: " + plain(message, category, filename, lineno, line)
+
+    warnings.formatwarning = named
+
+
 def main() -> None:
     """The worker process: its ShardJob the first message on stdin, then the frames; its
     messages on the original stdout, which is stderr from here on (a print anywhere in
@@ -347,6 +365,8 @@ def main() -> None:
         msgs, buffer, error = read_messages(buffer + chunk)
         if error is not None:
             sys.exit(f"filter worker: unreadable job: {error}")
+    if isinstance(msgs[0], ShardJob):
+        name_warnings(msgs[0].index)
     try:
         _work(msgs[0], PipeSource(0, buffer, msgs[1:]), send)
     except BrokenPipeError:

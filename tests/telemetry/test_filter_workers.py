@@ -8,6 +8,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -294,3 +295,20 @@ def test_filter_workers_must_be_a_positive_count(capsys: pytest.CaptureFixture[s
         gcs_main(["replay", "x.tlog", "--filter-workers", "0"])
     assert exc.value.code == 2
     assert "argument --filter-workers: 0: at least 1" in capsys.readouterr().err
+
+
+def test_a_workers_python_warnings_name_it() -> None:
+    """A warning raised in a worker process reaches the shared stderr with the worker's
+    number in front, the warning's own text after it."""
+    code = (
+        "import warnings\n"
+        "from gcs_estimator.filter_worker import name_warnings\n"
+        "name_warnings(3)\n"
+        "warnings.warn('the gust level overflowed', RuntimeWarning)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    first = done.stderr.splitlines()[0]
+    assert first.startswith("filter worker 3: ")
+    assert first.endswith("RuntimeWarning: the gust level overflowed")
