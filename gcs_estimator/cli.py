@@ -746,7 +746,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
-        help="output-error (calm air; default) or filter-error (process noise estimated too)",
+        help="output-error (calm air; default) or filter-error (turbulence: a steady-state "
+        "Kalman filter inside the fit, the process noise estimated too)",
     )
     p.set_defaults(func=cmd_refine)
 
