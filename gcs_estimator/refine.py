@@ -287,10 +287,10 @@ class RefineError(RuntimeError):
 STEP_TOLERANCE = 1e-3
 """Gauss-Newton stops when no parameter moves by more than this share of its sigma."""
 Q_FLOOR = 1e-14
-"""Smallest process noise density the fit considers (below it: output error)."""
-LOG_F_RANGE = (math.log(1e-7), math.log(1e3))
+"""Smallest process noise density filter error considers (at it: none to speak of)."""
+LOG_F_RANGE = (0.5 * math.log(Q_FLOOR), math.log(1e3))
 """Bounds on the logarithm of each process noise distribution F_jj [SI / sqrt(s)] that
-filter error searches within."""
+filter error searches within (F_jj^2 is the density)."""
 EDGE = 1e-7
 """How far inside diag(K C) <= 1 a projected step aims (the edge's curvature)."""
 COST_TOLERANCE = 1e-6
@@ -464,10 +464,10 @@ class _SteadyFilterError:
 
     def gain(
         self, theta: FloatArray, r: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
-        """The steady-state gain K [n_dynamic x 7], diag(K C) [n_dynamic] and the state's
-        covariance P, linearised at the first frame; None where the Riccati equation has
-        no stabilising solution."""
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """The steady-state gain K [n_dynamic x 7], diag(K C) [n_dynamic], the state's
+        covariance P and C (the observed channels' rows), linearised at the first frame;
+        None where the Riccati equation has no stabilising solution."""
         x, f = self.unpack(theta)
         m = self.prob.model.arrays
         u0 = self.prob.u[0]
@@ -483,7 +483,7 @@ class _SteadyFilterError:
             return None
         K = np.zeros((nd, N_OBS))
         K[:, o] = P @ C.T / r[o]
-        return K, np.diag(K[:, o] @ C), P
+        return K, np.diag(K[:, o] @ C), P, C
 
     def run(self, theta: FloatArray, r: FloatArray, bounded: bool = True) -> FloatArray | None:
         """The innovations [N x 7], or None where the gain does not exist, the flight
@@ -552,14 +552,17 @@ class _SteadyFilterError:
         out: FloatArray = raw / np.sqrt(r)
         return out
 
+    def delta(self, theta: FloatArray, j: int) -> float:
+        """The finite-difference step of theta[j] (log F's in absolute terms)."""
+        return 1e-6 * max(abs(float(theta[j])), 1e-3) if j < len(self.free) else 1e-5
+
     def jacobian(self, theta: FloatArray, r: FloatArray, e0: FloatArray) -> FloatArray:
         """d e / d theta [N*7 x len(theta)] of the whitened innovations, by forward
         differences (backward where the forward point has no gain), across the
         diag(K C) <= 1 edge that a fit can end on."""
         J = np.empty((e0.size, theta.shape[0]))
-        k = len(self.free)
         for j in range(theta.shape[0]):
-            step = 1e-6 * max(abs(theta[j]), 1e-3) if j < k else 1e-5
+            step = self.delta(theta, j)
             for sign in (1.0, -1.0):
                 tp = theta.copy()
                 tp[j] += sign * step
@@ -577,9 +580,8 @@ class _SteadyFilterError:
         assert g0 is not None
         c0 = g0[1] - 1.0
         G = np.zeros((c0.shape[0], theta.shape[0]))
-        k = len(self.free)
         for j in range(theta.shape[0]):
-            step = 1e-6 * max(abs(theta[j]), 1e-3) if j < k else 1e-5
+            step = self.delta(theta, j)
             tp = theta.copy()
             tp[j] += step
             g = self.gain(tp, r)
@@ -788,8 +790,9 @@ def refine(
         J = fe.jacobian(theta, r, e)
         gain = fe.gain(theta, r)
         assert gain is not None
-        C = eq.observe(x, u[0], model.arrays)[1][:, :nd]
-        state_var = np.einsum("ij,jk,ik->i", C, gain[2], C)
+        _, _, P, C = gain
+        state_var = np.zeros(N_OBS)
+        state_var[fe.obs] = np.einsum("ij,jk,ik->i", C, P, C)
         q = f * f
         noise = np.where(observed, np.sqrt(np.maximum(r - state_var, 0.0)), np.nan)
     else:
