@@ -1,9 +1,9 @@
 """Maximum likelihood over a whole record: `gcs-estimator refine`.
 
 The filters give an estimate and a covariance online. Once the flight is over, the
-record can be fitted as a whole: the coefficients and the sensor biases (and for output
-error the initial state) that make the model, flown through the record's inputs from its
-first frame, reproduce the observations best. All fits integrate the model as the filters
+record can be fitted as a whole: the initial state, the coefficients and the sensor
+biases that make the model, flown through the record's inputs from its first frame,
+reproduce the observations best. All fits integrate the model as the filters
 predict (Runge-Kutta steps of at most max_step_s, the configured input hold, air density
 per sample, sensor placement); the sensitivities are forward differences.
 
@@ -15,14 +15,16 @@ per sample, sensor placement); the sensitivities are forward differences.
   (Maine and Iliff 1981; Jategaonkar 2015, ch. 5). A Kalman filter with a steady-state
   gain corrects the flight states inside the fit. The gain comes from the continuous
   Riccati equation A P + P A' - P C' R^-1 C P / dt + F F' = 0, linearised at the first
-  frame, where F is the process noise's distribution (diagonal, estimated with the
-  coefficients) and R the innovations' covariance (diagonal), which each iteration sets
-  to the innovations' mean square (relaxation again). Gauss-Newton steps are kept where
-  the gain corrects no state by more than its own innovation says (diag(K C) <= 1): at
-  that edge the record's measurement noise of a channel is spent, and the book's fit of
+  frame, where F is the process noise's distribution (diagonal, estimated with the other
+  parameters) and R the innovations' covariance (diagonal), which each iteration sets to
+  the innovations' mean square (relaxation again). Gauss-Newton steps are kept where the
+  gain corrects no state by more than its own innovation says (diag(K C) <= 1): at that
+  edge the record's measurement noise of a channel is spent, and the book's fit of
   HFB-320 lies on it. Estimating the innovations' covariance directly, rather than the
   sensors' and the air's noise apart, is what makes the noise identifiable from one
-  record: the split between the two is what a record tells least.
+  record: the split between the two is what a record tells least. Unlike the book, the
+  initial state is fitted too: held at the first frame's measurement, its error stays in
+  the slow modes as a transient the coefficients take up (decision 0021).
 - With the noise held (`hold_noise`: the sensors' and the air's levels known), filter
   error runs the time-varying extended Kalman filter on the flight states at those levels
   (`innovations`), the exact likelihood for them.
@@ -778,8 +780,6 @@ def refine(
     steady = estimate_process_noise and not hold_noise
     n = x.shape[0]
     if steady:
-        # The filter corrects the initial state: it stays at the first frame's.
-        free = free[free >= N_FLIGHT]
         fe = _SteadyFilterError(prob, x, free, observed)
         theta0 = np.concatenate([x[free], np.log(np.sqrt(np.maximum(q, Q_FLOOR)))])
         theta, r, total, converged = fe.fit(theta0, r, iterations, report)
