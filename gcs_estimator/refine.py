@@ -61,6 +61,7 @@ from gcs_estimator.model import compiled  # noqa: F401  (registers the equations
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
+from gcs_estimator.weighting import VARIANCE_FACTOR, WEIGHT_SHARE
 
 
 @njit(cache=True)
@@ -234,7 +235,12 @@ class Refined:
     crb_sigma: FloatArray
     """Cramer-Rao sigma of the coefficients (white residuals assumed)."""
     sigma: FloatArray
-    """Morelli-Klein sigma: the Cramer-Rao bound corrected for the residuals' colour."""
+    """The sigma to trust: the Cramer-Rao bound corrected for the residuals' colour
+    (Morelli-Klein), with structure_sigma added in quadrature."""
+    structure_sigma: FloatArray
+    """How far each coefficient depends on how much each channel is trusted (the fit
+    re-made with one channel's weight halved at a time; decision 0017's check, applied to
+    the whole-record fit): 0 where the model holds."""
     correlation: FloatArray
     """Correlation of the coefficients [p x p] (from the corrected covariance)."""
     identifiability: tuple[str, ...]
@@ -421,15 +427,19 @@ def _gauss_newton(
     return x, r, iterations, False
 
 
-def _reporter(
-    progress: Callable[[RefineProgress], None], prob: _Problem
-) -> Callable[[int, float, float], None]:
-    """A fit's report (iteration, cost, step) as RefineProgress with the runs so far."""
+class _Progress:
+    """The fits' reports (iteration, cost, step), numbered on across the main fit and its
+    re-weighted ones, as RefineProgress with the filter runs so far."""
 
-    def report(it: int, cost: float, step: float) -> None:
-        progress(RefineProgress(it, cost, step, prob.runs))
+    def __init__(self, progress: Callable[[RefineProgress], None] | None, prob: _Problem) -> None:
+        self.progress = progress
+        self.prob = prob
+        self.iterations = 0
 
-    return report
+    def report(self, it: int, cost: float, step: float) -> None:
+        self.iterations += 1
+        if self.progress is not None:
+            self.progress(RefineProgress(self.iterations, cost, step, self.prob.runs))
 
 
 def _fit_noise(prob: _Problem, x: FloatArray, r: FloatArray, observed: BoolArray) -> FloatArray:
@@ -511,6 +521,12 @@ class _SteadyFilterError:
     def cost(self, r: FloatArray) -> float:
         """-2 log likelihood without its constant, R at the innovations' mean square."""
         return float(np.sum(self.counts[self.obs] * np.log(r[self.obs])))
+
+    def held_cost(self, theta: FloatArray, r: FloatArray) -> float:
+        """-2 log likelihood without its constant at a held R (theta feasible at it)."""
+        raw = self.run(theta, r)
+        assert raw is not None
+        return float(np.sum(self.whitened(raw, r) ** 2) + self.cost(r))
 
     def stable(self, theta: FloatArray, r: FloatArray) -> bool:
         """Whether the gain at theta and R exists and does not over-correct."""
@@ -628,16 +644,17 @@ class _SteadyFilterError:
         r: FloatArray,
         iterations: int,
         report: Callable[[int, float, float], None] | None,
+        relax: bool = True,
     ) -> tuple[FloatArray, FloatArray, int, bool]:
-        """Constrained Levenberg-Marquardt on theta with R relaxed between iterations;
-        returns theta, R, iterations used, converged."""
+        """Constrained Levenberg-Marquardt on theta with R relaxed between iterations
+        (or held, without relax); returns theta, R, iterations used, converged."""
         lo, hi = LOG_F_RANGE
         k = len(self.free)
         start = self.feasible(theta, r)
         if start is None:
             raise RefineError("no process noise level gives a stable filter from the start values")
-        theta, r = self.relaxed(start, r)
-        cost = self.cost(r)
+        theta, r = self.relaxed(start, r) if relax else (start, r)
+        cost = self.cost(r) if relax else self.held_cost(theta, r)
         lam = 1e-3
         tolerance = COST_TOLERANCE * float(np.sum(self.counts[self.obs]))
         for it in range(1, iterations + 1):
@@ -668,8 +685,11 @@ class _SteadyFilterError:
                 lam *= 10.0
             if report is not None:
                 report(it, cost, moved)
-            theta, r = self.relaxed(theta, r)
-            new = self.cost(r)
+            if relax:
+                theta, r = self.relaxed(theta, r)
+                new = self.cost(r)
+            else:
+                new = self.held_cost(theta, r)
             done = abs(new - cost) < tolerance
             cost = new
             if done:
@@ -732,6 +752,36 @@ def _sandwich(
     return Minv, 0.5 * (cov_mk + cov_mk.T), colour
 
 
+STRUCTURE_ITERATIONS = 4
+"""Gauss-Newton iterations of each re-weighted fit (it starts from the fit's end)."""
+
+
+def _structure_sigma(
+    J3: FloatArray,
+    k: int,
+    observed: BoolArray,
+    base: FloatArray,
+    refit: Callable[[FloatArray], FloatArray],
+) -> FloatArray:
+    """The structure sigma of the first k parameters (decision 0017, the filters' check
+    applied to a whole-record fit): sqrt(WEIGHT_SHARE * sum_c max(0, d_c^2 - |s_c^2 -
+    s^2|)) over the observed channels c, where d_c is how far the fit moves from `base`
+    when re-made with channel c's variance times VARIANCE_FACTOR (refit(scale) gives its
+    first k parameters), and s_c, s the Cramer-Rao sigmas with and without that (from the
+    whitened sensitivities J3 [N x 7 x p])."""
+    per_channel = np.einsum("ncp,ncq->cpq", J3, J3)
+    M = per_channel.sum(axis=0)
+    crb2 = np.diag(np.linalg.pinv(M))[:k]
+    excess = np.zeros(k)
+    for c in np.flatnonzero(observed):
+        scale = np.ones(N_OBS)
+        scale[c] = VARIANCE_FACTOR
+        d = refit(scale) - base
+        less = M - (1.0 - 1.0 / VARIANCE_FACTOR) * per_channel[c]
+        excess += np.maximum(0.0, d * d - np.abs(np.diag(np.linalg.pinv(less))[:k] - crb2))
+    return np.asarray(np.sqrt(WEIGHT_SHARE * excess))
+
+
 def refine(
     model: Model,
     t_s: FloatArray,
@@ -776,14 +826,23 @@ def refine(
     # Parameters the observations do not see (a bias of a channel without data) stay.
     probe = prob.jacobian(x, np.arange(x.shape[0]), q, r, e0)
     free = np.flatnonzero(np.linalg.norm(probe, axis=0) > 0.0)
-    report = None if progress is None else _reporter(progress, prob)
+    counter = _Progress(progress, prob)
+    report = counter.report
     steady = estimate_process_noise and not hold_noise
     n = x.shape[0]
+    k = len(free)
+    refit: Callable[[FloatArray], FloatArray]
     if steady:
         fe = _SteadyFilterError(prob, x, free, observed)
         theta0 = np.concatenate([x[free], np.log(np.sqrt(np.maximum(q, Q_FLOOR)))])
         theta, r, total, converged = fe.fit(theta0, r, iterations, report)
         x, f = fe.unpack(theta)
+        end_theta, end_r = theta, r
+
+        def refit(scale: FloatArray) -> FloatArray:
+            fit = fe.fit(end_theta, end_r * scale, STRUCTURE_ITERATIONS, report, relax=False)
+            return fit[0][:k]
+
         raw = fe.run(theta, r)
         assert raw is not None
         e = fe.whitened(raw, r)
@@ -803,15 +862,25 @@ def refine(
         e, _, _, _ = prob.run(x, q, r)
         J = prob.jacobian(x, free, q, r, e)
         noise = np.where(observed, np.sqrt(r), np.nan)
+        end_x, end_r = x, r
+
+        def refit(scale: FloatArray) -> FloatArray:
+            fit = _gauss_newton(
+                prob, end_x, free, q, end_r * scale, STRUCTURE_ITERATIONS, None, report
+            )
+            return fit[0][free]
+
     J3 = J.reshape(e.shape[0], N_OBS, J.shape[1])
     Minv, cov_mk, colour = _sandwich(J3, e, mask, observed)
     # The state's free entries lead the parameters (filter error's log F follow them).
-    k = len(free)
+    structure = np.full(n, np.nan)
+    structure[free] = _structure_sigma(J3, k, observed, x[free], refit)
     crb = np.full(n, np.nan)
     mk = np.full(n, np.nan)
     crb[free] = np.sqrt(np.diag(Minv)[:k])
-    # The correction never makes the bound smaller than Cramer-Rao's.
-    mk[free] = np.maximum(np.sqrt(np.maximum(np.diag(cov_mk)[:k], 0.0)), crb[free])
+    # Morelli-Klein's and the structure's in quadrature, never below Cramer-Rao's.
+    corrected = np.maximum(np.diag(cov_mk)[:k], 0.0) + structure[free] ** 2
+    mk[free] = np.maximum(np.sqrt(corrected), crb[free])
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     cs = model.coefficients
@@ -828,6 +897,7 @@ def refine(
         coefficients=coefficients,
         crb_sigma=crb[cs],
         sigma=mk[cs],
+        structure_sigma=structure[cs],
         correlation=corr,
         identifiability=identifiability(coefficients, mk[cs], corr),
         bias_names=model.bias_names,
@@ -838,7 +908,7 @@ def refine(
         process_noise=q.copy(),
         residual_colour=colour,
         frames=int(t.shape[0]),
-        iterations=total,
+        iterations=counter.iterations,
         converged=converged,
         message=f"{msg} ({prob.runs} filter runs)",
     )

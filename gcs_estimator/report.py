@@ -140,8 +140,9 @@ def _legend(truth_label: str, has_truth: bool, refined: Refined | None) -> str:
     if refined is not None:
         text += (
             f"; {refined.label} σ: the {refined.method.split(',')[0]} fit's Cramer-Rao bound "
-            "corrected for the colour of its residuals (Morelli-Klein), the one to trust on "
-            "real data"
+            "corrected for the colour of its residuals (Morelli-Klein), with how far the fit "
+            "moves when one channel at a time is trusted half as much added in quadrature: "
+            "the one to trust on real data"
         )
     if has_truth:
         text += (
@@ -603,6 +604,7 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
                 "estimate": float(refined.coefficients[i]),
                 "sigma": _num(float(refined.sigma[i])),
                 "cramer_rao_sigma": _num(float(refined.crb_sigma[i])),
+                "structure_sigma": _num(float(refined.structure_sigma[i])),
                 "identifiability": refined.identifiability[i],
                 "truth": None if truth is None else float(truth[i]),
                 "error_pct": None
