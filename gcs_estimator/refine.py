@@ -776,7 +776,10 @@ def _structure_sigma(
     for c in np.flatnonzero(observed):
         scale = np.ones(N_OBS)
         scale[c] = VARIANCE_FACTOR
-        d = refit(scale) - base
+        try:
+            d = refit(scale) - base
+        except RefineError:  # no stable fit with this weight: the check has no move
+            continue
         less = M - (1.0 - 1.0 / VARIANCE_FACTOR) * per_channel[c]
         excess += np.maximum(0.0, d * d - np.abs(np.diag(np.linalg.pinv(less))[:k] - crb2))
     return np.asarray(np.sqrt(WEIGHT_SHARE * excess))
