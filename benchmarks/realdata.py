@@ -18,7 +18,7 @@ is no sharper than that): the errors and z against it show the filter, its dista
 from JSBSim's linearised aerodynamics what the structure misses.
 Beside the filters: `refine` (by default output error over the whole record, from the
 IEKF's estimate; `--refine filter-error`, `--hold-noise` as the command's options) with
-its Cramer-Rao and Morelli-Klein sigmas, and each coefficient's identifiability mark.
+its Cramer-Rao and corrected sigmas, and each coefficient's identifiability mark.
 With `--seeds N` the JSBSim set is flown with N noise and turbulence seeds and the
 figures are pooled over them: one seed's eight coefficients say little about a share
 within 3 sigma.

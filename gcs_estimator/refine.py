@@ -29,13 +29,16 @@ per sample, sensor placement); the sensitivities are forward differences.
   error runs the time-varying extended Kalman filter on the flight states at those levels
   (`innovations`), the exact likelihood for them.
 
-Uncertainty, two ways:
+Uncertainty, three ways:
 - the Cramer-Rao bound, M^-1 with M = sum S^T R^-1 S: right when the residuals are
   white, which they are only when the model holds everything the aircraft does;
 - the Morelli-Klein correction (J. Aircraft 34(5), 1997), which uses the residuals'
   own autocorrelation: M^-1 (sum_i sum_j S_i^T R^-1 Rvv(i - j) R^-1 S_j) M^-1. Coloured
   residuals (turbulence, what the structure misses) carry less information than white
-  ones, and this bound says how much less. It is the sigma to trust on real data.
+  ones, and this bound says how much less;
+- the structure sigma: how far the fit moves when one channel at a time is trusted half
+  as much, beyond what the information given up explains (decision 0022). Added in
+  quadrature to Morelli-Klein's, it is the sigma to trust on real data.
 
 Output error assumes calm air: in turbulence the filters' and filter error's estimates
 are the better ones, and the residual colour shows it (the corrected sigma grows).
@@ -247,7 +250,7 @@ class Refined:
     bias_names: tuple[str, ...]
     biases: FloatArray
     bias_sigma: FloatArray
-    """Morelli-Klein sigma of the biases."""
+    """Corrected sigma of the biases (as `sigma`)."""
     state0: FloatArray
     """Fitted initial flight state [V, alpha, theta, q]."""
     noise_sigma: FloatArray
