@@ -45,7 +45,7 @@ from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, r
 from gcs_estimator.flightdata import Recording, load_recording
 from gcs_estimator.metrics import IDENTIFIED, correlation_of, identifiability
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, RefineError, refine_run
+from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
 from gcs_estimator.report import channel_text
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
@@ -355,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
     )
     kinds = [*FILTER_KINDS, "refine", *(f"{k} identified" for k in FILTER_KINDS)]
     kinds += ["reproduction", "spread", "spread identified"]
-    fit = "FE" if args.refine == "filter-error" else "OE"
+    fit = fit_label(args.refine)
     print("| record | " + " | ".join(fit if k == "refine" else k for k in kinds) + " |")
     print("|---|" + "---|" * len(kinds))
     for name, by_kind in worst.items():

@@ -224,6 +224,12 @@ def steady_innovations(
     return raw, True
 
 
+def fit_label(method: str) -> str:
+    """A fit's short name in tables and notes: "FE" for filter error (a Refined.method or
+    a --method value), "OE" for output error."""
+    return "FE" if method.replace("-", " ").startswith("filter error") else "OE"
+
+
 @dataclass(frozen=True)
 class Refined:
     """The maximum-likelihood fit of one record."""
@@ -272,8 +278,8 @@ class Refined:
 
     @property
     def label(self) -> str:
-        """The fit's short name in tables and notes: "OE" (output error) or "FE"."""
-        return "FE" if self.method.startswith("filter error") else "OE"
+        """The fit's short name in tables and notes (fit_label)."""
+        return fit_label(self.method)
 
 
 class RefineProgress(NamedTuple):
