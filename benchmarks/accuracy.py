@@ -16,23 +16,28 @@ import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 from scipy.stats import chi2
 
-from gcs_estimator.config import load_config
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, FilterKind, run_recording
 from gcs_estimator.metrics import FilterSummary, percent_error
 from sim.reference import output_error
-from sim.truth import perturbed, simulate
+from sim.truth import Flight, perturbed, simulate
 
 KINDS = FILTER_KINDS
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 """The coefficients the issue's accuracy targets apply to."""
 DEADLINE_S = 10.0
 """The issue's convergence target: the seven within 5 % of truth by this time."""
+TURBULENT_DEADLINE_S = 20.0
+"""The same target in turbulence (issue "Honest uncertainty on any aircraft": light
+turbulence, the seven within 5 % by 20 s on at least 90 % of seeds)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,19 @@ class RunResult:
     """Output-error maximum-likelihood coefficients and their sigmas (calm air only)."""
     reference_early: tuple[float, ...] | None = None
     """The same fit on the data up to the convergence deadline only."""
+    limit: Limit | None = None
+    """In turbulence: the filter that knows the simulator's turbulence (limit_config)."""
+
+
+class Limit(NamedTuple):
+    """The filter that knows the simulator's turbulence on one flight (limit_config), at
+    TURBULENT_DEADLINE_S and at the end: estimates and covariance sigmas, and its NEES."""
+
+    early: tuple[float, ...]
+    early_sigma: tuple[float, ...]
+    final: tuple[float, ...]
+    final_sigma: tuple[float, ...]
+    nees: float
 
 
 def _num(v: float | None) -> float:
@@ -66,10 +84,14 @@ def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
     filters = run.result.filters
     reference = None
     early = None
-    if with_reference:
+    turbulent = config.simulation.turbulence.sigma_w > 0.0
+    if with_reference and not turbulent:
         fit = output_error(config, flight)
         reference = (tuple(fit.coefficients.tolist()), tuple(fit.sigma.tolist()))
         early = tuple(output_error(config, flight, until_s=DEADLINE_S).coefficients.tolist())
+    limit = None
+    if with_reference and turbulent:
+        limit = turbulent_limit(config, flight)
     return RunResult(
         seed,
         dict(run.summaries),
@@ -83,6 +105,47 @@ def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
         },
         reference,
         early,
+        limit,
+    )
+
+
+def limit_config(config: AircraftConfig) -> AircraftConfig:
+    """The filters given what the simulator knows of its turbulence: gust states with the
+    simulator's scale lengths, intensity and sigma_u / sigma_w, the level held instead of
+    estimated; otherwise as configured (zero start, restarts). Their covariance is then
+    the precision the flight allows an estimator that knows the air (the simulator flies
+    second-order Dryden w_g, these states are first order: close, not exact; the NEES
+    says how close). Started at the truth without restarts instead, the EKF diverged on
+    one seed in 20 and was inconsistent on several: the restarts are part of what makes
+    the filter efficient."""
+    sim = config.simulation.turbulence
+    ft = config.filter
+    turbulence = replace(
+        ft.turbulence,
+        model="states",
+        adaptive=False,
+        sigma_w_mps=sim.sigma_w,
+        sigma_u_ratio=sim.sigma_u / sim.sigma_w,
+        length_u_m=sim.length_u_m,
+        length_w_m=sim.length_w_m,
+    )
+    return replace(config, filter=replace(ft, turbulence=turbulence))
+
+
+def turbulent_limit(config: AircraftConfig, flight: Flight) -> Limit:
+    """limit_config's EKF on the flight: its belief at TURBULENT_DEADLINE_S and at the end."""
+    limit = limit_config(config)
+    run = run_recording(limit, flight.t_s, flight.inputs, flight.measurements)
+    result = run.result.filters["EKF"]
+    track = result.track
+    assert track is not None
+    at = int(np.searchsorted(track.t - track.t[0], TURBULENT_DEADLINE_S, "right")) - 1
+    return Limit(
+        tuple(track.coefficients[at].tolist()),
+        tuple(track.coefficient_sigma[at].tolist()),
+        tuple(result.coefficients.tolist()),
+        tuple(result.sigma.tolist()),
+        _num(run.summaries["EKF"].nees),
     )
 
 
@@ -262,6 +325,63 @@ def report_reference(results: list[RunResult]) -> None:
         print(f"ML on the first {DEADLINE_S:g} s only (median / worst err %): " + " | ".join(cells))
 
 
+def _within(sigma_pct: FloatArray, band_pct: float) -> FloatArray:
+    """Probability that an unbiased estimate with this sigma [% of truth] lands within
+    band_pct of the truth: erf(band / (sigma sqrt 2))."""
+    return np.array([math.erf(band_pct / (s * math.sqrt(2.0))) for s in sigma_pct])
+
+
+def report_limit(results: list[RunResult]) -> None:
+    """In turbulence: the filter that knows the air (limit_config) beside the filters."""
+    fits = [r for r in results if r.limit is not None]
+    if not fits:
+        return
+    names = [c.name for c in fits[0].summaries["EKF"].coefficients]
+    runs = len(fits)
+    lo, hi = chi2.ppf(0.025, len(names) * runs) / runs, chi2.ppf(0.975, len(names) * runs) / runs
+    nees = float(np.mean([r.limit.nees for r in fits if r.limit is not None]))
+    d = TURBULENT_DEADLINE_S
+    print(
+        "\n### What the data allow in this turbulence\n\n"
+        "The EKF given what the simulator knows of its air (gust states at its scale lengths "
+        "and intensity, held; the final pass after the restarts): its covariance is the "
+        "precision an estimator that knows the air has on these flights. Its mean "
+        f"NEES {nees:.2f} (95 % band {lo:.2f}-{hi:.2f}) says how far to trust that. "
+        f"'P within 5 %' is the chance that an unbiased estimate with the sigma at {d:g} s "
+        "lands within 5 % of the truth, averaged over the seeds.\n"
+    )
+    print(
+        f"| coefficient | σ at {d:g} s, % of truth (median) | σ at the end, % (median) "
+        f"| P within 5 % at {d:g} s | within 5 % at {d:g} s (seeds) | err % at the end "
+        "(median / worst) |"
+    )
+    print("|---|---|---|---|---|---|")
+    every = np.ones(runs, dtype=bool)
+    expected = np.ones(runs)
+    for i, name in enumerate(names):
+        truth = np.array([r.truth[i] for r in fits])
+        scale = 100.0 / np.abs(truth)
+        lim = [r.limit for r in fits if r.limit is not None]
+        s_early = scale * np.array([m.early_sigma[i] for m in lim])
+        s_final = scale * np.array([m.final_sigma[i] for m in lim])
+        e_early = scale * np.abs(np.array([m.early[i] for m in lim]) - truth)
+        e_final = scale * np.abs(np.array([m.final[i] for m in lim]) - truth)
+        p = _within(s_early, 5.0)
+        if name in WELL_EXCITED:
+            every &= e_early <= 5.0
+            expected *= p
+        print(
+            f"| {name} | {np.median(s_early):.2f} | {np.median(s_final):.2f} | "
+            f"{np.mean(p) * 100:.0f} % | {int(np.sum(e_early <= 5.0))} of {runs} | "
+            f"{np.median(e_final):.2f} / {np.max(e_final):.2f} |"
+        )
+    print(
+        f"\nAll seven well-excited within 5 % at {d:g} s: {int(every.sum())} of {runs} seeds; "
+        "an efficient unbiased estimator with these sigmas, the seven taken as independent: "
+        f"{np.mean(expected) * 100:.0f} % of seeds"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--config", default="noc_uav")
@@ -284,7 +404,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--no-reference",
         action="store_true",
-        help="skip the output-error maximum-likelihood fit run next to the filters in calm air",
+        help="skip what the data allow: the output-error maximum-likelihood fit run next to "
+        "the filters in calm air, the filter that knows the turbulence in turbulence",
     )
     ap.add_argument("--jobs", type=int, default=2)
     record.add_argument(ap, "derived from the arguments: accuracy_TURBULENCE[_perturbed]")
@@ -299,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
 def run(args: argparse.Namespace) -> int:
 
     overrides = [*args.set, f'simulation.turbulence.preset="{args.turbulence}"']
-    with_reference = args.turbulence == "none" and not args.no_reference
+    with_reference = not args.no_reference
     jobs = [
         (args.config, overrides, s, args.perturb, with_reference)
         for s in range(args.first_seed, args.first_seed + args.seeds)
@@ -310,6 +431,7 @@ def run(args: argparse.Namespace) -> int:
     title = f"NOC, turbulence {args.turbulence}, truth perturbation {args.perturb:g}"
     report(results, title)
     report_reference(results)
+    report_limit(results)
     if args.turbulence == "none" and args.perturb <= 0:
         limit = information_limit(args.config, overrides, args.first_seed)
         print(
