@@ -42,6 +42,7 @@ import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 from speed import small_matrix_gflops
 
+from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.decode_worker import LinkArgs
@@ -118,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error(f"--repeat {args.repeat}: at least 1 run")
+    blas.one_thread()  # as listen does (gcs_estimator/cli.py)
     with record.recorded("live", args.record, "Live link: latency and load on loopback UDP"):
         return run(args)
 

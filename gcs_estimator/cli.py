@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from gcs_estimator import endpoints
+from gcs_estimator import blas, endpoints
 from gcs_estimator.config import (
     REFINE_METHODS,
     VIEW_OUTPUTS,
@@ -758,6 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    blas.one_thread()
     args = build_parser().parse_args(argv)
     args.argv = None if argv is None else list(argv)
     started = datetime.now(UTC)

@@ -31,6 +31,7 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
@@ -232,6 +233,7 @@ def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
 def main() -> None:
     """The worker process: its job (paths, LinkArgs) pickled on stdin, its messages on
     stdout."""
+    blas.one_thread()
     paths, args = pickle.load(sys.stdin.buffer)
     _work(paths, args, _writer(sys.stdout.buffer))
 

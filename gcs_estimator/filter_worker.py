@@ -46,6 +46,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.decode_worker import (
@@ -352,6 +353,7 @@ def main() -> None:
     """The worker process: its ShardJob the first message on stdin, then the frames; its
     messages on the original stdout, which is stderr from here on (a print anywhere in
     the filters' code must not land in the pipe)."""
+    blas.one_thread()
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     sys.stdout = sys.stderr

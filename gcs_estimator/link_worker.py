@@ -27,6 +27,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from gcs_estimator import blas
 from gcs_estimator.decode_worker import (
     POLL_S,
     LinkArgs,
@@ -173,6 +174,7 @@ def _receive(source: UdpSource, stop: Stop, send: Any) -> None:
 
 def main() -> None:
     """The worker process: its LiveJob pickled on stdin, its messages on stdout."""
+    blas.one_thread()
     job = pickle.load(sys.stdin.buffer)
     _work(job, _writer(sys.stdout.buffer))
 

@@ -40,6 +40,10 @@ Uncertainty, three ways:
   as much, beyond what the information given up explains (decision 0022). Added in
   quadrature to Morelli-Klein's, it is the sigma to trust on real data.
 
+The sensitivities' columns are independent flights of the model, run in threads (the
+kernels release the GIL), so a fit uses the machine's cores; each column is the same
+number whatever the threads.
+
 Output error assumes calm air: in turbulence the filters' and filter error's estimates
 are the better ones, and the residual colour shows it (the corrected sigma grows).
 """
@@ -47,7 +51,11 @@ are the better ones, and the residual colour shows it (the corrected sigma grows
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import os
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -56,6 +64,7 @@ from numba import njit
 from scipy.linalg import solve_continuous_are
 from scipy.optimize import minimize
 
+from gcs_estimator import blas
 from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import REFINE_METHODS
 from gcs_estimator.estimator import EstimatorResult, FilterKind
@@ -124,7 +133,7 @@ def _cholesky(S: FloatArray) -> tuple[FloatArray, bool]:  # pragma: no cover
     return L, True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def innovations(
     x0: FloatArray,
     t: FloatArray,
@@ -183,7 +192,7 @@ def innovations(
     return e, logdet, raw, True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def steady_innovations(
     x0: FloatArray,
     t: FloatArray,
@@ -220,7 +229,10 @@ def steady_innovations(
         for c in range(N_OBS):
             if mask[i, c] > 0.0:
                 raw[i, c] = y[i, c] - hx[c]
-        x[:nd] += K @ raw[i]
+        # A loop, not K @ raw[i]: BLAS from several threads at once would queue.
+        for a in range(nd):
+            for c in range(N_OBS):
+                x[a] += K[a, c] * raw[i, c]
     return raw, True
 
 
@@ -336,11 +348,24 @@ class _Problem:
         self.max_step = max_step
         self.linear = linear
         self.runs = 0
+        self._lock = threading.Lock()
+        self.pool: ThreadPoolExecutor | None = None
+        """Threads for the sensitivities' columns (None: the calling thread)."""
+
+    def count_run(self) -> None:
+        with self._lock:
+            self.runs += 1
+
+    def columns(self, column: Callable[[int], FloatArray], count: int) -> list[FloatArray]:
+        """column(j) for j < count: in the pool's threads where there is one."""
+        if self.pool is None or count < 2:
+            return [column(j) for j in range(count)]
+        return list(self.pool.map(column, range(count)))
 
     def run(
         self, x0: FloatArray, q: FloatArray, r: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
-        self.runs += 1
+        self.count_run()
         out: tuple[FloatArray, FloatArray, FloatArray, bool] = innovations(
             x0,
             self.t,
@@ -365,8 +390,9 @@ class _Problem:
         self, x0: FloatArray, free: IntArray, q: FloatArray, r: FloatArray, e0: FloatArray
     ) -> FloatArray:
         """d e / d x0[free] by forward differences [N*7 x len(free)]."""
-        J = np.empty((e0.size, len(free)))
-        for col, j in enumerate(free):
+
+        def column(col: int) -> FloatArray:
+            j = free[col]
             step = 1e-6 * max(abs(x0[j]), 1e-3)
             xp = x0.copy()
             xp[j] += step
@@ -375,7 +401,12 @@ class _Problem:
                 xp[j] = x0[j] - step
                 e, _, _, _ = self.run(xp, q, r)
                 step = -step
-            J[:, col] = (e - e0).ravel() / step
+            out: FloatArray = (e - e0).ravel() / step
+            return out
+
+        J = np.empty((e0.size, len(free)))
+        for col, values in enumerate(self.columns(column, len(free))):
+            J[:, col] = values
         return J
 
 
@@ -514,7 +545,7 @@ class _SteadyFilterError:
             return None
         x, _ = self.unpack(theta)
         p = self.prob
-        p.runs += 1
+        p.count_run()
         raw, ok = steady_innovations(
             x, p.t, p.u, p.y, p.mask, p.model.arrays, g[0], p.max_step, p.linear
         )
@@ -587,18 +618,21 @@ class _SteadyFilterError:
         """d e / d theta [N*7 x len(theta)] of the whitened innovations, by forward
         differences (backward where the forward point has no gain), across the
         diag(K C) <= 1 edge that a fit can end on."""
-        J = np.empty((e0.size, theta.shape[0]))
-        for j in range(theta.shape[0]):
+
+        def column(j: int) -> FloatArray:
             step = self.delta(theta, j)
             for sign in (1.0, -1.0):
                 tp = theta.copy()
                 tp[j] += sign * step
                 raw = self.run(tp, r, bounded=False)
                 if raw is not None:
-                    J[:, j] = (self.whitened(raw, r) - e0).ravel() / (sign * step)
-                    break
-            else:
-                J[:, j] = 0.0
+                    out: FloatArray = (self.whitened(raw, r) - e0).ravel() / (sign * step)
+                    return out
+            return np.zeros(e0.size)
+
+        J = np.empty((e0.size, theta.shape[0]))
+        for j, values in enumerate(self.prob.columns(column, theta.shape[0])):
+            J[:, j] = values
         return J
 
     def constraint(self, theta: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -808,6 +842,7 @@ def refine(
     iterations: int = 100,
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
+    threads: int | None = None,
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -817,7 +852,62 @@ def refine(
     with hold_noise the noise levels kept at noise_sigma and process_noise (the sensors'
     and the air's known levels; filter error then runs the time-varying filter) and only
     the parameters fitted. `progress` hears after each Gauss-Newton iteration where the
-    fit stands."""
+    fit stands. The sensitivities' columns run in `threads` threads (default: the cores
+    this process may use); the fit is the same whatever their number."""
+    with blas.one_thread_while(), _thread_pool(threads) as pool:
+        return _refine(
+            model,
+            t_s,
+            inputs,
+            observations,
+            start,
+            noise_sigma,
+            process_noise,
+            max_step_s,
+            linear_inputs,
+            estimate_process_noise,
+            iterations,
+            progress,
+            hold_noise,
+            pool,
+        )
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
+@contextmanager
+def _thread_pool(threads: int | None) -> Iterator[ThreadPoolExecutor | None]:
+    count = available_cores() if threads is None else threads
+    if count < 2:
+        yield None
+        return
+    with ThreadPoolExecutor(max_workers=count, thread_name_prefix="refine") as pool:
+        yield pool
+
+
+def _refine(
+    model: Model,
+    t_s: FloatArray,
+    inputs: FloatArray,
+    observations: FloatArray,
+    start: FloatArray,
+    noise_sigma: FloatArray,
+    process_noise: FloatArray,
+    max_step_s: float,
+    linear_inputs: bool = True,
+    estimate_process_noise: bool = True,
+    iterations: int = 100,
+    progress: Callable[[RefineProgress], None] | None = None,
+    hold_noise: bool = False,
+    pool: ThreadPoolExecutor | None = None,
+) -> Refined:
+    """refine() in the threads given (None: the calling thread)."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -828,6 +918,7 @@ def refine(
     mask[:, ~observed] = 0.0
     y = np.ascontiguousarray(np.where(mask > 0, y, 0.0))
     prob = _Problem(model, t, u, y, mask, max_step_s, linear_inputs)
+    prob.pool = pool
     x = np.asarray(start, float).copy()
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
@@ -933,13 +1024,15 @@ def refine_run(
     window_s: tuple[float | None, float | None] = (None, None),
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
+    threads: int | None = None,
 ) -> Refined:
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
     coefficients and biases and the first frame's measured flight states. hold_noise:
     the noise levels stay instead of being estimated: the measurement noise where the
     filters' final pass had it (the config's [filter] measurement_sigma, or the data's
-    with measurement_noise = "data"), the process noise at the config's."""
+    with measurement_noise = "data"), the process noise at the config's. threads: as
+    refine's."""
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     fr = result.filters.get(kind)
@@ -978,6 +1071,7 @@ def refine_run(
         estimate_process_noise=method == "filter-error",
         progress=progress,
         hold_noise=hold_noise,
+        threads=threads,
     )
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
 from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
@@ -319,3 +320,33 @@ def test_refine_reports_each_iteration(noc_config: AircraftConfig) -> None:
             lines = text.splitlines()
             assert all(line.startswith("refining: iteration ") for line in lines)
             assert len(lines) == (len(reports) + 19) // 20 + 1 and last in lines[-1]
+
+
+def test_the_fit_is_the_same_in_any_number_of_threads(noc_config: AircraftConfig) -> None:
+    """The sensitivities' columns run in threads: one thread or three give the same fit to
+    the bit, with the same filter runs, for output error and filter error. While refine
+    runs, every BLAS library of the process has one thread (their spinning threads would
+    take the cores the fit's threads need); afterwards each has what it had before."""
+    config = load_config(noc_config.source, ["simulation.manoeuvre.duration_s=20"])
+    flight = simulate(config, seed=3)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    during: list[list[int]] = []
+
+    def look(_: RefineProgress) -> None:
+        during.append(
+            [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+        )
+
+    for method in ("output-error", "filter-error"):
+        one, three = (refine_run(run.result, method, progress=look, threads=n) for n in (1, 3))
+        assert one.converged and three.converged, method
+        assert one.message == three.message, method  # the same filter runs
+        for field in ("coefficients", "crb_sigma", "sigma", "biases", "process_noise"):
+            assert np.array_equal(getattr(one, field), getattr(three, field), equal_nan=True), (
+                method,
+                field,
+            )
+    assert before and during and all(counts == [1] * len(before) for counts in during)
+    after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert after == before
