@@ -11,7 +11,8 @@ levels (`--hold-noise`: the time-varying filter at levels taken from the book).
 Printed per coefficient: the book's value and each fit's error in %, with its corrected
 sigma in % of the book's value; then the worst over the six the issue names (CLa Cma Cmq
 Cmde CD0 CDa; target 2 %), the fit's noise levels and each fit's wall time, and the
-estimated process noise against the book's identified diag(F F').
+estimated process noise against the book's identified diag(F F'). Each fit runs twice:
+in as many threads as the machine has cores and in one (the same fit either way).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import load_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, refine_run
+from gcs_estimator.refine import Refined, available_cores, refine_run
 
 TARGETED = ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa")
 """The coefficients the issue's 2 % target names."""
@@ -61,10 +62,18 @@ def run() -> int:
     book = np.asarray(config.truth, float)
     names = config.coefficient_names
     fits: list[tuple[str, Refined, float]] = []
+    serial: dict[str, tuple[float, bool]] = {}
+    cores = available_cores()
     for label, method, hold, name in FITS:
         t0 = time.perf_counter()
         refined = refine_run(results[name], method, hold_noise=hold)
         fits.append((label, refined, time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        alone = refine_run(results[name], method, hold_noise=hold, threads=1)
+        same = np.array_equal(alone.coefficients, refined.coefficients) and np.array_equal(
+            alone.sigma, refined.sigma, equal_nan=True
+        )
+        serial[label] = (time.perf_counter() - t0, same)
     head = "| coefficient | book | " + " | ".join(f"{f[0]}: err % (σ %)" for f in fits) + " |"
     print(head)
     print("|---" * (2 + len(fits)) + "|")
@@ -84,7 +93,9 @@ def run() -> int:
         noise = ", ".join(f"{n} {s:.3g}" for n, s in zip(OBS_NAMES, r.noise_sigma, strict=True))
         print(
             f"- {label}: worst of {', '.join(TARGETED)} {worst[k]:.2f} % ({TARGETED[k]}; "
-            f"target {TARGET_PCT:g} %: {verdict}); {r.message}; {wall:.1f} s; "
+            f"target {TARGET_PCT:g} %: {verdict}); {r.message}; {wall:.1f} s in {cores} "
+            f"threads, {serial[label][0]:.1f} s in one "
+            f"({'the same fit' if serial[label][1] else 'A DIFFERENT FIT'}); "
             f"noise σ {noise}; process noise density "
             + ", ".join(f"{q:.3g}" for q in r.process_noise)
         )
