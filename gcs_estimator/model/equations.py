@@ -156,16 +156,36 @@ def _alpha_rate(
                    - (Fe/(m*V))*sin(alpha + sigma_T)
     """
     k = m.k
-    V = x[0]
     alpha = x[1]
     theta = x[2]
+    trig = (
+        math.sin(alpha - theta),
+        math.cos(alpha - theta),
+        math.sin(alpha + k[SIGMA_T]),
+        math.cos(alpha + k[SIGMA_T]),
+    )
+    return _alpha_rate_at(x, m, C, dC, rho, Fe, dFe, row, trig)
+
+
+def _alpha_rate_at(
+    x: FloatArray,
+    m: ModelArrays,
+    C: FloatArray,
+    dC: FloatArray,
+    rho: float,
+    Fe: float,
+    dFe: float,
+    row: FloatArray,
+    trig: tuple[float, float, float, float],
+) -> float:
+    """_alpha_rate given trig = (sin, cos) of alpha - theta and of alpha + sigma_T, which
+    still_rows has computed already."""
+    k = m.k
+    V = x[0]
     A = k[AREA] / k[MASS]
     g = k[GRAV]
     mass = k[MASS]
-    sat = math.sin(alpha - theta)
-    cat = math.cos(alpha - theta)
-    sas = math.sin(alpha + k[SIGMA_T])
-    cas = math.cos(alpha + k[SIGMA_T])
+    sat, cat, sas, cas = trig
     for j in range(row.shape[0]):
         row[j] = -0.5 * rho * V * A * dC[1, j]
     # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
@@ -404,7 +424,7 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     f = np.zeros(n)
     F = np.zeros((model.n_dynamic, n))
     f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
-    f[1] = _alpha_rate(x, u, model, C, dC, rho, Fe, dFe, F[1])
+    f[1] = _alpha_rate_at(x, model, C, dC, rho, Fe, dFe, F[1], (sat, cat, sas, cas))
     f[2] = q
     f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
 
