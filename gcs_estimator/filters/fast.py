@@ -186,9 +186,12 @@ def _gain_step(
     Kt = small.cholesky_solve(lin.L, lin.HP)
     k, n = Kt.shape
     r = yu - lin.h
-    for a in range(k):
-        for j in range(n):
-            r[a] -= lin.H[a, j] * (xp[j] - x_i[j])
+    for j in range(n):
+        d = xp[j] - x_i[j]
+        if d == 0.0:  # all of them at the first iterate, the prior itself
+            continue
+        for a in range(k):
+            r[a] -= lin.H[a, j] * d
     x_next = xp.copy()
     for a in range(k):
         for j in range(n):
@@ -213,7 +216,9 @@ def _iterate(
     linearisation it came from, the iterations kept, and False if some S_i was not
     positive definite."""
     n = xp.shape[0]
-    sigma = np.sqrt(np.maximum(np.diag(Pp), 1e-300))  # a state held exactly cannot move
+    check = tun.tolerance > 0.0
+    # The prior sigmas, for the early stop only (a state held exactly cannot move).
+    sigma = np.sqrt(np.maximum(np.diag(Pp), 1e-300)) if check else Pp[0]
     x_i = xp.copy()
     lin = first
     Kt = Kt1 = np.zeros((idx.shape[0], n))
@@ -233,12 +238,13 @@ def _iterate(
             return x_i, Kt1, first, done, True
         done = it + 1
         biggest = 0.0
-        for j in range(n):
-            biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
+        if check:
+            for j in range(n):
+                biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
         x_i = x_next
         if it == 0:
             Kt1 = Kt
-        if tun.tolerance > 0.0 and biggest < tun.tolerance:
+        if check and biggest < tun.tolerance:
             break
     return x_i, Kt, lin, done, True
 
