@@ -11,10 +11,14 @@ it as a library.
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager
-from typing import Any
+import functools
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
 
 from threadpoolctl import threadpool_limits
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def _load() -> None:
@@ -30,8 +34,13 @@ def one_thread() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
-def one_thread_while() -> AbstractContextManager[Any]:
-    """The same limit, lifted again at the end of a with block."""
-    _load()
-    limits: AbstractContextManager[Any] = threadpool_limits(limits=1, user_api="blas")
-    return limits
+def one_thread_during(fn: Callable[P, R]) -> Callable[P, R]:
+    """fn with every BLAS library at one thread while it runs, as it was after."""
+
+    @functools.wraps(fn)
+    def limited(*args: P.args, **kwargs: P.kwargs) -> R:
+        _load()
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return limited

@@ -53,9 +53,8 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -828,6 +827,33 @@ def _structure_sigma(
     return np.asarray(np.sqrt(WEIGHT_SHARE * excess))
 
 
+def available_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _thread_pool(threads: int | None) -> ThreadPoolExecutor | None:
+    """The process's pool of `threads` threads (default: available_cores()), made on
+    first use and kept for the next fit; None for one thread."""
+    count = available_cores() if threads is None else threads
+    if count < 2:
+        return None
+    with _POOLS_LOCK:
+        pool = _POOLS.get(count)
+        if pool is None:
+            pool = ThreadPoolExecutor(max_workers=count, thread_name_prefix="refine")
+            _POOLS[count] = pool
+    return pool
+
+
+@blas.one_thread_during
 def refine(
     model: Model,
     t_s: FloatArray,
@@ -854,60 +880,6 @@ def refine(
     the parameters fitted. `progress` hears after each Gauss-Newton iteration where the
     fit stands. The sensitivities' columns run in `threads` threads (default: the cores
     this process may use); the fit is the same whatever their number."""
-    with blas.one_thread_while(), _thread_pool(threads) as pool:
-        return _refine(
-            model,
-            t_s,
-            inputs,
-            observations,
-            start,
-            noise_sigma,
-            process_noise,
-            max_step_s,
-            linear_inputs,
-            estimate_process_noise,
-            iterations,
-            progress,
-            hold_noise,
-            pool,
-        )
-
-
-def available_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on every platform
-        return os.cpu_count() or 1
-
-
-@contextmanager
-def _thread_pool(threads: int | None) -> Iterator[ThreadPoolExecutor | None]:
-    count = available_cores() if threads is None else threads
-    if count < 2:
-        yield None
-        return
-    with ThreadPoolExecutor(max_workers=count, thread_name_prefix="refine") as pool:
-        yield pool
-
-
-def _refine(
-    model: Model,
-    t_s: FloatArray,
-    inputs: FloatArray,
-    observations: FloatArray,
-    start: FloatArray,
-    noise_sigma: FloatArray,
-    process_noise: FloatArray,
-    max_step_s: float,
-    linear_inputs: bool = True,
-    estimate_process_noise: bool = True,
-    iterations: int = 100,
-    progress: Callable[[RefineProgress], None] | None = None,
-    hold_noise: bool = False,
-    pool: ThreadPoolExecutor | None = None,
-) -> Refined:
-    """refine() in the threads given (None: the calling thread)."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -918,7 +890,7 @@ def _refine(
     mask[:, ~observed] = 0.0
     y = np.ascontiguousarray(np.where(mask > 0, y, 0.0))
     prob = _Problem(model, t, u, y, mask, max_step_s, linear_inputs)
-    prob.pool = pool
+    prob.pool = _thread_pool(threads)
     x = np.asarray(start, float).copy()
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)

@@ -19,7 +19,7 @@ for _fn in (
     eq.thrust,
     eq.aero_coefficients,
     eq._alpha_rate,
-    eq._alpha_rate_at,
+    eq._angles,
     eq.has_alpha_rate,
     eq.coefficients,
     eq.has_gust_states,

@@ -138,36 +138,19 @@ def aero_coefficients(
     return C, dC
 
 
-def _alpha_rate(
-    x: FloatArray,
-    u: FloatArray,
-    m: ModelArrays,
-    C: FloatArray,
-    dC: FloatArray,
-    rho: float,
-    Fe: float,
-    dFe: float,
-    row: FloatArray,
-) -> float:
-    """alphadot given the coefficients C, dC (paper eq. 11), its derivative d/dx_a written
-    into row [n]:
-
-        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
-                   - (Fe/(m*V))*sin(alpha + sigma_T)
-    """
-    k = m.k
+def _angles(x: FloatArray, k: FloatArray) -> tuple[float, float, float, float]:
+    """(sin, cos) of alpha - theta (gravity) and of alpha + sigma_T (thrust)."""
     alpha = x[1]
     theta = x[2]
-    trig = (
+    return (
         math.sin(alpha - theta),
         math.cos(alpha - theta),
         math.sin(alpha + k[SIGMA_T]),
         math.cos(alpha + k[SIGMA_T]),
     )
-    return _alpha_rate_at(x, m, C, dC, rho, Fe, dFe, row, trig)
 
 
-def _alpha_rate_at(
+def _alpha_rate(
     x: FloatArray,
     m: ModelArrays,
     C: FloatArray,
@@ -176,16 +159,20 @@ def _alpha_rate_at(
     Fe: float,
     dFe: float,
     row: FloatArray,
-    trig: tuple[float, float, float, float],
+    angles: tuple[float, float, float, float],
 ) -> float:
-    """_alpha_rate given trig = (sin, cos) of alpha - theta and of alpha + sigma_T, which
-    still_rows has computed already."""
+    """alphadot given the coefficients C, dC (paper eq. 11) and the angles' sines and
+    cosines (_angles), its derivative d/dx_a written into row [n]:
+
+        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
+                   - (Fe/(m*V))*sin(alpha + sigma_T)
+    """
     k = m.k
     V = x[0]
     A = k[AREA] / k[MASS]
     g = k[GRAV]
     mass = k[MASS]
-    sat, cat, sas, cas = trig
+    sat, cat, sas, cas = angles
     for j in range(row.shape[0]):
         row[j] = -0.5 * rho * V * A * dC[1, j]
     # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
@@ -228,7 +215,7 @@ def coefficients(
     kc = k[CHORD] / (2.0 * k[V0])
     kappa = 0.5 * rho * V * k[AREA] / k[MASS]
     row0 = np.zeros(n)
-    f0 = _alpha_rate(x, u, m, C, dC, rho, Fe, dFe, row0)
+    f0 = _alpha_rate(x, m, C, dC, rho, Fe, dFe, row0, _angles(x, k))
     c0 = m.coef_start
     cl_ad = 0.0
     for i in range(m.axis.shape[0]):
@@ -405,8 +392,6 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     k = model.k
     n = x.shape[0]
     V = x[0]
-    alpha = x[1]
-    theta = x[2]
     q = x[3]
     m = k[MASS]
     A = k[AREA] / m
@@ -415,16 +400,14 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     Fe, dFe = thrust(V, u[1], rho, k)
     C, dC = coefficients(x, u, model, rho, Fe, dFe)
     qbar = 0.5 * rho * V * V
-    sat = math.sin(alpha - theta)
-    cat = math.cos(alpha - theta)
-    sas = math.sin(alpha + k[SIGMA_T])
-    cas = math.cos(alpha + k[SIGMA_T])
+    angles = _angles(x, k)
+    sat, cat, sas, cas = angles
     mcoef = k[AREA] * k[CHORD] / k[IYY]
 
     f = np.zeros(n)
     F = np.zeros((model.n_dynamic, n))
     f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
-    f[1] = _alpha_rate_at(x, model, C, dC, rho, Fe, dFe, F[1], (sat, cat, sas, cas))
+    f[1] = _alpha_rate(x, model, C, dC, rho, Fe, dFe, F[1], angles)
     f[2] = q
     f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
 
