@@ -375,7 +375,9 @@ class FilterTuning:
         0.0, ge=0, doc="stop early below this change [prior sigmas]"
     )
     relinearise_sigma: float = setting(
-        1.0, ge=0, doc="keep the iterations only if they move some component this many sigmas"
+        1.0,
+        ge=0,
+        doc="keep the iterations only if they move some coefficient this many sigmas",
     )
     max_step_s: float = setting(0.02, gt=0, unit="s", doc="longest Runge-Kutta prediction step")
     restart_frames_per_step: int = setting(

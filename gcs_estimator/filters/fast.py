@@ -165,11 +165,17 @@ def _linearise(
 
 @njit(cache=True)
 def _moved(
-    x_next: FloatArray, x_i: FloatArray, Pp: FloatArray, Kt1: FloatArray, HP1: FloatArray
+    x_next: FloatArray,
+    x_i: FloatArray,
+    Pp: FloatArray,
+    Kt1: FloatArray,
+    HP1: FloatArray,
+    judged: tuple[int, int],
 ) -> float:  # pragma: no cover
-    """Largest move of a component in EKF-posterior sigmas (the relinearisation gate)."""
+    """Largest move of a component in x[judged[0]:judged[1]] (the coefficients), in
+    EKF-posterior sigmas: the relinearisation gate (hybrid.iekf_update)."""
     moved = 0.0
-    for j in range(x_next.shape[0]):
+    for j in range(judged[0], judged[1]):
         var = Pp[j, j]
         for a in range(Kt1.shape[0]):
             var -= Kt1[a, j] * HP1[a, j]
@@ -232,7 +238,10 @@ def _iterate(
         if (
             it == 1
             and tun.relinearise > 0.0
-            and _moved(x_next, x_i, Pp, Kt1, first.HP) < tun.relinearise
+            and _moved(
+                x_next, x_i, Pp, Kt1, first.HP, (m.coef_start, m.coef_start + m.axis.shape[0])
+            )
+            < tun.relinearise
         ):
             # Keep the EKF update: re-linearising moved nothing by `relinearise` sigmas.
             return x_i, Kt1, first, done, True

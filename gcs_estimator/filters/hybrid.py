@@ -133,6 +133,7 @@ def iekf_update(
     tolerance: float = 0.0,
     gate: float = 0.0,
     relinearise: float = 0.0,
+    judged: slice | None = None,
 ) -> tuple[Belief, UpdateInfo]:
     """Iterated EKF measurement update (paper eq. 5-7), prior covariance held fixed.
 
@@ -153,7 +154,10 @@ def iekf_update(
     coefficient magnitudes (each step's alpha then needs to move less). That bias is a
     small fraction of a sigma per step, but it adds up over thousands of steps. Far from
     the solution (a zero start), the iterations move the estimate by many sigma and are
-    kept.
+    kept. `judged` (default: all) names the components whose move decides: the filters
+    pass the coefficients, because in turbulence the states move by more than a sigma
+    with every gust while the linearisation point is right, and iterating on those moves
+    is what biases the coefficients (docs/decisions/0024).
     """
     x_prior, P = belief
     used = available(y)
@@ -188,7 +192,8 @@ def iekf_update(
         if it == 1 and first is not None and relinearise > 0.0:
             K1, H1 = first
             post_sigma = np.sqrt(np.maximum(np.diag(P) - np.sum(K1 * (H1 @ P).T, axis=1), 1e-300))
-            if np.max(np.abs(x_next - x_i) / post_sigma) < relinearise:
+            part = slice(None) if judged is None else judged
+            if np.max(np.abs(x_next - x_i)[part] / post_sigma[part]) < relinearise:
                 K, Hu = K1, H1
                 break
         done = it + 1

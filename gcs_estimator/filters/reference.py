@@ -43,6 +43,7 @@ def kernel_step(
             tolerance=tuning.tolerance,
             gate=tuning.gate,
             relinearise=tuning.relinearise,
+            judged=model.coefficients,
         )
     except (np.linalg.LinAlgError, ValueError):  # not positive definite, or not finite
         post, failed = prior, True

@@ -160,3 +160,25 @@ def test_no_channel_present_leaves_the_belief_unchanged() -> None:
         lambda x: (x.copy(), np.eye(2)), belief, np.array([np.nan, np.nan]), np.eye(2)
     )
     assert post is belief and info.iterations == 0 and info.nis == 0.0
+
+
+def test_relinearisation_gate_judges_only_the_components_named() -> None:
+    """With `judged`, only those components' moves keep the iterations: a measurement that
+    moves an unjudged component (a state a gust moved) by many sigma on re-linearising,
+    while the judged one (a coefficient) barely moves, gets the EKF update; judging every
+    component, the same update iterates."""
+
+    def h(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return np.array([x[0] ** 2 + x[1]]), np.array([[2.0 * x[0], 1.0]])
+
+    R = np.diag([0.01])
+    # x[0] a state with a wide prior, x[1] a coefficient known closely.
+    prior = Belief(np.array([0.5, 1.0]), np.diag([4.0, 1e-4]))
+    y = np.array([5.0])
+    ekf, _ = ekf_update(h, prior, y, R)
+    _, info_every = iekf_update(h, prior, y, R, iterations=7, relinearise=1.0)
+    assert info_every.iterations == 7
+    gated, info = iekf_update(h, prior, y, R, iterations=7, relinearise=1.0, judged=slice(1, 2))
+    assert info.iterations == 1
+    np.testing.assert_array_equal(gated.x, ekf.x)
+    np.testing.assert_array_equal(gated.P, ekf.P)
