@@ -172,7 +172,7 @@ class Tuning(NamedTuple):
     tolerance: float
     """Early stop when no state moves by more than this many prior sigmas (0: off)."""
     relinearise: float
-    """Keep the IEKF's iterations only when they move some component by at least this many
+    """Keep the IEKF's iterations only when they move some coefficient by at least this many
     EKF-posterior sigmas (0: always iterate). See hybrid.iekf_update."""
     max_step_s: float
     """Longest Runge-Kutta step of the prediction [s]."""
