@@ -16,8 +16,9 @@ it moves when one channel's weight is halved or doubled (its spread: where the s
 cannot reproduce a flight, the weighting decides what it comes closest to, and a target
 is no sharper than that): the errors and z against it show the filter, its distance
 from JSBSim's linearised aerodynamics what the structure misses.
-Beside the filters: `refine` (by default output error over the whole record, from the
-IEKF's estimate; `--refine filter-error`, `--hold-noise` as the command's options) with
+Beside the filters: `refine` (by default "auto", as the command's: filter error where the
+filters found turbulence, else output error, over the whole record from the IEKF's
+estimate; `--refine output-error|filter-error`, `--hold-noise` as the command's options) with
 its Cramer-Rao and corrected sigmas, and each coefficient's identifiability mark.
 With `--seeds N` the JSBSim set is flown with N noise and turbulence seeds and the
 figures are pooled over them: one seed's eight coefficients say little about a share
@@ -60,7 +61,7 @@ def evaluate(
     rec: Recording,
     best: dict[str, float] | None = None,
     best_residual: dict[str, float] | None = None,
-    refine_with: tuple[str, bool] = ("output-error", False),
+    refine_with: tuple[str, bool] = ("auto", False),
     best_spread: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Print one record's table; return its worst well-excited error per filter (against
@@ -156,6 +157,7 @@ def evaluate(
         )
     if oe is not None:
         summary["refine"] = _oe_summary(oe, goal, well)
+        summary["refine is FE"] = float(oe.label == "FE")
     summary.update(_judged_fairly(est, goal, well, marks, best_residual, spread))
     return summary
 
@@ -250,8 +252,9 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
     err = np.abs(100.0 * (oe.coefficients - goal) / np.abs(goal))[well]
     worst = float(err.max())
     within = float(np.mean(np.abs(z) < 3)) * 100
+    chosen = f"; chosen: {oe.choice}" if oe.choice else ""
     print(
-        f"\n{oe.label} ({oe.method}, {oe.message}): worst well-excited |err| {worst:.2f} % "
+        f"\n{oe.label} ({oe.method}{chosen}, {oe.message}): worst well-excited |err| {worst:.2f} % "
         f"({oe.names[well[int(np.argmax(err))]]}); well-excited within 3σ {within:.0f} %, "
         f"mean z² {np.mean(z**2):.1f} with the corrected σ, {np.mean(zc**2):.1f} with "
         f"Cramer-Rao's; residual colour: {channel_text(oe.residual_colour)}"
@@ -299,8 +302,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--refine",
         choices=(*REFINE_METHODS, "none"),
-        default="output-error",
-        help="the whole-record fit beside the filters (none: no fit, much faster)",
+        default="auto",
+        help="the whole-record fit beside the filters, as `refine --method` (auto: filter "
+        "error where the filters found turbulence, else output error; none: no fit, much "
+        "faster)",
     )
     ap.add_argument(
         "--hold-noise", action="store_true", help="the refinement keeps the configured noise"
@@ -355,7 +360,7 @@ def run(args: argparse.Namespace) -> int:
     )
     kinds = [*FILTER_KINDS, "refine", *(f"{k} identified" for k in FILTER_KINDS)]
     kinds += ["reproduction", "spread", "spread identified"]
-    fit = fit_label(args.refine)
+    fit = "fit (auto)" if args.refine == "auto" else fit_label(args.refine)
     print("| record | " + " | ".join(fit if k == "refine" else k for k in kinds) + " |")
     print("|---|" + "---|" * len(kinds))
     for name, by_kind in worst.items():
@@ -363,6 +368,9 @@ def run(args: argparse.Namespace) -> int:
             f"{by_kind[k]:.2f}" if k in by_kind and math.isfinite(by_kind[k]) else "-"
             for k in kinds
         ]
+        if args.refine == "auto" and "refine" in by_kind:  # which fit auto chose
+            chosen = "FE" if by_kind["refine is FE"] else "OE"
+            cells[kinds.index("refine")] += f" ({chosen})"
         print(f"| {name} | " + " | ".join(cells) + " |")
     if len(seeds) > 1:
         _pooled(worst, seeds)

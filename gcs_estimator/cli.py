@@ -141,8 +141,9 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         "--refine",
         choices=REFINE_METHODS,
         default=None,
-        help="at the end, also fit the whole record by maximum likelihood (output error, or "
-        "filter error with process noise) from the IEKF's estimate; see `refine`",
+        help="at the end, also fit the whole record by maximum likelihood from the IEKF's "
+        "estimate: auto (filter error where the filters found turbulence, else output "
+        "error), output-error or filter-error (with process noise); see `refine`",
     )
     p.add_argument(
         "--window",
@@ -746,8 +747,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
-        help="output-error (calm air; default) or filter-error (turbulence: a steady-state "
-        "Kalman filter inside the fit, the process noise estimated too)",
+        help="auto (default: filter error where the filters applied a turbulence level in "
+        "at least half of their final pass, else output error), output-error (calm air) or "
+        "filter-error (turbulence: a steady-state Kalman filter inside the fit, the "
+        "process noise estimated too)",
     )
     p.set_defaults(func=cmd_refine)
 

@@ -454,8 +454,9 @@ class FilterTuning:
             raise Invalid("restart_times_s", f"must be strictly increasing, got {r}")
 
 
-REFINE_METHODS: tuple[str, ...] = ("output-error", "filter-error")
-"""Whole-record fits (gcs_estimator.refine): output error, or with process noise."""
+REFINE_METHODS: tuple[str, ...] = ("auto", "output-error", "filter-error")
+"""Whole-record fits (gcs_estimator.refine): chosen from the filters' turbulence level
+(refine.choose_method), output error, or with process noise."""
 
 QUANTITY_KINDS: dict[str, str] = {
     "time": "time",

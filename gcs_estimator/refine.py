@@ -45,7 +45,10 @@ kernels release the GIL), so a fit uses the machine's cores; each column is the 
 number whatever the threads.
 
 Output error assumes calm air: in turbulence the filters' and filter error's estimates
-are the better ones, and the residual colour shows it (the corrected sigma grows).
+are the better ones, and the residual colour shows it (the corrected sigma grows). The
+method "auto" (the default) chooses from what the filters found: filter error where they
+applied a turbulence level in at least TURBULENT_SHARE of their final pass, output error
+otherwise (choose_method; decision 0025).
 """
 
 from __future__ import annotations
@@ -55,7 +58,7 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -286,6 +289,9 @@ class Refined:
     iterations: int
     converged: bool
     message: str
+    choice: str = ""
+    """Why this method, when it was chosen from the data ("auto": choose_method); empty
+    when it was asked for by name."""
 
     @property
     def label(self) -> str:
@@ -989,9 +995,31 @@ def refine(
     )
 
 
+TURBULENT_SHARE = 0.5
+"""method "auto": filter error when the filter applied a turbulence level in at least
+this share of its final pass. Calm flights (simulated, the JSBSim set's) read 0-3 %,
+turbulent ones 65-100 %; model misfit during manoeuvres reads as bursts in between
+(docs/decisions/0004, 0025)."""
+
+
+def choose_method(result: EstimatorResult, kind: FilterKind = "IEKF") -> tuple[str, str]:
+    """The whole-record fit for this run ("auto"): filter error where filter `kind`
+    applied a turbulence level in at least TURBULENT_SHARE of its final pass (the pass
+    after the last restart), output error otherwise; and why, in words."""
+    fr = result.filters.get(kind)
+    if fr is None or fr.track is None or len(fr.track.t) == 0:
+        raise RefineError("no frames to refine (the run kept no history or saw no data)")
+    level = fr.track.gust_sigma[result.final_pass_from :]
+    share = float(np.mean(level > 0.0)) if level.size else 0.0
+    seen = f"the {kind} applied a turbulence level in {100.0 * share:.0f} % of its final pass"
+    if share >= TURBULENT_SHARE:
+        return "filter-error", f"{seen}: turbulent air, so filter error"
+    return "output-error", f"{seen}: calm air, so output error"
+
+
 def refine_run(
     result: EstimatorResult,
-    method: str = "output-error",
+    method: str = "auto",
     kind: FilterKind = "IEKF",
     window_s: tuple[float | None, float | None] = (None, None),
     progress: Callable[[RefineProgress], None] | None = None,
@@ -1000,13 +1028,17 @@ def refine_run(
 ) -> Refined:
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
-    coefficients and biases and the first frame's measured flight states. hold_noise:
+    coefficients and biases and the first frame's measured flight states. method "auto":
+    the one choose_method picks, with its reason in the fit's `choice`. hold_noise:
     the noise levels stay instead of being estimated: the measurement noise where the
     filters' final pass had it (the config's [filter] measurement_sigma, or the data's
     with measurement_noise = "data"), the process noise at the config's. threads: as
     refine's."""
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
+    choice = ""
+    if method == "auto":
+        method, choice = choose_method(result, kind)
     fr = result.filters.get(kind)
     if fr is None or fr.track is None or len(fr.track.t) == 0:
         raise RefineError("no frames to refine (the run kept no history or saw no data)")
@@ -1030,7 +1062,7 @@ def refine_run(
     measured = tr.y[first, :N_FLIGHT] - _bias_on_flight(model, fr.biases)
     start[:N_FLIGHT] = np.where(np.isfinite(measured), measured, tr.x[first, :N_FLIGHT])
     tuning = config.filter
-    return refine(
+    fit = refine(
         model,
         tr.t[idx],
         tr.u[idx],
@@ -1045,6 +1077,7 @@ def refine_run(
         hold_noise=hold_noise,
         threads=threads,
     )
+    return replace(fit, choice=choice) if choice else fit
 
 
 def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:

@@ -177,9 +177,10 @@ def _run_notes(
         note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
         notes.append(note)
     if refined is not None:
+        chosen = f"; chosen: {refined.choice}" if refined.choice else ""
         notes.append(
-            f"{refined.label} ({refined.method}, {refined.frames} frames, {refined.message}): "
-            "noise σ "
+            f"{refined.label} ({refined.method}{chosen}, {refined.frames} frames, "
+            f"{refined.message}): noise σ "
             + channel_text(refined.noise_sigma)
             + "; residual colour (1 = white) "
             + channel_text(refined.residual_colour)
@@ -586,6 +587,7 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
     """The whole-record fit as JSON."""
     return {
         "method": refined.method,
+        "method_choice": refined.choice or None,
         "frames": refined.frames,
         "converged": refined.converged,
         "message": refined.message,

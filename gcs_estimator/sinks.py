@@ -248,16 +248,20 @@ class RefineAsk:
     hold_noise: bool
 
     def __call__(self, vehicle: VehicleResult) -> Refined | None:
-        from gcs_estimator.refine import RefineError, refine_run
+        from gcs_estimator.refine import RefineError, choose_method, refine_run
 
-        print(
-            f"refining: {self.method} over {vehicle.result.frames} frames of vehicle "
-            f"{vehicle.system_id} ...",
-            file=sys.stderr,
-            flush=True,
-        )
         status = RefineStatus()
         try:
+            method = self.method
+            if method == "auto":
+                method, why = choose_method(vehicle.result)
+                method += f" ({why})"
+            print(
+                f"refining: {method} over {vehicle.result.frames} frames of vehicle "
+                f"{vehicle.system_id} ...",
+                file=sys.stderr,
+                flush=True,
+            )
             return refine_run(
                 vehicle.result,
                 self.method,

@@ -15,7 +15,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
-from gcs_estimator.refine import RefineError, RefineProgress, refine_run
+from gcs_estimator.refine import RefineError, RefineProgress, choose_method, refine_run
 from gcs_estimator.report import trust_warnings
 from gcs_estimator.sinks import RefineStatus
 from gcs_estimator.telemetry.mavlink import read_tlog
@@ -106,16 +106,19 @@ def test_noise_model_that_does_not_fit_is_named(hfb_config: AircraftConfig) -> N
 def test_refine_command_on_hfb320_and_on_a_tlog(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], noc_config: AircraftConfig
 ) -> None:
-    """`refine` on the bundled record and on a real .tlog the simulated vehicle wrote:
-    the table holds the OE column, the JSON the fit with both sigmas, the marks and the
-    warnings."""
+    """`refine` on the bundled record and on a real .tlog the simulated vehicle wrote, the
+    method chosen from the data: filter error for the flight test's turbulent air, output
+    error for the calm simulated flight; the table holds the fit's column, the JSON the fit
+    with its sigmas and why its method, the marks and the warnings."""
     out = tmp_path / "hfb"
     assert cli.main(["refine", "hfb320", "--out", str(out), "--view", "off"]) == 0
     text = capsys.readouterr().out
-    assert "OE estimate" in text and "Before trusting these numbers" in text
+    assert "FE estimate" in text and "Before trusting these numbers" in text
+    assert "chosen: the IEKF applied a turbulence level in" in text
     data = json.loads((out / "results_sys1.json").read_text())
     fit = data["refined"]
-    assert fit["method"] == "output error" and fit["frames"] == 601
+    assert fit["method"] == "filter error" and fit["frames"] == 601
+    assert fit["method_choice"].endswith("turbulent air, so filter error")
     for name, e in fit["estimates"].items():
         assert e["sigma"] >= max(e["cramer_rao_sigma"], e["structure_sigma"]), name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
@@ -133,6 +136,8 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert cli.main(argv) == 0
     data = json.loads((out / "results_sys1.json").read_text())
     fit = data["refined"]
+    assert fit["method"] == "output error"
+    assert fit["method_choice"].endswith("calm air, so output error")
     truth = np.array(config.truth)
     est = np.array([fit["estimates"][n]["estimate"] for n in data["coefficients"]])
     sig = np.array([fit["estimates"][n]["sigma"] for n in data["coefficients"]])
@@ -211,7 +216,8 @@ def test_filter_error_finds_the_gusts_where_they_act() -> None:
     calm air (with the initial state held at the first frame's measurement its error
     stayed as a slow transient: residual colour 120), and gives every coefficient a
     finite sigma at least its Cramer-Rao one, also where the fit drives a state's
-    process noise to its lower bound (which the residuals then do not feel)."""
+    process noise to its lower bound (which the residuals then do not feel). The method
+    "auto" picks output error for the calm flight and filter error for the other."""
     alpha_noise = {}
     for preset in ("none", "light"):
         config = load_config("noc_uav", [f'simulation.turbulence.preset="{preset}"'])
@@ -219,6 +225,8 @@ def test_filter_error_finds_the_gusts_where_they_act() -> None:
         run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
         refined = refine_run(run.result, "filter-error")
         assert refined.method == "filter error" and refined.converged, preset
+        chosen = choose_method(run.result)[0]  # what "auto" picks for this flight
+        assert chosen == ("output-error" if preset == "none" else "filter-error"), preset
         assert np.all(np.isfinite(refined.sigma)) and np.all(refined.sigma >= refined.crb_sigma)
         alpha_noise[preset] = refined.process_noise[1]
         if preset == "none":  # the initial state fitted: no transient left in alpha
