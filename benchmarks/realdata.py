@@ -195,6 +195,8 @@ def _turbulence_note(res: EstimatorResult, kind: FilterKind) -> str:
     level was applied and its median where it was."""
     f = res.filters[kind]
     note = f"; turbulence σ_w {f.gust_sigma:.2f} m/s at the end"
+    if math.isfinite(f.gust_pass_z):
+        note += f", {f.gust_pass_sigma:.2f} over the final pass ({f.gust_pass_z:.1f} s.e.)"
     if f.track is None:
         return note
     level = f.track.gust_sigma[res.final_pass_from :]

@@ -747,8 +747,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
-        help="auto (default: filter error where the filters applied a turbulence level in "
-        "at least half of their final pass, else output error), output-error (calm air) or "
+        help="auto (default: filter error where the filters found turbulence over their "
+        "final pass, else output error), output-error (calm air) or "
         "filter-error (turbulence: a steady-state Kalman filter inside the fit, the "
         "process noise estimated too)",
     )

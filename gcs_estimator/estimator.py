@@ -276,6 +276,12 @@ class FilterResult(NamedTuple):
     health: Health
     track: Track | None
     """Time histories (None when the estimator keeps none)."""
+    gust_pass_sigma: float = 0.0
+    """Turbulence level averaged over the final pass, information-weighted [m/s]
+    (GustState.pass_average)."""
+    gust_pass_z: float = math.nan
+    """That average in its standard errors (GustState.pass_z; NaN: nothing measured, as
+    with [filter.turbulence] adaptive = false)."""
 
 
 class EstimatorResult(NamedTuple):
@@ -837,6 +843,8 @@ class Estimator:
                 np.sqrt(np.diag(s.P))[biases],
                 self.health[kind],
                 tracks.get(kind),
+                math.sqrt(s.gust.pass_average()),
+                s.gust.pass_z(),
             )
         return EstimatorResult(
             self.config,

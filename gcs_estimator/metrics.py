@@ -174,6 +174,10 @@ class FilterSummary:
     gust_on_share: float = 0.0
     """Share of the frames since the last restart's swap (the pass that ran on to the end)
     in which the turbulence level was applied."""
+    gust_pass_sigma: float = 0.0
+    """Turbulence level averaged over that pass [m/s] (FilterResult.gust_pass_sigma)."""
+    gust_pass_z: float = math.nan
+    """That average in its standard errors (NaN: not measured)."""
 
 
 def _share_on(gust_sigma: FloatArray) -> float:
@@ -279,5 +283,7 @@ def summarise(
             steps=len(track.t),
             gust_sigma=fr.gust_sigma,
             gust_on_share=_share_on(track.gust_sigma[result.final_pass_from :]),
+            gust_pass_sigma=fr.gust_pass_sigma,
+            gust_pass_z=fr.gust_pass_z,
         )
     return out

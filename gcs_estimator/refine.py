@@ -46,9 +46,9 @@ number whatever the threads.
 
 Output error assumes calm air: in turbulence the filters' and filter error's estimates
 are the better ones, and the residual colour shows it (the corrected sigma grows). The
-method "auto" (the default) chooses from what the filters found: filter error where they
-applied a turbulence level in at least TURBULENT_SHARE of their final pass, output error
-otherwise (choose_method; decision 0025).
+method "auto" (the default) chooses from what the filters found: filter error where their
+turbulence level over the final pass stands clear of zero, output error otherwise
+(choose_method; decision 0025).
 """
 
 from __future__ import annotations
@@ -996,23 +996,35 @@ def refine(
 
 
 TURBULENT_SHARE = 0.5
-"""method "auto": filter error when the filter applied a turbulence level in at least
-this share of its final pass. Calm flights (simulated, the JSBSim set's) read 0-3 %,
-turbulent ones 65-100 %; model misfit during manoeuvres reads as bursts in between
-(docs/decisions/0004, 0025)."""
+"""method "auto", where the filters measured no level over the pass (a fixed level:
+[filter.turbulence] adaptive = false): filter error when the level was applied in at
+least this share of the final pass."""
 
 
 def choose_method(result: EstimatorResult, kind: FilterKind = "IEKF") -> tuple[str, str]:
-    """The whole-record fit for this run ("auto"): filter error where filter `kind`
-    applied a turbulence level in at least TURBULENT_SHARE of its final pass (the pass
-    after the last restart), output error otherwise; and why, in words."""
+    """The whole-record fit for this run ("auto"; decision 0025): filter error where
+    filter `kind`'s turbulence level averaged over its final pass stands at least
+    [filter.turbulence] detection_sigma standard errors above zero (the filters found
+    turbulence in the record as a whole), output error otherwise; and why, in words. With
+    no level measured (a fixed one), filter error where it was applied in at least
+    TURBULENT_SHARE of the pass."""
     fr = result.filters.get(kind)
     if fr is None or fr.track is None or len(fr.track.t) == 0:
         raise RefineError("no frames to refine (the run kept no history or saw no data)")
-    level = fr.track.gust_sigma[result.final_pass_from :]
-    share = float(np.mean(level > 0.0)) if level.size else 0.0
-    seen = f"the {kind} applied a turbulence level in {100.0 * share:.0f} % of its final pass"
-    if share >= TURBULENT_SHARE:
+    threshold = result.config.filter.turbulence.detection_sigma
+    if math.isfinite(fr.gust_pass_z):
+        seen = (
+            f"the {kind}'s turbulence level over its final pass, σ_w {fr.gust_pass_sigma:.2f} "
+            f"m/s, stands {fr.gust_pass_z:.1f} standard errors above zero"
+        )
+        turbulent = fr.gust_pass_z >= threshold
+        seen += f" ({'at least' if turbulent else 'less than'} {threshold:g})"
+    else:
+        level = fr.track.gust_sigma[result.final_pass_from :]
+        share = float(np.mean(level > 0.0)) if level.size else 0.0
+        seen = f"the {kind} applied a turbulence level in {100.0 * share:.0f} % of its final pass"
+        turbulent = share >= TURBULENT_SHARE
+    if turbulent:
         return "filter-error", f"{seen}: turbulent air, so filter error"
     return "output-error", f"{seen}: calm air, so output error"
 

@@ -175,6 +175,11 @@ def _run_notes(
         if s.nees is not None:
             note += f", coefficient NEES {s.nees:.1f} (dof {len(s.coefficients)})"
         note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
+        if math.isfinite(s.gust_pass_z):
+            note += (
+                f" (over the pass {s.gust_pass_sigma:.2f} m/s, {s.gust_pass_z:.1f} standard "
+                "errors above zero)"
+            )
         notes.append(note)
     if refined is not None:
         chosen = f"; chosen: {refined.choice}" if refined.choice else ""
@@ -258,7 +263,8 @@ their estimates differ by far less than either sigma where the data fix a value)
 def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
     """What a user should know before trusting the numbers: a noise model that does not
     fit (NIS far from the channel count), a warm start that fitted few frames, a
-    turbulence level switched on and off, coefficients the data do not identify, a filter
+    turbulence level switched on and off or one the whole pass found and the running
+    level missed, coefficients the data do not identify, a filter
     that diverged and started again, and residuals far from white in the whole-record
     fit."""
     out: list[str] = []
@@ -272,7 +278,17 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                     "the noise model does not fit these data, so its sigmas do not either "
                     "(check [filter.measurement_sigma] against the sensors)"
                 )
-        if GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
+        threshold = result.config.filter.turbulence.detection_sigma
+        if s.gust_pass_z >= threshold and s.gust_on_share < GUST_BURSTS[1]:
+            out.append(
+                f"{kind}: turbulence over the whole pass (σ_w {s.gust_pass_sigma:.2f} m/s, "
+                f"{s.gust_pass_z:.1f} standard errors above zero) that the running level "
+                f"applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
+                "too slow (a long scale length) for a few seconds of data to tell from "
+                "calm; the covariance's σ assumes calmer air than the flight had, so trust "
+                "the corrected σ; `refine` (auto) fits such a record by filter error"
+            )
+        elif GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
             out.append(
                 f"{kind}: the turbulence level was applied on and off, in "
                 f"{100 * s.gust_on_share:.0f} % of the frames since the last restart: "
@@ -522,6 +538,8 @@ def results_dict(
             "mean_nis_whole_flight": _num(s.mean_nis_all),
             "mean_channels": _num(s.mean_channels),
             "turbulence_sigma_w_mps": s.gust_sigma,
+            "turbulence_pass_sigma_w_mps": s.gust_pass_sigma,
+            "turbulence_pass_z": _num(s.gust_pass_z),
             "nees": _num(s.nees),
             "updates": s.steps,
             "estimates": {

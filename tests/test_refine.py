@@ -16,7 +16,7 @@ from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from gcs_estimator.refine import RefineError, RefineProgress, choose_method, refine_run
-from gcs_estimator.report import trust_warnings
+from gcs_estimator.report import results_dict, trust_warnings
 from gcs_estimator.sinks import RefineStatus
 from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.reference import output_error
@@ -114,7 +114,7 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert cli.main(["refine", "hfb320", "--out", str(out), "--view", "off"]) == 0
     text = capsys.readouterr().out
     assert "FE estimate" in text and "Before trusting these numbers" in text
-    assert "chosen: the IEKF applied a turbulence level in" in text
+    assert "chosen: the IEKF's turbulence level over its final pass" in text
     data = json.loads((out / "results_sys1.json").read_text())
     fit = data["refined"]
     assert fit["method"] == "filter error" and fit["frames"] == 601
@@ -358,3 +358,35 @@ def test_the_fit_is_the_same_in_any_number_of_threads(noc_config: AircraftConfig
     assert before and during and all(counts == [1] * len(before) for counts in during)
     after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
     assert after == before
+
+
+def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
+    """Weak gusts of a long scale length (sigma_w 0.05 m/s, L 530 m) on the simulated UAV:
+    the running level, judged over a few seconds, is applied in a small share of the
+    final pass, while the pass's average stands many standard errors above zero. The
+    report says so, `refine`'s auto choice is filter error, and the JSON carries the
+    pass's level and its z; the same flight in calm air finds nothing over the pass."""
+    found = {}
+    for sigma_w in (0.0, 0.05):
+        over = [
+            'simulation.turbulence.preset="light"',
+            f"simulation.turbulence.sigma_w_mps={sigma_w}",
+            "simulation.turbulence.length_w_m=530",
+            "simulation.turbulence.length_u_m=530",
+        ]
+        config = load_config("noc_uav", over)
+        flight = simulate(config, seed=1)
+        run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+        s = run.summaries["IEKF"]
+        threshold = config.filter.turbulence.detection_sigma
+        warned = {
+            w.split(":")[0] for w in trust_warnings(run) if "turbulence over the whole pass" in w
+        }
+        data = results_dict(run)["filters"]["IEKF"]
+        assert data["turbulence_pass_z"] == pytest.approx(s.gust_pass_z)
+        found[sigma_w] = (s.gust_on_share, s.gust_pass_z, warned, choose_method(run.result)[0])
+    share, z, warned, method = found[0.05]
+    assert share < 0.5 and z >= 2 * threshold and method == "filter-error"
+    assert warned == {"EKF", "IEKF"}  # each filter's warning
+    share, z, warned, method = found[0.0]
+    assert share == 0.0 and z < threshold and not warned and method == "output-error"

@@ -128,6 +128,16 @@ class GustState(NamedTuple):
             return max(self.var, 0.0)
         return max(self.pass_num / self.pass_den, 0.0)
 
+    def pass_z(self) -> float:
+        """The pass's average level in its standard errors, 1/sqrt(sum of the steps'
+        information): how far the whole pass says the air was turbulent (NaN: nothing
+        measured). Where the running level, judged over adapt_time_s, stays below its
+        detection threshold, a whole pass can still find turbulence: weak gusts, or ones of
+        a long scale length."""
+        if self.pass_den <= 0.0:
+            return math.nan
+        return self.pass_num / math.sqrt(self.pass_den)
+
 
 def gust_applied(var: float, info: float, gain: float, detection2: float) -> float:
     """See GustState.applied (a function of scalars, so that the kernel shares it)."""
