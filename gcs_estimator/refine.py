@@ -1013,12 +1013,12 @@ def choose_method(result: EstimatorResult, kind: FilterKind = "IEKF") -> tuple[s
         raise RefineError("no frames to refine (the run kept no history or saw no data)")
     threshold = result.config.filter.turbulence.detection_sigma
     if math.isfinite(fr.gust_pass_z):
+        turbulent = fr.gust_pass_z >= threshold
         seen = (
             f"the {kind}'s turbulence level over its final pass, σ_w {fr.gust_pass_sigma:.2f} "
-            f"m/s, stands {fr.gust_pass_z:.1f} standard errors above zero"
+            f"m/s, is {fr.gust_pass_z:+.1f} standard errors from zero (turbulent from "
+            f"{threshold:g})"
         )
-        turbulent = fr.gust_pass_z >= threshold
-        seen += f" ({'at least' if turbulent else 'less than'} {threshold:g})"
     else:
         level = fr.track.gust_sigma[result.final_pass_from :]
         share = float(np.mean(level > 0.0)) if level.size else 0.0

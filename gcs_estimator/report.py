@@ -177,8 +177,8 @@ def _run_notes(
         note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
         if math.isfinite(s.gust_pass_z):
             note += (
-                f" (over the pass {s.gust_pass_sigma:.2f} m/s, {s.gust_pass_z:.1f} standard "
-                "errors above zero)"
+                f" (over the pass {s.gust_pass_sigma:.2f} m/s, {s.gust_pass_z:+.1f} standard "
+                "errors from zero)"
             )
         notes.append(note)
     if refined is not None:
