@@ -27,6 +27,7 @@ from gcs_estimator.metrics import (
     CoefficientSummary,
     FilterSummary,
     identifiability,
+    most_correlated,
     percent_error,
 )
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
@@ -68,14 +69,14 @@ def markdown_table(
         if has_truth:
             head += [f"{k} error %", f"{k} error/σ"]
         head += [f"{k} {settle}"]
-    head += ["identified?"]
+    marks_from = summaries.get("IEKF", first)
+    head += [f"identified? ({marks_from.kind if refined is None else refined.label})"]
     if refined is not None:
         fit = refined.label
         head += [f"{fit} estimate", f"{fit} σ", f"{fit} Cramer-Rao σ"]
         if has_truth:
             head += [f"{fit} error %", f"{fit} error/σ"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    marks_from = summaries.get("IEKF", first)
     for i, c0 in enumerate(first.coefficients):
         row = [c0.name] + ([_fmt(c0.truth)] if has_truth else [])
         for k in kinds:
@@ -111,9 +112,15 @@ def _corrected_cell(c: CoefficientSummary) -> str:
 
 
 def _identified_cell(mark: CoefficientSummary, refined: Refined | None, i: int) -> str:
-    ident = mark.identifiability if refined is None else refined.identifiability[i]
-    if ident == WEAK and abs(mark.correlation) > CORRELATION_LIMIT:
-        ident += f" (ρ {mark.correlation:+.2f} with {mark.correlated_with})"
+    """The IEKF's mark, or the whole-record fit's where there is one (the column's head
+    says which), with the correlation that made it weak from the same source."""
+    if refined is None:
+        ident, rho, partner = mark.identifiability, mark.correlation, mark.correlated_with
+    else:
+        ident = refined.identifiability[i]
+        partner, rho = most_correlated(refined.correlation, refined.names, i)
+    if ident == WEAK and abs(rho) > CORRELATION_LIMIT:
+        ident += f" (ρ {rho:+.2f} with {partner})"
     return ident
 
 

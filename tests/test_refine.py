@@ -114,6 +114,7 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert cli.main(["refine", "hfb320", "--out", str(out), "--view", "off"]) == 0
     text = capsys.readouterr().out
     assert "FE estimate" in text and "Before trusting these numbers" in text
+    assert "| identified? (FE) |" in text  # the marks' source named: the fit's
     assert "chosen: the IEKF's turbulence level over its final pass" in text
     data = json.loads((out / "results_sys1.json").read_text())
     fit = data["refined"]
@@ -123,6 +124,10 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
         assert e["sigma"] >= max(e["cramer_rao_sigma"], e["structure_sigma"]), name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
     assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| ")]
+    column = rows[0].index("identified? (FE)")
+    shown = {r[0].lstrip("| "): r[column].split(" (ρ")[0] for r in rows[1:]}
+    assert shown == {n: e["identifiability"] for n, e in fit["estimates"].items()}
     assert data["warnings"]
 
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=20"])
