@@ -803,7 +803,8 @@ class Estimator:
         s = self.states.get(kind)
         if s is None:
             return math.nan
-        return math.sqrt(s.gust.applied(self.tunings[kind].detection2))
+        tn = self.tunings[kind]
+        return math.sqrt(s.gust.applied(tn.detection2, tn.pass_detection2))
 
     @property
     def history_rows(self) -> int:
@@ -832,7 +833,8 @@ class Estimator:
                 continue
             cov = s.P[coef, coef]
             biases = self.model.biases
-            gust = s.gust.applied(self.tunings[kind].detection2)
+            tn = self.tunings[kind]
+            gust = s.gust.applied(tn.detection2, tn.pass_detection2)
             filters[kind] = FilterResult(
                 kind,
                 s.x[coef].copy(),

@@ -289,11 +289,12 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         if s.gust_pass_z >= threshold and s.gust_on_share < GUST_BURSTS[1]:
             out.append(
                 f"{kind}: turbulence over the whole pass (σ_w {s.gust_pass_sigma:.2f} m/s, "
-                f"{s.gust_pass_z:.1f} standard errors above zero) that the running level "
-                f"applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
+                f"{s.gust_pass_z:.1f} standard errors above zero) while a turbulence level "
+                f"was applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
                 "too slow (a long scale length) for a few seconds of data to tell from "
-                "calm; the covariance's σ assumes calmer air than the flight had, so trust "
-                "the corrected σ; `refine` (auto) fits such a record by filter error"
+                "calm, found only as the pass went on; the covariance's σ assumes calmer "
+                "air than the flight had, so trust the corrected σ; `refine` (auto) fits "
+                "such a record by filter error"
             )
         elif GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
             out.append(

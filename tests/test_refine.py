@@ -16,7 +16,7 @@ from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from gcs_estimator.refine import RefineError, RefineProgress, choose_method, refine_run
-from gcs_estimator.report import results_dict, trust_warnings
+from gcs_estimator.report import GUST_BURSTS, results_dict, trust_warnings
 from gcs_estimator.sinks import RefineStatus
 from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.reference import output_error
@@ -369,15 +369,18 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
     """Weak gusts of a long scale length (sigma_w 0.05 m/s, L 530 m) on the simulated UAV:
     the running level, judged over a few seconds, is applied in a small share of the
     final pass, while the pass's average stands many standard errors above zero. The
-    report says so, `refine`'s auto choice is filter error, and the JSON carries the
-    pass's level and its z; the same flight in calm air finds nothing over the pass."""
+    report says so for each filter, `refine`'s auto choice is filter error, and the JSON
+    carries the pass's level and its z; the same flight in calm air finds nothing over the
+    pass. With [filter.turbulence] hold_pass_level the filters apply the pass's level
+    once it is found (decision 0026): in most of the pass and at its end."""
     found = {}
-    for sigma_w in (0.0, 0.05):
+    for sigma_w, hold in ((0.0, False), (0.05, False), (0.05, True)):
         over = [
             'simulation.turbulence.preset="light"',
             f"simulation.turbulence.sigma_w_mps={sigma_w}",
             "simulation.turbulence.length_w_m=530",
             "simulation.turbulence.length_u_m=530",
+            f"filter.turbulence.hold_pass_level={'true' if hold else 'false'}",
         ]
         config = load_config("noc_uav", over)
         flight = simulate(config, seed=1)
@@ -389,9 +392,13 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
         }
         data = results_dict(run)["filters"]["IEKF"]
         assert data["turbulence_pass_z"] == pytest.approx(s.gust_pass_z)
-        found[sigma_w] = (s.gust_on_share, s.gust_pass_z, warned, choose_method(run.result)[0])
-    share, z, warned, method = found[0.05]
-    assert share < 0.5 and z >= 2 * threshold and method == "filter-error"
-    assert warned == {"EKF", "IEKF"}  # each filter's warning
-    share, z, warned, method = found[0.0]
-    assert share == 0.0 and z < threshold and not warned and method == "output-error"
+        found[sigma_w, hold] = (s, warned, choose_method(run.result)[0])
+    s, warned, method = found[0.05, False]
+    assert s.gust_on_share < 0.5 and s.gust_pass_z >= 2 * threshold
+    assert warned == {"EKF", "IEKF"} and method == "filter-error"
+    s, warned, method = found[0.0, False]
+    assert s.gust_on_share == 0.0 and s.gust_pass_z < threshold
+    assert not warned and method == "output-error"
+    s, warned, method = found[0.05, True]
+    assert s.gust_on_share > 0.5 and s.gust_sigma > 0.0 and method == "filter-error"
+    assert warned == ({"EKF", "IEKF"} if s.gust_on_share < GUST_BURSTS[1] else set())
