@@ -402,3 +402,23 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
     s, warned, method = found[0.05, True]
     assert s.gust_on_share > 0.5 and s.gust_sigma > 0.0 and method == "filter-error"
     assert warned == ({"EKF", "IEKF"} if s.gust_on_share < GUST_BURSTS[1] else set())
+
+
+def test_auto_with_a_fixed_turbulence_level_goes_by_the_level_applied() -> None:
+    """With [filter.turbulence] adaptive = false nothing is measured over the pass (its z
+    is NaN), so `refine`'s auto choice goes by the fixed level: applied throughout, filter
+    error; none, output error."""
+    for sigma_w, expected in ((0.8, "filter-error"), (0.0, "output-error")):
+        config = load_config(
+            "noc_uav",
+            [
+                "simulation.manoeuvre.duration_s=20",
+                "filter.turbulence.adaptive=false",
+                f"filter.turbulence.sigma_w_mps={sigma_w}",
+            ],
+        )
+        flight = simulate(config, seed=1)
+        run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+        assert np.isnan(run.summaries["IEKF"].gust_pass_z)
+        method, why = choose_method(run.result)
+        assert method == expected and "turbulence level in" in why, why
