@@ -292,9 +292,10 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                 f"{s.gust_pass_z:.1f} standard errors above zero) while a turbulence level "
                 f"was applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
                 "too slow (a long scale length) for a few seconds of data to tell from "
-                "calm, found only as the pass went on; the covariance's σ assumes calmer "
-                "air than the flight had, so trust the corrected σ; `refine` (auto) fits "
-                "such a record by filter error"
+                "calm; where none was applied the covariance's σ assumes calm air, so trust "
+                "the corrected σ; `refine` (auto) fits such a record by filter error, and "
+                "[filter.turbulence] hold_pass_level = true applies the pass's level in the "
+                "filters (docs/decisions/0026)"
             )
         elif GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
             out.append(
