@@ -176,12 +176,13 @@ float64). Half the disk, and half the pages the end of a run maps to summarise t
 
 class History:
     """Per-frame outputs of one filter, in frame order: one row per frame of
-    [x (n), sigma (n), NIS, channels used, gust sigma, innovations (7), their sigmas (7)],
+    [x (n), sigma (n), NIS, channels used, gust sigma, its average over the pass,
+    innovations (7), their sigmas (7)],
     so that a frame costs one row, not one per quantity (on disk, one file per group)."""
 
     def __init__(self, n: int) -> None:
         self.n = n
-        self.rows = Rows((n, n, 3, N_OBS, N_OBS), HISTORY_DTYPE)
+        self.rows = Rows((n, n, 4, N_OBS, N_OBS), HISTORY_DTYPE)
 
     def _fill(self, row: np.ndarray, out: StepOutput) -> None:
         n, i = self.n, out.info
@@ -190,8 +191,9 @@ class History:
         row[2 * n] = i.nis
         row[2 * n + 1] = i.n_used
         row[2 * n + 2] = i.gust_sigma
-        row[2 * n + 3 : 2 * n + 3 + N_OBS] = i.innovation
-        row[2 * n + 3 + N_OBS :] = i.innovation_sigma
+        row[2 * n + 3] = i.gust_pass_sigma
+        row[2 * n + 4 : 2 * n + 4 + N_OBS] = i.innovation
+        row[2 * n + 4 + N_OBS :] = i.innovation_sigma
 
     def append(self, out: StepOutput) -> None:
         self._fill(self.rows.claim(), out)
@@ -200,8 +202,8 @@ class History:
         self._fill(self.rows.last(), out)
 
     def columns(self) -> dict[str, np.ndarray]:
-        """The rows so far as named views: x, sigma, nis, n_used, gust_sigma, innovation,
-        innovation_sigma."""
+        """The rows so far as named views: x, sigma, nis, n_used, gust_sigma,
+        gust_pass_sigma, innovation, innovation_sigma."""
         x, sigma, scalars, innovation, innovation_sigma = self.rows.arrays()
         return {
             "x": x,
@@ -209,6 +211,7 @@ class History:
             "nis": scalars[:, 0],
             "n_used": scalars[:, 1],
             "gust_sigma": scalars[:, 2],
+            "gust_pass_sigma": scalars[:, 3],
             "innovation": innovation,
             "innovation_sigma": innovation_sigma,
         }
@@ -234,6 +237,8 @@ class Track:
     innovation_sigma: FloatArray
     gust_sigma: FloatArray
     """Gust intensity the process noise assumed per frame [N], m/s."""
+    gust_pass_sigma: FloatArray
+    """Its average over the pass so far per frame [N], m/s (StepInfo.gust_pass_sigma)."""
     u: FloatArray
     """Inputs per frame [N x 3]: elevator, throttle or thrust, air density."""
     y: FloatArray
@@ -255,6 +260,7 @@ class Track:
             innovation=c["innovation"],
             innovation_sigma=c["innovation_sigma"],
             gust_sigma=c["gust_sigma"],
+            gust_pass_sigma=c["gust_pass_sigma"],
             u=u,
             y=y,
         )

@@ -99,7 +99,16 @@ class ShardJob:
 
 # ---- each frame's outputs as one row of floats ----------------------------------------
 
-_INFO_SCALARS = ("nis", "n_used", "iterations", "gust_sigma", "failed", "repaired", "diverged")
+_INFO_SCALARS = (
+    "nis",
+    "n_used",
+    "iterations",
+    "gust_sigma",
+    "gust_pass_sigma",
+    "failed",
+    "repaired",
+    "diverged",
+)
 
 
 def output_width(n: int) -> int:
@@ -157,7 +166,7 @@ def read_row(
             i0 = s0 + n
             j0 = i0 + N_OBS
             k0 = j0 + N_OBS
-            nis, n_used, iterations, gust, failed, repaired, diverged = values[k0:end]
+            nis, n_used, iterations, gust, gust_pass, failed, repaired, diverged = values[k0:end]
             info = StepInfo(
                 row[s0:i0],
                 nis,
@@ -166,6 +175,7 @@ def read_row(
                 row[i0:j0],
                 row[j0:k0],
                 gust,
+                gust_pass,
                 bool(failed),
                 bool(repaired),
                 bool(diverged),

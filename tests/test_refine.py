@@ -392,6 +392,11 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
         }
         data = results_dict(run)["filters"]["IEKF"]
         assert data["turbulence_pass_z"] == pytest.approx(s.gust_pass_z)
+        # Each frame's report carries the pass's level so far (the view plots it): at the
+        # last frame, the level the run reports for its final pass.
+        track = run.result.filters["IEKF"].track
+        assert track is not None
+        assert track.gust_pass_sigma[-1] == pytest.approx(s.gust_pass_sigma, rel=1e-6)
         found[sigma_w, hold] = (s, warned, choose_method(run.result)[0])
     s, warned, method = found[0.05, False]
     assert s.gust_on_share < 0.5 and s.gust_pass_z >= 2 * threshold

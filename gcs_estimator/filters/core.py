@@ -131,9 +131,7 @@ class GustState(NamedTuple):
     def pass_average(self) -> float:
         """The pass's information-weighted average level, >= 0 (the running level if
         nothing was measured)."""
-        if self.pass_den <= 0.0:
-            return max(self.var, 0.0)
-        return max(self.pass_num / self.pass_den, 0.0)
+        return pass_average(self.var, self.pass_num, self.pass_den)
 
     def pass_z(self) -> float:
         """The pass's average level in its standard errors, 1/sqrt(sum of the steps'
@@ -144,6 +142,13 @@ class GustState(NamedTuple):
         if self.pass_den <= 0.0:
             return math.nan
         return self.pass_num / math.sqrt(self.pass_den)
+
+
+def pass_average(var: float, pass_num: float, pass_den: float) -> float:
+    """See GustState.pass_average (a function of scalars, so that the kernel shares it)."""
+    if pass_den <= 0.0:
+        return max(var, 0.0)
+    return max(pass_num / pass_den, 0.0)
 
 
 def gust_applied(
@@ -249,6 +254,10 @@ class StepInfo(NamedTuple):
     """sqrt(diag(S)) per channel, NaN where not used [N_OBS]."""
     gust_sigma: float
     """Vertical gust intensity the step's process noise assumed [m/s]."""
+    gust_pass_sigma: float
+    """The intensity averaged over the pass so far, after the step [m/s]
+    (GustState.pass_average): what the whole pass says of the air, where the running
+    level may not pass its detection test."""
     failed: bool = False
     repaired: bool = False
     diverged: bool = False

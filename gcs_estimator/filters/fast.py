@@ -29,6 +29,7 @@ from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
 
 for _fn in (
     core.plausible,
+    core.pass_average,
     core.gust_applied,
     core.input_path,
     core.process_noise,
@@ -326,6 +327,7 @@ def _step(
         e,
         s,
         math.sqrt(applied),
+        math.sqrt(core.pass_average(gust.var, gust.pass_num, gust.pass_den)),
         used < 0,
         False,
         False,
@@ -456,6 +458,7 @@ def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type
         info.n_used,
         info.iterations,
         info.gust_sigma,
+        info.gust_pass_sigma,
         info.failed,
         (g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_still),
         g.sens_age,
@@ -560,7 +563,7 @@ def _belief_and_info(
 ) -> tuple[FilterState, StepInfo]:
     """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
     views of its vector."""
-    t, P, vec, nis, used, iterations, gust_sigma, failed, gust, age = out[at:]
+    t, P, vec, nis, used, iterations, gust_sigma, pass_sigma, failed, gust, age = out[at:]
     var, info, gain, num, den, ref, moved, still = gust
     n = start.x.shape[0]
     o = 2 * n + 2 * N_OBS
@@ -569,7 +572,19 @@ def _belief_and_info(
     g = _tuple(GustState, (var, info, gain, num, den, sens, age, ref, moved, still))
     new = _tuple(FilterState, (vec[:n], P, t, vec[o:p], start.t_start, g))
     e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
-    fields = (vec[n : 2 * n], nis, used, iterations, e, s, gust_sigma, failed, False, False)
+    fields = (
+        vec[n : 2 * n],
+        nis,
+        used,
+        iterations,
+        e,
+        s,
+        gust_sigma,
+        pass_sigma,
+        failed,
+        False,
+        False,
+    )
     return new, _tuple(StepInfo, fields)
 
 

@@ -68,6 +68,7 @@ def kernel_step(
         innovation=e,
         innovation_sigma=s,
         gust_sigma=math.sqrt(applied),
+        gust_pass_sigma=math.sqrt(gust.pass_average()),
         failed=failed,
     )
     return new, info, healthy

@@ -13,8 +13,10 @@ Entity paths (documented in the README; tests read them back):
     /vehicle/{id}/inputs/elevator          Scalars [elevator deg]
     /vehicle/{id}/inputs/{throttle|thrust} Scalars [throttle 0..1 or thrust N]
     /vehicle/{id}/diagnostics/nis          Scalars [EKF, IEKF, 95 % low, 95 % high]
-    /vehicle/{id}/diagnostics/turbulence   Scalars [EKF, IEKF]: the gust intensity
-        sigma_w [m/s] each filter's process noise assumes (0: calm air)
+    /vehicle/{id}/diagnostics/turbulence   Scalars [EKF, IEKF, EKF over the pass,
+        IEKF over the pass]: the gust intensity sigma_w [m/s] each filter's process
+        noise assumes (0: calm air), and its average over the pass so far (what the
+        whole pass says of the air where the running level does not pass detection)
     /vehicle/{id}/diagnostics/innovations/{EKF|IEKF}
         Scalars, one per observation channel: innovation / its predicted sigma
         (NaN where the channel was missing), with ±2 guide lines
@@ -155,7 +157,12 @@ NIS_STYLE = _style(
     ("95 % high", GUIDE_COLOR, 1.0),
 )
 
-TURBULENCE_STYLE = _style(("EKF", EKF_COLOR, 1.0), ("IEKF", IEKF_COLOR, 1.0))
+TURBULENCE_STYLE = _style(
+    ("EKF", EKF_COLOR, 1.0),
+    ("IEKF", IEKF_COLOR, 1.0),
+    ("EKF over the pass", _lighter(EKF_COLOR), 2.0),
+    ("IEKF over the pass", _lighter(IEKF_COLOR), 2.0),
+)
 
 
 def innovation_style() -> SeriesStyle:

@@ -401,7 +401,10 @@ class RerunView:
             [np.array([o.info.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]]
         )
         self._send(Columns(lay.nis_path(sid), times, nis))
-        gust = np.column_stack([np.array([o.info.gust_sigma for o in outs[k]]) for k in KINDS])
+        gust = np.column_stack(
+            [np.array([o.info.gust_sigma for o in outs[k]]) for k in KINDS]
+            + [np.array([o.info.gust_pass_sigma for o in outs[k]]) for k in KINDS]
+        )
         self._send(Columns(lay.turbulence_path(sid), times, gust))
         for k in KINDS:
             e = np.array([o.info.innovation for o in outs[k]])

@@ -102,6 +102,8 @@ def _assert_same(
     np.testing.assert_allclose(ia.innovation_sigma, ib.innovation_sigma, rtol=rtol)
     assert ia.nis == pytest.approx(ib.nis, rel=rtol, abs=1e-9, nan_ok=True)
     assert ia.gust_sigma == pytest.approx(ib.gust_sigma, rel=1e-12)
+    assert ia.gust_pass_sigma == pytest.approx(ib.gust_pass_sigma, rel=PATHS_RTOL, abs=1e-12)
+    assert ia.gust_pass_sigma == pytest.approx(math.sqrt(sa.gust.pass_average()), rel=1e-15)
     ga, gb = sa.gust, sb.gust
     assert ga.sens_age == gb.sens_age
     for field in ("var", "info", "gain", "pass_num", "pass_den"):

@@ -169,6 +169,8 @@ def test_display_series_are_decimated_samples_of_the_same_outputs(
     _, gust = read_scalars(path, lay.turbulence_path(1))
     np.testing.assert_array_equal(kept(gust[:, 0]), tr["EKF"].gust_sigma[idx])
     np.testing.assert_array_equal(kept(gust[:, 1]), tr["IEKF"].gust_sigma[idx])
+    np.testing.assert_array_equal(kept(gust[:, 2]), tr["EKF"].gust_pass_sigma[idx])
+    np.testing.assert_array_equal(kept(gust[:, 3]), tr["IEKF"].gust_pass_sigma[idx])
     assert np.all(gust >= 0.0)
     t, el = read_scalars(path, lay.input_path(1, "elevator"))
     np.testing.assert_allclose(el[:, 0], np.degrees(tr["EKF"].u[idx, 0]))
