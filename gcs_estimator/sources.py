@@ -347,6 +347,19 @@ class TlogSource:
             raise SourceError(f"{path}: cannot read: {exc.strerror}") from exc
         if stats.junk_bytes:
             print(f"note: {path}: {stats.junk_bytes} garbage bytes skipped", file=self.log)
+        if stats.bad_times:
+            print(
+                f"note: {path}: {stats.bad_times} record(s) with a corrupt receive time kept, "
+                "stamped with the time of the record before",
+                file=self.log,
+            )
+        if stats.time_jumps:
+            print(
+                f"note: {path}: the recording's clock jumped {stats.time_jumps} time(s) "
+                "(recordings joined into one file, or the recorder's clock set); every "
+                "record kept",
+                file=self.log,
+            )
         if stats.truncated_tail:
             print(
                 f"note: {path}: truncated at the end; the last partial record is ignored",
@@ -374,12 +387,15 @@ class TlogSource:
         for path in self.paths:
             self._stats = stats = TlogStats()
             try:
+                jumps = 0
                 for rec in self._records(path, stats):
                     if stop.requested:
                         break
                     t = rec.t_recv_us * 1e-6
                     if self.speed > 0:
-                        if t0_rec is None or t0_wall is None:
+                        if t0_rec is None or t0_wall is None or stats.time_jumps != jumps:
+                            # The first record, or a new time base: its time is now.
+                            jumps = stats.time_jumps
                             t0_rec, t0_wall = t, time.time()
                         yield from self._wait((t - t0_rec) / self.speed + t0_wall, stop)
                     yield from self.link.packet(rec.packet, t)

@@ -534,12 +534,43 @@ class TlogStats:
     truncated_tail: bool = False
     position: int = 0
     """Bytes of the file read so far."""
+    bad_times: int = 0
+    """Records kept whose receive time was corrupt (neither the record before nor the one
+    after agrees with it): stamped with the time of the record before."""
+    time_jumps: int = 0
+    """Places where the recording's clock jumped and the records after agree with the new
+    time (recordings joined into one file, or the recorder's clock set): kept."""
 
 
 FORWARD_US = 86_400_000_000
 """A record's time lies within a day after the last good record's ..."""
 BACK_US = 60_000_000
 """... and at most a minute before it."""
+
+
+def _follows(t_before: int, t: int) -> bool:
+    """Whether a record at time t can follow one at t_before (FORWARD_US, BACK_US)."""
+    return t_before - BACK_US <= t <= t_before + FORWARD_US
+
+
+def _record_time(t: int, last_t: int | None, t_next: int | None, st: TlogStats) -> int:
+    """The receive time to give a record whose packet is real, at time t, after a record
+    at last_t and before one at t_next (None: none read), judged by both neighbours: a time
+    the next record agrees with but the last does not is a new time base (a jump, kept);
+    one that agrees with neither, or that the next record contradicts where it agrees
+    with the last, is corrupt and takes last_t. Counted in st."""
+    if last_t is None:
+        return t
+    next_new = t_next is not None and _follows(t, t_next)
+    next_old = t_next is not None and _follows(last_t, t_next)
+    if _follows(last_t, t):
+        if next_new or not next_old:
+            return t
+    elif next_new and not next_old:
+        st.time_jumps += 1
+        return t
+    st.bad_times += 1
+    return last_t
 
 
 def _checks_out(data: bytes, i: int, end: int, framed: bool, decoder: Decoder) -> bool:
@@ -583,6 +614,7 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
     offset = i = 0  # data[0] is the file's byte `offset`
     known = -1  # the next record's packet length, where the last record's check read it
     eof = False
+    back = BACK_US  # inlined where every record goes
     with open(path, "rb") as fh:
         while True:
             st.position = offset + i
@@ -600,20 +632,45 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
             end = i + 8 + n
             if n and end <= len(data):
                 # Any 0xFD or 0xFE byte looks like a packet start (timestamps and
-                # payloads hold them too), so a record's time must follow the last good
-                # record's; then it is taken if the next record's header starts where it
-                # ends, and otherwise, or after garbage, only if its packet checks out.
+                # payloads hold them too). A record right after the last one, within a
+                # minute of its time, after which the next record's header starts, is
+                # taken as it is. Any other (not followed by a header, at a time further
+                # away, or after garbage) only if its packet checks out (a message
+                # unknown to the dialect, whose CRC cannot be checked, only framed and at
+                # a time that follows), and after garbage only if its time follows the
+                # last record's or leads to the next one's (a random byte's "time" does
+                # neither); its time is judged by the records on both sides
+                # (_record_time).
                 (t_us,) = _TIME_US(data, i)
-                if last_t is None or last_t - BACK_US <= t_us <= last_t + FORWARD_US:
-                    following = packet_length(data, end + 8) if end < len(data) else 0
-                    framed = end == len(data) or following > 0
-                    if (framed and not resyncing) or _checks_out(data, i, end, framed, decoder):
-                        first = resyncing = False
-                        last_t = t_us
-                        st.records += 1
-                        yield TlogRecord(t_us, data[i + 8 : end])
-                        i, known = end, following if following > 0 else -1
+                following = packet_length(data, end + 8) if end < len(data) else 0
+                framed = end == len(data) or following > 0
+                if (
+                    framed
+                    and not resyncing
+                    and (last_t is None or last_t - back <= t_us <= last_t + back)
+                ):
+                    first = False
+                    last_t = t_us
+                else:
+                    t_next = _TIME_US(data, end)[0] if following > 0 else None
+                    in_time = last_t is None or _follows(last_t, t_us)
+                    timely = (
+                        in_time or not resyncing or (t_next is not None and _follows(t_us, t_next))
+                    )
+                    if not (
+                        (framed and not resyncing and in_time)
+                        or (timely and _checks_out(data, i, end, framed and in_time, decoder))
+                    ):
+                        _junk_byte(path, st, first, offset + i)
+                        resyncing = True
+                        i += 1
                         continue
+                    first = resyncing = False
+                    last_t = _record_time(t_us, last_t, t_next, st)
+                st.records += 1
+                yield TlogRecord(last_t, data[i + 8 : end])
+                i, known = end, following if following > 0 else -1
+                continue
             elif n:  # the record runs past the end of the file
                 st.truncated_tail = True
                 return

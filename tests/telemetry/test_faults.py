@@ -1,5 +1,6 @@
 """Faults on a real link: ground-station stalls, lost packets at the elevator steps, the
-vehicle's 32-bit clock wrapping, a packet from the far future, a bad file among good ones.
+vehicle's 32-bit clock wrapping, a packet from the far future, a bad file among good ones,
+corrupt receive times in a tlog.
 
 Recorded flights of the simulated vehicle (real pymavlink packets), replayed through the
 same link and session as `listen` and `replay`; the stall test goes over real UDP.
@@ -189,6 +190,33 @@ def test_a_bad_file_among_good_ones_keeps_the_results_of_the_good(
     assert res["diagnostics"]["frames"] == 601
 
 
+def test_corrupt_receive_times_in_a_tlog_change_no_estimate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One record in fifty with its receive time 36 minutes off (a flipped byte of the
+    tlog's own header; the packet intact): the replay keeps every frame and ends where the
+    clean recording does, and says how many times it mended. The estimates come from the
+    vehicle's own clock, so a receive time the reader mends cannot move them."""
+    _config, recs = recorded_flight(tmp_path)
+    clean, mended = tmp_path / "clean.tlog", tmp_path / "mended.tlog"
+    for path, shift in ((clean, 0), (mended, 36 * 60 * 1_000_000)):
+        w = TlogWriter(path)
+        for k, (t, pkt) in enumerate(recs):
+            w.write(t + (shift if k % 50 == 25 else 0), pkt)
+        w.close()
+    results = {}
+    for path in (clean, mended):
+        out = tmp_path / path.stem
+        assert gcs_main(["replay", str(path), "--out", str(out), "--view", "off"]) == 0
+        results[path] = json.loads((out / "results_sys1.json").read_text())
+    err = capsys.readouterr().err
+    assert f"{len(recs[25::50])} record(s) with a corrupt receive time kept" in err
+    a, b = results[clean], results[mended]
+    assert a["diagnostics"]["frames"] == b["diagnostics"]["frames"] == 601
+    for kind in ("EKF", "IEKF"):
+        assert a["filters"][kind]["estimates"] == b["filters"][kind]["estimates"]
+
+
 def test_a_paced_replay_stops_within_a_slice_when_asked(tmp_path: Path) -> None:
     """A replay at real time with an hour's gap in receive time ends as soon as a stop is
     requested, instead of sleeping through the gap."""
@@ -213,3 +241,33 @@ def test_a_paced_replay_stops_within_a_slice_when_asked(tmp_path: Path) -> None:
     worker.start()
     worker.join(timeout=60)
     assert not worker.is_alive() and source.done <= 51
+
+
+def test_a_paced_replay_of_joined_recordings_does_not_wait_out_the_jump(tmp_path: Path) -> None:
+    """Two recordings in one file, the second two days after the first: a replay at 20x
+    real time paces each at its own times and goes from the first to the second at once
+    (the reader counts the jump) instead of waiting out two days."""
+    from gcs_estimator.sources import TlogSource
+    from gcs_estimator.telemetry.link import MavlinkLink
+
+    config, recs = recorded_flight(tmp_path)
+    part = recs[:200]
+    path = tmp_path / "joined.tlog"
+    w = TlogWriter(path)
+    for shift in (0, 2 * 86_400_000_000):
+        for t, pkt in part:
+            w.write(t + shift, pkt)
+    w.close()
+    source = TlogSource([path], MavlinkLink(config.link), speed=20.0)
+    stop = Stop()
+
+    def consume() -> None:
+        for _ in source.frames(stop):
+            pass
+
+    worker = threading.Thread(target=consume, daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    stop.requested = True  # ends a replay still waiting (the failure) within a slice
+    assert not worker.is_alive()
+    assert source.done == 2 * len(part) and source._stats.time_jumps == 1

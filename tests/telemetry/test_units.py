@@ -172,6 +172,51 @@ def test_tlog_resynchronises_over_garbage_and_stops_at_a_cut(
         list(read_tlog(tmp_path / "text.tlog"))
 
 
+def test_a_corrupt_receive_time_loses_no_record(tmp_path: Path, vehicle: Codec) -> None:
+    """A flipped byte in a record's 8-byte receive time: 36 minutes later (within the day a
+    recording may pause), 36 minutes earlier, years later. Each record's packet is kept,
+    its time taken from the record before; every record after it is kept with its own
+    time (a time 36 minutes ahead once made the next minutes of records look out of
+    order, and all of them were skipped as garbage)."""
+    packets = [
+        vehicle.pack(vehicle.mav.attitude_encode(i, 0, 0.01 * i, 0, 0, 0, 0)) for i in range(60)
+    ]
+    times = [1_700_000_000_000_000 + 20_000 * i for i in range(60)]
+    written = list(times)
+    written[10] += 36 * 60 * 1_000_000
+    written[25] -= 36 * 60 * 1_000_000
+    written[40] ^= 0x20 << 48  # years later
+    path = tmp_path / "t.tlog"
+    path.write_bytes(b"".join(tlog_record(t, p) for t, p in zip(written, packets, strict=True)))
+    stats = TlogStats()
+    records = list(read_tlog(path, stats))
+    assert [r.packet for r in records] == packets
+    expect = [times[i - 1] if i in (10, 25, 40) else t for i, t in enumerate(times)]
+    assert [r.t_recv_us for r in records] == expect
+    assert (stats.bad_times, stats.time_jumps, stats.junk_bytes) == (3, 0, 0)
+
+
+@pytest.mark.parametrize("shift_us", [-86_400_000_000, 2 * 86_400_000_000, -120_000_000])
+def test_recordings_joined_into_one_file_are_read_whole(
+    tmp_path: Path, vehicle: Codec, shift_us: int
+) -> None:
+    """Two recordings in one file (`cat` of two tlogs): the second a day earlier, two days
+    later, or two minutes earlier than the first ended (the recorder's clock set back).
+    The records after the jump agree with one another, so it is a new time base: every
+    record kept with the time it was written with, and the jump counted."""
+    packets = [
+        vehicle.pack(vehicle.mav.attitude_encode(i, 0, 0.01 * i, 0, 0, 0, 0)) for i in range(40)
+    ]
+    times = [1_700_000_000_000_000 + 20_000 * i for i in range(20)]
+    times += [times[-1] + shift_us + 20_000 * i for i in range(20)]
+    path = tmp_path / "joined.tlog"
+    path.write_bytes(b"".join(tlog_record(t, p) for t, p in zip(times, packets, strict=True)))
+    stats = TlogStats()
+    records = list(read_tlog(path, stats))
+    assert [(r.t_recv_us, r.packet) for r in records] == list(zip(times, packets, strict=True))
+    assert (stats.time_jumps, stats.bad_times, stats.junk_bytes) == (1, 0, 0)
+
+
 def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle: Codec) -> None:
     """An 80 deg angle of attack is a number a float holds and no fixed wing flies."""
     from gcs_estimator.config import load_config
