@@ -380,6 +380,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
     path, rec = load_recording(args.data, config.data)
+    for note in rec.notes:
+        print(f"note: {note}", file=sys.stderr)
     want = config.propulsion.input_name
     if rec.power != want:
         raise ConfigError(

@@ -15,6 +15,7 @@ config's [data.columns] (which column holds which quantity) and [data.units].
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator import atmosphere, units
-from gcs_estimator.arrays import FloatArray
+from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
     PLAUSIBLE_QUANTITIES,
@@ -49,6 +50,8 @@ class Recording:
     measurements: FloatArray
     power: PowerInput
     """What the second input column holds."""
+    notes: tuple[str, ...] = ()
+    """What reading the file mended or skipped, one sentence each (for the run's output)."""
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -140,36 +143,74 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
         return _load_csv(path, data, "latin-1")
 
 
-def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
-    cols, units = data.columns, data.units
+def _read_rows(
+    path: str | Path, reader: csv.DictReader[str], names: list[str]
+) -> tuple[list[list[float]], list[int], dict[str, tuple[int, int, str]]]:
+    """The named columns' values of every row (NaN where empty or not a number), each
+    row's line, and per column the cells that were not numbers: (how many, the first
+    one's line, its text)."""
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    unread: dict[str, tuple[int, int, str]] = {}
     line = 1
     try:
-        with open(path, newline="", encoding=encoding) as fh:
-            reader = csv.DictReader(fh)
-            header = list(reader.fieldnames or [])
-            for quantity in ("time", *OBSERVED, "elevator"):
-                _require(path, header, quantity, getattr(cols, quantity))
-            power = _power_column(path, header, cols)
-            air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
-            wanted = ("time", *OBSERVED, "elevator", power, *air)
-            names = [getattr(cols, q) for q in wanted]
-            scale = np.array([units.factor(q) for q in wanted])
-            shift = np.array([units.offset(q) for q in wanted])
-            rows: list[list[float]] = []
-            for line, row in enumerate(reader, start=2):
+        for line, row in enumerate(reader, start=2):
+            values = []
+            for c in names:
                 try:
-                    rows.append([_cell(row[c]) for c in names])
-                except ValueError as exc:
-                    raise FlightDataError(f"{path}:{line}: {exc}") from exc
-    except OSError as exc:
-        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+                    values.append(_cell(row[c]))
+                except ValueError:
+                    n, first, cell = unread.get(c, (0, line, str(row[c])))
+                    unread[c] = (n + 1, first, cell)
+                    values.append(math.nan)
+            rows.append(values)
+            lines.append(line)
     except csv.Error as exc:
         raise FlightDataError(f"{path}:{line + 1}: not a CSV row: {exc}") from exc
+    return rows, lines, unread
+
+
+TIME_BACK_S = 1.0
+"""A CSV's time may step back by at most this much [s] (rows out of order, put back in
+order); further back, the file holds two recordings and is refused."""
+
+
+def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
+    cols, units = data.columns, data.units
+    try:
+        with open(path, newline="", encoding=encoding) as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+    notes: list[str] = []
+    reader = csv.DictReader(io.StringIO(text))
+    try:
+        header = list(reader.fieldnames or [])
+    except csv.Error as exc:
+        raise FlightDataError(f"{path}:1: not a CSV row: {exc}") from exc
+    for quantity in ("time", *OBSERVED, "elevator"):
+        _require(path, header, quantity, getattr(cols, quantity))
+    power = _power_column(path, header, cols)
+    air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
+    wanted = ("time", *OBSERVED, "elevator", power, *air)
+    scale = np.array([units.factor(q) for q in wanted])
+    shift = np.array([units.offset(q) for q in wanted])
+    rows, lines, unread = _read_rows(path, reader, [getattr(cols, q) for q in wanted])
+    if rows and not text.endswith(("\n", "\r")):
+        rows.pop()
+        notes.append(
+            f"{path}: the last line (line {lines.pop()}) has no line end, as in a file cut "
+            "while it was written: ignored"
+        )
+    for c, (n, first, cell) in unread.items():
+        notes.append(
+            f"{path}: {n} cell(s) of {c!r} not a number (the first at line {first}: "
+            f"{cell!r}): read as missing"
+        )
     if not rows:
         raise FlightDataError(f"{path}: no data rows")
     arr = np.array(rows, float) * scale + shift
-    if not np.all(np.isfinite(arr[:, 0])) or np.any(np.diff(arr[:, 0]) <= 0):
-        raise FlightDataError(f"{path}: {cols.time!r} (time) must be present and increasing")
+    arr = _in_time_order(path, cols.time, arr, np.array(lines), notes)
     check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
     inputs = arr[:, [8, 9]]
     rho = _density(dict(zip(air, arr[:, 10:].T, strict=True)))
@@ -180,7 +221,47 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
         inputs=inputs,
         measurements=arr[:, 1:8],
         power="thrust" if power == "thrust" else "throttle",
+        notes=tuple(notes),
     )
+
+
+def _in_time_order(
+    path: str | Path, column: str, arr: FloatArray, lines: IntArray, notes: list[str]
+) -> FloatArray:
+    """The rows (time in SI in the first column) in time order, as a logger's file may
+    hold them: rows without a time and rows that repeat an earlier row's time are
+    skipped, rows out of order put back in order, each counted in notes. A step back of
+    more than TIME_BACK_S is two recordings in one file: refused."""
+    t = arr[:, 0]
+    timed = np.isfinite(t)
+    if not timed.any():
+        raise FlightDataError(f"{path}: {column!r} (time) holds no number")
+    if not timed.all():
+        notes.append(
+            f"{path}: {int((~timed).sum())} row(s) without a time skipped (the first at line "
+            f"{int(lines[~timed][0])})"
+        )
+        arr, lines, t = arr[timed], lines[timed], t[timed]
+    back = np.flatnonzero(np.diff(t) < -TIME_BACK_S)
+    if len(back):
+        k = int(back[0])
+        raise FlightDataError(
+            f"{path}:{int(lines[k + 1])}: {column!r} (time) goes back from {t[k]:g} to "
+            f"{t[k + 1]:g} s: two recordings in one file? Split it and read each"
+        )
+    order = np.argsort(t, kind="stable")
+    moved = int(np.count_nonzero(order != np.arange(len(t))))
+    if moved:
+        notes.append(f"{path}: {moved} row(s) out of time order put back in order")
+        arr, lines, t = arr[order], lines[order], t[order]
+    repeat = np.concatenate([[False], np.diff(t) <= 0.0])
+    if repeat.any():
+        notes.append(
+            f"{path}: {int(repeat.sum())} row(s) repeating an earlier row's time skipped (the "
+            f"first at line {int(lines[repeat][0])})"
+        )
+        arr = arr[~repeat]
+    return arr
 
 
 LIKELY_UNITS: dict[str, tuple[str, ...]] = {

@@ -141,7 +141,10 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
     if args.playback:
         if args.truth:
             raise ConfigError("--truth: played-back data has no true coefficients to write")
-        return [load_recording(args.playback, config.data)[1]] * args.vehicles
+        rec = load_recording(args.playback, config.data)[1]
+        for note in rec.notes:
+            print(f"note: {note}", file=sys.stderr)
+        return [rec] * args.vehicles
     out = []
     truths: dict[int, tuple[float, ...]] = {}
     base = config.simulation.seed if args.seed is None else args.seed

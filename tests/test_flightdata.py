@@ -133,3 +133,64 @@ def test_a_config_that_is_not_utf8_names_the_line(tmp_path: Path) -> None:
     path.write_bytes(b'base = "noc_uav"\n[airframe]\nname = "Caf\xe9"\n')
     with pytest.raises(ConfigError, match=r"plane\.toml:3: not UTF-8 text \(byte 0xe9\)"):
         load_config(path)
+
+
+def test_a_loggers_slips_are_mended_and_said(
+    tmp_path: Path, flight: Recording, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """What loggers write now and then: two rows swapped, a row written twice, a row
+    without its time, a cell that is not a number, and a last line cut while it was
+    written (no line end: its last cell would read as another number). Each is mended
+    or skipped and said in a note; every other sample reads back as written."""
+    from gcs_estimator.flightdata import write_csv
+
+    path = tmp_path / "clean.csv"
+    write_csv(path, flight)
+    header, *rows = path.read_text().splitlines()
+    rows[10], rows[11] = rows[11], rows[10]
+    rows.insert(20, rows[20])
+    rows[30] = "," + rows[30].split(",", 1)[1]  # its time cell empty
+    cells = rows[40].split(",")
+    cells[2] = "n/a"  # alpha
+    rows[40] = ",".join(cells)
+    slipped = tmp_path / "slipped.csv"
+    slipped.write_text("\n".join([header, *rows])[:-3])  # the last line cut, no line end
+    rec = load_csv(slipped)
+    # Kept: every sample but the one without a time (row 29 of the flight) and the last.
+    keep = np.r_[0:29, 30 : len(flight) - 1]
+    np.testing.assert_array_equal(rec.t_s, flight.t_s[keep])
+    expect = flight.measurements[keep].copy()
+    expect[38, 1] = np.nan  # sample 39 of the flight: its alpha was "n/a"
+    np.testing.assert_array_equal(rec.measurements, expect)
+    np.testing.assert_array_equal(rec.inputs, flight.inputs[keep])
+    text = "\n".join(rec.notes)
+    assert "2 row(s) out of time order put back in order" in text
+    assert "1 row(s) repeating an earlier row's time skipped (the first at line 23)" in text
+    assert "1 row(s) without a time skipped (the first at line 32)" in text
+    assert "1 cell(s) of 'alpha_rad' not a number (the first at line 42: 'n/a')" in text
+    assert f"the last line (line {len(rows) + 1}) has no line end" in text
+    assert len(rec.notes) == 5
+    # The run says them too, and estimates from what was kept.
+    from gcs_estimator.cli import main
+
+    out = tmp_path / "out"
+    args = ["offline", str(slipped), "--config", "noc_uav", "--out", str(out), "--view", "off"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert all(f"note: {note}" in err for note in rec.notes)
+    assert (out / "results_sys1.json").exists()
+
+
+def test_two_recordings_in_one_csv_are_refused_naming_the_line(
+    tmp_path: Path, flight: Recording
+) -> None:
+    """A time that goes back by more than a logger's slip (a second recording appended,
+    its clock from zero): refused with the line, not read as one flight."""
+    from gcs_estimator.flightdata import write_csv
+
+    path = tmp_path / "two.csv"
+    write_csv(path, flight)
+    header, *rows = path.read_text().splitlines()
+    path.write_text("\n".join([header, *rows, *rows]) + "\n")
+    with pytest.raises(FlightDataError, match=rf"two.csv:{len(rows) + 2}: .*goes back .*Split it"):
+        load_csv(path)
