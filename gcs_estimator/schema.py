@@ -22,6 +22,7 @@ Rules between keys go in a ``check(self)`` method that raises `Invalid(key, mess
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import tomllib
@@ -232,7 +233,10 @@ def build(
         used |= keys
     unknown = sorted(set(data) - used)
     if unknown:
-        raise where.error(unknown[0], f"unknown key; known keys here: {sorted(used)}")
+        raise where.error(
+            unknown[0],
+            f"unknown key{_did_you_mean(unknown[0], used)}; known keys here: {sorted(used)}",
+        )
     try:
         obj = cls(**values)
         check = getattr(obj, "check", None)
@@ -294,8 +298,20 @@ def _subtable(
     values, used = _keyed(spec, inner, where.sub(key), context)
     unknown = sorted(set(inner) - used)
     if unknown:
-        raise where.sub(key).error(unknown[0], f"unknown key; allowed: {sorted(used)}")
+        raise where.sub(key).error(
+            unknown[0], f"unknown key{_did_you_mean(unknown[0], used)}; allowed: {sorted(used)}"
+        )
     return values
+
+
+def _did_you_mean(key: str, known: set[str]) -> str:
+    """' (did you mean 'x'?)' for a known key that a mistyped one stands for: one spelled
+    nearly the same, or the key with its unit suffix left off (mass for mass_kg); else
+    nothing (a key that is another real name, such as a coefficient the structure lacks,
+    gets no guess)."""
+    close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.85)
+    close += [name for name in sorted(known) if name.startswith(key + "_")]
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 class Key(NamedTuple):

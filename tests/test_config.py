@@ -47,7 +47,12 @@ ROOT = Path(__file__).resolve().parent.parent
         (
             "mass_kg = 13.5",
             "mass_kg = 13.5\nmass = 2",
-            r"\[airframe\] mass: unknown key; known keys here",
+            r"\[airframe\] mass: unknown key \(did you mean 'mass_kg'\?\); known keys here",
+        ),
+        (
+            "iterations = 7",
+            "iterations = 7\niteration = 3",
+            r"\[filter\] iteration: unknown key \(did you mean 'iterations'\?\)",
         ),
         (
             "restart_times_s = [5.0, 10.0]",
