@@ -109,19 +109,79 @@ def load_recording(path: str | Path, data: DataConfig | None = None) -> tuple[Pa
 
 
 def load_hfb320(path: str | Path) -> Recording:
-    """Read the HFB-320 flight-test record (Jategaonkar test case 4, hfb320_1_10.asc)."""
+    """Read the HFB-320 flight-test record (Jategaonkar test case 4, hfb320_1_10.asc):
+    whitespace-separated columns, as many on every line as on the first. A line with
+    fewer (a file cut while written, or two joined there) is skipped, as is a last line
+    without a line end; a value that is not a number reads as missing; the time is
+    mended as in a CSV (_in_time_order). Each is said in the recording's notes."""
     try:
-        data = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise FlightDataError(f"{path}: not an HFB-320 ASCII record: {exc}") from exc
-    if data.shape[1] < 11:
-        raise FlightDataError(f"{path}: expected at least 11 columns, found {data.shape[1]}")
+        text = Path(path).read_text(encoding="latin-1")
+    except OSError as exc:
+        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+    rows, lines, width, short, unread = _asc_rows(text)
+    if not rows:
+        raise FlightDataError(f"{path}: not an HFB-320 ASCII record: no data lines")
+    if width < 11:
+        raise FlightDataError(f"{path}: expected at least 11 columns, found {width}")
+    notes: list[str] = []
+    if short:
+        notes.append(
+            f"{path}: {len(short)} line(s) with fewer than {width} columns skipped (the first "
+            f"at line {short[0]}: a file cut while it was written?)"
+        )
+    if not text.endswith(("\n", "\r")) and lines[-1] == len(text.splitlines()):
+        rows.pop()
+        notes.append(
+            f"{path}: the last line (line {lines.pop()}) has no line end, as in a file cut "
+            "while it was written: ignored"
+        )
+    if unread:
+        notes.append(
+            f"{path}: {len(unread)} value(s) not a number read as missing (the first at line "
+            f"{unread[0]})"
+        )
+    if not rows:
+        raise FlightDataError(f"{path}: not an HFB-320 ASCII record: no data lines")
+    data = _in_time_order(path, "column 1", np.array(rows), np.array(lines), notes)
     return Recording(
         t_s=data[:, _HFB_TIME].copy(),
         inputs=np.column_stack([data[:, _HFB_ELEVATOR], data[:, _HFB_THRUST]]),
         measurements=data[:, _HFB_OBSERVATIONS].copy(),
         power="thrust",
+        notes=tuple(notes),
     )
+
+
+def _asc_rows(
+    text: str,
+) -> tuple[list[list[float]], list[int], int, list[int], list[int]]:
+    """A whitespace-separated table's rows of the first line's width: (rows, their line
+    numbers, the width, lines with fewer columns, lines holding a value that is not a
+    number (read as NaN))."""
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    short: list[int] = []
+    unread: list[int] = []
+    width = 0
+    for number, line in enumerate(text.splitlines(), start=1):
+        cells = line.split()
+        if not cells:
+            continue
+        width = width or len(cells)
+        if len(cells) < width:
+            short.append(number)
+            continue
+        values = []
+        for cell in cells[:width]:
+            try:
+                values.append(float(cell))
+            except ValueError:
+                values.append(math.nan)
+                if not unread or unread[-1] != number:
+                    unread.append(number)
+        rows.append(values)
+        lines.append(number)
+    return rows, lines, width, short, unread
 
 
 OBSERVED: tuple[str, ...] = ("airspeed", "alpha", "theta", "q", "qdot", "a_x", "a_z")

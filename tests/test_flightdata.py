@@ -194,3 +194,32 @@ def test_two_recordings_in_one_csv_are_refused_naming_the_line(
     path.write_text("\n".join([header, *rows, *rows]) + "\n")
     with pytest.raises(FlightDataError, match=rf"two.csv:{len(rows) + 2}: .*goes back .*Split it"):
         load_csv(path)
+
+
+def test_an_hfb320_record_cut_while_written_reads_every_whole_line(tmp_path: Path) -> None:
+    """The HFB-320 ASCII format as a recorder cut off would leave it: a line missing its
+    last columns where a second piece was joined on, a value that is not a number, and a
+    last line without its line end (its last number may be cut: 11603.15 read as 1 once
+    doubled a run's NIS). The whole lines are read as the bundled record has them."""
+    from gcs_estimator.flightdata import bundled, load_hfb320
+
+    whole = load_hfb320(bundled("hfb320") / "hfb320_1_10.asc")
+    assert whole.notes == ()  # the bundled record is whole
+    lines = (bundled("hfb320") / "hfb320_1_10.asc").read_text().splitlines()[:60]
+    lines[20] = lines[20][:40]  # the first columns only
+    cells = lines[30].split()
+    cells[5] = "x?"  # alpha
+    lines[30] = "   ".join(cells)
+    path = tmp_path / "cut.asc"
+    path.write_text("\n".join(lines)[:-3])
+    rec = load_hfb320(path)
+    keep = np.r_[0:20, 21:59]
+    np.testing.assert_array_equal(rec.t_s, whole.t_s[keep])
+    expect = whole.measurements[keep].copy()
+    expect[29, 1] = np.nan  # line 31: alpha was "x?"
+    np.testing.assert_array_equal(rec.measurements, expect)
+    np.testing.assert_array_equal(rec.inputs, whole.inputs[keep])
+    text = "\n".join(rec.notes)
+    assert "1 line(s) with fewer than" in text and "the first at line 21" in text
+    assert "1 value(s) not a number read as missing (the first at line 31)" in text
+    assert "the last line (line 60) has no line end" in text
