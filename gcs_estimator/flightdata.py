@@ -129,12 +129,7 @@ def load_hfb320(path: str | Path) -> Recording:
             f"{path}: {len(short)} line(s) with fewer than {width} columns skipped (the first "
             f"at line {short[0]}: a file cut while it was written?)"
         )
-    if not text.endswith(("\n", "\r")) and lines[-1] == len(text.splitlines()):
-        rows.pop()
-        notes.append(
-            f"{path}: the last line (line {lines.pop()}) has no line end, as in a file cut "
-            "while it was written: ignored"
-        )
+    _drop_cut_line(path, text, rows, lines, lines[-1] == len(text.splitlines()), notes)
     if unread:
         notes.append(
             f"{path}: {len(unread)} value(s) not a number read as missing (the first at line "
@@ -150,6 +145,25 @@ def load_hfb320(path: str | Path) -> Recording:
         power="thrust",
         notes=tuple(notes),
     )
+
+
+def _drop_cut_line(
+    path: str | Path,
+    text: str,
+    rows: list[list[float]],
+    lines: list[int],
+    last_is_final: bool,
+    notes: list[str],
+) -> None:
+    """Drop the last row (in place, with a note) where the file does not end with a line
+    end and that row is its last line (last_is_final): a file cut while it was written,
+    whose last number may be cut short (11603.15 read as 1)."""
+    if last_is_final and not text.endswith(("\n", "\r")):
+        rows.pop()
+        notes.append(
+            f"{path}: the last line (line {lines.pop()}) has no line end, as in a file cut "
+            "while it was written: ignored"
+        )
 
 
 def _asc_rows(
@@ -256,12 +270,7 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
     scale = np.array([units.factor(q) for q in wanted])
     shift = np.array([units.offset(q) for q in wanted])
     rows, lines, unread = _read_rows(path, reader, [getattr(cols, q) for q in wanted])
-    if rows and not text.endswith(("\n", "\r")):
-        rows.pop()
-        notes.append(
-            f"{path}: the last line (line {lines.pop()}) has no line end, as in a file cut "
-            "while it was written: ignored"
-        )
+    _drop_cut_line(path, text, rows, lines, bool(rows), notes)
     for c, (n, first, cell) in unread.items():
         notes.append(
             f"{path}: {n} cell(s) of {c!r} not a number (the first at line {first}: "
