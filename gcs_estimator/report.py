@@ -402,9 +402,30 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
     ]
 
 
+OPTIONAL_CHANNELS = ("qdot",)
+"""Observation channels a flight may lack with nothing to warn of (the warm start
+differentiates q; the README's CSV layout lets qdot be empty)."""
+
+
 def _run_warnings(result: EstimatorResult) -> list[str]:
-    """A filter that diverged, a warm start that fitted few frames."""
+    """A channel the data never held, a filter that diverged, a warm start that fitted
+    few frames."""
     out: list[str] = []
+    track = next((f.track for f in result.filters.values() if f.track is not None), None)
+    if track is not None and len(track.y):
+        held = np.any(np.isfinite(track.y), axis=0)
+        none = [
+            name
+            for c, name in enumerate(OBS_NAMES)
+            if not held[c] and name not in OPTIONAL_CHANNELS
+        ]
+        if none:
+            out.append(
+                f"no {', '.join(none)} in these data at all: the filters ran without "
+                f"{'it' if len(none) == 1 else 'them'}, and what only "
+                f"{'it tells' if len(none) == 1 else 'they tell'} is not identified (a column "
+                "the file lacks, or a message the vehicle does not send)"
+            )
     for kind, f in result.filters.items():
         if f.health.divergences:
             out.append(

@@ -191,3 +191,19 @@ def test_filters_that_end_apart_are_named_and_filters_that_agree_are_not() -> No
     assert len(named) == 1 and "Cma" in named[0] and "Cmq" not in named[0], named
     assert not apart(moved("Cma", 0.9 * DISAGREE_SIGMAS))
     assert not apart(moved("CDa", 10 * DISAGREE_SIGMAS, NOT_IDENTIFIED))
+
+
+def test_a_channel_the_data_never_hold_is_named() -> None:
+    """A flight without any alpha (a CSV column left empty, a vehicle without an AOA
+    message): the warnings say so by name, beside what the filters could not identify;
+    without qdot, which a flight may lack (the README's CSV layout), nothing is said."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    flight = simulate(config, seed=4)
+    said = {}
+    for channel in (1, 4):  # alpha, qdot
+        y = flight.measurements.copy()
+        y[:, channel] = np.nan
+        run = run_recording(config, flight.t_s, flight.inputs, y)
+        said[channel] = [w for w in trust_warnings(run) if "in these data at all" in w]
+    assert len(said[1]) == 1 and said[1][0].startswith("no alpha in these data at all")
+    assert said[4] == []
