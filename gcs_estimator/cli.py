@@ -279,9 +279,13 @@ def _window(text: str | None) -> tuple[float | None, float | None]:
     try:
         if not sep:
             raise ValueError(text)
-        return (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
+        start = float(lo) if lo.strip() else None
+        end = float(hi) if hi.strip() else None
     except ValueError:
         raise ConfigError(f"--window {text!r}: expected FROM:TO in seconds, e.g. 0:60") from None
+    if start is not None and end is not None and not start < end:
+        raise ConfigError(f"--window {text!r}: FROM must come before TO, e.g. 0:60")
+    return start, end
 
 
 def _refiner(args: argparse.Namespace) -> RefineAsk | None:
@@ -770,6 +774,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
             raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
+        _window(getattr(args, "window", None))  # a bad --window is refused before any work
         if hasattr(args, "out"):
             args.out = str(run_folder(args, started))
             args.started = started

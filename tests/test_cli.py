@@ -115,6 +115,10 @@ def test_bad_inputs_give_one_clear_error(
     assert "no flight data in it" in capsys.readouterr().err
     assert main(["offline", "hfb321", "--out", str(tmp_path / "o")]) == 2
     assert "bundled records: hfb320" in capsys.readouterr().err
+    # A window the wrong way round is refused before any work, not after the filters ran.
+    assert main(["refine", "hfb320", "--window", "10:5", "--out", str(tmp_path / "w")]) == 2
+    assert "--window '10:5': FROM must come before TO" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
 
 
 def test_the_json_says_which_run_made_it(tmp_path: Path) -> None:
