@@ -19,6 +19,7 @@ from gcs_estimator.config import DataConfig, LinkConfig
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.telemetry import pwm
 from gcs_estimator.telemetry.mavlink import (
+    MAV_AUTOPILOT_INVALID,
     MAV_TYPE_FIXED_WING,
     MAV_TYPE_GCS,
     Decoder,
@@ -79,6 +80,10 @@ class Heartbeat:
     ground_station: bool
     mav_type: int = MAV_TYPE_FIXED_WING
     """What the sender says it is (MAV_TYPE)."""
+    autopilot: bool = True
+    """Whether the sending component is an autopilot (its HEARTBEAT autopilot is not
+    MAV_AUTOPILOT_INVALID): the vehicle itself, not a gimbal, camera or companion
+    computer on the same system id."""
 
 
 @dataclass(frozen=True)
@@ -153,7 +158,11 @@ def decoded_message(
         sample = _sample(int(msg.get_srcSystem()), kind, found, t_recv_s, stats, ranges)
         event = Ignored() if sample is None else sample
     elif kind == "HEARTBEAT":
-        event = Heartbeat(int(msg.type) == MAV_TYPE_GCS, int(msg.type))
+        event = Heartbeat(
+            int(msg.type) == MAV_TYPE_GCS,
+            int(msg.type),
+            int(msg.autopilot) != MAV_AUTOPILOT_INVALID,
+        )
     elif kind == "COMMAND_ACK":
         event = CommandAck(int(msg.command), int(msg.result), int(msg.target_system))
     elif kind.startswith("UNKNOWN"):

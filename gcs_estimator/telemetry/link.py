@@ -62,6 +62,10 @@ class VehicleLink:
     acked: set[int] = field(default_factory=set)
     """Results of its acknowledgements of our rate requests."""
     last_rate_request: float = -math.inf
+    autopilot: int | None = None
+    """The component whose HEARTBEAT says it is an autopilot (None: none heard yet)."""
+    sources: dict[object, int] = field(default_factory=dict)
+    """Which component each message is taken from (MavlinkLink._sample)."""
 
 
 def link_name(address: Address | None) -> str:
@@ -264,21 +268,23 @@ class MavlinkLink:
                 "dup", "copies of packets, or packets long behind the vehicle's time: dropped"
             )
             return []
-        return self._event(sysid, event, address, name)
+        return self._event(sysid, decoded.component_id, event, address, name)
 
-    def _event(self, sysid: int, event: object, address: Address | None, name: str) -> list[Frame]:
+    def _event(
+        self, sysid: int, compid: int, event: object, address: Address | None, name: str
+    ) -> list[Frame]:
         out: list[Frame] = []
         if isinstance(event, Sample):
             if sysid != mavlink.GCS_SYSTEM_ID:
                 v = self._seen(sysid, address)
                 if v is not None:
-                    out = self._sample(v, event)
+                    out = self._sample(v, event, compid)
         elif isinstance(event, Unknown):
             self.health.counts(name).unknown += 1
             self.report_once("unknown", f"message unknown to the dialect ({event.name}): skipped")
         elif isinstance(event, Heartbeat):
             if not event.ground_station:
-                self._heartbeat(sysid, event, address)
+                self._heartbeat(sysid, compid, event, address)
         elif isinstance(event, CommandAck):
             self._ack(sysid, event)
         if self.decode_stats.invalid_values:
@@ -349,9 +355,14 @@ class MavlinkLink:
         ):
             v.acked.add(ack.result)
 
-    def _heartbeat(self, sysid: int, event: Heartbeat, address: Address | None) -> None:
-        if self._seen(sysid, address) is None:
-            return
+    def _heartbeat(
+        self, sysid: int, compid: int, event: Heartbeat, address: Address | None
+    ) -> None:
+        v = self._seen(sysid, address)
+        if v is None or not event.autopilot:
+            return  # a gimbal, camera or companion computer says nothing of the aircraft
+        if v.autopilot is None:
+            v.autopilot = compid
         if event.mav_type not in FIXED_WING_TYPES:
             kind = mavlink.MAV_TYPE_NAMES.get(event.mav_type, str(event.mav_type))
             self.report_once(
@@ -366,7 +377,34 @@ class MavlinkLink:
             v.address, v.last_heard = address, self.t_last_recv  # pinned (see pinned)
         return v
 
-    def _sample(self, v: VehicleLink, sample: Sample) -> list[Frame]:
+    def _sample(self, v: VehicleLink, sample: Sample, compid: int) -> list[Frame]:
+        """A sample into the vehicle's synchroniser. Each message is taken from one
+        component of the system: the first heard sending it, or its autopilot (by
+        HEARTBEAT) once that sends it too; the same message from another component (a
+        gimbal's ATTITUDE, a companion computer's) would be read as the aircraft's, so it
+        is counted and dropped."""
+        key: object = sample.message
+        if key == "NAMED_VALUE_FLOAT":  # one message, several channels by name
+            key = sample.values[0][0] if sample.values else key
+        source = v.sources.setdefault(key, compid)
+        if source != compid:
+            if compid == v.autopilot:
+                v.sources[key] = compid
+                self.report_once(
+                    f"source-{v.system_id}-{key}",
+                    f"system id {v.system_id}: {sample.message} taken from component {compid} "
+                    f"(its autopilot, by HEARTBEAT) from now on, not component {source}",
+                )
+            else:
+                v.sync.stats.other_component += 1
+                self.report_once(
+                    f"other-{v.system_id}-{key}",
+                    f"system id {v.system_id}: component {compid} sends {sample.message} too "
+                    f"(a gimbal, a camera, a companion computer?); the aircraft's is taken "
+                    f"from component {source}: the other's counted (other_component) and "
+                    "dropped",
+                )
+                return []
         out = v.sync.add(sample)
         if v.sync.stats.late_samples:
             self.report_once("late", "sample(s) for a frame already processed: counted, dropped")

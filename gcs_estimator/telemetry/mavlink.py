@@ -51,6 +51,9 @@ MSG_ID = {
 MESSAGE_NAME = {v: k for k, v in MSG_ID.items()}
 MAV_TYPE_FIXED_WING = dialect.MAV_TYPE_FIXED_WING
 MAV_TYPE_GCS = dialect.MAV_TYPE_GCS
+MAV_AUTOPILOT_INVALID = dialect.MAV_AUTOPILOT_INVALID
+"""The HEARTBEAT autopilot of a component that is not one (a gimbal, a camera, a
+companion computer, a ground station)."""
 MAV_TYPE_GENERIC = dialect.MAV_TYPE_GENERIC
 MAV_TYPE_VTOL = tuple(
     v for k, v in vars(dialect).items() if k.startswith("MAV_TYPE_VTOL") and isinstance(v, int)

@@ -73,6 +73,9 @@ class SyncStats:
     """Frames dropped before any elevator and power sample had arrived."""
     inputs_guessed: int = 0
     """Frames whose input sample was lost while the input changed (Frame.inputs_known)."""
+    other_component: int = 0
+    """Samples of a message that another component of the same system id sends too (a
+    gimbal's ATTITUDE beside the autopilot's): dropped (MavlinkLink._sample)."""
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

@@ -1,6 +1,7 @@
 """Faults on a real link: ground-station stalls, lost packets at the elevator steps, the
 vehicle's 32-bit clock wrapping, a packet from the far future, a bad file among good ones,
-corrupt receive times in a tlog.
+corrupt receive times in a tlog, a gimbal and an air-data computer on the vehicle's
+system id.
 
 Recorded flights of the simulated vehicle (real pymavlink packets), replayed through the
 same link and session as `listen` and `replay`; the stall test goes over real UDP.
@@ -215,6 +216,61 @@ def test_corrupt_receive_times_in_a_tlog_change_no_estimate(
     assert a["diagnostics"]["frames"] == b["diagnostics"]["frames"] == 601
     for kind in ("EKF", "IEKF"):
         assert a["filters"][kind]["estimates"] == b["filters"][kind]["estimates"]
+
+
+def test_a_gimbal_on_the_vehicles_system_id_changes_no_estimate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A gimbal (component 154) on the autopilot's system id streams its own ATTITUDE,
+    each just before the autopilot's, and a HEARTBEAT that says it is a gimbal; an
+    air-data computer (component 158) sends the angle of attack instead of the
+    autopilot. Read as the aircraft's, the gimbal's pitch once moved Cmq by 18 % with no
+    word. Now each message comes from one component (the autopilot's where its
+    HEARTBEAT says so): the estimates are the clean recording's to the bit, the
+    gimbal's samples are counted and said, and its HEARTBEAT raises no warning about
+    the aircraft's type."""
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    from gcs_estimator.telemetry.mavlink import Codec
+
+    _config, recs = recorded_flight(tmp_path)
+    decoder = Decoder()
+    gimbal, air_data = Codec(1, 154), Codec(1, 158)
+    mixed: Records = []
+    for t, pkt in recs:
+        msg: Any = decoder.decode(pkt)
+        kind = msg.get_type() if msg is not None else ""
+        if kind == "ATTITUDE":
+            att = gimbal.mav.attitude_encode(msg.time_boot_ms, 0.0, 0.3, 0.0, 0.0, 0.05, 0.0)
+            mixed.append((t - 100, gimbal.pack(att)))
+        elif kind == "HEARTBEAT":
+            hb = gimbal.mav.heartbeat_encode(
+                dialect.MAV_TYPE_GIMBAL, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+            mixed.append((t + 50, gimbal.pack(hb)))
+        if kind == "AOA_SSA":
+            aoa = air_data.mav.aoa_ssa_encode(msg.time_usec, msg.AOA, msg.SSA)
+            mixed.append((t, air_data.pack(aoa)))
+        else:
+            mixed.append((t, pkt))
+    results = {}
+    for name, records in (("clean", recs), ("mixed", mixed)):
+        w = TlogWriter(tmp_path / f"{name}.tlog")
+        for t, pkt in records:
+            w.write(t, pkt)
+        w.close()
+        out = tmp_path / name
+        argv = ["replay", str(tmp_path / f"{name}.tlog"), "--out", str(out), "--view", "off"]
+        assert gcs_main(argv) == 0
+        results[name] = json.loads((out / "results_sys1.json").read_text())
+    err = capsys.readouterr().err
+    assert "system id 1: ATTITUDE taken from component 1 (its autopilot" in err
+    assert "component 154 sends ATTITUDE too" in err and "says it is" not in err
+    clean, mixed_run = results["clean"], results["mixed"]
+    assert mixed_run["link"]["vehicles"]["1"]["other_component"] > 500
+    assert clean["link"]["vehicles"]["1"]["other_component"] == 0
+    for kind in ("EKF", "IEKF"):
+        assert mixed_run["filters"][kind]["estimates"] == clean["filters"][kind]["estimates"]
 
 
 def test_a_paced_replay_stops_within_a_slice_when_asked(tmp_path: Path) -> None:

@@ -111,7 +111,7 @@ def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
     stats = DecodeStats()
     assert _decode(vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING)) == Heartbeat(False)
     assert _decode(Codec(255, 190).heartbeat(mavlink.MAV_TYPE_GCS)) == Heartbeat(
-        True, mavlink.MAV_TYPE_GCS
+        True, mavlink.MAV_TYPE_GCS, autopilot=False
     )
     ack = vehicle.command_ack(
         mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED, 255, 190
