@@ -298,11 +298,15 @@ def _refiner(args: argparse.Namespace) -> RefineAsk | None:
 
 EXIT_NOTHING_ESTIMATED = 1
 """The run ended without a usable frame, or no frame's observations matched the config."""
+EXIT_REFINE_FAILED = 3
+"""The run's results are written, but the whole-record fit asked for (--refine, refine)
+failed for some vehicle."""
 
 
 def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
     """Drive the session; a source that fails still leaves the results of what it gave.
-    Exit status: 0, or 2 when a source failed, or EXIT_NOTHING_ESTIMATED with the reason."""
+    Exit status: 0, or 2 when a source failed, or EXIT_NOTHING_ESTIMATED or
+    EXIT_REFINE_FAILED with the reason."""
     try:
         results = session.run(source, stop)
     except SourceError as exc:
@@ -321,6 +325,19 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
             file=sys.stderr,
         )
         return EXIT_NOTHING_ESTIMATED
+    failed = [
+        why
+        for sink in session.sinks
+        if isinstance(sink, ResultsSink) and isinstance(sink.refine, RefineAsk)
+        for why in sink.refine.failures
+    ]
+    if failed:
+        print(
+            f"error: the whole-record fit failed ({'; '.join(failed)}); the filters' results "
+            "are written",
+            file=sys.stderr,
+        )
+        return EXIT_REFINE_FAILED
     return 0
 
 

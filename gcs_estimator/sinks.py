@@ -7,7 +7,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -246,6 +246,8 @@ class RefineAsk:
     method: str
     window_s: tuple[float | None, float | None]
     hold_noise: bool
+    failures: list[str] = field(default_factory=list, compare=False, repr=False)
+    """Why the fit failed, a line per vehicle where it did (the run's exit status)."""
 
     def __call__(self, vehicle: VehicleResult) -> Refined | None:
         from gcs_estimator.refine import RefineError, choose_method, refine_run
@@ -271,6 +273,7 @@ class RefineAsk:
             )
         except RefineError as exc:
             print(f"refine: {exc}", file=sys.stderr)
+            self.failures.append(f"vehicle {vehicle.system_id}: {exc}")
             return None
         finally:
             status.end()

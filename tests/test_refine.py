@@ -71,6 +71,21 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
         refine_run(run.result, window_s=(10.0, 10.5))
 
 
+def test_a_fit_that_fails_says_why_and_sets_the_exit_status(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`refine` asked for a window the flight does not reach: the filters' results are
+    written (the JSON has no fit), the reason is said, and the exit status is
+    EXIT_REFINE_FAILED, so a script that runs it can tell."""
+    out = tmp_path / "out"
+    argv = ["refine", "hfb320", "--window", "70:80", "--out", str(out), "--view", "off"]
+    assert cli.main(argv) == cli.EXIT_REFINE_FAILED
+    err = capsys.readouterr().err
+    assert "error: the whole-record fit failed (vehicle 1: only 0 frames in the window" in err
+    data = json.loads((out / "results_sys1.json").read_text())
+    assert data["refined"] is None and data["filters"]["IEKF"]["estimates"]
+
+
 def test_identifiability_marks() -> None:
     corr = np.eye(3)
     corr[0, 1] = corr[1, 0] = 0.99
