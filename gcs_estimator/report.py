@@ -402,6 +402,10 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
     ]
 
 
+STILL_ELEVATOR_RAD = math.radians(0.1)
+"""An elevator that moves less than this over a whole flight [rad] did not move: no
+manoeuvre, or the elevator read from the wrong servo or column."""
+
 OPTIONAL_CHANNELS = ("qdot",)
 """Observation channels a flight may lack with nothing to warn of (the warm start
 differentiates q; the README's CSV layout lets qdot be empty)."""
@@ -419,6 +423,17 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
             for c, name in enumerate(OBS_NAMES)
             if not held[c] and name not in OPTIONAL_CHANNELS
         ]
+        elevator = track.u[:, 0]
+        if np.isfinite(elevator).any() and np.nanmax(elevator) - np.nanmin(elevator) < (
+            STILL_ELEVATOR_RAD
+        ):
+            out.append(
+                "the elevator did not move in this flight (less than "
+                f"{math.degrees(STILL_ELEVATOR_RAD):g} deg): the moment "
+                "coefficients cannot be told apart; if the aircraft did manoeuvre, the "
+                "elevator is read from the wrong place ([link] elevator_servo, or "
+                "[data.columns] elevator)"
+            )
         if none:
             out.append(
                 f"no {', '.join(none)} in these data at all: the filters ran without "

@@ -205,5 +205,19 @@ def test_a_channel_the_data_never_hold_is_named() -> None:
         y[:, channel] = np.nan
         run = run_recording(config, flight.t_s, flight.inputs, y)
         said[channel] = [w for w in trust_warnings(run) if "in these data at all" in w]
+        assert not any("elevator did not move" in w for w in trust_warnings(run))
     assert len(said[1]) == 1 and said[1][0].startswith("no alpha in these data at all")
     assert said[4] == []
+
+
+def test_an_elevator_that_never_moves_is_named() -> None:
+    """The aircraft manoeuvres but the elevator read is flat (the wrong servo channel or
+    column): the moment coefficients cannot be told apart, and the warnings say where to
+    look rather than only that the noise model does not fit."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    flight = simulate(config, seed=4)
+    u = flight.inputs.copy()
+    u[:, 0] = u[0, 0]
+    run = run_recording(config, flight.t_s, u, flight.measurements)
+    still = [w for w in trust_warnings(run) if "elevator did not move" in w]
+    assert len(still) == 1 and "[link] elevator_servo" in still[0]
