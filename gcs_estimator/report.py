@@ -322,6 +322,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
         if weak:
             out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+        out += _sign_warnings(kind, s)
     out += _disagreement_warning(vehicle)
     out += _noise_warning(vehicle)
     out += _run_warnings(result)
@@ -402,6 +403,28 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
     ]
 
 
+EXPECTED_SIGNS: dict[str, tuple[int, str]] = {
+    "CLa": (1, "lift grows with alpha: is alpha read with its sign reversed?"),
+    "Cmq": (-1, "pitch damping opposes the pitch rate: is q read with its sign reversed?"),
+    "Cmde": (
+        -1,
+        "an elevator deflected trailing edge down (positive here) pitches the nose down: "
+        "is the elevator read with its sign reversed ([link] elevator_us_per_rad, or the "
+        "data's elevator column)?",
+    ),
+    "CLde": (
+        1,
+        "an elevator deflected trailing edge down (positive here) adds lift: is the "
+        "elevator read with its sign reversed?",
+    ),
+}
+"""Signs every conventional aircraft's coefficients have (docs/model.md's conventions),
+and what an estimate of the other sign most likely means."""
+
+SIGN_SIGMAS = 3.0
+"""An estimate of the unexpected sign is named when it stands this many of its trusted
+sigmas from zero."""
+
 STILL_ELEVATOR_RAD = math.radians(0.1)
 """An elevator that moves less than this over a whole flight [rad] did not move: no
 manoeuvre, or the elevator read from the wrong servo or column."""
@@ -409,6 +432,22 @@ manoeuvre, or the elevator read from the wrong servo or column."""
 OPTIONAL_CHANNELS = ("qdot",)
 """Observation channels a flight may lack with nothing to warn of (the warm start
 differentiates q; the README's CSV layout lets qdot be empty)."""
+
+
+def _sign_warnings(kind: str, s: FilterSummary) -> list[str]:
+    """Estimates of the sign no conventional aircraft's coefficient has (EXPECTED_SIGNS),
+    SIGN_SIGMAS of their trusted sigma from zero: a sensor or the elevator read with its
+    sign reversed, most likely."""
+    out = []
+    for c in s.coefficients:
+        sign, why = EXPECTED_SIGNS.get(c.name, (0, ""))
+        if sign and sign * c.estimate < -SIGN_SIGMAS * c.trusted_sigma:
+            out.append(
+                f"{kind}: {c.name} came out {c.estimate:+.4g} "
+                f"({abs(c.estimate) / c.trusted_sigma:.0f} σ from zero), of the sign no "
+                f"conventional aircraft's has: {why}"
+            )
+    return out
 
 
 def _run_warnings(result: EstimatorResult) -> list[str]:

@@ -221,3 +221,26 @@ def test_an_elevator_that_never_moves_is_named() -> None:
     run = run_recording(config, flight.t_s, u, flight.measurements)
     still = [w for w in trust_warnings(run) if "elevator did not move" in w]
     assert len(still) == 1 and "[link] elevator_servo" in still[0]
+
+
+def test_an_elevator_read_with_its_sign_reversed_is_named() -> None:
+    """The elevator read with its sign reversed (a servo mounted the other way, a
+    calibration's sign): Cmde comes out positive and CLde negative, far from zero, which
+    no conventional aircraft has; the warnings name both and the likely cause. The same
+    flight read right raises no such warning."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    flight = simulate(config, seed=4)
+    named = {}
+    for sign in (1.0, -1.0):
+        u = flight.inputs.copy()
+        u[:, 0] *= sign
+        run = run_recording(config, flight.t_s, u, flight.measurements)
+        named[sign] = [w for w in trust_warnings(run) if "of the sign no conventional" in w]
+    assert named[1.0] == []
+    assert {w.split(" came out")[0] for w in named[-1.0]} == {
+        "EKF: Cmde",
+        "IEKF: Cmde",
+        "EKF: CLde",
+        "IEKF: CLde",
+    }
+    assert all("sign reversed" in w for w in named[-1.0])
