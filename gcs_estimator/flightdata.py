@@ -217,12 +217,26 @@ def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
         return _load_csv(path, data, "latin-1")
 
 
+DELIMITER_NAMES = {",": "commas", ";": "semicolons", "\t": "tabs"}
+"""Column separators a CSV may use (spreadsheets in locales whose decimal mark is a comma
+write semicolons; some loggers write tabs)."""
+
+
+def _delimiter(text: str) -> str:
+    """The header line's column separator: a comma where it has one, else the first of
+    a semicolon or a tab it has."""
+    header = text.split("\n", 1)[0]
+    if "," in header:
+        return ","
+    return next((d for d in (";", "\t") if d in header), ",")
+
+
 def _read_rows(
-    path: str | Path, reader: csv.DictReader[str], names: list[str]
+    path: str | Path, reader: csv.DictReader[str], names: list[str], decimal_comma: bool
 ) -> tuple[list[list[float]], list[int], dict[str, tuple[int, int, str]]]:
-    """The named columns' values of every row (NaN where empty or not a number), each
-    row's line, and per column the cells that were not numbers: (how many, the first
-    one's line, its text)."""
+    """The named columns' values of every row (NaN where empty or not a number; with
+    decimal_comma, "0,5" is 0.5), each row's line, and per column the cells that were not
+    numbers: (how many, the first one's line, its text)."""
     rows: list[list[float]] = []
     lines: list[int] = []
     unread: dict[str, tuple[int, int, str]] = {}
@@ -232,7 +246,10 @@ def _read_rows(
             values = []
             for c in names:
                 try:
-                    values.append(_cell(row[c]))
+                    cell = row[c]
+                    if decimal_comma and cell is not None:
+                        cell = cell.replace(",", ".")
+                    values.append(_cell(cell))
                 except ValueError:
                     n, first, cell = unread.get(c, (0, line, str(row[c])))
                     unread[c] = (n + 1, first, cell)
@@ -257,7 +274,13 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
     except OSError as exc:
         raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
     notes: list[str] = []
-    reader = csv.DictReader(io.StringIO(text))
+    delimiter = _delimiter(text)
+    if delimiter != ",":
+        notes.append(
+            f"{path}: columns separated by {DELIMITER_NAMES[delimiter]}; a comma in a number "
+            "read as its decimal point"
+        )
+    reader = csv.DictReader(io.StringIO(text), delimiter=delimiter)
     try:
         header = list(reader.fieldnames or [])
     except csv.Error as exc:
@@ -269,7 +292,8 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
     wanted = ("time", *OBSERVED, "elevator", power, *air)
     scale = np.array([units.factor(q) for q in wanted])
     shift = np.array([units.offset(q) for q in wanted])
-    rows, lines, unread = _read_rows(path, reader, [getattr(cols, q) for q in wanted])
+    names = [getattr(cols, q) for q in wanted]
+    rows, lines, unread = _read_rows(path, reader, names, decimal_comma=delimiter != ",")
     _drop_cut_line(path, text, rows, lines, bool(rows), notes)
     for c, (n, first, cell) in unread.items():
         notes.append(

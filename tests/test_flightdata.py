@@ -223,3 +223,26 @@ def test_an_hfb320_record_cut_while_written_reads_every_whole_line(tmp_path: Pat
     assert "1 line(s) with fewer than" in text and "the first at line 21" in text
     assert "1 value(s) not a number read as missing (the first at line 31)" in text
     assert "the last line (line 60) has no line end" in text
+
+
+@pytest.mark.parametrize("separator", [";", "\t"])
+def test_a_csv_with_semicolons_or_tabs_reads_as_with_commas(
+    tmp_path: Path, flight: Recording, separator: str
+) -> None:
+    """A spreadsheet in a locale whose decimal mark is a comma writes semicolons between
+    columns and commas in numbers; some loggers write tabs. Either reads as the
+    comma-separated file does, with a note; it used to be refused as having no column
+    'time_s' (the whole header read as one column's name)."""
+    from gcs_estimator.flightdata import write_csv
+
+    path = tmp_path / "commas.csv"
+    write_csv(path, flight)
+    text = path.read_text()
+    other = tmp_path / "other.csv"
+    mark = "," if separator == ";" else "."
+    other.write_text(text.replace(",", "\0").replace(".", mark).replace("\0", separator))
+    a, b = load_csv(path), load_csv(other)
+    np.testing.assert_array_equal(b.t_s, a.t_s)
+    np.testing.assert_array_equal(b.measurements, a.measurements)
+    np.testing.assert_array_equal(b.inputs, a.inputs)
+    assert len(b.notes) == 1 and "columns separated by" in b.notes[0]
