@@ -378,10 +378,15 @@ def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -
     t = si["time"]
     if len(t) > 2 and float(np.median(np.diff(t))) >= 1.0:
         step = float(np.median(np.diff(t)))
+        now = units.factor("time", data.units.time)
+        unit = next(
+            (u for u in LIKELY_UNITS["time"] if step / now * units.factor("time", u) < 1.0),
+            LIKELY_UNITS["time"][-1],
+        )
         raise FlightDataError(
-            f"{path}: time steps of {step:g} s; a flight record's are below a second: if the "
-            f'column is in milliseconds, set [data.units] time = "ms" '
-            f"(or --set data.units.time=ms)"
+            f"{path}: time steps of {step:g} s (read as {data.units.time}); a flight record's "
+            f'are below a second: if the column is in {unit}, set [data.units] time = "{unit}" '
+            f"(or --set data.units.time={unit})"
         )
     limits = dict(zip(PLAUSIBLE_QUANTITIES, data.plausible_max, strict=True))
     for quantity, limit in limits.items():

@@ -246,3 +246,20 @@ def test_a_csv_with_semicolons_or_tabs_reads_as_with_commas(
     np.testing.assert_array_equal(b.measurements, a.measurements)
     np.testing.assert_array_equal(b.inputs, a.inputs)
     assert len(b.notes) == 1 and "columns separated by" in b.notes[0]
+
+
+@pytest.mark.parametrize("read_as", ["s", "ms"])
+def test_a_time_column_in_microseconds_is_named_as_such(
+    tmp_path: Path, flight: Recording, read_as: str
+) -> None:
+    """Time in microseconds read as seconds, or as milliseconds after the first hint:
+    each time the error names the unit whose steps are below a second (it once always
+    said milliseconds, which for microseconds only moved the error)."""
+    path = tmp_path / "us.csv"
+    write = Recording(flight.t_s * 1e6, flight.inputs, flight.measurements, flight.power)
+    from gcs_estimator.flightdata import write_csv
+
+    write_csv(path, write)
+    data = load_config("noc_uav", [f'data.units.time="{read_as}"']).data
+    with pytest.raises(FlightDataError, match=rf"\(read as {read_as}\).*data\.units\.time=us\)"):
+        load_csv(path, data)
