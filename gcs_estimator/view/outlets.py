@@ -155,6 +155,7 @@ class LocalOutlet(Outlet):
             parts.append(f"saving to {save}")
         if serve is not None:
             bind, port, memory_limit = serve
+            _check_free(bind, port)
             server = rr.GrpcServerSink(bind, port, server_memory_limit=memory_limit)
             self.server_uri = server.uri
             sinks.append(server)
@@ -193,6 +194,27 @@ class LocalOutlet(Outlet):
 
 
 LINGER_POLL_S = 0.1
+
+
+def _check_free(bind: str, port: int) -> None:
+    """Refuse a port another program listens on before the view's server is started on
+    it: its server thread would stop at once, and the run would go on saying it serves.
+    (A port freed a moment ago, in TIME_WAIT, is free: the probe reuses addresses as a
+    server does.)"""
+    import socket
+
+    from gcs_estimator.schema import ConfigError
+
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((bind, port))
+        except OSError as exc:
+            raise ConfigError(
+                f"view.serve_port {port} on {bind}: cannot serve there ({exc.strerror}); "
+                "choose another with --serve-port, or stop what holds it"
+            ) from None
 
 
 RemoteSink = tuple[Literal["spawn", "connect"], str]

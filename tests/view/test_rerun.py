@@ -414,3 +414,27 @@ def test_reference_values_from_the_command_line_are_shown_and_compared(
     capsys.readouterr()
     assert offline("off") == 2
     assert f"{ref}: [truth] CDV: missing" in capsys.readouterr().err
+
+
+def test_serving_on_a_port_another_program_listens_on_is_refused_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A port taken by another program: the view's server thread would stop at once and
+    the run would go on saying it serves (and wait 30 s at the end for viewers that can
+    never join). The command refuses it before the run, naming the port and the option
+    to change; the same port, freed, serves."""
+    from gcs_estimator.cli import main
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        argv = ["simulate", "--set", "simulation.manoeuvre.duration_s=2", "--view", "serve"]
+        argv += ["--serve-port", str(port), "--out", str(tmp_path / "held")]
+        assert main(argv) == 2
+    assert f"view.serve_port {port} on 127.0.0.1: cannot serve there" in capsys.readouterr().err
+    from gcs_estimator.view.outlets import LocalOutlet
+
+    outlet = LocalOutlet("free", serve=("127.0.0.1", port, "1MB"))
+    assert outlet.server_uri is not None and str(port) in outlet.server_uri
+    outlet.close()
