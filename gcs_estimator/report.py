@@ -272,8 +272,9 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     fit (NIS far from the channel count), a warm start that fitted few frames, a
     turbulence level switched on and off or one the whole pass found and the running
     level missed, coefficients the data do not identify, a filter
-    that diverged and started again, and residuals far from white in the whole-record
-    fit."""
+    that diverged and started again, residuals far from white in the whole-record
+    fit, and what points at the setup: a channel the data never hold, an elevator that
+    never moves, a coefficient of the sign no conventional aircraft has."""
     out: list[str] = []
     result = vehicle.result
     for kind, s in vehicle.summaries.items():
@@ -451,8 +452,8 @@ def _sign_warnings(kind: str, s: FilterSummary) -> list[str]:
 
 
 def _run_warnings(result: EstimatorResult) -> list[str]:
-    """A channel the data never held, a filter that diverged, a warm start that fitted
-    few frames."""
+    """A channel the data never held, an elevator that never moved, a filter that
+    diverged, a warm start that fitted few frames."""
     out: list[str] = []
     track = next((f.track for f in result.filters.values() if f.track is not None), None)
     if track is not None and len(track.y):
