@@ -251,8 +251,8 @@ def _read_rows(
                         cell = cell.replace(",", ".")
                     values.append(_cell(cell))
                 except ValueError:
-                    n, first, cell = unread.get(c, (0, line, str(row[c])))
-                    unread[c] = (n + 1, first, cell)
+                    n, first, shown = unread.get(c, (0, line, str(row[c])))
+                    unread[c] = (n + 1, first, shown)
                     values.append(math.nan)
             rows.append(values)
             lines.append(line)
