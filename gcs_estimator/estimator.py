@@ -1,8 +1,8 @@
 """Online estimation of one aircraft: EKF and IEKF side by side over synchronised frames.
 
 A frame is (vehicle time [s], inputs [de rad, throttle or thrust N], observations [7],
-NaN where a channel is missing). Each filter's state is a value (filters.core.FilterState)
-advanced by the step contract; this module adds what makes the zero start work (restarts
+NaN where a channel is missing). Each filter's belief is kept in a lane (filters.core.Lane)
+and advanced by the step contract; this module adds what makes the zero start work (restarts
 from a better linearisation point), the time histories, and the narrow result type that
 the view, the report and the metrics read.
 """
@@ -25,7 +25,6 @@ from gcs_estimator.filters.core import (
     FILTER_KINDS,
     Backend,
     FilterKind,
-    FilterState,
     StepInfo,
     Tuning,
 )
@@ -38,12 +37,32 @@ if TYPE_CHECKING:
 __all__ = ["FILTER_KINDS", "Backend", "Estimator", "EstimatorResult", "FilterKind", "StepOutput"]
 
 
-class StepOutput(NamedTuple):
+class StepOutput:
     """One filter's output at one frame: the augmented state estimate and the step's
-    report (sigma, NIS, innovations, gust level)."""
+    report (sigma, NIS, innovations, gust level), held as the row the step wrote
+    (filters.core.output_row's layout), its parts read from it when asked."""
 
-    x: FloatArray
-    info: StepInfo
+    __slots__ = ("_info", "n", "row")
+
+    def __init__(self, row: FloatArray, n: int) -> None:
+        self.row = row
+        """The outputs as one row (nobody writes to it after the step)."""
+        self.n = n
+        self._info: StepInfo | None = None
+
+    @staticmethod
+    def of(x: FloatArray, info: StepInfo) -> StepOutput:
+        return StepOutput(core.output_row(x, info), x.shape[0])
+
+    @property
+    def x(self) -> FloatArray:
+        return self.row[: self.n]
+
+    @property
+    def info(self) -> StepInfo:
+        if self._info is None:
+            self._info = core.info_of_row(self.row, self.n)
+        return self._info
 
 
 class Snapshot(NamedTuple):
@@ -69,6 +88,11 @@ class Health:
         self.failed_updates += info.failed
         self.covariance_repairs += info.repaired
         self.divergences += info.diverged
+
+    def add(self, failed: int, repaired: int, diverged: int) -> None:
+        self.failed_updates += failed
+        self.covariance_repairs += repaired
+        self.divergences += diverged
 
 
 class Rows:
@@ -185,15 +209,8 @@ class History:
         self.rows = Rows((n, n, 4, N_OBS, N_OBS), HISTORY_DTYPE)
 
     def _fill(self, row: np.ndarray, out: StepOutput) -> None:
-        n, i = self.n, out.info
-        row[:n] = out.x
-        row[n : 2 * n] = i.sigma
-        row[2 * n] = i.nis
-        row[2 * n + 1] = i.n_used
-        row[2 * n + 2] = i.gust_sigma
-        row[2 * n + 3] = i.gust_pass_sigma
-        row[2 * n + 4 : 2 * n + 4 + N_OBS] = i.innovation
-        row[2 * n + 4 + N_OBS :] = i.innovation_sigma
+        # The step's row begins with these columns in this order (core.output_row).
+        row[:] = out.row[: row.shape[0]]
 
     def append(self, out: StepOutput) -> None:
         self._fill(self.rows.claim(), out)
@@ -371,9 +388,9 @@ class Estimator:
         self.model = build_model(config)
         self.keep_history = keep_history
         self.backend: Backend = backend
-        self._step = core.stepper(backend)
-        self._block = core.block_stepper(backend)
-        """Many frames of a re-run in one compiled call (None: one at a time)."""
+        self._blocks = backend == "fast"
+        """Many frames of a re-run in one compiled call (core.Lane.block); else one at a
+        time (the reference backend has no compiled calls)."""
         self.noise_scale = None if noise_scale is None else np.asarray(noise_scale, float)
         """Each channel's measurement variance multiplied by this in every pass, after
         the noise is read from the data (the structure check's re-runs: weighting.py);
@@ -385,7 +402,7 @@ class Estimator:
         """The settings of the re-run under way (measurement noise from the data)."""
         self.noise_reading: NoiseReading | None = None
         """Each channel's noise as read from the data (None: none read)."""
-        self.states: dict[FilterKind, FilterState | None] = dict.fromkeys(FILTER_KINDS)
+        self.states: dict[FilterKind, core.Lane | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
         self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
         self.frame_history = FrameHistory()
@@ -406,7 +423,7 @@ class Estimator:
         """Frames of grace of the restart under way (set where it began)."""
         self.worked_ahead = 0
         """Restart work done in idle time (work_ahead): frames, and 1 per warm start."""
-        self._rerun: dict[FilterKind, FilterState | None] | None = None
+        self._rerun: dict[FilterKind, core.Lane | None] | None = None
         """The re-run of a restart while it catches up (None: none under way)."""
         self._rerun_pos = 0
         self.gaps = 0
@@ -452,12 +469,14 @@ class Estimator:
                 for j in range(i, end)
             ]
             for kind in FILTER_KINDS:
-                state = self.states[kind]
-                if state is not None:
-                    self.states[kind] = core.rebase(
-                        state, self.model, self.tunings[kind], frames[0][0], frames[0][2]
+                lane = self.states[kind]
+                if lane is not None:
+                    lane.load(
+                        core.rebase(
+                            lane.state, self.model, self.tunings[kind], frames[0][0], frames[0][2]
+                        )
                     )
-                if self._block is None:  # a backend without blocks: frame by frame
+                if not self._blocks:  # a backend without blocks: frame by frame
                     for frame in frames:
                         self._advance_one(kind, self.states, *frame, self.tunings[kind])
                 else:
@@ -582,7 +601,7 @@ class Estimator:
 
     def _advance(
         self,
-        states: dict[FilterKind, FilterState | None],
+        states: dict[FilterKind, core.Lane | None],
         t: float,
         u: FloatArray,
         y: FloatArray,
@@ -600,7 +619,7 @@ class Estimator:
     def _advance_one(
         self,
         kind: FilterKind,
-        states: dict[FilterKind, FilterState | None],
+        states: dict[FilterKind, core.Lane | None],
         t: float,
         u: FloatArray,
         y: FloatArray,
@@ -608,29 +627,30 @@ class Estimator:
         tuning: Tuning,
     ) -> StepOutput:
         """One frame through one filter of a pass."""
-        state = states[kind]
-        if state is None:
-            state = core.initial_state(self.model, tuning, t, u, y, *self._starts[kind])
+        lane = states[kind]
+        if lane is None:
+            start = core.initial_state(self.model, tuning, t, u, y, *self._starts[kind])
+            lane = states[kind] = core.Lane(start, self.backend)
         elif not inputs_known:
-            state = core.rebase(state, self.model, tuning, t, y)
+            lane.load(core.rebase(lane.state, self.model, tuning, t, y))
         y_used = y if inputs_known else np.full_like(y, np.nan)
-        state, info = self._step(state, t, u, y_used, tuning, self.model)
-        states[kind] = state
-        self.health[kind].count(info)
-        return StepOutput(state.x, info)
+        row, status = lane.step(t, u, y_used, tuning, self.model)
+        if status:
+            self.health[kind].add(*core.flags_of_row(row, lane.n).tolist())
+        return StepOutput(row, lane.n)
 
     def _advance_block(
         self,
         kind: FilterKind,
-        states: dict[FilterKind, FilterState | None],
+        states: dict[FilterKind, core.Lane | None],
         frames: Sequence[tuple[float, FloatArray, FloatArray, bool]],
         tuning: Tuning,
     ) -> StepOutput | None:
         """Frames through one filter of a pass, runs of them in one compiled call each
         (the same steps as _advance_one's, bit for bit): the output at the last frame.
-        A pass's first frame, a frame whose inputs are a guess and a step the contract
-        must repair or restart go through _advance_one (docs/decisions/0013)."""
-        assert self._block is not None
+        A pass's first frame and a frame whose inputs are a guess go through
+        _advance_one; a step the contract must repair or restart is answered where it
+        falls, as _advance_one's would be (core.Lane.block; docs/decisions/0013)."""
         ts = np.array([f[0] for f in frames])
         us = np.array([f[1] for f in frames])
         ys = np.array([f[2] for f in frames])
@@ -638,22 +658,16 @@ class Estimator:
         out: StepOutput | None = None
         i = 0
         while i < len(frames):
-            state = states[kind]
+            lane = states[kind]
             end = i
             while end < len(frames) and known[end]:
                 end += 1
-            if state is not None and end > i:
-                done, failed, new, info = self._block(
-                    state, ts[i:end], us[i:end], ys[i:end], tuning, self.model
-                )
-                if done:
-                    assert info is not None
-                    states[kind] = new
-                    self.health[kind].failed_updates += failed
-                    out = StepOutput(new.x, info)
-                    i += done
-                    if i == end:
-                        continue
+            if lane is not None and end > i:
+                row, counts = lane.block(ts[i:end], us[i:end], ys[i:end], tuning, self.model)
+                self.health[kind].add(*counts)
+                out = StepOutput(row, lane.n)
+                i = end
+                continue
             t, u, y, inputs_known = frames[i]
             out = self._advance_one(kind, states, t, u, y, inputs_known, tuning)
             i += 1
@@ -663,9 +677,9 @@ class Estimator:
         """The vehicle clock restarted: continue the coefficient estimates on a new time
         base. Restarts still pending are dropped (their frames span two time bases)."""
         self._t_last = -math.inf
-        for kind, state in self.states.items():
-            if state is not None:
-                self.states[kind] = core.rebase(state, self.model, self.tunings[kind], t, y)
+        for kind, lane in self.states.items():
+            if lane is not None:
+                lane.load(core.rebase(lane.state, self.model, self.tunings[kind], t, y))
         if self.restarts_pending:
             self.restarts_done = len(self.config.filter.restart_times_s)
             self._buffer = []
@@ -681,7 +695,7 @@ class Estimator:
         assert rerun is not None
         outs: dict[FilterKind, StepOutput] = {}
         frames = self._buffer[self._rerun_pos : end]
-        if self._block is None or len(frames) < BLOCK_MIN_FRAMES:
+        if not self._blocks or len(frames) < BLOCK_MIN_FRAMES:
             for t, u, y, known in frames:
                 outs = self._advance(rerun, t, u, y, known, self._rerun_tunings)
         else:
@@ -834,9 +848,10 @@ class Estimator:
         coef = self.model.coefficients
         filters: dict[FilterKind, FilterResult] = {}
         tracks = self.tracks()
-        for kind, s in self.states.items():
-            if s is None:
+        for kind, lane in self.states.items():
+            if lane is None:
                 continue
+            s = lane.state  # arrays of its own: the lane moves on with the next frame
             cov = s.P[coef, coef]
             biases = self.model.biases
             tn = self.tunings[kind]

@@ -180,7 +180,7 @@ def read_row(
                 bool(repaired),
                 bool(diverged),
             )
-            outs[kind] = StepOutput(row[x0:s0], info)
+            outs[kind] = StepOutput.of(row[x0:s0], info)
             gusts[kind] = values[at + 1]
         at = end
     return int(values[0]), int(values[1]), outs, gusts

@@ -6,13 +6,16 @@ transition matrix of P), runs the (iterated) measurement update, checks the beli
 health and adapts the gust level. It exploits the structure of the augmented model: the
 rows of F below the dynamic blocks are zero, so the transition matrix differs from I in
 n_dynamic rows and Phi P Phi^T costs n_dynamic x n x n instead of n^3.
+
+The estimator's runner keeps each filter's belief in one buffer that the call updates
+where it lies (lane_kernel, core.Lane); kernel_step is the same call on a FilterState.
 tests/filters/test_fast.py checks it against the reference, kernel and flight alike.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -41,8 +44,21 @@ for _fn in (
 
 @njit(cache=True)
 def _stage(F: FloatArray, K: FloatArray, c: float, d: int) -> FloatArray:  # pragma: no cover
-    """F[:d] + c F[:d, :d] @ K: a Runge-Kutta stage of the transition matrix's top rows."""
-    return F[:d] + c * small.times(F[:d, :d], K)
+    """F[:d] + c F[:d, :d] @ K: a Runge-Kutta stage of the transition matrix's top rows
+    (the product's sums skip the zeros of F, in small.times's order)."""
+    n = F.shape[1]
+    out = np.empty((d, n))
+    acc = np.empty(n)
+    for i in range(d):
+        acc[:] = 0.0
+        for b in range(d):
+            a = F[i, b]
+            if a != 0.0:
+                for j in range(n):
+                    acc[j] += a * K[b, j]
+        for j in range(n):
+            out[i, j] = F[i, j] + c * acc[j]
+    return out
 
 
 @njit(cache=True)
@@ -157,11 +173,14 @@ def _linearise(
     x: FloatArray, u: FloatArray, idx: IntArray, Pp: FloatArray, Ru: FloatArray, m: ModelArrays
 ) -> tuple[_Linearised, bool]:  # pragma: no cover
     hx, H_all = observe(x, u, m)
-    H = _rows(H_all, idx)
+    if idx.shape[0] == N_OBS:  # every channel: nothing to pick
+        H, h = H_all, hx
+    else:
+        H, h = _rows(H_all, idx), hx[idx]
     start, cols = small.nonzero_columns(H)
     HP = small.sparse_times(H, start, cols, Pp)
     L, ok = small.cholesky(small.gram(HP, H, Ru), PSD_JITTER)
-    return _Linearised(hx[idx], H, HP, L), ok
+    return _Linearised(h, H, HP, L), ok
 
 
 @njit(cache=True)
@@ -228,7 +247,7 @@ def _iterate(
     sigma = np.sqrt(np.maximum(np.diag(Pp), 1e-300)) if check else Pp[0]
     x_i = xp.copy()
     lin = first
-    Kt = Kt1 = np.zeros((idx.shape[0], n))
+    Kt = Kt1 = np.empty((0, n))  # set at the first iteration (iterations >= 1)
     done = 0
     for it in range(tun.iterations):
         if it > 0:
@@ -274,8 +293,10 @@ def _update(
     k = idx.shape[0]
     if k == 0:
         return xp, Pp, e_out, s_out, 0.0, 0, 0
-    Hu = _rows(H, idx)
-    HuP = _rows(HP, idx)
+    if k == N_OBS:  # every channel, the common frame: nothing to pick
+        Hu, HuP, hu = H, HP, hx
+    else:
+        Hu, HuP, hu = _rows(H, idx), _rows(HP, idx), hx[idx]
     Ru = np.empty((k, k))
     yu = np.empty(k)
     for a in range(k):
@@ -286,7 +307,7 @@ def _update(
     L, ok = small.cholesky(S, PSD_JITTER)
     if not ok:
         return xp, Pp, e_out, s_out, math.nan, -1, 0
-    first = _Linearised(hx[idx], Hu, HuP, L)
+    first = _Linearised(hu, Hu, HuP, L)
     # Innovation statistics at the prior (NIS).
     e = yu - first.h
     Se = small.cholesky_solve(L, e.reshape(k, 1))
@@ -311,16 +332,18 @@ def _step(
     q, applied = core.process_noise(st, tun)
     xp, Pp = _propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
-    variances = np.diag(P).copy()
+    sigma = np.empty(P.shape[0])
+    smallest = math.inf
+    for i in range(P.shape[0]):
+        smallest = min(smallest, P[i, i])
+        sigma[i] = math.sqrt(max(P[i, i], 0.0))
     healthy = (
-        variances.min() > 0.0
-        and math.isfinite(x.sum() + P.sum())
-        and core.plausible(x, tun.state_max)
+        smallest > 0.0 and math.isfinite(x.sum() + P.sum()) and core.plausible(x, tun.state_max)
     )
     gust = core.adapt_gust(st.gust, tun, m, t, dt, x, u, e, s, applied)
     new = FilterState(x, P, t, u.copy(), st.t_start, gust)
     info = StepInfo(
-        np.sqrt(np.maximum(variances, 0.0)),
+        sigma,
         nis,
         max(used, 0),
         done,
@@ -336,7 +359,7 @@ def _step(
 
 
 # The packed form of a filter's Tuning and its aircraft's ModelArrays: two flat arrays, so
-# that a step's call hands the compiled code 17 values instead of 39 (the dispatch cost
+# that a step's call hands the compiled code 2 values instead of 30 (the dispatch cost
 # grows with every argument). Scalar fields first, then the arrays back to back.
 _TF_SCALARS = (
     "q_decay_s",
@@ -424,107 +447,6 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
     return tun, model
 
 
-@njit(cache=True)
-def _state_of(
-    x: FloatArray,
-    P: FloatArray,
-    u_prev: FloatArray,
-    sens: FloatArray,
-    t_prev: float,
-    t_start: float,
-    gust: tuple[float, ...],
-    g_age: int,
-) -> FilterState:  # pragma: no cover
-    """A FilterState from its fields as _state_args hands them over: gust holds
-    GustState's float fields in order (all but sens and sens_age), in one tuple so that
-    both kernels take them as one argument (at about the dispatch cost of scalars)."""
-    var, info, gain, num, den, ref, moved, still = gust
-    g = GustState(var, info, gain, num, den, sens, g_age, ref, moved, still)
-    return FilterState(x, P, t_prev, u_prev, t_start, g)
-
-
-@njit(cache=True)
-def _handed_back(st: FilterState, info: StepInfo) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """A step's belief and outputs as _belief_and_info takes them: the arrays in one
-    vector (each array returned costs more to hand back than the arithmetic of a row of
-    the update), then the scalars, the gust estimate's as _state_of takes them."""
-    g = st.gust
-    vec = np.concatenate((st.x, info.sigma, info.innovation, info.innovation_sigma, st.u, g.sens))
-    return (
-        st.t,
-        st.P,
-        vec,
-        info.nis,
-        info.n_used,
-        info.iterations,
-        info.gust_sigma,
-        info.gust_pass_sigma,
-        info.failed,
-        (g.var, g.info, g.gain, g.pass_num, g.pass_den, g.input_ref, g.t_moved, g.t_still),
-        g.sens_age,
-    )
-
-
-@njit(cache=True, nogil=True)
-def _kernel(
-    x: FloatArray,
-    P: FloatArray,
-    u_prev: FloatArray,
-    sens: FloatArray,
-    t_prev: float,
-    t_start: float,
-    gust: tuple[float, ...],
-    g_age: int,
-    t: float,
-    u: FloatArray,
-    y: FloatArray,
-    tf: FloatArray,
-    ti: IntArray,
-) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """_step over the fields of FilterState, and Tuning and ModelArrays packed:
-    (healthy, the new belief and the step's outputs)."""
-    tun, m = _unpack(tf, ti)
-    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gust, g_age)
-    new, info, healthy = _step(st, t, u, y, tun, m)
-    return (healthy, *_handed_back(new, info))
-
-
-@njit(cache=True, nogil=True)
-def _kernel_block(
-    x: FloatArray,
-    P: FloatArray,
-    u_prev: FloatArray,
-    sens: FloatArray,
-    t_prev: float,
-    t_start: float,
-    gust: tuple[float, ...],
-    g_age: int,
-    ts: FloatArray,
-    us: FloatArray,
-    ys: FloatArray,
-    tf: FloatArray,
-    ti: IntArray,
-) -> tuple:  # type: ignore[type-arg]  # pragma: no cover
-    """_step over the frames ts, us, ys in order, as long as each leaves a healthy belief:
-    (the frames done, the failed updates among them, the belief after the last of them
-    and the outputs of that step; of the first frame, unhealthy, when none was done)."""
-    tun, m = _unpack(tf, ti)
-    st = _state_of(x, P, u_prev, sens, t_prev, t_start, gust, g_age)
-    new, info, healthy = _step(st, ts[0], us[0], ys[0], tun, m)
-    last = info
-    done = 0
-    failed = 0
-    while healthy:
-        st = new
-        last = info
-        failed += 1 if info.failed else 0
-        done += 1
-        if done == ts.shape[0]:
-            break
-        new, info, healthy = _step(st, ts[done], us[done], ys[done], tun, m)
-    return (done, failed, *_handed_back(st, last))
-
-
 PACKED_KEPT = 4096
 """Filters whose packed settings are kept: two per vehicle, far more than a station
 estimates at once (link.max_vehicles)."""
@@ -546,83 +468,166 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
     return tf, ti
 
 
-def _state_args(state: FilterState) -> tuple[Any, ...]:
-    """A FilterState's fields, flat, as the kernels take them (_state_of)."""
+# ---- a belief kept in one buffer, stepped in place (core.Lane) -----------------------
+# The estimator's runner steps each filter once per frame. Handing a belief over as
+# FilterState and back costs more than a third of a step (numba's dispatch of its fields,
+# boxing the arrays of the new belief and the step's report, and the named tuples built
+# around them), so the runner keeps each belief in one float buffer that the kernel
+# updates where it lies, and the step's report in one output row that the kernel fills.
+# Layout of the buffer: BELIEF_HEAD scalars (t, t_start, the gust estimate's floats as
+# _state_of takes them, its sensitivities' age), then x [n], P [n x n], u, sens [N_OBS].
+
+BELIEF_HEAD = 11
+
+
+def belief_buffer(state: FilterState) -> FloatArray:
+    """A FilterState as one buffer (a new array; belief_of is its inverse)."""
     x, P, t, u, t_start, g = state
-    var, info, gain, num, den, sens, age, ref, moved, still = g
-    return (x, P, u, sens, t, t_start, (var, info, gain, num, den, ref, moved, still), age)
+    head = [t, t_start, g.var, g.info, g.gain, g.pass_num, g.pass_den]
+    head += [g.input_ref, g.t_moved, g.t_still, float(g.sens_age)]
+    return np.concatenate((head, x, np.ravel(P), u, g.sens)).astype(np.float64)
 
 
-_tuple = tuple.__new__
-"""A NamedTuple built from all its fields in order, without its keyword-handling __new__:
-three of them per step, at about half the cost each."""
+def belief_of(buf: FloatArray, n: int) -> FilterState:
+    """The FilterState a buffer holds, as arrays of its own (the buffer moves on)."""
+    o = BELIEF_HEAD
+    x = buf[o : o + n].copy()
+    P = buf[o + n : o + n + n * n].reshape(n, n).copy()
+    u = buf[o + n + n * n : buf.shape[0] - N_OBS].copy()
+    sens = buf[buf.shape[0] - N_OBS :].copy()
+    h = buf[:BELIEF_HEAD].tolist()
+    g = GustState(h[2], h[3], h[4], h[5], h[6], sens, int(h[10]), h[7], h[8], h[9])
+    return FilterState(x, P, h[0], u, h[1], g)
 
 
-def _belief_and_info(
-    start: FilterState, n_inputs: int, out: tuple[Any, ...], at: int
-) -> tuple[FilterState, StepInfo]:
-    """The belief and outputs a kernel handed back (_handed_back's values, from out[at]),
-    views of its vector."""
-    t, P, vec, nis, used, iterations, gust_sigma, pass_sigma, failed, gust, age = out[at:]
-    var, info, gain, num, den, ref, moved, still = gust
-    n = start.x.shape[0]
-    o = 2 * n + 2 * N_OBS
-    p = o + n_inputs
-    sens = vec[p:]
-    g = _tuple(GustState, (var, info, gain, num, den, sens, age, ref, moved, still))
-    new = _tuple(FilterState, (vec[:n], P, t, vec[o:p], start.t_start, g))
-    e, s = vec[2 * n : 2 * n + N_OBS], vec[2 * n + N_OBS : o]
-    fields = (
-        vec[n : 2 * n],
-        nis,
-        used,
-        iterations,
-        e,
-        s,
-        gust_sigma,
-        pass_sigma,
-        failed,
-        False,
-        False,
+def output_width(n: int) -> int:
+    """Floats of a step's output row: x [n], sigma [n], NIS, channels used, gust sigma,
+    its pass average, innovations [N_OBS], their sigmas [N_OBS] (estimator.History's row),
+    then iterations, failed, repaired, diverged."""
+    return 2 * n + 4 + 2 * N_OBS + 4
+
+
+@njit(cache=True)
+def _belief_views(buf: FloatArray, n: int, nu: int) -> FilterState:  # pragma: no cover
+    """The FilterState a buffer holds, its arrays views of the buffer."""
+    o = BELIEF_HEAD
+    x = buf[o : o + n]
+    P = buf[o + n : o + n + n * n].reshape((n, n))
+    u = buf[o + n + n * n : o + n + n * n + nu]
+    sens = buf[o + n + n * n + nu :]
+    g = GustState(
+        buf[2], buf[3], buf[4], buf[5], buf[6], sens, int(buf[10]), buf[7], buf[8], buf[9]
     )
-    return new, _tuple(StepInfo, fields)
+    return FilterState(x, P, buf[0], u, buf[1], g)
+
+
+@njit(cache=True)
+def _lane_step(
+    buf: FloatArray,
+    t: float,
+    u: FloatArray,
+    y: FloatArray,
+    tun: Tuning,
+    m: ModelArrays,
+    out: FloatArray,
+) -> int:  # pragma: no cover
+    """_step on the belief in buf, written back into it, and the step's report into out
+    (output_width's layout): 0 healthy, 1 healthy with a failed update, 2 unhealthy (the
+    belief in buf is the step's, for the contract to repair or restart)."""
+    n = tun.q_final.shape[0]
+    st = _belief_views(buf, n, u.shape[0])
+    new, info, healthy = _step(st, t, u, y, tun, m)
+    g = new.gust
+    buf[0] = new.t
+    buf[2] = g.var
+    buf[3] = g.info
+    buf[4] = g.gain
+    buf[5] = g.pass_num
+    buf[6] = g.pass_den
+    buf[7] = g.input_ref
+    buf[8] = g.t_moved
+    buf[9] = g.t_still
+    buf[10] = g.sens_age
+    # Element by element: numba's slice assignment costs more than these copies.
+    o = BELIEF_HEAD
+    for i in range(n):
+        buf[o + i] = new.x[i]
+        out[i] = new.x[i]
+        out[n + i] = info.sigma[i]
+    o += n
+    for i in range(n):
+        for j in range(n):
+            buf[o + i * n + j] = new.P[i, j]
+    o += n * n
+    for i in range(new.u.shape[0]):
+        buf[o + i] = new.u[i]
+    o += new.u.shape[0]
+    for i in range(N_OBS):
+        buf[o + i] = g.sens[i]
+    o = 2 * n
+    out[o] = info.nis
+    out[o + 1] = info.n_used
+    out[o + 2] = info.gust_sigma
+    out[o + 3] = info.gust_pass_sigma
+    for i in range(N_OBS):
+        out[o + 4 + i] = info.innovation[i]
+        out[o + 4 + N_OBS + i] = info.innovation_sigma[i]
+    o += 4 + 2 * N_OBS
+    out[o] = info.iterations
+    out[o + 1] = 1.0 if info.failed else 0.0
+    out[o + 2] = 0.0
+    out[o + 3] = 0.0
+    if not healthy:
+        return 2
+    return 1 if info.failed else 0
+
+
+@njit(cache=True, nogil=True)
+def lane_kernel(
+    buf: FloatArray,
+    t: float,
+    u: FloatArray,
+    y: FloatArray,
+    tf: FloatArray,
+    ti: IntArray,
+    out: FloatArray,
+) -> int:  # pragma: no cover
+    """_lane_step with the Tuning and ModelArrays packed (pack)."""
+    tun, m = _unpack(tf, ti)
+    return _lane_step(buf, t, u, y, tun, m, out)
+
+
+@njit(cache=True, nogil=True)
+def lane_block_kernel(
+    buf: FloatArray,
+    ts: FloatArray,
+    us: FloatArray,
+    ys: FloatArray,
+    tf: FloatArray,
+    ti: IntArray,
+    out: FloatArray,
+) -> tuple[int, int, bool]:  # pragma: no cover
+    """_lane_step over the frames in order, up to and including the first that leaves an
+    unhealthy belief: (frames stepped, failed updates among the healthy ones, whether
+    the last one left the belief healthy); out holds the last one's report."""
+    tun, m = _unpack(tf, ti)
+    failed = 0
+    for i in range(ts.shape[0]):
+        status = _lane_step(buf, ts[i], us[i], ys[i], tun, m, out)
+        if status == 2:
+            return i + 1, failed, False
+        failed += status
+    return ts.shape[0], failed, True
 
 
 def kernel_step(
     state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
 ) -> tuple[FilterState, StepInfo, bool]:
-    """Predict, update with y, adapt the gust level (core contract)."""
+    """Predict, update with y, adapt the gust level (core contract): the lane's kernel on
+    a buffer of the state's own."""
     tf, ti = _packed(tuning, model)
-    kernel: Any = _kernel  # flat values in the fields' order (mypy cannot see through *)
-    out = kernel(*_state_args(state), float(t), u, y, tf, ti)
-    new, info = _belief_and_info(state, u.shape[0], out, 1)
-    return new, info, out[0]
-
-
-def kernel_block(
-    state: FilterState,
-    ts: FloatArray,
-    us: FloatArray,
-    ys: FloatArray,
-    tuning: Tuning,
-    model: Model,
-) -> tuple[int, int, FilterState, StepInfo | None]:
-    """kernel_step over frames (rows of ts, us, ys) in one compiled call, up to the first
-    that leaves an unhealthy belief (for the step contract to handle, kernel_step again):
-    (frames done, failed updates among them, the belief after them, the last one's
-    outputs; None when none was done). Each step is kernel_step's, bit for bit."""
-    tf, ti = _packed(tuning, model)
-    kernel: Any = _kernel_block
-    out = kernel(
-        *_state_args(state),
-        np.ascontiguousarray(ts, dtype=np.float64),
-        np.ascontiguousarray(us, dtype=np.float64),
-        np.ascontiguousarray(ys, dtype=np.float64),
-        tf,
-        ti,
-    )
-    done, failed = out[0], out[1]
-    if done == 0:
-        return 0, 0, state, None
-    new, info = _belief_and_info(state, us.shape[1], out, 2)
-    return done, failed, new, info
+    buf = belief_buffer(state)
+    n = state.x.shape[0]
+    row = np.empty(output_width(n))
+    status = lane_kernel(buf, float(t), u, y, tf, ti, row)
+    return belief_of(buf, n), core.info_of_row(row, n), status != 2

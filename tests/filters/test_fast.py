@@ -384,34 +384,59 @@ def _frames_of(config: AircraftConfig, n: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 @pytest.mark.parametrize("kind", ["EKF", "IEKF"])
-def test_a_block_of_steps_is_each_step_bit_for_bit_and_stops_at_an_unhealthy_one(
-    noc_config: AircraftConfig, kind: str
-) -> None:
+def test_a_lane_is_the_step_contract_bit_for_bit(noc_config: AircraftConfig, kind: str) -> None:
+    """The runner's lane (the belief kept in one buffer, stepped in place) and its blocks
+    give the guarded contract's beliefs and outputs bit for bit, through a step that
+    leaves the belief unhealthy and is answered as the contract answers it."""
     model = build_model(noc_config)
     tuning = core.tuning_of(noc_config, model, kind)  # type: ignore[arg-type]
     t, raw, y = _frames_of(noc_config, 120)
     u = np.array([model.inputs(v) for v in raw])
     y[90, 0] = 1e12  # an airspeed no aircraft flies: the belief runs away at frame 90
     state = core.initial_state(model, tuning, t[0], u[0], y[0])
-    one = state
-    failed = 0
-    for k in range(1, 90):
-        one, info, healthy = fast.kernel_step(one, t[k], u[k], y[k], tuning, model)
-        assert healthy
-        failed += info.failed
-    _, _, healthy = fast.kernel_step(one, t[90], u[90], y[90], tuning, model)
-    assert not healthy
-
-    done, block_failed, block, last = fast.kernel_block(state, t[1:], u[1:], y[1:], tuning, model)
-    assert done == 89 and block_failed == failed and last is not None
-    for a, b in zip(block[:-1], one[:-1], strict=True):
+    step = core.stepper("fast")
+    one, lane = state, core.Lane(state, "fast")
+    counts = np.zeros(3, dtype=int)
+    for k in range(1, 120):
+        one, info = step(one, t[k], u[k], y[k], tuning, model)
+        row, status = lane.step(t[k], u[k], y[k], tuning, model)
+        np.testing.assert_array_equal(row, core.output_row(one.x, info))
+        flags = core.flags_of_row(row, lane.n)
+        assert bool(status) == bool(flags.any())
+        counts += flags
+        if k == 90:
+            assert info.diverged and status
+    for a, b in zip(lane.state[:-1], one[:-1], strict=True):
         np.testing.assert_array_equal(a, b)
-    for ga, gb in zip(block.gust, one.gust, strict=True):
+    for ga, gb in zip(lane.state.gust, one.gust, strict=True):
         np.testing.assert_array_equal(ga, gb)
-    for a, b in zip(last, info, strict=True):
-        np.testing.assert_array_equal(a, b)
-    # Starting at the unhealthy frame: nothing done, the state handed back as it was.
-    assert fast.kernel_block(block, t[90:], u[90:], y[90:], tuning, model)[:3] == (0, 0, block)
+    np.testing.assert_array_equal(lane.x, one.x)
+    np.testing.assert_array_equal(lane.P, one.P)
+
+    # The same frames in blocks of 30: the last outputs, the counts and the belief.
+    blocked = core.Lane(state, "fast")
+    totals = np.zeros(3, dtype=int)
+    for a in range(1, 120, 30):
+        last, got = blocked.block(t[a : a + 30], u[a : a + 30], y[a : a + 30], tuning, model)
+        totals += got
+    np.testing.assert_array_equal(last, row)
+    np.testing.assert_array_equal(totals, counts)
+    assert totals[2] >= 1  # the run-away frame started the belief again
+    np.testing.assert_array_equal(blocked.P, lane.P)
+    np.testing.assert_array_equal(blocked.gust.sens, lane.gust.sens)
+
+    # The reference backend's lane keeps the same contract (to its own rounding).
+    ref = core.Lane(state, "reference")
+    for k in range(1, 60):
+        ref_row, _ = ref.step(t[k], u[k], y[k], tuning, model)
+    mid = core.Lane(state, "fast")
+    fast_row, _ = mid.block(t[1:60], u[1:60], y[1:60], tuning, model)
+    np.testing.assert_allclose(ref_row, fast_row, rtol=1e-6, atol=1e-9)
+    # A belief read out and put back steps on exactly as the one kept in place.
+    moved = core.Lane(mid.state, "fast")
+    r1, _ = mid.step(t[60], u[60], y[60], tuning, model)
+    r2, _ = moved.step(t[60], u[60], y[60], tuning, model)
+    np.testing.assert_array_equal(r1, r2)
 
 
 def test_a_re_run_in_blocks_is_the_re_run_frame_by_frame(noc_config: AircraftConfig) -> None:
@@ -423,8 +448,7 @@ def test_a_re_run_in_blocks_is_the_re_run_frame_by_frame(noc_config: AircraftCon
     runs = []
     for blocks in (True, False):
         est = Estimator(noc_config)
-        if not blocks:
-            est._block = None
+        est._blocks = blocks
         for k in range(len(t)):
             est.step(t[k], u[k], y[k], inputs_known=k != 200)
         est.finish_restarts()

@@ -6,9 +6,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import Estimator
+from gcs_estimator.filters import core
 from sim.truth import simulate
 
 
@@ -17,29 +19,26 @@ def _run(config: AircraftConfig) -> tuple[Estimator, list[int]]:
     (one at a time or in a re-run's blocks)."""
     fl = simulate(config, seed=5)
     est = Estimator(config)
-    inner = est._step
     calls = [0]
+    step, block = core.Lane.step, core.Lane.block
 
-    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+    def counted(lane, *args, **kwargs):  # type: ignore[no-untyped-def]
         calls[0] += 1
-        return inner(*args, **kwargs)
+        return step(lane, *args, **kwargs)
 
-    est._step = counted
-    block = est._block
-    assert block is not None
+    def counted_block(lane, ts, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls[0] += len(ts)  # the frames it steps
+        return block(lane, ts, *args, **kwargs)
 
-    def counted_block(*args, **kwargs):  # type: ignore[no-untyped-def]
-        out = block(*args, **kwargs)
-        calls[0] += out[0]  # the frames it stepped
-        return out
-
-    est._block = counted_block
     per_frame = []
-    for t, u, y in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
-        calls[0] = 0
-        est.step(float(t), u, y)
-        per_frame.append(calls[0])
-    est.finish_restarts()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(core.Lane, "step", counted)
+        mp.setattr(core.Lane, "block", counted_block)
+        for t, u, y in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
+            calls[0] = 0
+            est.step(float(t), u, y)
+            per_frame.append(calls[0])
+        est.finish_restarts()
     return est, per_frame
 
 
