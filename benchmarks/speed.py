@@ -5,16 +5,21 @@
 Per filter (the EKF; the IEKF with the configured relinearisation gate, which stops it
 after the first iteration near the solution; and the IEKF with all N = 7 iterations every
 step), CPU time, best of 5, from a converged state over 2500 frames of a flight:
-- kernel: the compiled backend's one call per step (filters.fast.kernel_step: process
-  noise, prediction, update, health check, gust matching);
-- step contract: the same through filters.core's guarded step, as the estimator's runner
-  calls it for each filter and frame (the target figure);
-- blocks: filters.core's block step (filters.fast.kernel_block, one compiled call for
-  many frames), 10 frames a call as a restart's re-run steps its buffered frames beside
-  the live pass, and 100 a call;
+- kernel: the compiled backend's one call per step on a belief kept in one buffer
+  (filters.fast.lane_kernel: process noise, prediction, update, health check, gust
+  matching), with nothing around it;
+- runner: one filter's step as the estimator's runner takes it for each frame
+  (Estimator._advance_one: the lane's step, core.Lane.step, the health count and the
+  frame's output; the target figure);
+- FilterState contract: the same step through filters.core's guarded step on a
+  FilterState, as the numpy reference is called below;
+- blocks: a lane's block step (core.Lane.block, one compiled call for many frames), 10
+  frames a call as a restart's re-run steps its buffered frames beside the live pass, and
+  100 a call;
 - flops per step: counted from the loop bounds of the step's linear algebra (the model's
-  own equations not counted), and the rate they run at as a share of the machine's
-  small-matrix rate (a 15 x 15 product through BLAS in a compiled loop, measured here);
+  own equations not counted), and the rate the runner's step runs them at as a share of
+  the machine's small-matrix rate (a 15 x 15 product through BLAS in a compiled loop,
+  measured here);
 - numpy reference: the reference backend through the same contract;
 - filterpy: filterpy's ExtendedKalmanFilter on the same model functions (the numpy
   equations, Runge-Kutta state and transition matrix), all channels every frame.
@@ -34,10 +39,11 @@ import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 from numba import njit
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import run_recording
+from gcs_estimator.estimator import Estimator, run_recording
 from gcs_estimator.filters import core, fast
-from gcs_estimator.filters.core import FilterState, Tuning
+from gcs_estimator.filters.core import FilterKind, FilterState, Tuning
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_OBS
@@ -68,6 +74,7 @@ class Setup:
     """One filter on the NOC flight, stepped to WARM frames."""
 
     def __init__(self, kind: str, overrides: list[str]) -> None:
+        self.kind = kind
         self.config: AircraftConfig = load_config("noc_uav", overrides)
         self.flight: Flight = simulate(self.config, seed=1)
         self.model: Model = build_model(self.config)
@@ -92,17 +99,49 @@ class Setup:
             iterations += info.iterations
         return n / (time.process_time() - t0), iterations / n
 
-    def block_rate(self, block: core.BlockStep, frames: int, size: int) -> float:
-        """Steps per second through the block step, `size` frames a call."""
-        f, s = self.flight, self.state
-        n = min(frames, len(f.t_s) - WARM)
-        t = f.t_s[WARM : WARM + n].astype(float)
-        u, y = f.inputs[WARM : WARM + n], f.measurements[WARM : WARM + n]
+    def frames(self, count: int) -> tuple[int, list[float], FloatArray, FloatArray]:
+        """(n, times, inputs as the equations take them, observations) of the n <= count
+        frames after WARM."""
+        f = self.flight
+        n = min(count, len(f.t_s) - WARM)
+        u = np.array([self.model.inputs(v) for v in f.inputs[WARM : WARM + n]])
+        return n, [float(v) for v in f.t_s[WARM : WARM + n]], u, f.measurements[WARM : WARM + n]
+
+    def kernel_rate(self, count: int) -> float:
+        """Steps per second of the compiled call alone (fast.lane_kernel)."""
+        n, t, u, y = self.frames(count)
+        buf = fast.belief_buffer(self.state)
+        tf, ti = fast.pack(self.tuning, self.model.arrays)
+        width = fast.output_width(self.model.n)
+        kernel = fast.lane_kernel
+        t0 = time.process_time()
+        for i in range(n):
+            kernel(buf, t[i], u[i], y[i], tf, ti, np.empty(width))
+        return n / (time.process_time() - t0)
+
+    def runner_rate(self, count: int) -> float:
+        """Steps per second of one filter as the estimator's runner steps it for each
+        frame (Estimator._advance_one on the lane of the converged state)."""
+        n, t, u, y = self.frames(count)
+        est = Estimator(self.config)
+        kind: FilterKind = self.kind  # type: ignore[assignment]
+        states: dict[FilterKind, core.Lane | None] = {kind: core.Lane(self.state, "fast")}
+        advance, tuning = est._advance_one, self.tuning
+        t0 = time.process_time()
+        for i in range(n):
+            advance(kind, states, t[i], u[i], y[i], True, tuning)
+        return n / (time.process_time() - t0)
+
+    def block_rate(self, count: int, size: int) -> float:
+        """Steps per second through a lane's block step, `size` frames a call."""
+        n, times, u, y = self.frames(count)
+        t = np.array(times)
+        lane = core.Lane(self.state, "fast")
         t0 = time.process_time()
         for i in range(0, n, size):
             j = i + size
-            done, _, s, _ = block(s, t[i:j], u[i:j], y[i:j], self.tuning, self.model)
-            assert done == len(t[i:j]), "a healthy flight stops no block"
+            _, counts = lane.block(t[i:j], u[i:j], y[i:j], self.tuning, self.model)
+            assert counts == (0, 0, 0), "a healthy flight fails no update"
         return n / (time.process_time() - t0)
 
     def pattern(self) -> tuple[int, int, int, int]:
@@ -221,35 +260,34 @@ def run() -> int:
     peak = small_matrix_gflops()
     print(f"small-matrix rate of this machine: {peak:.2f} GFLOP/s (15 x 15 products, BLAS)\n")
     print(
-        "| filter | kernel steps/s | step contract steps/s | "
+        "| filter | kernel steps/s | runner steps/s | FilterState contract steps/s | "
         + "".join(f"blocks of {b} steps/s | " for b in BLOCKS)
         + "iterations/step | kflop/step | "
-        "GFLOP/s (contract) | share of small-matrix rate | numpy reference steps/s | "
+        "GFLOP/s (runner) | share of small-matrix rate | numpy reference steps/s | "
         "filterpy EKF steps/s |"
     )
-    print("|---" * (9 + len(BLOCKS)) + "|")
-    block = core.block_stepper("fast")
-    assert block is not None
+    print("|---" * (10 + len(BLOCKS)) + "|")
     for label, kind, overrides in FILTERS:
         setup = Setup(kind, overrides)
-        kernel = max(setup.rate(fast.kernel_step, 2500)[0] for _ in range(REPEATS))
+        kernel = max(setup.kernel_rate(2500) for _ in range(REPEATS))
+        runner = max(setup.runner_rate(2500) for _ in range(REPEATS))
         runs = [setup.rate(fast_step, 2500) for _ in range(REPEATS)]
         contract = max(r[0] for r in runs)
         blocks = "".join(
-            f"{max(setup.block_rate(block, 2500, b) for _ in range(REPEATS)):,.0f} | "
-            for b in BLOCKS
+            f"{max(setup.block_rate(2500, b) for _ in range(REPEATS)):,.0f} | " for b in BLOCKS
         )
         iterations = runs[0][1]
         # The relinearisation gate linearises a second time to decide, kept or not.
         gated = kind == "IEKF" and setup.tuning.relinearise > 0.0 and setup.tuning.iterations > 1
         flops = step_flops(*setup.pattern(), max(iterations, 2.0) if gated else iterations)
-        gflops = flops * contract / 1e9
+        gflops = flops * runner / 1e9
         ref = setup.rate(ref_step, 300)[0]
         fp = filterpy_rate(setup, 300) if kind == "EKF" else None
         fp_text = "-" if fp is None else f"{fp:,.0f}"
         print(
-            f"| {label} | {kernel:,.0f} | {contract:,.0f} | {blocks}{iterations:.2f} | "
-            f"{flops / 1e3:.1f} | {gflops:.2f} | {gflops / peak:.1%} | {ref:,.0f} | {fp_text} |"
+            f"| {label} | {kernel:,.0f} | {runner:,.0f} | {contract:,.0f} | {blocks}"
+            f"{iterations:.2f} | {flops / 1e3:.1f} | {gflops:.2f} | {gflops / peak:.1%} | "
+            f"{ref:,.0f} | {fp_text} |"
         )
     fps, check_s, n = whole_flight()
     print(
