@@ -680,6 +680,7 @@ class Lane:
             from gcs_estimator.filters import fast
 
             self._fast = fast
+            self._kernel = fast.lane_kernel
             self._width = fast.output_width(self.n)
         self._step_ref = stepper("reference") if backend == "reference" else None
         self.load(state)
@@ -740,7 +741,7 @@ class Lane:
             self._pack(tuning, model)
         tf, ti = self._packed
         row = np.empty(self._width)
-        status = self._fast.lane_kernel(self._buf, t, u, y, tf, ti, row)
+        status = self._kernel(self._buf, t, u, y, tf, ti, row)
         if status == 2:
             return self._recover(t, u, y, tuning, model, row), 1
         return row, status

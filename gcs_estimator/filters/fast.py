@@ -28,7 +28,7 @@ from gcs_estimator.filters.hybrid import PSD_JITTER
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.model.equations import ModelArrays, observe, rk4_step
+from gcs_estimator.model.equations import ModelArrays, dynamics_rows, observe
 
 for _fn in (
     core.plausible,
@@ -86,6 +86,32 @@ def _add_process_noise(
 
 
 @njit(cache=True)
+def _rk4(
+    x: FloatArray, u0: FloatArray, u1: FloatArray, h: float, m: ModelArrays
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:  # pragma: no cover
+    """equations.rk4_step, bit for bit, with its vector sums as loops into one scratch
+    vector (compiled, each numpy temporary of the original is an allocation)."""
+    n = x.shape[0]
+    um = np.empty(u0.shape[0])
+    for i in range(u0.shape[0]):
+        um[i] = u0[i] + 0.5 * (u1[i] - u0[i])
+    f1, F1 = dynamics_rows(x, u0, m)
+    xs = np.empty(n)
+    for i in range(n):
+        xs[i] = x[i] + 0.5 * h * f1[i]
+    f2, F2 = dynamics_rows(xs, um, m)
+    for i in range(n):
+        xs[i] = x[i] + 0.5 * h * f2[i]
+    f3, F3 = dynamics_rows(xs, um, m)
+    for i in range(n):
+        xs[i] = x[i] + h * f3[i]
+    f4, F4 = dynamics_rows(xs, u1, m)
+    for i in range(n):
+        xs[i] = x[i] + h / 6.0 * (f1[i] + 2.0 * f2[i] + 2.0 * f3[i] + f4[i])
+    return xs, F1, F2, F3, F4
+
+
+@njit(cache=True)
 def _propagate(
     x: FloatArray,
     P: FloatArray,
@@ -106,13 +132,16 @@ def _propagate(
     h = dt / steps
     d = m.n_dynamic
     n = x.shape[0]
-    du = u1 - u0
     D = np.empty((d, n))
     D_m = np.empty((d, n))
+    ua = np.empty(u0.shape[0])
+    ub = np.empty(u0.shape[0])
     for j in range(steps):
-        ua = u0 + du * (j / steps)
-        ub = u0 + du * ((j + 1) / steps)
-        x, F1, F2, F3, F4 = rk4_step(x, ua, ub, h, m)
+        for i in range(u0.shape[0]):
+            du = u1[i] - u0[i]
+            ua[i] = u0[i] + du * (j / steps)
+            ub[i] = u0[i] + du * ((j + 1) / steps)
+        x, F1, F2, F3, F4 = _rk4(x, ua, ub, h, m)
         # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
         K2 = _stage(F2, F1, 0.5 * h, d)
         K3 = _stage(F3, K2, 0.5 * h, d)
@@ -137,12 +166,13 @@ def _select(
     for i in range(N_OBS):
         if not math.isfinite(y[i]):
             continue
-        s_ii = 0.0
-        for j in range(H.shape[1]):
-            s_ii += HP[i, j] * H[i, j]
-        s_ii += R[i, i]
-        if gate > 0.0 and abs(y[i] - hx[i]) > gate * math.sqrt(s_ii):
-            continue
+        if gate > 0.0:
+            s_ii = 0.0
+            for j in range(H.shape[1]):
+                s_ii += HP[i, j] * H[i, j]
+            s_ii += R[i, i]
+            if abs(y[i] - hx[i]) > gate * math.sqrt(s_ii):
+                continue
         idx[m] = i
         m += 1
     return idx[:m]
