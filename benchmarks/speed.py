@@ -4,7 +4,7 @@
 
 Per filter (the EKF; the IEKF with the configured relinearisation gate, which stops it
 after the first iteration near the solution; and the IEKF with all N = 7 iterations every
-step), CPU time, best of 5, from a converged state over 2500 frames of a flight:
+step), CPU time, best of 9, from a converged state over 2500 frames of a flight:
 - kernel: the compiled backend's one call per step on a belief kept in one buffer
   (filters.fast.lane_kernel: process noise, prediction, update, health check, gust
   matching), with nothing around it;
@@ -49,7 +49,7 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_OBS
 from sim.truth import Flight, simulate
 
-REPEATS = 5
+REPEATS = 9
 """Timed runs per figure, the best kept (as timeit does): on a shared machine the others
 measure its neighbours."""
 
