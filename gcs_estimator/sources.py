@@ -340,6 +340,8 @@ class TlogSource:
         """The file's records as they are read (a piece at a time)."""
         try:
             self.total = path.stat().st_size
+            if self.total == 0:
+                raise SourceError(f"{path}: an empty file (no MAVLink record)")
             yield from read_tlog(path, stats)
         except TlogError as exc:
             raise SourceError(str(exc)) from exc

@@ -290,6 +290,12 @@ def test_truncated_and_garbage_tlogs(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert gcs_main(["replay", str(tmp_path / "notes.txt"), "--out", str(out), "--force"]) == 2
     assert "not a tlog" in capsys.readouterr().err
 
+    # An empty file is skipped as one that is not a tlog is.
+    (tmp_path / "empty.tlog").write_bytes(b"")
+    assert gcs_main(["replay", str(tmp_path / "empty.tlog"), "--out", str(tmp_path / "e")]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {tmp_path / 'empty.tlog'}: an empty file (no MAVLink record); skipped" in err
+
 
 def test_sigterm_stops_cleanly_with_results(tmp_path: Path) -> None:
     proc, _line = start_listen(
