@@ -331,6 +331,8 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
         if isinstance(sink, ResultsSink) and isinstance(sink.refine, RefineAsk)
         for why in sink.refine.failures
     ]
+    if isinstance(session, ShardedSession):  # the fits ran in the filter processes
+        failed += session.refine_failures
     if failed:
         print(
             f"error: the whole-record fit failed ({'; '.join(failed)}); the filters' results "

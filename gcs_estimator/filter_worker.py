@@ -307,7 +307,10 @@ class EndSink:
             for csv in self.writer.histories.values():
                 csv.close()
         ended = {sid: v.without_tracks() for sid, v in results.items()}
-        self.send(("end", ended, texts, time.process_time() - self.started_cpu_s))
+        refine = None if self.writer is None else self.writer.refine
+        failures = list(refine.failures) if isinstance(refine, RefineAsk) else []
+        cpu_s = time.process_time() - self.started_cpu_s
+        self.send(("end", ended, texts, cpu_s, failures))
 
 
 def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
@@ -431,7 +434,8 @@ class FilterShard(WorkerProcess):
         self.next_seq = 0
         self.ready_seen = False
         self.end: tuple[Any, ...] | None = None
-        """("end", results without tracks, tables, CPU time [s]) once the worker ended."""
+        """("end", results without tracks, tables, CPU time [s], why --refine's fit failed
+        for its vehicles where it did) once the worker ended."""
         self.gone = False
         """The worker's output ended (after its end, or because it failed or died)."""
         self.lost = 0
@@ -512,6 +516,9 @@ class ShardedSession:
         self.texts: dict[int, str] = {}
         """Each vehicle's table, as its worker printed it."""
         self.errors: list[str] = []
+        self.refine_failures: list[str] = []
+        """Why --refine's fit failed, a line per vehicle where it did (its worker's
+        RefineAsk.failures): the run's exit status, as a Session's results sink's."""
         self.workers_cpu_s = 0.0
         """The workers' CPU time [s] from when they were ready to their end (once they
         ended)."""
@@ -643,6 +650,7 @@ class ShardedSession:
             elif msg[0] == "end":
                 shard.end = msg
                 self.workers_cpu_s += float(msg[3])
+                self.refine_failures += msg[4]
             elif msg[0] == "failed":
                 self._error(f"filter process {shard.index} failed: {msg[1]}")
 

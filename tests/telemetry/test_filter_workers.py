@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from gcs_estimator import cli
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import Estimator, FilterKind, StepOutput
@@ -59,13 +60,14 @@ def _fly(port: int, vehicles: int) -> None:
 
 
 def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_to(
-    tmp_path: Path,
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Three vehicles -> UDP -> `listen --filter-workers 2` (its link in a worker too):
     every frame of every vehicle is estimated and in the view; the tables come in the
     order the vehicles were heard, each once; a replay of the recording with the same
     workers ends with the same results and history, byte for byte, and a replay in one
-    process with the same estimates."""
+    process with the same estimates. A whole-record fit that fails in a worker sets the
+    run's exit status as in one process."""
     live = tmp_path / "live"
     listen = ["udpin:127.0.0.1:0", "--filter-workers", "2", "--link-worker", "--idle-exit", "1.5"]
     station, line = start_listen(
@@ -113,6 +115,19 @@ def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_
         # the vehicles of one worker: the swaps come at other frames, the estimates
         # the same.
         assert _estimates(got) == _estimates(_results(one, sid))
+
+    # --refine over a window the flights do not reach fails in each worker.
+    capsys.readouterr()
+    fit = ["--refine", "output-error", "--window", "70:80"]
+    code = gcs_main(
+        ["replay", tlog, "--filter-workers", "2", "--out", str(tmp_path / "fit"), *QUICK, *fit]
+    )
+    assert code == cli.EXIT_REFINE_FAILED
+    err = capsys.readouterr().err
+    assert "error: the whole-record fit failed (vehicle " in err
+    for sid in (1, 2, 3):
+        assert f"vehicle {sid}: only 0 frames in the window" in err
+        assert _results(tmp_path / "fit", sid)["refined"] is None
 
 
 class _Fleet:
