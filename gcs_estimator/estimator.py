@@ -84,11 +84,6 @@ class Health:
     divergences: int = 0
     """Times the belief went non-finite and the filter started again from its prior."""
 
-    def count(self, info: StepInfo) -> None:
-        self.failed_updates += info.failed
-        self.covariance_repairs += info.repaired
-        self.divergences += info.diverged
-
     def add(self, failed: int, repaired: int, diverged: int) -> None:
         self.failed_updates += failed
         self.covariance_repairs += repaired
