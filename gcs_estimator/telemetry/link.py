@@ -286,7 +286,7 @@ class MavlinkLink:
             if not event.ground_station:
                 self._heartbeat(sysid, compid, event, address)
         elif isinstance(event, CommandAck):
-            self._ack(sysid, event)
+            self._ack(sysid, compid, event)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
         return out
@@ -343,12 +343,15 @@ class MavlinkLink:
         )
         return False
 
-    def _ack(self, sysid: int, ack: CommandAck) -> None:
-        """An acknowledgement counts only for a command we sent to that vehicle, and
-        only if addressed to us (or to everyone, as some autopilots do)."""
+    def _ack(self, sysid: int, compid: int, ack: CommandAck) -> None:
+        """An acknowledgement counts only for a command we sent to that vehicle, only
+        from the component the command went to (mavlink.RATE_REQUEST_COMPONENT), and
+        only if addressed to us (or to everyone, as some autopilots do): a camera or
+        gimbal on the vehicle's system id that answers too does not stop the requests."""
         v = self.vehicles.get(sysid)
         if (
             v is not None
+            and compid == mavlink.RATE_REQUEST_COMPONENT
             and ack.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
             and ack.target_system in (mavlink.GCS_SYSTEM_ID, 0)
             and v.last_rate_request > -math.inf

@@ -37,6 +37,9 @@ MAVLinkMessage = Any
 STX_V1, STX_V2 = 0xFE, 0xFD
 SIGNED_FLAG = 0x01
 GCS_SYSTEM_ID, GCS_COMPONENT_ID = 255, 190
+RATE_REQUEST_COMPONENT = 1
+"""The component the ground station's rate requests go to (MAV_COMP_ID_AUTOPILOT1, where
+autopilots answer them); only its acknowledgement counts."""
 
 MSG_ID = {
     "HEARTBEAT": dialect.MAVLINK_MSG_ID_HEARTBEAT,
@@ -118,7 +121,7 @@ class Codec:
         interval_us = 1e6 / rate_hz if rate_hz > 0 else -1
         msg = self.mav.command_long_encode(
             target_system,
-            1,
+            RATE_REQUEST_COMPONENT,
             MAV_CMD_SET_MESSAGE_INTERVAL,
             0,
             MSG_ID[message],

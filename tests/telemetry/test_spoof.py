@@ -101,6 +101,10 @@ def test_an_ack_counts_only_for_a_request_we_sent_and_only_addressed_to_us(
     list(link.ground_messages(mavlink.Codec(255, 190), 2.0))  # the rate requests go out
     list(link.datagram(codec.command_ack(*ack, 42), 2.1, here))  # for another station
     assert link.vehicles[1].acked == set()
+    # A gimbal on the vehicle's system id answers too: the request did not go to it.
+    gimbal = mavlink.Codec(1, 154)
+    list(link.datagram(gimbal.command_ack(*ack, addressed_to), 2.15, here))
+    assert link.vehicles[1].acked == set()
     list(link.datagram(codec.command_ack(*ack, addressed_to), 2.2, here))
     assert link.vehicles[1].acked == {mavlink.MAV_RESULT_ACCEPTED}
 
