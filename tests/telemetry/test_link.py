@@ -19,7 +19,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording, load_hfb320
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Session
+from gcs_estimator.session import Session, warm_up
 from gcs_estimator.sources import TlogSource, UdpSource, open_udp
 from gcs_estimator.stop import Stop
 from gcs_estimator.telemetry.link import MavlinkLink
@@ -36,6 +36,9 @@ class Ground:
     """A ground station as the commands build it: a session over a MAVLink link."""
 
     def __init__(self, config: AircraftConfig, record: Path | None = None) -> None:
+        # As the commands do before they listen: kernels compiled (or loaded) now, so a
+        # vehicle is never left unanswered while the station compiles them.
+        warm_up(config)
         self.session = Session(config)
         self.link = MavlinkLink(config.link, recorder=TlogWriter(record) if record else None)
 
