@@ -674,7 +674,8 @@ class Lane:
         self._model: Model | None = None
         self._packed: tuple[FloatArray, IntArray] = (np.empty(0), np.empty(0, np.int64))
         """The settings as the kernel takes them, for _tuning and _model (_pack)."""
-        self._state = state
+        self._state: FilterState
+        """The belief, with the reference backend (the compiled one keeps _buf)."""
         self._buf = np.empty(0)
         if self._compiled:
             from gcs_estimator.filters import fast
@@ -717,7 +718,7 @@ class Lane:
 
     @property
     def gust(self) -> GustState:
-        return self.state.gust if self._compiled else self._state.gust
+        return self.state.gust
 
     def _pack(self, tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
         """The settings as the kernel takes them (filters.fast.pack), kept while the same
