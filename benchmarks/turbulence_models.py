@@ -169,12 +169,8 @@ def run(seeds: int, noc_seeds: int) -> None:
         for m in [*MODELS, PICK]:
             worst = [r[m].worst for r in rows]
             nees = [r[m].nees for r in rows]
-            cells.append(
-                f"{max(worst):.2f} / {np.median(worst):.2f} / NEES {np.mean(nees):.1f}"
-            )
-        counts = {
-            m: sum(1 for r in rows if r[PICK] == r[m]) for m in MODELS
-        }
+            cells.append(f"{max(worst):.2f} / {np.median(worst):.2f} / NEES {np.mean(nees):.1f}")
+        counts = {m: sum(1 for r in rows if r[PICK] == r[m]) for m in MODELS}
         chosen = ", ".join(f"{m} {c}" for m, c in counts.items() if c)
         print(f"| {group} | {len(rows)} | " + " | ".join(cells) + f" | {chosen} |")
     p = 11
