@@ -178,6 +178,10 @@ class FilterSummary:
     """Turbulence level averaged over that pass [m/s] (FilterResult.gust_pass_sigma)."""
     gust_pass_z: float = math.nan
     """That average in its standard errors (NaN: not measured)."""
+    channel_nis: tuple[float, ...] = ()
+    """Per observation channel (OBS_NAMES order), the mean of (innovation / its predicted
+    sigma)^2 over the same updates as mean_nis: 1 where the filter's noise model and
+    dynamics account for what the channel shows (NaN: no update used the channel)."""
 
 
 def _share_on(gust_sigma: FloatArray) -> float:
@@ -269,6 +273,9 @@ def summarise(
         used = track.n_used > 0
         settled = used.copy()  # the pass that runs on: from the last restart's swap
         settled[: result.final_pass_from] = False
+        channel_nis = channel_mean_squares(
+            track.innovation[settled], track.innovation_sigma[settled]
+        )
         nees = None
         if truth is not None:
             d = x - truth
@@ -285,5 +292,17 @@ def summarise(
             gust_on_share=_share_on(track.gust_sigma[result.final_pass_from :]),
             gust_pass_sigma=fr.gust_pass_sigma,
             gust_pass_z=fr.gust_pass_z,
+            channel_nis=channel_nis,
         )
     return out
+
+
+def channel_mean_squares(innovation: FloatArray, sigma: FloatArray) -> tuple[float, ...]:
+    """Per channel (column), the mean of (innovation / sigma)^2 over the rows where the
+    channel was used (finite and sigma > 0); NaN for a channel never used."""
+    used = np.isfinite(innovation) & np.isfinite(sigma) & (sigma > 0.0)
+    ratio = np.where(used, innovation / np.where(used, sigma, 1.0), 0.0)
+    count = used.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, (ratio * ratio).sum(axis=0) / count, math.nan)
+    return tuple(float(v) for v in mean)

@@ -179,6 +179,16 @@ def _run_notes(
         note = (
             f"{k}: {s.steps} updates, mean NIS {s.mean_nis:.2f} over {s.mean_channels:.1f} channels"
         )
+        if s.channel_nis:
+            note += (
+                " (per channel "
+                + ", ".join(
+                    f"{n} {v:.2f}"
+                    for n, v in zip(OBS_NAMES, s.channel_nis, strict=True)
+                    if math.isfinite(v)
+                )
+                + ")"
+            )
         if s.nees is not None:
             note += f", coefficient NEES {s.nees:.1f} (dof {len(s.coefficients)})"
         note += f", turbulence σ_w {s.gust_sigma:.2f} m/s"
@@ -253,6 +263,10 @@ def live_table(estimator: LiveEstimate, truth: Sequence[float] | FloatArray | No
 
 NIS_RATIO_LIMIT = 3.0
 """Mean NIS this many times the channel count (or a third of it): the noise model is off."""
+CHANNEL_NIS_LIMIT = 2.0
+"""A channel's mean squared innovation this many times what the filter predicts (or less
+than its inverse): that channel says the filter's model or its noise settings are off
+there, where the whole NIS, averaged over the channels, may not."""
 INFLATION_LIMIT = 2.0
 """A corrected sigma above this multiple of the covariance's: worth a warning."""
 GUST_BURSTS = (0.02, 0.9)
@@ -286,6 +300,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                     "the noise model does not fit these data, so its sigmas do not either "
                     "(check [filter.measurement_sigma] against the sensors)"
                 )
+        out += _channel_warnings(kind, s)
         threshold = result.config.filter.turbulence.detection_sigma
         if s.gust_pass_z >= threshold and s.gust_on_share < GUST_BURSTS[1]:
             out.append(
@@ -329,6 +344,33 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     out += _run_warnings(result)
     if refined is not None:
         out += _refined_warnings(refined)
+    return out
+
+
+def _channel_warnings(kind: str, s: FilterSummary) -> list[str]:
+    """The channels whose innovations over the final pass are far larger, or far smaller,
+    than the filter predicts (FilterSummary.channel_nis)."""
+    pairs = [(n, v) for n, v in zip(OBS_NAMES, s.channel_nis, strict=True) if math.isfinite(v)]
+    high = [f"{n} {v:.1f}" for n, v in pairs if v > CHANNEL_NIS_LIMIT]
+    low = [f"{n} {v:.2f}" for n, v in pairs if v < 1.0 / CHANNEL_NIS_LIMIT]
+    out = []
+    if high:
+        out.append(
+            f"{kind}: innovations larger than the filter predicts on "
+            + ", ".join(high)
+            + " (their mean square over the predicted σ², 1 expected): the model or the "
+            "noise settings miss something these channels show (aerodynamics the "
+            "structure lacks, turbulence, a sensor noisier or placed otherwise than the "
+            "airframe file says), and the filter counts on them more than it should: "
+            "trust the corrected σ"
+        )
+    if low:
+        out.append(
+            f"{kind}: innovations smaller than the filter predicts on "
+            + ", ".join(low)
+            + ": their [filter.measurement_sigma] is larger than these data show, so the "
+            "filters use them less than they could"
+        )
     return out
 
 
@@ -626,6 +668,9 @@ def results_dict(
             "turbulence_pass_sigma_w_mps": s.gust_pass_sigma,
             "turbulence_pass_z": _num(s.gust_pass_z),
             "nees": _num(s.nees),
+            "innovation_mean_square": {
+                n: _num(v) for n, v in zip(OBS_NAMES, s.channel_nis, strict=True)
+            },
             "updates": s.steps,
             "estimates": {
                 c.name: {

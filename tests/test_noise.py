@@ -184,3 +184,51 @@ def test_noise_read_in_turbulence_is_named() -> None:
     assert warned["none"] == []
     (text,) = warned["light"]
     assert "qdot read" in text and 'measurement_noise = "config"' in text
+
+
+def test_a_channel_whose_noise_is_set_wrong_is_named_by_its_innovations() -> None:
+    """Each channel's innovations over the final pass against what the filter predicts
+    (metrics.FilterSummary.channel_nis, the JSON's innovation_mean_square): near 1 on every
+    channel where the settings are the simulator's, about 9 on a gyro configured with a
+    third of its noise (named as larger than predicted), about 1/9 on one configured with
+    three times its noise (named as smaller)."""
+    from gcs_estimator.metrics import channel_mean_squares
+    from gcs_estimator.report import CHANNEL_NIS_LIMIT, results_dict
+
+    short = ["simulation.manoeuvre.duration_s=30"]
+    flight = simulate(load_config("noc_uav", short), seed=4)
+    q = OBS_NAMES.index("q")
+    ratios: dict[str, np.ndarray] = {}
+    named: dict[str, list[str]] = {}
+    for label, sigma_deg in (("right", 0.1), ("a third", 0.1 / 3.0), ("three times", 0.3)):
+        config = load_config(
+            "noc_uav",
+            [
+                *short,
+                f"filter.measurement_sigma.q_deg={sigma_deg}",
+                'filter.measurement_noise="config"',
+            ],
+        )
+        run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+        ratios[label] = np.array(run.summaries["EKF"].channel_nis)
+        named[label] = [w for w in trust_warnings(run) if "innovations" in w and "predicts" in w]
+        saved = results_dict(run)["filters"]["EKF"]["innovation_mean_square"]
+        assert list(saved) == list(OBS_NAMES)
+        assert np.allclose([saved[n] for n in OBS_NAMES], ratios[label])
+    assert np.all(np.abs(ratios["right"] - 1.0) < 0.15), ratios["right"].round(2)
+    assert named["right"] == []
+    assert ratios["a third"][q] > 2.0 * CHANNEL_NIS_LIMIT
+    assert ratios["three times"][q] < 0.5 / CHANNEL_NIS_LIMIT
+    others = np.arange(len(OBS_NAMES)) != q
+    for label in ("a third", "three times"):
+        assert np.all(np.abs(ratios[label][others] - 1.0) < 0.2), (label, ratios[label].round(2))
+    for w in named["a third"]:
+        assert "larger than the filter predicts on q " in w
+    assert [w.split(":")[0] for w in named["a third"]] == ["EKF", "IEKF"]
+    assert [w.split(":")[0] for w in named["three times"]] == ["EKF", "IEKF"]
+    assert all("smaller than the filter predicts on q " in w for w in named["three times"])
+    # Rows where a channel was not used leave it out; a channel never used is NaN.
+    e = np.array([[1.0, np.nan], [3.0, np.nan], [np.nan, np.nan]])
+    s = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0]])
+    mean = channel_mean_squares(e, s)
+    assert mean[0] == 5.0 and math.isnan(mean[1])
