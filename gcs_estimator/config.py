@@ -494,8 +494,10 @@ air_density itself, else static_pressure or pressure_altitude with air_temperatu
 (the standard temperature where that column is absent or empty)."""
 
 
-def _column(default: str, optional: bool = False) -> Any:
+def _column(default: str, optional: bool = False, observed: bool = False) -> Any:
     doc = "the file's column name" + (" (optional: air density per sample)" if optional else "")
+    if observed:
+        doc += ' ("": the data have none, and the filters go without this channel)'
     return setting(default, doc=doc)
 
 
@@ -509,13 +511,13 @@ class Columns:
     """Which CSV column holds each quantity (the defaults are the project's own layout)."""
 
     time: str = _column("time_s")
-    airspeed: str = _column("airspeed_mps")
-    alpha: str = _column("alpha_rad")
-    theta: str = _column("theta_rad")
-    q: str = _column("q_radps")
-    qdot: str = _column("qdot_radps2")
-    a_x: str = _column("ax_mps2")
-    a_z: str = _column("az_mps2")
+    airspeed: str = _column("airspeed_mps", observed=True)
+    alpha: str = _column("alpha_rad", observed=True)
+    theta: str = _column("theta_rad", observed=True)
+    q: str = _column("q_radps", observed=True)
+    qdot: str = _column("qdot_radps2", observed=True)
+    a_x: str = _column("ax_mps2", observed=True)
+    a_z: str = _column("az_mps2", observed=True)
     elevator: str = _column("elevator_rad")
     throttle: str = _column("throttle")
     thrust: str = _column("thrust_n")

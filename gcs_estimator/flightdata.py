@@ -285,14 +285,22 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
         header = list(reader.fieldnames or [])
     except csv.Error as exc:
         raise FlightDataError(f"{path}:1: not a CSV row: {exc}") from exc
+    absent = [q for q in OBSERVED if getattr(cols, q) == ""]
     for quantity in ("time", *OBSERVED, "elevator"):
-        _require(path, header, quantity, getattr(cols, quantity))
+        if quantity not in absent:
+            _require(path, header, quantity, getattr(cols, quantity))
+    for quantity in absent:
+        notes.append(
+            f'{path}: no {quantity} column ([data.columns] {quantity} = ""): the filters go '
+            "without that channel"
+        )
     power = _power_column(path, header, cols)
     air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
     wanted = ("time", *OBSERVED, "elevator", power, *air)
+    read = [i for i, q in enumerate(wanted) if q not in absent]
     scale = np.array([units.factor(q) for q in wanted])
     shift = np.array([units.offset(q) for q in wanted])
-    names = [getattr(cols, q) for q in wanted]
+    names = [getattr(cols, wanted[i]) for i in read]
     rows, lines, unread = _read_rows(path, reader, names, decimal_comma=delimiter != ",")
     _drop_cut_line(path, text, rows, lines, bool(rows), notes)
     for c, (n, first, cell) in unread.items():
@@ -302,7 +310,9 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
         )
     if not rows:
         raise FlightDataError(f"{path}: no data rows")
-    arr = np.array(rows, float) * scale + shift
+    arr = np.full((len(rows), len(wanted)), np.nan)
+    arr[:, read] = np.array(rows, float).reshape(len(rows), len(read))
+    arr = arr * scale + shift
     arr = _in_time_order(path, cols.time, arr, np.array(lines), notes)
     check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
     inputs = arr[:, [8, 9]]
@@ -428,8 +438,14 @@ def _require(path: str | Path, header: list[str], quantity: str, column: str) ->
     if column not in header:
         raise FlightDataError(
             f"{path}: no column {column!r} for {quantity}; name the file's column with "
-            f'[data.columns] {quantity} = "..." (or --set data.columns.{quantity}=NAME); '
-            f"the file has {header}"
+            f'[data.columns] {quantity} = "..." (or --set data.columns.{quantity}=NAME)'
+            + (
+                f'; if the data have no {quantity}, {quantity} = "" (the filters then go '
+                "without it)"
+                if quantity in OBSERVED
+                else ""
+            )
+            + f"; the file has {header}"
         )
 
 

@@ -609,7 +609,9 @@ def _noise_note(result: EstimatorResult, reading: NoiseReading) -> str:
     for n, used, read, m in zip(
         OBS_NAMES, result.measurement_sigma, reading.sigma, reading.differences, strict=True
     ):
-        if m < MIN_DIFFERENCES:
+        if m == 0:
+            cells.append(f"{n} {used:.3g} (configured; no samples)")
+        elif m < MIN_DIFFERENCES:
             cells.append(f"{n} {used:.3g} (configured: too few samples to read)")
         elif policy == "data" or math.isclose(used, read, rel_tol=1e-12):
             cells.append(f"{n} {used:.3g} (read)")

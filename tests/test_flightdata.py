@@ -72,6 +72,44 @@ def test_a_missing_column_names_the_key_to_set(tmp_path: Path, flight: Recording
         load_csv(path)  # the project's own layout expected
 
 
+def test_a_log_without_pitch_acceleration_runs_without_that_channel(
+    tmp_path: Path, flight: Recording, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Most loggers record no pitch acceleration: `qdot = ""` says the data have none, the
+    channel reads as missing throughout, the run says so and goes on with the others
+    (the warm start differentiates q). Without it the error says how."""
+    import json
+
+    from gcs_estimator.cli import main
+
+    path = tmp_path / "log.csv"
+    _write_foreign(path, flight, drop="qdot")
+    with pytest.raises(FlightDataError, match=r'if the data have no qdot, qdot = ""'):
+        load_csv(path, load_config("noc_uav", OVERRIDES).data)
+    without = [o for o in OVERRIDES if not o.startswith("data.columns.qdot=")]
+    rec = load_csv(path, load_config("noc_uav", [*without, 'data.columns.qdot=""']).data)
+    assert np.all(np.isnan(rec.measurements[:, 4]))
+    kept = [0, 1, 2, 3, 5, 6]
+    np.testing.assert_allclose(rec.measurements[:, kept], flight.measurements[:, kept], rtol=1e-12)
+    np.testing.assert_allclose(rec.inputs, flight.inputs, rtol=1e-12, atol=1e-12)
+    assert any('no qdot column ([data.columns] qdot = "")' in n for n in rec.notes)
+    sets = [a for o in [*without, 'data.columns.qdot=""'] for a in ("--set", o)]
+    out = tmp_path / "run"
+    assert (
+        main(
+            ["offline", str(path), "--config", "noc_uav", "--view", "off", "--out", str(out), *sets]
+        )
+        == 0
+    )
+    said = capsys.readouterr()
+    assert "no qdot column" in said.out + said.err
+    res = json.loads((out / "results_sys1.json").read_text())
+    ekf = res["filters"]["EKF"]
+    assert ekf["mean_channels"] == pytest.approx(6.0)
+    assert ekf["innovation_mean_square"]["qdot"] is None
+    assert all(math.isfinite(e["estimate"]) for e in ekf["estimates"].values())
+
+
 def test_an_unknown_unit_is_refused_with_the_allowed_ones() -> None:
     from gcs_estimator.config import ConfigError
 
