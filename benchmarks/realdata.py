@@ -143,6 +143,11 @@ def evaluate(
             + ("" if fit is None else f"; against {config.truth_label}: {worst_ref:.2f} %")
             + (f"; q bias {biases} rad/s" if biases else "")
             + _turbulence_note(res, k)
+            + "; innovations' mean square over the predicted (1: as the filter expects): "
+            + ", ".join(
+                f"{n} {v:.2f}"
+                for n, v in zip(OBS_NAMES, vehicle.summaries[k].channel_nis, strict=True)
+            )
         )
     if res.noise_reading is not None:
         used = ", ".join(
