@@ -10,6 +10,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.estimator import EstimatorResult, FilterKind
+from gcs_estimator.model.channels import N_OBS
 
 CONVERGENCE_BAND = 0.05
 """Convergence: the estimate stays within 5 % (docs/model.md)."""
@@ -178,7 +179,7 @@ class FilterSummary:
     """Turbulence level averaged over that pass [m/s] (FilterResult.gust_pass_sigma)."""
     gust_pass_z: float = math.nan
     """That average in its standard errors (NaN: not measured)."""
-    channel_nis: tuple[float, ...] = ()
+    channel_nis: tuple[float, ...] = (math.nan,) * N_OBS
     """Per observation channel (OBS_NAMES order), the mean of (innovation / its predicted
     sigma)^2 over the same updates as mean_nis: 1 where the filter's noise model and
     dynamics account for what the channel shows (NaN: no update used the channel)."""

@@ -179,7 +179,7 @@ def _run_notes(
         note = (
             f"{k}: {s.steps} updates, mean NIS {s.mean_nis:.2f} over {s.mean_channels:.1f} channels"
         )
-        if s.channel_nis:
+        if any(math.isfinite(v) for v in s.channel_nis):
             note += (
                 " (per channel "
                 + ", ".join(
