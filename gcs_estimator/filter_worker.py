@@ -57,11 +57,11 @@ from gcs_estimator.decode_worker import (
     read_messages,
 )
 from gcs_estimator.estimator import Backend, FilterKind, Snapshot, StepOutput
-from gcs_estimator.filters.core import FILTER_KINDS, StepInfo
+from gcs_estimator.filters.core import FILTER_KINDS
+from gcs_estimator.filters.fast import output_width as step_width
 from gcs_estimator.frames import Frame
 from gcs_estimator.link_worker import pack, unpack
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.session import Session, Sink, Source, VehicleResult, truth_of, warm_up
 from gcs_estimator.sinks import (
     RefineAsk,
@@ -99,22 +99,11 @@ class ShardJob:
 
 # ---- each frame's outputs as one row of floats ----------------------------------------
 
-_INFO_SCALARS = (
-    "nis",
-    "n_used",
-    "iterations",
-    "gust_sigma",
-    "gust_pass_sigma",
-    "failed",
-    "repaired",
-    "diverged",
-)
-
 
 def output_width(n: int) -> int:
     """Floats per frame: sequence number, the estimator's frames, then per filter kind:
-    present, gust level now, x [n], sigma [n], innovation and its sigma [N_OBS each], the
-    step report's scalars."""
+    present, gust level now, and the step's own output row (filters.core.output_row's
+    layout, fast.output_width(n) floats)."""
     return 2 + len(FILTER_KINDS) * _kind_width(n)
 
 
@@ -133,57 +122,29 @@ def output_row(
             absent[0] = 0.0
             parts.append(absent)
             continue
-        info = out.info
-        parts += [
-            (1.0, gusts[kind]),
-            out.x,
-            info.sigma,
-            info.innovation,
-            info.innovation_sigma,
-            [getattr(info, name) for name in _INFO_SCALARS],
-        ]
+        parts += [(1.0, gusts[kind]), out.row]
     return np.concatenate(parts, dtype=np.float64)
 
 
 def _kind_width(n: int) -> int:
-    return 2 + 2 * n + 2 * N_OBS + len(_INFO_SCALARS)
+    return 2 + step_width(n)
 
 
 def read_row(
     row: FloatArray, n: int
 ) -> tuple[int, int, dict[FilterKind, StepOutput], dict[FilterKind, float]]:
-    """output_row's (sequence number, frames, outputs, gust levels now); the outputs'
-    arrays are views of the row."""
+    """output_row's (sequence number, frames, outputs, gust levels now); each output's row
+    is a view of the row."""
     outs: dict[FilterKind, StepOutput] = {}
     gusts: dict[FilterKind, float] = {}
-    values = row.tolist()
     at = 2
     for kind in FILTER_KINDS:
         end = at + _kind_width(n)
-        if values[at] == 1.0:
-            x0 = at + 2
-            s0 = x0 + n
-            i0 = s0 + n
-            j0 = i0 + N_OBS
-            k0 = j0 + N_OBS
-            nis, n_used, iterations, gust, gust_pass, failed, repaired, diverged = values[k0:end]
-            info = StepInfo(
-                row[s0:i0],
-                nis,
-                int(n_used),
-                int(iterations),
-                row[i0:j0],
-                row[j0:k0],
-                gust,
-                gust_pass,
-                bool(failed),
-                bool(repaired),
-                bool(diverged),
-            )
-            outs[kind] = StepOutput.of(row[x0:s0], info)
-            gusts[kind] = values[at + 1]
+        if row[at] == 1.0:
+            outs[kind] = StepOutput(row[at + 2 : end], n)
+            gusts[kind] = float(row[at + 1])
         at = end
-    return int(values[0]), int(values[1]), outs, gusts
+    return int(row[0]), int(row[1]), outs, gusts
 
 
 # ---- the worker ---------------------------------------------------------------------
