@@ -173,7 +173,7 @@ def run(seeds: int, noc_seeds: int) -> None:
         counts = {m: sum(1 for r in rows if r[PICK] == r[m]) for m in MODELS}
         chosen = ", ".join(f"{m} {c}" for m, c in counts.items() if c)
         print(f"| {group} | {len(rows)} | " + " | ".join(cells) + f" | {chosen} |")
-    p = 11
+    p = len(load_config("noc_uav").coefficient_names)
     lo, hi = _nees_band(p, noc_seeds)
     print(
         f"\nNOC NEES 95 % band over {noc_seeds} seeds, dof {p}: {lo:.2f}-{hi:.2f}. "

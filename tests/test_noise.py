@@ -13,6 +13,7 @@ import numpy as np
 from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
+from gcs_estimator.metrics import channel_mean_squares
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.noise import (
     CLEARLY,
@@ -22,7 +23,7 @@ from gcs_estimator.noise import (
     noise_from_differences,
     reading_z,
 )
-from gcs_estimator.report import trust_warnings
+from gcs_estimator.report import CHANNEL_NIS_LIMIT, results_dict, trust_warnings
 from sim.truth import simulate
 from tests.conftest import CONFIGS
 
@@ -192,9 +193,6 @@ def test_a_channel_whose_noise_is_set_wrong_is_named_by_its_innovations() -> Non
     channel where the settings are the simulator's, about 9 on a gyro configured with a
     third of its noise (named as larger than predicted), about 1/9 on one configured with
     three times its noise (named as smaller)."""
-    from gcs_estimator.metrics import channel_mean_squares
-    from gcs_estimator.report import CHANNEL_NIS_LIMIT, results_dict
-
     short = ["simulation.manoeuvre.duration_s=30"]
     flight = simulate(load_config("noc_uav", short), seed=4)
     q = OBS_NAMES.index("q")
