@@ -1,6 +1,7 @@
 """Which turbulence model serves the coefficients, and would the data's likelihood choose it?
 
-    ./run bench turbulence_models [--seeds 5] [--noc-seeds 20] [--record NAME|none]
+    ./run bench turbulence_models [--seeds 5] [--noc-seeds 20] [--refine-noise]
+                                  [--record NAME|none]
 
 The filters model turbulence as white process noise on the flight states (the default) or
 as Dryden gust states whose scale lengths the airframe file gives (docs/decisions/0009).
@@ -19,6 +20,13 @@ every record with each model and prints, per record and model:
 
 and, pooled per group, the same figures for a policy that takes, per record, the model of
 smallest -2 log L: what choosing the turbulence model by likelihood would give.
+
+With `--refine-noise`, a fourth model: the record's own process noise levels, fitted by
+maximum likelihood over the whole record (`refine`'s filter error, from a first run with
+the defaults), given to the filters as fixed white process noise on V, alpha, theta and q
+(never below the calm-air floor; no online turbulence level, no pitch gust state: the
+fitted q noise stands for it) in a second run. It asks whether noise levels the data
+choose by likelihood serve the coefficients (docs/decisions/0029).
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import load_recording
+from gcs_estimator.refine import refine_run
 from sim.truth import simulate
 
 MODELS: dict[str, list[str]] = {
@@ -53,6 +62,8 @@ MODELS: dict[str, list[str]] = {
     ],
 }
 """The models compared, as config overrides on each record's airframe file."""
+REFINE_NOISE = "refine's noise"
+"""--refine-noise's model: its overrides are the record's own (refine_noise)."""
 PICK = "chosen by -2 log L"
 LIKELIHOOD_FROM_S = 12.0
 """Frames from this time after the first [s] enter -2 log L: after the restarts (5 s,
@@ -139,14 +150,38 @@ def outcome(record: Record, overrides: list[str]) -> Outcome:
     return Outcome(float(err.max()), nees, minus2ll)
 
 
-def run(seeds: int, noc_seeds: int) -> None:
+def refine_noise(record: Record) -> list[str]:
+    """Overrides that give the filters the record's process noise as `refine`'s filter
+    error fits it (from a run with the defaults), fixed and white, never below the
+    airframe file's calm-air floor."""
+    config = record.config([])
+    result = run_recording(config, *record.data).result
+    fitted = refine_run(result, "filter-error").process_noise
+    floor = config.filter.process_noise.states
+    return [
+        "filter.turbulence.adaptive=false",
+        "filter.turbulence.sigma_w_mps=0",
+        "filter.turbulence.pitch_gust=false",
+        *(
+            f"filter.process_noise.{k}={max(float(q), f)!r}"
+            for k, q, f in zip(("V", "alpha", "theta", "q"), fitted, floor, strict=True)
+        ),
+    ]
+
+
+def run(seeds: int, noc_seeds: int, with_refine_noise: bool = False) -> None:
     start = time.perf_counter()
+    models: dict[str, list[str] | None] = {**MODELS}
+    if with_refine_noise:
+        models[REFINE_NOISE] = None
     groups: dict[str, list[dict[str, Outcome]]] = {}
-    head = " | ".join(f"{m}: worst % / NEES / -2 log L" for m in MODELS)
+    head = " | ".join(f"{m}: worst % / NEES / -2 log L" for m in models)
     print("| record | " + head + " | chosen by -2 log L |")
-    print("|---|" + "---|" * (len(MODELS) + 1))
+    print("|---|" + "---|" * (len(models) + 1))
     for record in _records(seeds, noc_seeds):
-        by_model = {m: outcome(record, o) for m, o in MODELS.items()}
+        by_model = {
+            m: outcome(record, refine_noise(record) if o is None else o) for m, o in models.items()
+        }
         chosen = min(by_model, key=lambda m: by_model[m].minus2ll)
         by_model[PICK] = by_model[chosen]
         groups.setdefault(record.group, []).append(by_model)
@@ -162,15 +197,15 @@ def run(seeds: int, noc_seeds: int) -> None:
         "## Pooled per group: worst well-excited |error| % (largest; median of each "
         "record's), mean NEES, and how often the likelihood chose each model\n"
     )
-    print("| group | records | " + " | ".join([*MODELS, PICK]) + " | chosen |")
-    print("|---|---|" + "---|" * (len(MODELS) + 2))
+    print("| group | records | " + " | ".join([*models, PICK]) + " | chosen |")
+    print("|---|---|" + "---|" * (len(models) + 2))
     for group, rows in groups.items():
         cells = []
-        for m in [*MODELS, PICK]:
+        for m in [*models, PICK]:
             worst = [r[m].worst for r in rows]
             nees = [r[m].nees for r in rows]
             cells.append(f"{max(worst):.2f} / {np.median(worst):.2f} / NEES {np.mean(nees):.1f}")
-        counts = {m: sum(1 for r in rows if r[PICK] == r[m]) for m in MODELS}
+        counts = {m: sum(1 for r in rows if r[PICK] == r[m]) for m in models}
         chosen = ", ".join(f"{m} {c}" for m, c in counts.items() if c)
         print(f"| {group} | {len(rows)} | " + " | ".join(cells) + f" | {chosen} |")
     p = len(load_config("noc_uav").coefficient_names)
@@ -194,6 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--noc-seeds", type=int, default=20, help="NOC simulator seeds (default %(default)s)"
     )
+    ap.add_argument(
+        "--refine-noise",
+        action="store_true",
+        help="also the record's own process noise as refine's filter error fits it",
+    )
     add_argument(ap, "turbulence_models")
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.noc_seeds < 1:
@@ -203,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         args.record,
         "Turbulence models: which serves the coefficients, and what likelihood would choose",
     ):
-        run(args.seeds, args.noc_seeds)
+        run(args.seeds, args.noc_seeds, args.refine_noise)
     return 0
 
 
