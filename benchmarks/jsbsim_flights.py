@@ -176,6 +176,8 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         "CD": g("forces/fwx-aero-lbs") / qs,
         "Cm": g("moments/m-aero-lbsft") / (qs * g("metrics/cbarw-ft")),
         "qbar": g("aero/qbar-psf"),
+        # The propeller's induced dynamic pressure where the model has one (0 where not).
+        "qbar_induced": _term(g, "aero/function/qbar-induced-psf"),
         "rho": g("atmosphere/rho-slugs_ft3") * SLUG / FOOT**3,
         "arm": g("moments/m-prop-lbsft") / thrust * FOOT if thrust > 0 else 0.0,
         "phi": g("attitude/phi-rad"),
