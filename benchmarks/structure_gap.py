@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from best_fit import best_fit  # benchmarks/: the script's dir is on sys.path
 from jsbsim_flights import AIRCRAFT, CLEAN, fly, reference, write_record
+from realdata import NEAR_ZERO
 from record import add_argument, recorded
 
 from gcs_estimator.arrays import FloatArray
@@ -122,7 +123,7 @@ def run() -> None:
             print("|---|---|---|---|")
             for name, b in zip(config.coefficient_names, best, strict=True):
                 r = ref[name][0]
-                diff = f"{100.0 * (b - r) / abs(r):+.1f}" if abs(r) > 1e-6 else "ref ≈ 0"
+                diff = f"{100.0 * (b - r) / abs(r):+.1f}" if abs(r) > NEAR_ZERO else "ref ≈ 0"
                 print(f"| {name} | {r:.4g} | {b:.4g} | {diff} |")
     print(f"\n({time.perf_counter() - start:.1f} s wall)")
 
