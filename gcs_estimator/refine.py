@@ -29,7 +29,7 @@ per sample, sensor placement); the sensitivities are forward differences.
   error runs the time-varying extended Kalman filter on the flight states at those levels
   (`innovations`), the exact likelihood for them.
 
-Uncertainty, three ways:
+Uncertainty, four ways:
 - the Cramer-Rao bound, M^-1 with M = sum S^T R^-1 S: right when the residuals are
   white, which they are only when the model holds everything the aircraft does;
 - the Morelli-Klein correction (J. Aircraft 34(5), 1997), which uses the residuals'
@@ -37,8 +37,12 @@ Uncertainty, three ways:
   residuals (turbulence, what the structure misses) carry less information than white
   ones, and this bound says how much less;
 - the structure sigma: how far the fit moves when one channel at a time is trusted half
-  as much, beyond what the information given up explains (decision 0022). Added in
-  quadrature to Morelli-Klein's, it is the sigma to trust on real data.
+  as much, beyond what the information given up explains (decision 0022);
+- the difference sigma (refine_run): how far the fit lands from the filter it started
+  from, beyond what the two covariances allow (decision 0030). The filter and the fit
+  weigh the record differently; where the model holds they agree, where it does not each
+  settles on its own compromise.
+The last two added in quadrature to Morelli-Klein's give the sigma to trust on real data.
 
 The sensitivities' columns are independent flights of the model, run in threads (the
 kernels release the GIL), so a fit uses the machine's cores; each column is the same
@@ -259,7 +263,7 @@ class Refined:
     """Cramer-Rao sigma of the coefficients (white residuals assumed)."""
     sigma: FloatArray
     """The sigma to trust: the Cramer-Rao bound corrected for the residuals' colour
-    (Morelli-Klein), with structure_sigma added in quadrature."""
+    (Morelli-Klein), with structure_sigma and difference_sigma added in quadrature."""
     structure_sigma: FloatArray
     """How far each coefficient depends on how much each channel is trusted (the fit
     re-made with one channel's weight halved at a time; decision 0017's check, applied to
@@ -292,6 +296,10 @@ class Refined:
     choice: str = ""
     """Why this method, when it was chosen from the data ("auto": choose_method); empty
     when it was asked for by name."""
+    difference_sigma: FloatArray | None = None
+    """How far the fit lands from the filter it started from, beyond what their
+    covariances allow (decision 0030, refine_run); None for a fit not started from a
+    filter's run."""
 
     @property
     def label(self) -> str:
@@ -1089,7 +1097,32 @@ def refine_run(
         hold_noise=hold_noise,
         threads=threads,
     )
-    return replace(fit, choice=choice) if choice else fit
+    difference = difference_sigma(fit, fr.coefficients, fr.sigma)
+    sigma = np.sqrt(fit.sigma**2 + difference**2)
+    return replace(
+        fit,
+        choice=choice,
+        difference_sigma=difference,
+        sigma=sigma,
+        identifiability=identifiability(fit.coefficients, sigma, fit.correlation),
+    )
+
+
+def difference_sigma(
+    fit: Refined, filter_coefficients: FloatArray, filter_sigma: FloatArray
+) -> FloatArray:
+    """How far the fit's coefficients land from a filter's estimate of the same record
+    beyond what their covariances allow: sqrt(max(0, d^2 - |s_f^2 - s^2|)), d the
+    difference, s_f the filter's covariance sigma and s the fit's Cramer-Rao sigma
+    (decision 0030). Where the model holds both estimate the same values and d has about
+    the variance their covariances differ by (Hausman 1978): nothing is added. Where it
+    does not, the filter and the fit weigh the record differently (the filter's noise
+    model against the fit's fitted or held one) and settle on different compromises;
+    either may carry that much bias."""
+    d = np.asarray(fit.coefficients, float) - np.asarray(filter_coefficients, float)
+    allowed = np.abs(np.asarray(filter_sigma, float) ** 2 - fit.crb_sigma**2)
+    excess = np.where(np.isfinite(allowed), np.maximum(0.0, d * d - allowed), 0.0)
+    return np.asarray(np.sqrt(excess))
 
 
 def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:

@@ -148,8 +148,9 @@ def _legend(truth_label: str, has_truth: bool, refined: Refined | None) -> str:
         text += (
             f"; {refined.label} σ: the {refined.method.split(',')[0]} fit's Cramer-Rao bound "
             "corrected for the colour of its residuals (Morelli-Klein), with how far the fit "
-            "moves when one channel at a time is trusted half as much added in quadrature: "
-            "the one to trust on real data"
+            "moves when one channel at a time is trusted half as much, and how far it lands "
+            "from the filter it started from beyond what both covariances allow, added in "
+            "quadrature: the one to trust on real data"
         )
     if has_truth:
         text += (
@@ -757,6 +758,9 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
                 "sigma": _num(float(refined.sigma[i])),
                 "cramer_rao_sigma": _num(float(refined.crb_sigma[i])),
                 "structure_sigma": _num(float(refined.structure_sigma[i])),
+                "difference_sigma": None
+                if refined.difference_sigma is None
+                else _num(float(refined.difference_sigma[i])),
                 "identifiability": refined.identifiability[i],
                 "truth": None if truth is None else float(truth[i]),
                 "error_pct": None

@@ -28,8 +28,9 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
     """On a calm simulated flight (the model exact, the noise white) refine ends where
     the simulator's output-error yardstick does (its own integrator, finite-difference
     sensitivities), the residuals come out white, no channel's weight moves the fit
-    beyond what it gives up, so the corrected sigma is the Cramer-Rao one, and the noise
-    levels are those the simulator used."""
+    beyond what it gives up, the fit lands where the filter it started from did, so the
+    corrected sigma is the Cramer-Rao one, and the noise levels are those the simulator
+    used."""
     flight = simulate(noc_config, seed=3)
     run = run_recording(noc_config, flight.t_s, flight.inputs, flight.measurements)
     refined = refine_run(run.result, "output-error")
@@ -41,6 +42,9 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
     # The model holds: halving a channel's weight moves the fit no more than the
     # information given up allows, so the structure adds nothing.
     assert np.all(refined.structure_sigma < 0.1 * refined.crb_sigma)
+    # Filter and fit agree within what their covariances allow: nothing added.
+    assert refined.difference_sigma is not None
+    assert np.all(refined.difference_sigma < 0.3 * refined.crb_sigma)
     assert np.all(refined.residual_colour < 2.0)
     simulated = np.array(noc_config.simulation.sensors.noise_sigma)
     np.testing.assert_allclose(refined.noise_sigma[:4], simulated[:4], rtol=0.1)
@@ -51,8 +55,9 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
 
 def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftConfig) -> None:
     """HFB-320 flew in turbulence: output error leaves coloured residuals, its channels
-    disagree, and the corrected sigma is wider than the Cramer-Rao bound on every
-    coefficient."""
+    disagree, it lands far from the filters (which follow the gusts), and the corrected
+    sigma is wider than the Cramer-Rao bound on every coefficient, wide enough to cover
+    the fit's distance from the book's estimates."""
     from gcs_estimator.flightdata import load_recording
 
     rec = load_recording("hfb320", hfb_config.data)[1]
@@ -63,6 +68,14 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
     # The channels pull the fit different ways: trusting one less moves some
     # coefficient by more than its Cramer-Rao sigma.
     assert np.max(refined.structure_sigma / refined.crb_sigma) > 1.0
+    # The IEKF and the fit weigh the gusts differently: the fit lands further from the
+    # filter than both covariances allow, and that distance is in its sigma.
+    difference = refined.difference_sigma
+    assert difference is not None and np.max(difference / refined.crb_sigma) > 2.0
+    assert np.all(refined.sigma >= difference)
+    book = np.array(hfb_config.truth)
+    z = (refined.coefficients - book) / refined.sigma
+    assert np.mean(z**2) <= 2.0 and np.all(np.abs(z) <= 3.0)
     assert np.nanmax(refined.residual_colour) > 5.0
     coloured = [w for w in trust_warnings(run, refined) if "far from white" in w]
     assert len(coloured) == 1 and "--method filter-error" in coloured[0]
@@ -136,7 +149,10 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert fit["method"] == "filter error" and fit["frames"] == 601
     assert fit["method_choice"].endswith("turbulent air, so filter error")
     for name, e in fit["estimates"].items():
-        assert e["sigma"] >= max(e["cramer_rao_sigma"], e["structure_sigma"]), name
+        assert e["difference_sigma"] is not None and e["difference_sigma"] >= 0.0, name
+        assert e["sigma"] >= max(
+            e["cramer_rao_sigma"], e["structure_sigma"], e["difference_sigma"]
+        ), name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
     assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
     rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| ")]
