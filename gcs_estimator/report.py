@@ -561,6 +561,24 @@ def _refined_warnings(refined: Refined) -> list[str]:
             f"something (turbulence, unmodelled aerodynamics); trust {fit} σ, not "
             "Cramer-Rao's" + hint
         )
+    if refined.difference_sigma is not None:
+        alone = np.sqrt(np.maximum(refined.sigma**2 - refined.difference_sigma**2, 0.0))
+        apart = [
+            f"{n} ×{s / a:.1f}"
+            for n, s, a, mark in zip(
+                refined.names, refined.sigma, alone, refined.identifiability, strict=True
+            )
+            if a > 0.0 and s > INFLATION_LIMIT * a and mark != NOT_IDENTIFIED
+        ]
+        if apart:
+            fit = refined.label
+            out.append(
+                f"{fit} lands further from the filter it started from than both covariances "
+                "allow (" + ", ".join(apart) + " on its σ): the two weigh the record "
+                "differently, and where the model misses part of the aircraft (unmodelled "
+                "aerodynamics, turbulence it models otherwise) each settles on its own "
+                f"compromise; {fit} σ includes the difference (docs/decisions/0030)"
+            )
     if not refined.converged:
         out.append(f"{refined.label}: {refined.message}")
     return out

@@ -45,6 +45,7 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
     # Filter and fit agree within what their covariances allow: nothing added.
     assert refined.difference_sigma is not None
     assert np.all(refined.difference_sigma < 0.3 * refined.crb_sigma)
+    assert not any("lands further from the filter" in w for w in trust_warnings(run, refined))
     assert np.all(refined.residual_colour < 2.0)
     simulated = np.array(noc_config.simulation.sensors.noise_sigma)
     np.testing.assert_allclose(refined.noise_sigma[:4], simulated[:4], rtol=0.1)
@@ -79,6 +80,8 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
     assert np.nanmax(refined.residual_colour) > 5.0
     coloured = [w for w in trust_warnings(run, refined) if "far from white" in w]
     assert len(coloured) == 1 and "--method filter-error" in coloured[0]
+    apart = [w for w in trust_warnings(run, refined) if "lands further from the filter" in w]
+    assert len(apart) == 1 and "CLa ×" in apart[0] and "OE σ includes the difference" in apart[0]
     # A window with too few frames is refused with the reason.
     with pytest.raises(RefineError, match="frames in the window"):
         refine_run(run.result, window_s=(10.0, 10.5))
