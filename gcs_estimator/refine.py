@@ -269,7 +269,7 @@ class Refined:
     re-made with one channel's weight halved at a time; decision 0017's check, applied to
     the whole-record fit): 0 where the model holds."""
     correlation: FloatArray
-    """Correlation of the coefficients [p x p] (from the corrected covariance)."""
+    """Correlation of the coefficients [p x p] (from the Morelli-Klein covariance)."""
     identifiability: tuple[str, ...]
     bias_names: tuple[str, ...]
     biases: FloatArray
