@@ -154,7 +154,10 @@ def evaluate(
         _print_targeted(res.names, est, goal)
     _print_noise(res, config)
     if oe is not None:
-        summary["refine"] = _oe_summary(oe, goal, well)
+        worst_fit, within_fit, msz_fit = _oe_summary(oe, goal, well)
+        summary["refine"] = worst_fit
+        summary["refine within 3σ"] = within_fit
+        summary["refine mean z²"] = msz_fit
         summary["refine is FE"] = float(oe.label == "FE")
     summary.update(_judged_fairly(est, goal, well, marks, best_residual, spread))
     return summary
@@ -275,8 +278,10 @@ def _head(label: str, fit: bool, spread: bool, oe: Refined | None) -> list[str]:
     return head
 
 
-def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
-    """Print the refinement's summary line; return its worst well-excited error [%]."""
+def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> tuple[float, float, float]:
+    """Print the refinement's summary line; return its worst well-excited error [%], and
+    with its corrected σ the share of the well-excited coefficients within 3σ [%] and
+    their mean z²."""
     judged = [i for i, n in enumerate(oe.names) if n in WELL_EXCITED]
     z = ((oe.coefficients - goal) / oe.sigma)[judged]
     zc = ((oe.coefficients - goal) / oe.crb_sigma)[judged]
@@ -290,7 +295,7 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> float:
         f"mean z² {np.mean(z**2):.1f} with the corrected σ, {np.mean(zc**2):.1f} with "
         f"Cramer-Rao's; residual colour: {channel_text(oe.residual_colour)}"
     )
-    return worst
+    return worst, within, float(np.mean(z**2))
 
 
 def _refine(name: str, res: EstimatorResult, method: str, hold_noise: bool) -> Refined | None:
@@ -412,7 +417,8 @@ def run(args: argparse.Namespace) -> int:
 def _pooled(worst: dict[str, dict[str, float]], seeds: tuple[int, ...]) -> None:
     """Each JSBSim record's figures over the seeds: its worst well-excited error (the
     largest over the seeds, and the median of each seed's worst), and, with the
-    corrected σ, the share of well-excited coefficients within 3σ and their mean z²."""
+    corrected σ, the share of well-excited coefficients within 3σ and their mean z²; the
+    same for the whole-record fit where one was made."""
     print(
         f"\n## Over {len(seeds)} seeds ({seeds[0]}-{seeds[-1]}): worst well-excited |error| in "
         "% (largest; median of each seed's; largest over those each seed identified), and "
@@ -422,6 +428,9 @@ def _pooled(worst: dict[str, dict[str, float]], seeds: tuple[int, ...]) -> None:
     columns = ("worst", "median worst", "worst identified", "within 3σ")
     head = [f"{k} {c}" for k in FILTER_KINDS for c in columns]
     head += [f"{k} mean z²" for k in FILTER_KINDS]
+    fitted = all("refine" in v for n, v in worst.items() if n != "hfb320")
+    if fitted:
+        head += ["fit worst", "fit median worst", "fit within 3σ", "fit mean z²"]
     print("| record | " + " | ".join(head) + " |")
     print("|---|" + "---|" * len(head))
     for name in [n for n in worst if n != "hfb320" and "_s" not in n]:
@@ -436,6 +445,11 @@ def _pooled(worst: dict[str, dict[str, float]], seeds: tuple[int, ...]) -> None:
         cells += [
             f"{np.mean([r[f'{k} mean z² corrected'] for r in runs]):.1f}" for k in FILTER_KINDS
         ]
+        if fitted:
+            errors = [r["refine"] for r in runs]
+            cells += [f"{max(errors):.2f}", f"{np.median(errors):.2f}"]
+            cells += [f"{np.mean([r['refine within 3σ'] for r in runs]):.0f} %"]
+            cells += [f"{np.mean([r['refine mean z²'] for r in runs]):.1f}"]
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
