@@ -283,8 +283,7 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> dict[str, flo
     miss = (oe.coefficients - goal)[judged]
     z = miss / oe.sigma[judged]
     zc = miss / oe.crb_sigma[judged]
-    difference = np.zeros_like(oe.sigma) if oe.difference_sigma is None else oe.difference_sigma
-    zd = miss / np.sqrt(np.maximum(oe.sigma**2 - difference**2, 0.0))[judged]
+    zd = miss / oe.sigma_within_fit[judged]
     err = np.abs(100.0 * (oe.coefficients - goal) / np.abs(goal))[well]
     worst = float(err.max())
     within = float(np.mean(np.abs(z) < 3)) * 100

@@ -306,6 +306,13 @@ class Refined:
         """The fit's short name in tables and notes (fit_label)."""
         return fit_label(self.method)
 
+    @property
+    def sigma_within_fit(self) -> FloatArray:
+        """The corrected sigma from the fit alone: Morelli-Klein's with the structure
+        sigma, without difference_sigma."""
+        difference = 0.0 if self.difference_sigma is None else self.difference_sigma
+        return np.asarray(np.sqrt(np.maximum(self.sigma**2 - difference**2, 0.0)))
+
 
 class RefineProgress(NamedTuple):
     """Where a fit stands, after each Gauss-Newton iteration."""

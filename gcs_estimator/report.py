@@ -562,11 +562,14 @@ def _refined_warnings(refined: Refined) -> list[str]:
             "Cramer-Rao's" + hint
         )
     if refined.difference_sigma is not None:
-        alone = np.sqrt(np.maximum(refined.sigma**2 - refined.difference_sigma**2, 0.0))
         apart = [
             f"{n} ×{s / a:.1f}"
             for n, s, a, mark in zip(
-                refined.names, refined.sigma, alone, refined.identifiability, strict=True
+                refined.names,
+                refined.sigma,
+                refined.sigma_within_fit,
+                refined.identifiability,
+                strict=True,
             )
             if a > 0.0 and s > INFLATION_LIMIT * a and mark != NOT_IDENTIFIED
         ]
