@@ -47,8 +47,9 @@ from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, r
 from gcs_estimator.flightdata import Recording, load_recording
 from gcs_estimator.metrics import IDENTIFIED, correlation_of, identifiability
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
+from gcs_estimator.refine import Refined, RefineError, fit_label, refine_vehicle
 from gcs_estimator.report import channel_text
+from gcs_estimator.session import VehicleResult
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
 """The coefficients the elevator manoeuvre excites well enough to be judged on."""
@@ -69,7 +70,7 @@ def evaluate(
     the best fit where there is one, which is what a filter can reach)."""
     vehicle = run_recording(config, rec.t_s, rec.inputs, rec.measurements)
     res = vehicle.result
-    oe = _refine(name, res, *refine_with)
+    oe = _refine(name, vehicle, *refine_with)
     ref = np.array(config.truth or ())
     fit = None if best is None else np.array([best[n] for n in res.names])
     spread = np.array([best_spread[n] for n in res.names]) if best_spread else None
@@ -305,11 +306,11 @@ def _oe_summary(oe: Refined, goal: FloatArray, well: list[int]) -> dict[str, flo
     }
 
 
-def _refine(name: str, res: EstimatorResult, method: str, hold_noise: bool) -> Refined | None:
+def _refine(name: str, vehicle: VehicleResult, method: str, hold_noise: bool) -> Refined | None:
     if method == "none":
         return None
     try:
-        return refine_run(res, method, hold_noise=hold_noise)
+        return refine_vehicle(vehicle, method, hold_noise=hold_noise)
     except RefineError as exc:
         print(f"\n(refine failed on {name}: {exc})")
         return None

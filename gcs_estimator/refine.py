@@ -37,7 +37,9 @@ Uncertainty, four ways:
   residuals (turbulence, what the structure misses) carry less information than white
   ones, and this bound says how much less;
 - the structure sigma: how far the fit moves when one channel at a time is trusted half
-  as much, beyond what the information given up explains (decision 0022);
+  as much, beyond what the information given up explains (decision 0022), and never less
+  than the same check of the filter it started from finds for the record (refine_run,
+  decision 0031);
 - the difference sigma (refine_run): how far the fit lands from the filter it started
   from, beyond what the two covariances allow (decision 0030). The filter and the fit
   weigh the record differently; where the model holds they agree, where it does not each
@@ -63,7 +65,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -80,6 +82,9 @@ from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.weighting import VARIANCE_FACTOR, WEIGHT_SHARE
+
+if TYPE_CHECKING:
+    from gcs_estimator.session import VehicleResult
 
 
 @njit(cache=True)
@@ -267,7 +272,8 @@ class Refined:
     structure_sigma: FloatArray
     """How far each coefficient depends on how much each channel is trusted (the fit
     re-made with one channel's weight halved at a time; decision 0017's check, applied to
-    the whole-record fit): 0 where the model holds."""
+    the whole-record fit): 0 where the model holds. Where the filter it started from was
+    checked too (filter_structure_sigma), the larger of the two (decision 0031)."""
     correlation: FloatArray
     """Correlation of the coefficients [p x p] (from the Morelli-Klein covariance)."""
     identifiability: tuple[str, ...]
@@ -300,6 +306,11 @@ class Refined:
     """How far the fit lands from the filter it started from, beyond what their
     covariances allow (decision 0030, refine_run); None for a fit not started from a
     filter's run."""
+    filter_structure_sigma: FloatArray | None = None
+    """The structure sigma of the filter the fit started from (its check of the same
+    record, weighting.structure_check; NaN where a coefficient was not checked), which
+    the fit's structure_sigma does not fall below (decision 0031); None where the run
+    made no check or none was given."""
 
     @property
     def label(self) -> str:
@@ -890,6 +901,7 @@ def refine(
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
+    structure_floor: FloatArray | None = None,
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -900,7 +912,9 @@ def refine(
     and the air's known levels; filter error then runs the time-varying filter) and only
     the parameters fitted. `progress` hears after each Gauss-Newton iteration where the
     fit stands. The sensitivities' columns run in `threads` threads (default: the cores
-    this process may use); the fit is the same whatever their number."""
+    this process may use); the fit is the same whatever their number. structure_floor
+    (per entry of the augmented state, NaN where none): a structure sigma the fit's own
+    check may not fall below (refine_run: the filter's check of the same record)."""
     t = np.ascontiguousarray(t_s, dtype=float)
     if t.shape[0] < 10 or np.any(np.diff(t) <= 0.0):
         raise RefineError("the fit needs at least 10 frames in increasing time order")
@@ -971,6 +985,8 @@ def refine(
     # The state's free entries lead the parameters (filter error's log F follow them).
     structure = np.full(n, np.nan)
     structure[free] = _structure_sigma(J3, k, observed, x[free], refit)
+    if structure_floor is not None:
+        structure[free] = np.fmax(structure[free], np.asarray(structure_floor, float)[free])
     crb = np.full(n, np.nan)
     mk = np.full(n, np.nan)
     crb[free] = np.sqrt(np.diag(Minv)[:k])
@@ -1052,6 +1068,7 @@ def refine_run(
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
+    filter_structure: FloatArray | None = None,
 ) -> Refined:
     """Refine a finished run: fit the frames the estimator saw (optionally only those
     within window_s, seconds after the first frame), starting from filter `kind`'s final
@@ -1060,7 +1077,9 @@ def refine_run(
     the noise levels stay instead of being estimated: the measurement noise where the
     filters' final pass had it (the config's [filter] measurement_sigma, or the data's
     with measurement_noise = "data"), the process noise at the config's. threads: as
-    refine's."""
+    refine's. filter_structure: filter `kind`'s structure sigma per coefficient, where
+    the run made the check (refine_vehicle passes it): the fit's own does not fall below
+    it (decision 0031)."""
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -1089,6 +1108,10 @@ def refine_run(
     measured = tr.y[first, :N_FLIGHT] - _bias_on_flight(model, fr.biases)
     start[:N_FLIGHT] = np.where(np.isfinite(measured), measured, tr.x[first, :N_FLIGHT])
     tuning = config.filter
+    floor = None
+    if filter_structure is not None:
+        floor = np.full(model.n, np.nan)
+        floor[model.coefficients] = np.asarray(filter_structure, float)
     fit = refine(
         model,
         tr.t[idx],
@@ -1103,6 +1126,7 @@ def refine_run(
         progress=progress,
         hold_noise=hold_noise,
         threads=threads,
+        structure_floor=floor,
     )
     difference = difference_sigma(fit, fr.coefficients, fr.sigma)
     sigma = np.sqrt(fit.sigma**2 + difference**2)
@@ -1110,8 +1134,36 @@ def refine_run(
         fit,
         choice=choice,
         difference_sigma=difference,
+        filter_structure_sigma=None if floor is None else floor[model.coefficients],
         sigma=sigma,
         identifiability=identifiability(fit.coefficients, sigma, fit.correlation),
+    )
+
+
+def refine_vehicle(
+    vehicle: VehicleResult,
+    method: str = "auto",
+    kind: FilterKind = "IEKF",
+    window_s: tuple[float | None, float | None] = (None, None),
+    progress: Callable[[RefineProgress], None] | None = None,
+    hold_noise: bool = False,
+    threads: int | None = None,
+) -> Refined:
+    """refine_run on a session's vehicle, with filter `kind`'s structure check of the
+    record where the session made one (decision 0031)."""
+    check = vehicle.structure
+    structure = None
+    if check is not None and not check.skipped:
+        structure = check.sigma.get(kind)
+    return refine_run(
+        vehicle.result,
+        method,
+        kind,
+        window_s,
+        progress,
+        hold_noise,
+        threads,
+        filter_structure=structure,
     )
 
 

@@ -148,7 +148,8 @@ def _legend(truth_label: str, has_truth: bool, refined: Refined | None) -> str:
         text += (
             f"; {refined.label} σ: the {refined.method.split(',')[0]} fit's Cramer-Rao bound "
             "corrected for the colour of its residuals (Morelli-Klein), with how far the fit "
-            "moves when one channel at a time is trusted half as much, and how far it lands "
+            "moves when one channel at a time is trusted half as much (at least as far as "
+            "the filter's own check found), and how far it lands "
             "from the filter it started from beyond what both covariances allow, added in "
             "quadrature: the one to trust on real data"
         )
@@ -782,6 +783,9 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
                 "difference_sigma": None
                 if refined.difference_sigma is None
                 else _num(float(refined.difference_sigma[i])),
+                "filter_structure_sigma": None
+                if refined.filter_structure_sigma is None
+                else _num(float(refined.filter_structure_sigma[i])),
                 "identifiability": refined.identifiability[i],
                 "truth": None if truth is None else float(truth[i]),
                 "error_pct": None

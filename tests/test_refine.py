@@ -15,7 +15,13 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import Recording
 from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
-from gcs_estimator.refine import RefineError, RefineProgress, choose_method, refine_run
+from gcs_estimator.refine import (
+    RefineError,
+    RefineProgress,
+    choose_method,
+    refine_run,
+    refine_vehicle,
+)
 from gcs_estimator.report import GUST_BURSTS, results_dict, trust_warnings
 from gcs_estimator.sinks import RefineStatus
 from gcs_estimator.telemetry.mavlink import read_tlog
@@ -87,6 +93,34 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
         refine_run(run.result, window_s=(10.0, 10.5))
 
 
+def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() -> None:
+    """A calm flight with the vane 1 m ahead of the CG and an airframe file that does not
+    say so (a model error that stays put): the session's structure check of the IEKF and
+    the fit's own both see it. refine_vehicle keeps, per coefficient, the larger of the
+    two (decision 0031): where the filter's check found more, the fit's sigma grows by
+    that; the estimates do not change."""
+    config = load_config("noc_uav")
+    fl = simulate(load_config("noc_uav", ["sensors.vane_x_m=1.0"]), seed=1)
+    vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
+    assert vehicle.structure is not None and not vehicle.structure.skipped
+    filters = vehicle.structure.sigma["IEKF"]
+    alone = refine_run(vehicle.result, "output-error")
+    kept = refine_vehicle(vehicle, "output-error")
+    assert alone.filter_structure_sigma is None
+    assert kept.filter_structure_sigma is not None
+    np.testing.assert_array_equal(kept.filter_structure_sigma, filters)
+    np.testing.assert_array_equal(kept.coefficients, alone.coefficients)
+    np.testing.assert_allclose(
+        kept.structure_sigma, np.fmax(alone.structure_sigma, filters), rtol=1e-12
+    )
+    # The vane's error is in alpha: the filter's check finds the lift depends more on
+    # the channels' weights than the fit's own does, and the fit's sigma takes that up
+    # (where the Cramer-Rao bound is not already the larger).
+    grew = [n for n, k, a in zip(kept.names, kept.sigma, alone.sigma, strict=True) if k > 1.1 * a]
+    assert {"CL0", "CLa", "CLde"} <= set(grew), grew
+    assert np.all(kept.sigma >= alone.sigma * (1.0 - 1e-12))
+
+
 def test_a_fit_that_fails_says_why_and_sets_the_exit_status(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -151,11 +185,15 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     fit = data["refined"]
     assert fit["method"] == "filter error" and fit["frames"] == 601
     assert fit["method_choice"].endswith("turbulent air, so filter error")
+    checked = data["filters"]["IEKF"]["estimates"]
     for name, e in fit["estimates"].items():
         assert e["difference_sigma"] is not None and e["difference_sigma"] >= 0.0, name
         assert e["sigma"] >= max(
             e["cramer_rao_sigma"], e["structure_sigma"], e["difference_sigma"]
         ), name
+        # The session's structure check of the IEKF reached the fit (decision 0031).
+        assert e["filter_structure_sigma"] == checked[name]["structure_sigma"], name
+        assert e["structure_sigma"] >= e["filter_structure_sigma"], name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
     assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
     rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| ")]
