@@ -38,8 +38,8 @@ Uncertainty, four ways:
   ones, and this bound says how much less;
 - the structure sigma: how far the fit moves when one channel at a time is trusted half
   as much, beyond what the information given up explains (decision 0022), and never less
-  than the same check of the filter it started from finds for the record (refine_run,
-  decision 0031);
+  than the session's same check of the filter it started from found for the record
+  (refine_vehicle, decision 0031);
 - the difference sigma (refine_run): how far the fit lands from the filter it started
   from, beyond what the two covariances allow (decision 0030). The filter and the fit
   weigh the record differently; where the model holds they agree, where it does not each
