@@ -45,7 +45,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REFINE_METHODS, AircraftConfig, load_config
 from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, run_recording
 from gcs_estimator.flightdata import Recording, load_recording
-from gcs_estimator.metrics import IDENTIFIED, correlation_of, identifiability
+from gcs_estimator.metrics import IDENTIFIED
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.refine import Refined, RefineError, fit_label, refine_vehicle
 from gcs_estimator.report import channel_text
@@ -93,13 +93,8 @@ def evaluate(
         for k in FILTER_KINDS
     }
     zc = {k: (est[k] - goal) / corrected[k] for k in FILTER_KINDS}
-    iekf = res.filters["IEKF"]
-    marks = identifiability(
-        iekf.coefficients,
-        iekf.sigma,
-        correlation_of(iekf.covariance),
-        np.asarray(config.filter.initial_sigma.coefficients),
-    )
+    # The marks the run shows its user (metrics.summarise: from the corrected sigma).
+    marks = tuple(c.identifiability for c in vehicle.summaries["IEKF"].coefficients)
     for i, n in enumerate(res.names):
         row = [n, f"{ref[i]:.5g}"] + ([] if fit is None else [f"{fit[i]:.5g}"])
         row += [] if spread is None else [f"{spread[i]:.1f}"]
@@ -201,7 +196,8 @@ def _judged_fairly(
     spread: FloatArray | None,
 ) -> dict[str, float]:
     """The worst error over the well-excited coefficients the flight identified (by the
-    IEKF's marks: a coefficient with a sigma of 10 % cannot be held to 5 %), how
+    IEKF's marks as the run shows them, from its corrected sigma: a coefficient with a
+    sigma of 10 % cannot be held to 5 %), how
     closely the best fit reproduces the flight (its largest residual in sensor sigmas:
     above 1 the target itself is not sharp), and the best fit's largest spread over the
     well-excited coefficients and over those identified."""
@@ -396,7 +392,8 @@ def run(args: argparse.Namespace) -> int:
     )
     print(
         "\n## Summary: worst well-excited |error| in %, against the best fit (JSBSim) or "
-        "the reference (HFB-320); then over those the flight identified (IEKF's marks); "
+        "the reference (HFB-320); then over those the flight identified (the IEKF's marks "
+        "as the run shows them, from its corrected σ); "
         "how closely the best fit, flown through the flight's gusts, reproduces it "
         "(largest residual in sensor sigmas; above 1: no sharp target); and how sharp the "
         "best fit is (the most a well-excited coefficient of it moves, in %, when one "
