@@ -47,7 +47,7 @@ from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, r
 from gcs_estimator.flightdata import Recording, load_recording
 from gcs_estimator.metrics import IDENTIFIED
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, RefineError, fit_label, refine_vehicle
+from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
 from gcs_estimator.report import channel_text
 from gcs_estimator.session import VehicleResult
 
@@ -306,7 +306,7 @@ def _refine(name: str, vehicle: VehicleResult, method: str, hold_noise: bool) ->
     if method == "none":
         return None
     try:
-        return refine_vehicle(vehicle, method, hold_noise=hold_noise)
+        return refine_run(vehicle, method, hold_noise=hold_noise)
     except RefineError as exc:
         print(f"\n(refine failed on {name}: {exc})")
         return None

@@ -27,7 +27,7 @@ from gcs_estimator.config import load_config
 from gcs_estimator.estimator import run_recording
 from gcs_estimator.flightdata import load_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, available_cores, refine_vehicle
+from gcs_estimator.refine import Refined, available_cores, refine_run
 
 TARGETED = ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa")
 """The coefficients the issue's 2 % target names."""
@@ -66,10 +66,10 @@ def run() -> int:
     cores = available_cores()
     for label, method, hold, name in FITS:
         t0 = time.perf_counter()
-        refined = refine_vehicle(results[name], method, hold_noise=hold)
+        refined = refine_run(results[name], method, hold_noise=hold)
         fits.append((label, refined, time.perf_counter() - t0))
         t0 = time.perf_counter()
-        alone = refine_vehicle(results[name], method, hold_noise=hold, threads=1)
+        alone = refine_run(results[name], method, hold_noise=hold, threads=1)
         same = np.array_equal(alone.coefficients, refined.coefficients) and np.array_equal(
             alone.sigma, refined.sigma, equal_nan=True
         )

@@ -39,7 +39,7 @@ Uncertainty, four ways:
 - the structure sigma: how far the fit moves when one channel at a time is trusted half
   as much, beyond what the information given up explains (decision 0022), and never less
   than the session's same check of the filter it started from found for the record
-  (refine_vehicle, decision 0031);
+  (refine_run given the session's vehicle, decision 0031);
 - the difference sigma (refine_run): how far the fit lands from the filter it started
   from, beyond what the two covariances allow (decision 0030). The filter and the fit
   weigh the record differently; where the model holds they agree, where it does not each
@@ -310,7 +310,7 @@ class Refined:
     """The structure sigma of the filter the fit started from (its check of the same
     record, weighting.structure_check; NaN where a coefficient was not checked), which
     the fit's structure_sigma does not fall below (decision 0031); None where the run
-    made no check or none was given."""
+    made no check or refine_run was given a bare result."""
 
     @property
     def label(self) -> str:
@@ -1061,25 +1061,29 @@ def choose_method(result: EstimatorResult, kind: FilterKind = "IEKF") -> tuple[s
 
 
 def refine_run(
-    result: EstimatorResult,
+    run: EstimatorResult | VehicleResult,
     method: str = "auto",
     kind: FilterKind = "IEKF",
     window_s: tuple[float | None, float | None] = (None, None),
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
-    filter_structure: FloatArray | None = None,
 ) -> Refined:
-    """Refine a finished run: fit the frames the estimator saw (optionally only those
-    within window_s, seconds after the first frame), starting from filter `kind`'s final
-    coefficients and biases and the first frame's measured flight states. method "auto":
+    """Refine a finished run (an estimator's result, or a session's vehicle): fit the
+    frames the estimator saw (optionally only those within window_s, seconds after the
+    first frame), starting from filter `kind`'s final coefficients and biases and the
+    first frame's measured flight states. method "auto":
     the one choose_method picks, with its reason in the fit's `choice`. hold_noise:
     the noise levels stay instead of being estimated: the measurement noise where the
     filters' final pass had it (the config's [filter] measurement_sigma, or the data's
     with measurement_noise = "data"), the process noise at the config's. threads: as
-    refine's. filter_structure: filter `kind`'s structure sigma per coefficient, where
-    the run made the check (refine_vehicle passes it): the fit's own does not fall below
-    it (decision 0031)."""
+    refine's. A vehicle whose session made the structure check brings filter `kind`'s
+    structure sigma, which the fit's own does not fall below (decision 0031)."""
+    if isinstance(run, EstimatorResult):
+        result, filter_structure = run, None
+    else:
+        result, check = run.result, run.structure
+        filter_structure = None if check is None or check.skipped else check.sigma.get(kind)
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -1137,33 +1141,6 @@ def refine_run(
         filter_structure_sigma=None if floor is None else floor[model.coefficients],
         sigma=sigma,
         identifiability=identifiability(fit.coefficients, sigma, fit.correlation),
-    )
-
-
-def refine_vehicle(
-    vehicle: VehicleResult,
-    method: str = "auto",
-    kind: FilterKind = "IEKF",
-    window_s: tuple[float | None, float | None] = (None, None),
-    progress: Callable[[RefineProgress], None] | None = None,
-    hold_noise: bool = False,
-    threads: int | None = None,
-) -> Refined:
-    """refine_run on a session's vehicle, with filter `kind`'s structure check of the
-    record where the session made one (decision 0031)."""
-    check = vehicle.structure
-    structure = None
-    if check is not None and not check.skipped:
-        structure = check.sigma.get(kind)
-    return refine_run(
-        vehicle.result,
-        method,
-        kind,
-        window_s,
-        progress,
-        hold_noise,
-        threads,
-        filter_structure=structure,
     )
 
 

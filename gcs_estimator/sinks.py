@@ -250,7 +250,7 @@ class RefineAsk:
     """Why the fit failed, a line per vehicle where it did (the run's exit status)."""
 
     def __call__(self, vehicle: VehicleResult) -> Refined | None:
-        from gcs_estimator.refine import RefineError, choose_method, refine_vehicle
+        from gcs_estimator.refine import RefineError, choose_method, refine_run
 
         status = RefineStatus()
         try:
@@ -264,7 +264,7 @@ class RefineAsk:
                 file=sys.stderr,
                 flush=True,
             )
-            return refine_vehicle(
+            return refine_run(
                 vehicle,
                 self.method,
                 window_s=self.window_s,

@@ -20,7 +20,6 @@ from gcs_estimator.refine import (
     RefineProgress,
     choose_method,
     refine_run,
-    refine_vehicle,
 )
 from gcs_estimator.report import GUST_BURSTS, results_dict, trust_warnings
 from gcs_estimator.sinks import RefineStatus
@@ -96,16 +95,16 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
 def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() -> None:
     """A calm flight with the vane 1 m ahead of the CG and an airframe file that does not
     say so (a model error that stays put): the session's structure check of the IEKF and
-    the fit's own both see it. refine_vehicle keeps, per coefficient, the larger of the
-    two (decision 0031): where the filter's check found more, the fit's sigma grows by
-    that; the estimates do not change."""
+    the fit's own both see it. refine_run, given the vehicle, keeps, per coefficient,
+    the larger of the two (decision 0031): where the filter's check found more, the
+    fit's sigma grows by that; the estimates do not change."""
     config = load_config("noc_uav")
     fl = simulate(load_config("noc_uav", ["sensors.vane_x_m=1.0"]), seed=1)
     vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
     assert vehicle.structure is not None and not vehicle.structure.skipped
     filters = vehicle.structure.sigma["IEKF"]
     alone = refine_run(vehicle.result, "output-error")
-    kept = refine_vehicle(vehicle, "output-error")
+    kept = refine_run(vehicle, "output-error")
     assert alone.filter_structure_sigma is None
     assert kept.filter_structure_sigma is not None
     np.testing.assert_array_equal(kept.filter_structure_sigma, filters)
