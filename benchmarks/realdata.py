@@ -197,10 +197,10 @@ def _judged_fairly(
 ) -> dict[str, float]:
     """The worst error over the well-excited coefficients the flight identified (by the
     IEKF's marks as the run shows them, from its corrected sigma: a coefficient with a
-    sigma of 10 % cannot be held to 5 %), how
-    closely the best fit reproduces the flight (its largest residual in sensor sigmas:
-    above 1 the target itself is not sharp), and the best fit's largest spread over the
-    well-excited coefficients and over those identified."""
+    sigma of 10 % cannot be held to 5 %), how closely the best fit reproduces the flight
+    (its largest residual in sensor sigmas: above 1 the target itself is not sharp), and
+    the best fit's largest spread over the well-excited coefficients and over those
+    identified."""
     ident = [i for i in well if marks[i] == IDENTIFIED]
     out = {
         f"{k} identified": float(np.max(np.abs(100.0 * (est[k] - goal) / goal)[ident]))
