@@ -23,8 +23,8 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from station import start_listen
 
 from gcs_estimator.config import load_config
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.telemetry.mavlink import Codec, read_tlog
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry.mavlink import Codec, read_tlog
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 

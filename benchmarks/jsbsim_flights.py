@@ -39,7 +39,7 @@ from best_fit import best_fit, reproduction, spread  # benchmarks/: the script's
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REGRESSOR_SUFFIX, load_config
-from gcs_estimator.flightdata import Recording, write_csv
+from gcs_estimator.ingest.flightdata import Recording, write_csv
 from gcs_estimator.units import FOOT, POUND_FORCE, SLUG
 
 ROOT = Path(__file__).resolve().parent.parent

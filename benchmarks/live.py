@@ -16,9 +16,9 @@ against frames flown (target: none lost). link.max_vehicles is raised to the veh
 flown. With --repeat N the flight is flown N times in a row into a new station each time
 (this machine is shared and its speed varies between runs): the figures of every run, and
 the worst of each. With --link-worker the link runs in a second process, as
-`listen --link-worker` runs it (gcs_estimator/link_worker.py), and its CPU is printed
+`listen --link-worker` runs it (gcs_estimator/runtime/link_worker.py), and its CPU is printed
 beside the station's. With --filter-workers K the vehicles' filters run in K processes, as
-`listen --filter-workers K` runs them (gcs_estimator/filter_worker.py): the latency is
+`listen --filter-workers K` runs them (gcs_estimator/runtime/filter_worker.py): the latency is
 then to the moment both filters' outputs are back in the station, and the processes' CPU
 is printed too.
 """
@@ -45,16 +45,16 @@ from speed import small_matrix_gflops
 from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.decode_worker import LinkArgs
-from gcs_estimator.estimator import FilterKind, StepOutput
-from gcs_estimator.filter_worker import ShardedSession
+from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.session import Session, VehicleResult, warm_up
-from gcs_estimator.sources import UdpSource, open_udp
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.view.live import RerunView, ViewSink
-from gcs_estimator.view.outlets import LocalOutlet
+from gcs_estimator.ingest.sources import UdpSource, open_udp
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.outputs.view.live import RerunView, ViewSink
+from gcs_estimator.outputs.view.outlets import LocalOutlet
+from gcs_estimator.runtime.decode_worker import LinkArgs
+from gcs_estimator.runtime.filter_worker import ShardedSession
+from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
+from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
 from sim.cli import command as vehicle_command
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -43,13 +43,18 @@ from refine_hfb import TARGETED
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REFINE_METHODS, AircraftConfig, load_config
-from gcs_estimator.estimator import FILTER_KINDS, EstimatorResult, FilterKind, run_recording
-from gcs_estimator.flightdata import Recording, load_recording
-from gcs_estimator.metrics import IDENTIFIED
+from gcs_estimator.estimation.estimator import (
+    FILTER_KINDS,
+    EstimatorResult,
+    FilterKind,
+    run_recording,
+)
+from gcs_estimator.ingest.flightdata import Recording, load_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
-from gcs_estimator.report import channel_text
-from gcs_estimator.session import VehicleResult
+from gcs_estimator.outputs.report import channel_text
+from gcs_estimator.refine.fit import Refined, RefineError, fit_label, refine_run
+from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.uncertainty.metrics import IDENTIFIED
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
 """The coefficients the elevator manoeuvre excites well enough to be judged on."""

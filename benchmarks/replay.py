@@ -29,13 +29,13 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from flights import repeated_manoeuvre
 
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.session import Session, warm_up
-from gcs_estimator.sources import TlogSource
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import Decoder, read_tlog
-from gcs_estimator.view.live import RerunView, ViewSink
-from gcs_estimator.view.outlets import LocalOutlet
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import Decoder, read_tlog
+from gcs_estimator.outputs.view.live import RerunView, ViewSink
+from gcs_estimator.outputs.view.outlets import LocalOutlet
+from gcs_estimator.runtime.session import Session, warm_up
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 

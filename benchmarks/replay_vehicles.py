@@ -30,12 +30,12 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from flights import repeated_manoeuvre
 
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.filter_worker import ShardedSession
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.session import Session, VehicleResult, warm_up
-from gcs_estimator.sources import TlogSource
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.runtime.filter_worker import ShardedSession
+from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 

@@ -41,9 +41,9 @@ from numba import njit
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import Estimator, run_recording
-from gcs_estimator.filters import core, fast
-from gcs_estimator.filters.core import FilterKind, FilterState, Tuning
+from gcs_estimator.estimation.estimator import Estimator, run_recording
+from gcs_estimator.estimation.filters import core, fast
+from gcs_estimator.estimation.filters.core import FilterKind, FilterState, Tuning
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_OBS

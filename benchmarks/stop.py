@@ -28,11 +28,11 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from flights import repeated_manoeuvre
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import FilterKind, StepOutput
+from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.report import write_results
-from gcs_estimator.session import Session, VehicleResult, warm_up
-from gcs_estimator.sinks import ResultsSink
+from gcs_estimator.outputs.report import write_results
+from gcs_estimator.outputs.sinks import ResultsSink
+from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
 from gcs_estimator.stop import Stop
 from sim.truth import simulate
 

@@ -124,7 +124,7 @@ def _layout_only(path: Path) -> Path:
     import rerun as rr
 
     from gcs_estimator.config import load_config
-    from gcs_estimator.view.layout import build_blueprint
+    from gcs_estimator.outputs.view.layout import build_blueprint
 
     config = load_config("noc_uav")
     rec = rr.RecordingStream("webview-layout")

@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from gcs_estimator import blas, endpoints
+from gcs_estimator import blas
 from gcs_estimator.config import (
     REFINE_METHODS,
     VIEW_OUTPUTS,
@@ -24,21 +24,9 @@ from gcs_estimator.config import (
     load_reference,
     load_truths,
 )
-from gcs_estimator.decode_worker import LinkArgs
-from gcs_estimator.filter_worker import ShardedSession, TablesSink
-from gcs_estimator.flightdata import FlightDataError, load_recording
-from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.report import LiveEstimate, live_table
-from gcs_estimator.session import RecordingSource, Session, Source, VehicleResult, warm_up
-from gcs_estimator.sinks import (
-    ProgressSink,
-    RefineAsk,
-    ResultsSink,
-    StatusSink,
-    results_stem,
-    vehicle_heading,
-)
-from gcs_estimator.sources import (
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.flightdata import FlightDataError, load_recording
+from gcs_estimator.ingest.sources import (
     RCVBUF_BYTES,
     LiveSource,
     SerialSource,
@@ -48,11 +36,24 @@ from gcs_estimator.sources import (
     UdpSource,
     open_udp,
 )
+from gcs_estimator.ingest.telemetry.decode import ranges_of
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
+from gcs_estimator.outputs.report import LiveEstimate, live_table
+from gcs_estimator.outputs.sinks import (
+    ProgressSink,
+    RefineAsk,
+    ResultsSink,
+    StatusSink,
+    results_stem,
+    vehicle_heading,
+)
+from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
+from gcs_estimator.runtime.decode_worker import LinkArgs
+from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
+from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
+from gcs_estimator.runtime.session import RecordingSource, Session, Source, VehicleResult, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
-from gcs_estimator.telemetry.decode import ranges_of
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter
-from gcs_estimator.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 
 DEFAULT_CONFIG = "noc_uav"
 VIEW_FILE = "view.rrd"
@@ -591,7 +592,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
     if getattr(args, "each", False):
-        from gcs_estimator.batch import run_each
+        from gcs_estimator.runtime.batch import run_each
 
         return run_each(args, stop)
     if getattr(args, "jobs", None) is not None:

@@ -426,7 +426,7 @@ class FilterTuning:
         "auto",
         choices=("auto", "config", "data"),
         doc="where each restart's re-run takes each channel's noise sigma from: auto: the "
-        "data's reading (robust fourth differences, gcs_estimator/noise.py) where it is "
+        "data's reading (robust fourth differences, gcs_estimator/estimation/noise.py) where it is "
         "clearly below measurement_sigma (the sensor is better than configured), else "
         "measurement_sigma; data: the reading throughout; config: measurement_sigma "
         "throughout. Before the first restart, and for channels with too few samples, "
@@ -438,8 +438,8 @@ class FilterTuning:
         doc="at the end of a run, replay its final pass once per channel with that channel "
         "trusted half as much, and widen each coefficient's corrected sigma by how far the "
         "estimate moves beyond what the covariance predicts (what the model's structure "
-        "misses: gcs_estimator/weighting.py); auto: when the run kept its history and its "
-        "frames stay within structure_check_max_frames",
+        "misses: gcs_estimator/uncertainty/weighting.py); auto: when the run kept its "
+        "history and its frames stay within structure_check_max_frames",
     )
     structure_check_max_frames: int = setting(
         30000,
@@ -462,7 +462,7 @@ class FilterTuning:
 
 
 REFINE_METHODS: tuple[str, ...] = ("auto", "output-error", "filter-error")
-"""Whole-record fits (gcs_estimator.refine): chosen from the filters' turbulence level
+"""Whole-record fits (gcs_estimator.refine.fit): chosen from the filters' turbulence level
 (refine.choose_method), output error, or with process noise."""
 
 QUANTITY_KINDS: dict[str, str] = {

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator import endpoints
 from gcs_estimator.config import ConfigError, load_config, truths_text
-from gcs_estimator.endpoints import Endpoint
-from gcs_estimator.flightdata import FlightDataError, Recording, load_recording
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.endpoints import Endpoint
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
 from sim.ports import Port, SerialPort, Shared, UdpIn
 from sim.truth import simulate
 from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle

@@ -11,8 +11,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Protocol
 
-from gcs_estimator import endpoints
-from gcs_estimator.endpoints import Endpoint
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.endpoints import Endpoint
 
 if TYPE_CHECKING:
     import serial

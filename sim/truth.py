@@ -16,11 +16,11 @@ from scipy.linalg import solve_continuous_lyapunov
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
+from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe_in_gust
-from gcs_estimator.telemetry import pwm
 
 
 @dataclass(frozen=True)

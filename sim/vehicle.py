@@ -17,10 +17,10 @@ from typing import Any
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import STREAMED_MESSAGES, ConfigError, LinkConfig
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.telemetry import mavlink, pwm
-from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
-from gcs_estimator.telemetry.signing import load_key, sign_outgoing
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry import mavlink, pwm
+from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
+from gcs_estimator.ingest.telemetry.signing import load_key, sign_outgoing
 from sim.ports import Port, UdpOut
 
 BOOT_OFFSET_S = 5.0

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.flightdata import bundled
+from gcs_estimator.ingest.flightdata import bundled
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator.batch import child_command
 from gcs_estimator.cli import build_parser, main, tlog_paths
 from gcs_estimator.config import load_config
-from gcs_estimator.flightdata import Recording
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.runtime.batch import child_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 

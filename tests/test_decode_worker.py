@@ -14,15 +14,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs_estimator import decode_worker
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.flightdata import Recording
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Session, warm_up
-from gcs_estimator.sources import SourceError, TlogSource
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import SourceError, TlogSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
+from gcs_estimator.runtime import decode_worker
+from gcs_estimator.runtime.session import Session, warm_up
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import recorded_flight

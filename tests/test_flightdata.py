@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.flightdata import FlightDataError, Recording, load_csv
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_csv
 from gcs_estimator.units import FOOT, G0, KNOT
 from sim.truth import simulate
 
@@ -180,7 +180,7 @@ def test_a_loggers_slips_are_mended_and_said(
     without its time, a cell that is not a number, and a last line cut while it was
     written (no line end: its last cell would read as another number). Each is mended
     or skipped and said in a note; every other sample reads back as written."""
-    from gcs_estimator.flightdata import write_csv
+    from gcs_estimator.ingest.flightdata import write_csv
 
     path = tmp_path / "clean.csv"
     write_csv(path, flight)
@@ -224,7 +224,7 @@ def test_two_recordings_in_one_csv_are_refused_naming_the_line(
 ) -> None:
     """A time that goes back by more than a logger's slip (a second recording appended,
     its clock from zero): refused with the line, not read as one flight."""
-    from gcs_estimator.flightdata import write_csv
+    from gcs_estimator.ingest.flightdata import write_csv
 
     path = tmp_path / "two.csv"
     write_csv(path, flight)
@@ -239,7 +239,7 @@ def test_an_hfb320_record_cut_while_written_reads_every_whole_line(tmp_path: Pat
     last columns where a second piece was joined on, a value that is not a number, and a
     last line without its line end (its last number may be cut: 11603.15 read as 1 once
     doubled a run's NIS). The whole lines are read as the bundled record has them."""
-    from gcs_estimator.flightdata import bundled, load_hfb320
+    from gcs_estimator.ingest.flightdata import bundled, load_hfb320
 
     whole = load_hfb320(bundled("hfb320") / "hfb320_1_10.asc")
     assert whole.notes == ()  # the bundled record is whole
@@ -271,7 +271,7 @@ def test_a_csv_with_semicolons_or_tabs_reads_as_with_commas(
     columns and commas in numbers; some loggers write tabs. Either reads as the
     comma-separated file does, with a note; it used to be refused as having no column
     'time_s' (the whole header read as one column's name)."""
-    from gcs_estimator.flightdata import write_csv
+    from gcs_estimator.ingest.flightdata import write_csv
 
     path = tmp_path / "commas.csv"
     write_csv(path, flight)
@@ -295,7 +295,7 @@ def test_a_time_column_in_microseconds_is_named_as_such(
     said milliseconds, which for microseconds only moved the error)."""
     path = tmp_path / "us.csv"
     write = Recording(flight.t_s * 1e6, flight.inputs, flight.measurements, flight.power)
-    from gcs_estimator.flightdata import write_csv
+    from gcs_estimator.ingest.flightdata import write_csv
 
     write_csv(path, write)
     data = load_config("noc_uav", [f'data.units.time="{read_as}"']).data

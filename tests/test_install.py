@@ -88,7 +88,7 @@ def test_the_installed_package_is_the_wheel_not_this_checkout(installed: Install
     assert "| `CmV` |" in mod.stdout
     # What ./run does after installing: the kernels compiled into the install's own cache,
     # so that the tests below (and a user's first listen) start warm.
-    pre = installed.run("python", "-m", "gcs_estimator.precompile")
+    pre = installed.run("python", "-m", "gcs_estimator.runtime.precompile")
     assert pre.stdout.startswith("compiled the kernels in ")
     cached = list((installed.venv / "lib").glob("python3*/site-packages/gcs_estimator/**/*.nbi"))
     assert cached, "no numba cache written next to the installed package"

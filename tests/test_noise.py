@@ -1,6 +1,6 @@
-"""Measurement noise from the record (gcs_estimator/noise.py, `measurement_noise = "auto"`
-and "data"): the estimator of each channel's sigma, its spread, and the filters using it
-from the first restart on."""
+"""Measurement noise from the record (gcs_estimator/estimation/noise.py,
+`measurement_noise = "auto"` and "data"): the estimator of each channel's sigma, its
+spread, and the filters using it from the first restart on."""
 
 from __future__ import annotations
 
@@ -12,10 +12,8 @@ import numpy as np
 
 from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import run_recording
-from gcs_estimator.metrics import channel_mean_squares
-from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.noise import (
+from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.estimation.noise import (
     CLEARLY,
     FLOOR_RATIO,
     MIN_DIFFERENCES,
@@ -23,7 +21,9 @@ from gcs_estimator.noise import (
     noise_from_differences,
     reading_z,
 )
-from gcs_estimator.report import CHANNEL_NIS_LIMIT, results_dict, trust_warnings
+from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.outputs.report import CHANNEL_NIS_LIMIT, results_dict, trust_warnings
+from gcs_estimator.uncertainty.metrics import channel_mean_squares
 from sim.truth import simulate
 from tests.conftest import CONFIGS
 

@@ -12,18 +12,18 @@ from threadpoolctl import threadpool_info
 
 from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import run_recording
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
-from gcs_estimator.refine import (
+from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry.mavlink import read_tlog
+from gcs_estimator.outputs.report import GUST_BURSTS, results_dict, trust_warnings
+from gcs_estimator.outputs.sinks import RefineStatus
+from gcs_estimator.refine.fit import (
     RefineError,
     RefineProgress,
     choose_method,
     refine_run,
 )
-from gcs_estimator.report import GUST_BURSTS, results_dict, trust_warnings
-from gcs_estimator.sinks import RefineStatus
-from gcs_estimator.telemetry.mavlink import read_tlog
+from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from sim.reference import output_error
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -64,7 +64,7 @@ def test_turbulent_record_gets_wider_sigma_than_cramer_rao(hfb_config: AircraftC
     disagree, it lands far from the filters (which follow the gusts), and the corrected
     sigma is wider than the Cramer-Rao bound on every coefficient, wide enough to cover
     the fit's distance from the book's estimates."""
-    from gcs_estimator.flightdata import load_recording
+    from gcs_estimator.ingest.flightdata import load_recording
 
     rec = load_recording("hfb320", hfb_config.data)[1]
     run = run_recording(hfb_config, rec.t_s, rec.inputs, rec.measurements)
@@ -152,7 +152,7 @@ def test_identifiability_marks() -> None:
 def test_noise_model_that_does_not_fit_is_named(hfb_config: AircraftConfig) -> None:
     """Measurement sigmas ten times too small: NIS far above the channel count, and the
     run says so."""
-    from gcs_estimator.flightdata import load_recording
+    from gcs_estimator.ingest.flightdata import load_recording
 
     small = tuple(s / 10 for s in hfb_config.filter.measurement_sigma)
     config = load_config(
@@ -314,9 +314,9 @@ def test_constant_gain_kernel_without_gain_flies_open_loop(hfb_config: AircraftC
     """The filter-error kernel with a zero gain is output error: its innovations equal
     the time-varying kernel's with no process noise, to the float, missing samples
     included; a gain pulls the flight toward the data (smaller innovations)."""
-    from gcs_estimator.flightdata import load_recording
+    from gcs_estimator.ingest.flightdata import load_recording
     from gcs_estimator.model.aircraft import build_model
-    from gcs_estimator.refine import innovations, steady_innovations
+    from gcs_estimator.refine.fit import innovations, steady_innovations
 
     rec = load_recording("hfb320", hfb_config.data)[1]
     model = build_model(hfb_config, gust_states=False)

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import run_recording
-from gcs_estimator.metrics import WEAK
+from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.warmstart import equation_error
+from gcs_estimator.uncertainty.metrics import WEAK
 from sim.truth import simulate
 
 PLACEMENT = [

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import run_recording
-from gcs_estimator.metrics import NOT_IDENTIFIED, movement_start, sigma_inflation
-from gcs_estimator.report import DISAGREE_SIGMAS, GUST_BURSTS, results_dict, trust_warnings
-from gcs_estimator.session import VehicleResult
+from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.outputs.report import DISAGREE_SIGMAS, GUST_BURSTS, results_dict, trust_warnings
+from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, movement_start, sigma_inflation
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")

@@ -1,5 +1,5 @@
-"""The structure check (gcs_estimator/weighting.py, docs/decisions/0017): the run's final
-pass replayed with each channel trusted half as much; how far the estimates move beyond
+"""The structure check (gcs_estimator/uncertainty/weighting.py, docs/decisions/0017): the
+run's final pass replayed with each channel trusted half as much; how far the estimates move beyond
 their covariance widens the corrected sigma. Small where the model holds, large enough where
 it does not to cover an error the movement correction (0008) leaves uncovered."""
 
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import Estimator, FilterKind, run_recording
-from gcs_estimator.report import final_table, results_dict
-from gcs_estimator.session import RecordingSource, Session, VehicleResult
-from gcs_estimator.weighting import VARIANCE_FACTOR, structure_check
+from gcs_estimator.estimation.estimator import Estimator, FilterKind, run_recording
+from gcs_estimator.outputs.report import final_table, results_dict
+from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR, structure_check
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")

@@ -11,9 +11,9 @@ import numpy as np
 
 from gcs_estimator.cli import STATUS_VEHICLES, _status_lines
 from gcs_estimator.config import load_config
-from gcs_estimator.session import Session
-from gcs_estimator.sinks import STATUS_WIDTH, ProgressSink, StatusSink
-from gcs_estimator.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.outputs.sinks import STATUS_WIDTH, ProgressSink, StatusSink
+from gcs_estimator.runtime.session import Session
 
 
 class Terminal(io.StringIO):

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import ConfigError, load_config, load_truths
-from gcs_estimator.session import Session
-from gcs_estimator.sources import TlogSource
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.runtime.session import Session
 from sim.cli import build_parser, recordings
 from sim.vehicle import SimulatedVehicle
 
@@ -92,8 +92,8 @@ def test_a_reference_that_is_zero_up_to_rounding_gets_no_percent_error() -> None
     """A reference linearised from aerodynamics that lack a term comes out near 1e-14,
     not 0: an error in percent of it would be a number of 17 digits. It is scored as
     the zero it is (no percent), and the others as before."""
-    from gcs_estimator.estimator import run_recording
-    from gcs_estimator.metrics import percent_error
+    from gcs_estimator.estimation.estimator import run_recording
+    from gcs_estimator.uncertainty.metrics import percent_error
     from sim.truth import simulate
 
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig, Turbulence, load_config
-from gcs_estimator.estimator import Estimator, EstimatorResult, run_recording
-from gcs_estimator.filters import core
+from gcs_estimator.estimation.estimator import Estimator, EstimatorResult, run_recording
+from gcs_estimator.estimation.filters import core
 from gcs_estimator.model.aircraft import build_model, trim
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS

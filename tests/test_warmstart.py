@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcs_estimator import warmstart
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import run_recording
+from gcs_estimator.estimation import warmstart
+from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.model.aircraft import build_model
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS

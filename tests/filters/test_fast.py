@@ -18,9 +18,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import Estimator
-from gcs_estimator.filters import core, fast, reference
-from gcs_estimator.filters.core import FilterState, GustState, StepInfo, Tuning
+from gcs_estimator.estimation.estimator import Estimator
+from gcs_estimator.estimation.filters import core, fast, reference
+from gcs_estimator.estimation.filters.core import FilterState, GustState, StepInfo, Tuning
 from gcs_estimator.model.aircraft import Model, build_model, trim
 from gcs_estimator.model.channels import N_OBS
 from sim.truth import simulate
@@ -358,7 +358,7 @@ def test_the_reference_backend_runs_without_the_compiler() -> None:
     code = (
         "import sys\n"
         "from gcs_estimator.config import load_config\n"
-        "from gcs_estimator.estimator import Estimator\n"
+        "from gcs_estimator.estimation.estimator import Estimator\n"
         "from gcs_estimator.model.aircraft import trim\n"
         "import numpy as np\n"
         "est = Estimator(load_config('configs/noc_uav.toml'), backend='reference')\n"

@@ -7,7 +7,7 @@ import pytest
 from scipy.linalg import expm
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.filters.hybrid import Belief, ekf_update, iekf_update, propagate
+from gcs_estimator.estimation.filters.hybrid import Belief, ekf_update, iekf_update, propagate
 
 # RK4 with 1 ms steps on a system whose fastest mode is ~3 rad/s: local error ~(3e-3)^5,
 # so the hybrid prediction matches the exact discretisation far below this tolerance.

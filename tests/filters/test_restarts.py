@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import Estimator
-from gcs_estimator.filters import core
+from gcs_estimator.estimation.estimator import Estimator
+from gcs_estimator.estimation.filters import core
 from sim.truth import simulate
 
 
@@ -104,7 +104,7 @@ def test_idle_restart_work_stops_at_its_budget_and_takes_vehicles_in_turn() -> N
     or a few frames of one vehicle's re-run), not after a round of every vehicle: with
     many vehicles restarting together a round is many fits, and a packet arriving
     meanwhile would wait for all of them. The next call goes on with the next vehicle."""
-    from gcs_estimator.session import Session
+    from gcs_estimator.runtime.session import Session
 
     config = load_config(
         "noc_uav",
@@ -138,7 +138,7 @@ def test_vehicles_restarting_together_take_turns_and_end_alike() -> None:
     is not asked for every vehicle's re-run at once. The count comes from the frames the
     session was given, in their order (not from the machine's load), and the estimates
     end where a lone vehicle's do."""
-    from gcs_estimator.session import Session
+    from gcs_estimator.runtime.session import Session
 
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
     per_peer = config.filter.restart_grace_per_peer

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcs_estimator.filters import small
+from gcs_estimator.estimation.filters import small
 
 
 def _problem(seed: int, n: int = 15, k: int = 7) -> dict[str, np.ndarray]:

@@ -328,7 +328,7 @@ def test_a_clock_reset_takes_the_white_pitch_gust_afresh_with_alpha() -> None:
     """core.rebase takes the flight states afresh from the measurement; the pitch gust's
     state of white gust noise rides on alpha (q_g = p_g + c V alpha), so it is taken
     afresh with them: q_g = 0 and p_g tied to alpha's belief, the coefficients kept."""
-    from gcs_estimator.filters import core
+    from gcs_estimator.estimation.filters import core
 
     config = load_config("noc_uav", ["airframe.wing_span_m=2.6"])
     model = build_model(config)

@@ -14,8 +14,8 @@ import pytest
 from pymavlink import mavutil
 
 from gcs_estimator.config import load_config
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.telemetry import mavlink
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry import mavlink
 from sim.ports import UdpOut
 from sim.truth import simulate
 from sim.vehicle import STREAM_PARAMS, SimulatedVehicle

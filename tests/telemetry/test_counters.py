@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gcs_estimator.telemetry.counters import LinkHealth
+from gcs_estimator.ingest.telemetry.counters import LinkHealth
 
 RATE_HZ = 300.0
 

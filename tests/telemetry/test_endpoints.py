@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs_estimator import endpoints
 from gcs_estimator.cli import main
 from gcs_estimator.config import AircraftConfig, ConfigError, load_config
-from gcs_estimator.flightdata import Recording
 from gcs_estimator.frames import Frame
-from gcs_estimator.sources import RCVBUF_BYTES, TcpSource, TlogSource, UdpSource
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import RCVBUF_BYTES, TcpSource, TlogSource, UdpSource
+from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry import mavlink
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.cli import _target
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle

@@ -14,14 +14,14 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from gcs_estimator.config import load_config
-from gcs_estimator.telemetry.decode import (
+from gcs_estimator.ingest.telemetry.decode import (
     Decoded,
     DecodeStats,
     SampleReader,
     decoded_message,
     ranges_of,
 )
-from gcs_estimator.telemetry.mavlink import FAST_MESSAGES, Decoder
+from gcs_estimator.ingest.telemetry.mavlink import FAST_MESSAGES, Decoder
 
 SEED = 20261123
 CASES_PER_MESSAGE = 300

@@ -21,14 +21,14 @@ import pytest
 
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import FilterKind, StepOutput
-from gcs_estimator.flightdata import Recording
+from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import VehicleResult
-from gcs_estimator.sources import UdpSource, open_udp
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import UdpSource, open_udp
+from gcs_estimator.ingest.telemetry.decode import WRAP_US32_S
+from gcs_estimator.ingest.telemetry.mavlink import Decoder, TlogWriter, read_tlog
+from gcs_estimator.runtime.session import VehicleResult
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.decode import WRAP_US32_S
-from gcs_estimator.telemetry.mavlink import Decoder, TlogWriter, read_tlog
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import ROOT, SHORT, Ground, recorded_flight, run_records
@@ -231,7 +231,7 @@ def test_a_gimbal_on_the_vehicles_system_id_changes_no_estimate(
     the aircraft's type."""
     from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-    from gcs_estimator.telemetry.mavlink import Codec
+    from gcs_estimator.ingest.telemetry.mavlink import Codec
 
     _config, recs = recorded_flight(tmp_path)
     decoder = Decoder()
@@ -276,8 +276,8 @@ def test_a_gimbal_on_the_vehicles_system_id_changes_no_estimate(
 def test_a_paced_replay_stops_within_a_slice_when_asked(tmp_path: Path) -> None:
     """A replay at real time with an hour's gap in receive time ends as soon as a stop is
     requested, instead of sleeping through the gap."""
-    from gcs_estimator.sources import TlogSource
-    from gcs_estimator.telemetry.link import MavlinkLink
+    from gcs_estimator.ingest.sources import TlogSource
+    from gcs_estimator.ingest.telemetry.link import MavlinkLink
 
     config, recs = recorded_flight(tmp_path)
     path = tmp_path / "gap.tlog"
@@ -303,8 +303,8 @@ def test_a_paced_replay_of_joined_recordings_does_not_wait_out_the_jump(tmp_path
     """Two recordings in one file, the second two days after the first: a replay at 20x
     real time paces each at its own times and goes from the first to the second at once
     (the reader counts the jump) instead of waiting out two days."""
-    from gcs_estimator.sources import TlogSource
-    from gcs_estimator.telemetry.link import MavlinkLink
+    from gcs_estimator.ingest.sources import TlogSource
+    from gcs_estimator.ingest.telemetry.link import MavlinkLink
 
     config, recs = recorded_flight(tmp_path)
     part = recs[:200]

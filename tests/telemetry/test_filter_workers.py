@@ -19,12 +19,12 @@ import pytest
 from gcs_estimator import cli
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import Estimator, FilterKind, StepOutput
-from gcs_estimator.filter_worker import ShardedSession, output_row, read_row
+from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Session, VehicleResult
+from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.runtime.filter_worker import ShardedSession, output_row, read_row
+from gcs_estimator.runtime.session import Session, VehicleResult
 from gcs_estimator.stop import Stop
-from gcs_estimator.view import layout as lay
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from tests.telemetry.station import bound_port, start_listen
@@ -317,7 +317,7 @@ def test_a_workers_python_warnings_name_it() -> None:
     number in front, the warning's own text after it."""
     code = (
         "import warnings\n"
-        "from gcs_estimator.filter_worker import name_warnings\n"
+        "from gcs_estimator.runtime.filter_worker import name_warnings\n"
         "name_warnings(3)\n"
         "warnings.warn('the gust level overflowed', RuntimeWarning)\n"
     )

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator.telemetry.mavlink import (
+from gcs_estimator.ingest.telemetry.mavlink import (
     STX_V1,
     STX_V2,
     Codec,

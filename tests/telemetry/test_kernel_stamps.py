@@ -14,13 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator import endpoints
 from gcs_estimator.config import load_config
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.sources import RCVBUF_BYTES, UdpSource
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import RCVBUF_BYTES, UdpSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import read_tlog
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import SHORT

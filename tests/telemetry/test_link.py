@@ -16,14 +16,14 @@ import pytest
 
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimator import run_recording
-from gcs_estimator.flightdata import Recording, load_hfb320
+from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.frames import Frame
-from gcs_estimator.session import Session, warm_up
-from gcs_estimator.sources import TlogSource, UdpSource, open_udp
+from gcs_estimator.ingest.flightdata import Recording, load_hfb320
+from gcs_estimator.ingest.sources import TlogSource, UdpSource, open_udp
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.runtime.session import Session, warm_up
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
 from sim.cli import command as vehicle_command
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.station import start_listen

@@ -17,19 +17,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs_estimator import link_worker
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_config
-from gcs_estimator.decode_worker import LinkArgs
-from gcs_estimator.estimator import FilterKind, StepOutput
-from gcs_estimator.flightdata import Recording
+from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.session import Session, VehicleResult
-from gcs_estimator.sources import SourceError, UdpSource, open_udp
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import SourceError, UdpSource, open_udp
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.runtime import link_worker
+from gcs_estimator.runtime.decode_worker import LinkArgs
+from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
+from gcs_estimator.runtime.session import Session, VehicleResult
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.view import layout as lay
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from gcs_estimator import endpoints
 from gcs_estimator.cli import main
 from gcs_estimator.config import ConfigError
-from gcs_estimator.telemetry.mavlink import read_tlog
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from sim.cli import _target
 
 FLIGHT = ["--set", "simulation.manoeuvre.duration_s=12"]

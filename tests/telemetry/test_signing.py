@@ -12,19 +12,19 @@ from pathlib import Path
 import pytest
 
 from gcs_estimator.config import AircraftConfig, ConfigError, load_config
-from gcs_estimator.flightdata import Recording
-from gcs_estimator.sources import TlogSource
-from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry import mavlink
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter, read_tlog
-from gcs_estimator.telemetry.signing import (
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.ingest.telemetry.signing import (
     NEW_STREAM_TICKS,
     TICKS_PER_S,
     load_key,
     sign_outgoing,
     timestamp_now,
 )
+from gcs_estimator.stop import Stop
 from sim.truth import simulate
 from tests.telemetry.test_link import SHORT, fly_to_station
 

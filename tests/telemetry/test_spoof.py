@@ -14,10 +14,10 @@ import pytest
 
 from gcs_estimator.config import load_config
 from gcs_estimator.frames import Frame
-from gcs_estimator.sources import UdpSource, open_udp
+from gcs_estimator.ingest.sources import UdpSource, open_udp
+from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.link import PIN_MOVE_S, MavlinkLink, link_name
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry import mavlink
-from gcs_estimator.telemetry.link import PIN_MOVE_S, MavlinkLink, link_name
 
 DEADLINE_S = 30.0
 """Hang guard: every wait below ends when what it waits for happened."""

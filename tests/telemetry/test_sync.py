@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.telemetry.decode import WRAP_US32_S, Sample
+from gcs_estimator.ingest.telemetry.sync import Synchronizer
 from gcs_estimator.model.channels import Channel
-from gcs_estimator.telemetry.decode import WRAP_US32_S, Sample
-from gcs_estimator.telemetry.sync import Synchronizer
 
 LINK = LinkConfig()
 OBS = {"v": 24.0, "alpha": 0.05, "theta": 0.05, "q": 0.0, "qdot": 0.0, "ax": 0.1, "az": -9.8}

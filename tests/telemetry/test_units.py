@@ -13,11 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs_estimator import atmosphere
 from gcs_estimator.config import LinkConfig
-from gcs_estimator.model.channels import Channel
-from gcs_estimator.telemetry import mavlink, pwm
-from gcs_estimator.telemetry.decode import (
+from gcs_estimator.ingest.telemetry import mavlink, pwm
+from gcs_estimator.ingest.telemetry.decode import (
     CommandAck,
     DecodeStats,
     Heartbeat,
@@ -25,7 +23,7 @@ from gcs_estimator.telemetry.decode import (
     Sample,
     decode_packet,
 )
-from gcs_estimator.telemetry.mavlink import (
+from gcs_estimator.ingest.telemetry.mavlink import (
     Codec,
     Decoder,
     TlogError,
@@ -34,7 +32,9 @@ from gcs_estimator.telemetry.mavlink import (
     scan,
     tlog_record,
 )
-from gcs_estimator.telemetry.sync import Synchronizer
+from gcs_estimator.ingest.telemetry.sync import Synchronizer
+from gcs_estimator.model import atmosphere
+from gcs_estimator.model.channels import Channel
 
 LINK = LinkConfig()
 OBS = ("v", "alpha", "theta", "q", "qdot", "ax", "az")
@@ -220,7 +220,7 @@ def test_recordings_joined_into_one_file_are_read_whole(
 def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle: Codec) -> None:
     """An 80 deg angle of attack is a number a float holds and no fixed wing flies."""
     from gcs_estimator.config import load_config
-    from gcs_estimator.telemetry.decode import ranges_of
+    from gcs_estimator.ingest.telemetry.decode import ranges_of
 
     packet = vehicle.pack(vehicle.mav.aoa_ssa_encode(1, 80.0, 0.0))
     stats = DecodeStats()
@@ -233,7 +233,7 @@ def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle
 def test_a_quadrotor_is_warned_about_and_system_ids_beyond_the_cap_are_counted() -> None:
     import io
 
-    from gcs_estimator.telemetry.link import MavlinkLink
+    from gcs_estimator.ingest.telemetry.link import MavlinkLink
 
     log = io.StringIO()
     link = MavlinkLink(LinkConfig(max_vehicles=2), log=log)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import Estimator
+from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.model.aircraft import trim
-from gcs_estimator.view.live import RerunView
-from gcs_estimator.view.outlets import Layout, Op, Outlet
+from gcs_estimator.outputs.view.live import RerunView
+from gcs_estimator.outputs.view.outlets import Layout, Op, Outlet
 
 
 class Collect(Outlet):

@@ -9,10 +9,10 @@ import math
 import numpy as np
 
 from gcs_estimator.config import load_config
-from gcs_estimator.session import RecordingSource, Session
-from gcs_estimator.view import layout as lay
-from gcs_estimator.view.live import RerunView, ViewSink, first_in_interval
-from gcs_estimator.view.outlets import Layout, Text
+from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.outputs.view.live import RerunView, ViewSink, first_in_interval
+from gcs_estimator.outputs.view.outlets import Layout, Text
+from gcs_estimator.runtime.session import RecordingSource, Session
 from sim.truth import simulate
 from tests.view.test_layout_burst import Collect
 

@@ -20,16 +20,16 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimator import FILTER_KINDS, Track
+from gcs_estimator.estimation.estimator import FILTER_KINDS, Track
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
-from gcs_estimator.report import final_table, live_table
-from gcs_estimator.session import RecordingSource, Session, VehicleResult
-from gcs_estimator.sources import TlogSource
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import TlogWriter
-from gcs_estimator.view import layout as lay
-from gcs_estimator.view.live import RerunView, ViewSink
-from gcs_estimator.view.outlets import LocalOutlet
+from gcs_estimator.outputs.report import final_table, live_table
+from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.outputs.view.live import RerunView, ViewSink
+from gcs_estimator.outputs.view.outlets import LocalOutlet
+from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
@@ -210,8 +210,8 @@ def test_results_table_and_layout_are_in_the_recording(
 
 def short_tlog(path: Path, vehicles: int) -> None:
     """Several simulated vehicles' telemetry (each from its own tlog) merged into one."""
-    from gcs_estimator.flightdata import Recording
-    from gcs_estimator.telemetry.mavlink import read_tlog
+    from gcs_estimator.ingest.flightdata import Recording
+    from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 
     config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
     records: list[tuple[int, bytes]] = []
@@ -433,7 +433,7 @@ def test_serving_on_a_port_another_program_listens_on_is_refused_at_once(
         argv += ["--serve-port", str(port), "--out", str(tmp_path / "held")]
         assert main(argv) == 2
     assert f"view.serve_port {port} on 127.0.0.1: cannot serve there" in capsys.readouterr().err
-    from gcs_estimator.view.outlets import LocalOutlet
+    from gcs_estimator.outputs.view.outlets import LocalOutlet
 
     outlet = LocalOutlet("free", serve=("127.0.0.1", port, "1MB"))
     assert outlet.server_uri is not None and str(port) in outlet.server_uri

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs_estimator.view import layout as lay
+from gcs_estimator.outputs.view import layout as lay
 from tests.view.browser import CHROMIUM, decode_png, drawn, load_until_steady, served
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -16,13 +16,19 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from gcs_estimator import endpoints
-from gcs_estimator.decode_worker import DecodeWorker, LinkArgs, mirror
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest import endpoints
+from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import (
+    Codec,
+    TlogError,
+    TlogRecord,
+    TlogStats,
+    read_tlog,
+)
+from gcs_estimator.runtime.decode_worker import DecodeWorker, LinkArgs, mirror
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry import mavlink
-from gcs_estimator.telemetry.link import MavlinkLink
-from gcs_estimator.telemetry.mavlink import Codec, TlogError, TlogRecord, TlogStats, read_tlog
 
 if TYPE_CHECKING:
     import serial

@@ -33,8 +33,8 @@ import numpy as np
 
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.telemetry.decode import Sample
 from gcs_estimator.model.channels import N_INPUTS, N_OBS, REQUIRED_INPUTS, Channel
-from gcs_estimator.telemetry.decode import Sample
 
 CLOCK_RESET_S = 1.0
 """A vehicle time this far behind the newest is a clock reset (reboot) once confirmed."""

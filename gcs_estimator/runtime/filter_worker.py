@@ -4,7 +4,7 @@
 With many vehicles the filters are the station's work, and one process is one core. Here
 the station keeps the link (receiving, decoding, synchronising and recording, in this
 process or in a link worker) and the sinks that look at every frame (the view, the status
-line); each of K worker processes (`python -m gcs_estimator.filter_worker`) runs a Session
+line); each of K worker processes (`python -m gcs_estimator.runtime.filter_worker`) runs a Session
 over its share of the vehicles:
 
     link -> frames -> ShardedSession --pipe--> K workers: Estimator per vehicle
@@ -49,28 +49,28 @@ import numpy as np
 from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.decode_worker import (
-    POLL_S,
-    READ_BYTES,
-    WorkerProcess,
-    _writer,
-    read_messages,
-)
-from gcs_estimator.estimator import Backend, FilterKind, Snapshot, StepOutput
-from gcs_estimator.filters.core import FILTER_KINDS
-from gcs_estimator.filters.fast import output_width as step_width
+from gcs_estimator.estimation.estimator import Backend, FilterKind, Snapshot, StepOutput
+from gcs_estimator.estimation.filters.core import FILTER_KINDS
+from gcs_estimator.estimation.filters.fast import output_width as step_width
 from gcs_estimator.frames import Frame
-from gcs_estimator.link_worker import pack, unpack
+from gcs_estimator.ingest.sources import SourceError
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.session import Session, Sink, Source, VehicleResult, truth_of, warm_up
-from gcs_estimator.sinks import (
+from gcs_estimator.outputs.sinks import (
     RefineAsk,
     ResultsSink,
     link_line,
     results_stem,
     vehicle_heading,
 )
-from gcs_estimator.sources import SourceError
+from gcs_estimator.runtime.decode_worker import (
+    POLL_S,
+    READ_BYTES,
+    WorkerProcess,
+    _writer,
+    read_messages,
+)
+from gcs_estimator.runtime.link_worker import pack, unpack
+from gcs_estimator.runtime.session import Session, Sink, Source, VehicleResult, truth_of, warm_up
 from gcs_estimator.stop import Stop
 
 BATCH_FRAMES = 64
@@ -387,7 +387,9 @@ class FilterShard(WorkerProcess):
     """The station's end of one worker: the frames sent and not yet answered, in order."""
 
     def __init__(self, job: ShardJob) -> None:
-        super().__init__("gcs_estimator.filter_worker", job, threaded=False, keep_input=True)
+        super().__init__(
+            "gcs_estimator.runtime.filter_worker", job, threaded=False, keep_input=True
+        )
         self.index = job.index
         self.sent: deque[tuple[int, Frame]] = deque()
         """(sequence number, frame) of the frames sent whose outputs have not come back."""
@@ -670,6 +672,6 @@ class TablesSink:
 if __name__ == "__main__":
     # Through the package's module, not __main__: the classes it pickles must be the
     # ones the parent unpickles.
-    from gcs_estimator import filter_worker
+    from gcs_estimator.runtime import filter_worker
 
     filter_worker.main()

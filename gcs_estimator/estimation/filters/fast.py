@@ -27,9 +27,9 @@ from numba import njit
 from numba.extending import register_jitable
 
 from gcs_estimator.arrays import FloatArray, IntArray
-from gcs_estimator.filters import core, small
-from gcs_estimator.filters.core import FilterState, GustState, StepInfo, Tuning
-from gcs_estimator.filters.hybrid import PSD_JITTER
+from gcs_estimator.estimation.filters import core, small
+from gcs_estimator.estimation.filters.core import FilterState, GustState, StepInfo, Tuning
+from gcs_estimator.estimation.filters.hybrid import PSD_JITTER
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS

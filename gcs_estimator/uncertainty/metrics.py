@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.estimator import EstimatorResult, FilterKind
+from gcs_estimator.estimation.estimator import EstimatorResult, FilterKind
 from gcs_estimator.model.channels import N_OBS
 
 CONVERGENCE_BAND = 0.05

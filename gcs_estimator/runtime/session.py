@@ -19,14 +19,20 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from gcs_estimator import weighting
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import Backend, Estimator, EstimatorResult, FilterKind, StepOutput
+from gcs_estimator.estimation.estimator import (
+    Backend,
+    Estimator,
+    EstimatorResult,
+    FilterKind,
+    StepOutput,
+)
 from gcs_estimator.frames import Frame
-from gcs_estimator.metrics import FilterSummary, summarise
 from gcs_estimator.stop import Stop
-from gcs_estimator.weighting import StructureCheck
+from gcs_estimator.uncertainty import weighting
+from gcs_estimator.uncertainty.metrics import FilterSummary, summarise
+from gcs_estimator.uncertainty.weighting import StructureCheck
 
 WORK_AHEAD_S = 0.002
 """Restart work done each time the source had nothing ready [s]: small enough that a

@@ -11,13 +11,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from gcs_estimator.estimator import Estimator, FilterKind, StepOutput
+from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.report import HistoryCsv, final_table, write_results
-from gcs_estimator.session import VehicleResult
+from gcs_estimator.outputs.report import HistoryCsv, final_table, write_results
+from gcs_estimator.runtime.session import VehicleResult
 
 if TYPE_CHECKING:
-    from gcs_estimator.refine import Refined, RefineProgress
+    from gcs_estimator.refine.fit import Refined, RefineProgress
 
 
 HISTORY_BLOCK_FRAMES = 1024
@@ -250,7 +250,7 @@ class RefineAsk:
     """Why the fit failed, a line per vehicle where it did (the run's exit status)."""
 
     def __call__(self, vehicle: VehicleResult) -> Refined | None:
-        from gcs_estimator.refine import RefineError, choose_method, refine_run
+        from gcs_estimator.refine.fit import RefineError, choose_method, refine_run
 
         status = RefineStatus()
         try:

@@ -678,7 +678,7 @@ class Lane:
         """The belief, with the reference backend (the compiled one keeps _buf)."""
         self._buf = np.empty(0)
         if self._compiled:
-            from gcs_estimator.filters import fast
+            from gcs_estimator.estimation.filters import fast
 
             self._fast = fast
             self._kernel = fast.lane_kernel
@@ -793,9 +793,9 @@ class Lane:
 def stepper(backend: Backend) -> StepFn:
     """The step of the chosen backend: "fast" (compiled) or "reference" (numpy)."""
     if backend == "fast":
-        from gcs_estimator.filters import fast
+        from gcs_estimator.estimation.filters import fast
 
         return guarded(fast.kernel_step)
-    from gcs_estimator.filters import reference
+    from gcs_estimator.estimation.filters import reference
 
     return guarded(reference.kernel_step)

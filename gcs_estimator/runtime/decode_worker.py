@@ -7,7 +7,7 @@ replay in one process runs (TlogSource over a MavlinkLink) and sends its frames 
 pipe in batches, with the link's counters and the read position, so the frames, and so
 the estimates, are the same; the link's notes are printed by this process.
 
-The worker is `python -m gcs_estimator.decode_worker`, not a multiprocessing child: a
+The worker is `python -m gcs_estimator.runtime.decode_worker`, not a multiprocessing child: a
 spawned child would import the caller's main module again, so every script that
 replays would need a `__main__` guard.
 """
@@ -35,9 +35,9 @@ from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.telemetry.counters import LinkCounts
+from gcs_estimator.ingest.telemetry.decode import Ranges
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.counters import LinkCounts
-from gcs_estimator.telemetry.decode import Ranges
 
 BATCH_FRAMES = 512
 """Frames sent at a time (a batch also goes after BATCH_S without a full one)."""
@@ -196,8 +196,8 @@ def _read_message(stream: Any) -> tuple[Any, ...] | None:
 def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
     """The worker: replay the files through a link, send the frames in batches, then
     ("end", link stats, errors, progress). SIGINT and SIGTERM end it cleanly."""
-    from gcs_estimator.sources import SourceError, TlogSource
-    from gcs_estimator.telemetry.link import MavlinkLink
+    from gcs_estimator.ingest.sources import SourceError, TlogSource
+    from gcs_estimator.ingest.telemetry.link import MavlinkLink
 
     stop = Stop().install()
     log: Any = _Lines(send)
@@ -413,7 +413,7 @@ class DecodeWorker(WorkerProcess):
 
     def __init__(self, paths: Sequence[Path], args: LinkArgs, log: TextIO | None = None) -> None:
         self.log = sys.stderr if log is None else log
-        super().__init__("gcs_estimator.decode_worker", ([str(p) for p in paths], args))
+        super().__init__("gcs_estimator.runtime.decode_worker", ([str(p) for p in paths], args))
         self.progress: Progress | None = None
         self.stats: dict[str, Any] | None = None
         self.errors: list[str] = []
@@ -421,7 +421,7 @@ class DecodeWorker(WorkerProcess):
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         """Frames in order; None while waiting (a tick for the sinks). Raises
         SourceError if the worker could not read its files or died."""
-        from gcs_estimator.sources import SourceError
+        from gcs_estimator.ingest.sources import SourceError
 
         told = False
         try:
@@ -458,6 +458,6 @@ class DecodeWorker(WorkerProcess):
 if __name__ == "__main__":
     # Through the package's module, not __main__: the classes it pickles must be the
     # ones the parent unpickles.
-    from gcs_estimator import decode_worker
+    from gcs_estimator.runtime import decode_worker
 
     decode_worker.main()

@@ -1,4 +1,4 @@
-"""Compile the kernels once, ahead of the first run: `python -m gcs_estimator.precompile`.
+"""Compile the kernels once, ahead of the first run: `python -m gcs_estimator.runtime.precompile`.
 
 numba compiles the filter kernels, the simulator's integrator and the refinement's filters
 (output error's and filter error's) on first use and caches them on disk; on a fresh
@@ -19,9 +19,9 @@ import numpy as np
 
 def main() -> int:
     from gcs_estimator.config import load_config
-    from gcs_estimator.estimator import run_recording
-    from gcs_estimator.refine import RefineError, refine_run
-    from gcs_estimator.session import warm_up
+    from gcs_estimator.estimation.estimator import run_recording
+    from gcs_estimator.refine.fit import RefineError, refine_run
+    from gcs_estimator.runtime.session import warm_up
     from sim.truth import simulate
 
     start = time.perf_counter()

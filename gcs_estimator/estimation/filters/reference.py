@@ -11,9 +11,9 @@ import math
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.filters import core, hybrid
-from gcs_estimator.filters.core import FilterState, StepInfo, Tuning
-from gcs_estimator.filters.hybrid import Belief
+from gcs_estimator.estimation.filters import core, hybrid
+from gcs_estimator.estimation.filters.core import FilterState, StepInfo, Tuning
+from gcs_estimator.estimation.filters.hybrid import Belief
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.model.channels import N_OBS
 

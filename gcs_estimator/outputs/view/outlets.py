@@ -25,8 +25,8 @@ from typing import Any, Literal, TextIO
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.outputs.view.layout import Range, SeriesStyle, build_blueprint
 from gcs_estimator.stop import Stop
-from gcs_estimator.view.layout import Range, SeriesStyle, build_blueprint
 
 APPLICATION_ID = "gcs-estimator"
 

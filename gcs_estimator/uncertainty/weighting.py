@@ -36,7 +36,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import FILTER_KINDS, Estimator, FilterKind
+from gcs_estimator.estimation.estimator import FILTER_KINDS, Estimator, FilterKind
 from gcs_estimator.model.channels import N_OBS, OBS_NAMES
 
 VARIANCE_FACTOR = 2.0

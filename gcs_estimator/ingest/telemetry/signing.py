@@ -19,7 +19,7 @@ import hmac
 from enum import StrEnum
 from pathlib import Path
 
-from gcs_estimator.telemetry.mavlink import SIGNED_FLAG, STX_V2, header
+from gcs_estimator.ingest.telemetry.mavlink import SIGNED_FLAG, STX_V2, header
 
 EPOCH_2015_S = 1_420_070_400.0
 """1 January 2015 00:00 UTC [s since the Unix epoch]: the signing timestamps' zero."""

@@ -18,9 +18,9 @@ from typing import Any, TextIO
 
 from gcs_estimator.config import STREAMED_MESSAGES, ConfigError, LinkConfig
 from gcs_estimator.frames import Frame
-from gcs_estimator.telemetry import mavlink
-from gcs_estimator.telemetry.counters import LinkHealth
-from gcs_estimator.telemetry.decode import (
+from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.counters import LinkHealth
+from gcs_estimator.ingest.telemetry.decode import (
     PLAUSIBLE,
     CommandAck,
     Decoded,
@@ -32,9 +32,9 @@ from gcs_estimator.telemetry.decode import (
     Unknown,
     decoded_message,
 )
-from gcs_estimator.telemetry.mavlink import Codec, TlogWriter
-from gcs_estimator.telemetry.signing import SignatureCheck, Verdict, load_key, sign_outgoing
-from gcs_estimator.telemetry.sync import Synchronizer
+from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
+from gcs_estimator.ingest.telemetry.signing import SignatureCheck, Verdict, load_key, sign_outgoing
+from gcs_estimator.ingest.telemetry.sync import Synchronizer
 
 Address = tuple[str, int]
 

@@ -23,13 +23,12 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimator import FILTER_KINDS, FilterKind, StepOutput
+from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS
-from gcs_estimator.stop import PROCESS_STOP
-from gcs_estimator.view import layout as lay
-from gcs_estimator.view.outlets import (
+from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.outputs.view.outlets import (
     Columns,
     Layout,
     LocalOutlet,
@@ -40,9 +39,10 @@ from gcs_estimator.view.outlets import (
     Style,
     Text,
 )
+from gcs_estimator.stop import PROCESS_STOP
 
 if TYPE_CHECKING:
-    from gcs_estimator.session import VehicleResult
+    from gcs_estimator.runtime.session import VehicleResult
 
 KINDS = FILTER_KINDS
 
@@ -477,7 +477,7 @@ class ViewSink:
         self.view.tick()
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
-        from gcs_estimator.report import final_table, trust_warnings
+        from gcs_estimator.outputs.report import final_table, trust_warnings
 
         marks = {}
         for sid, v in results.items():
@@ -501,7 +501,7 @@ def _viewer_command() -> str:
     import os
     import shutil
 
-    from gcs_estimator.view.outlets import viewer_executable
+    from gcs_estimator.outputs.view.outlets import viewer_executable
 
     own = viewer_executable()
     if own is None or shutil.which("rerun") == own:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs_estimator import atmosphere, units
+from gcs_estimator import units
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
@@ -33,6 +33,7 @@ from gcs_estimator.config import (
     DataConfig,
     PowerInput,
 )
+from gcs_estimator.model import atmosphere
 
 
 class FlightDataError(ValueError):
@@ -67,7 +68,7 @@ DATA_SUFFIXES = (".asc", ".csv")
 """Flight-data files the offline command reads: the HFB-320 ASCII record and CSV."""
 
 
-BUNDLED = Path(__file__).resolve().parent / "data"
+BUNDLED = Path(__file__).resolve().parent.parent / "data"
 """Flight data shipped with the package, one folder per record (hfb320: the HFB-320
 flight test, with its provenance and the textbook's reference values)."""
 

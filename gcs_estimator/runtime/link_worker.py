@@ -28,7 +28,12 @@ from typing import Any, TextIO
 import numpy as np
 
 from gcs_estimator import blas
-from gcs_estimator.decode_worker import (
+from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.sources import SourceError, UdpSource
+from gcs_estimator.ingest.telemetry.counters import LinkCounts
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.runtime.decode_worker import (
     POLL_S,
     LinkArgs,
     WorkerProcess,
@@ -36,12 +41,7 @@ from gcs_estimator.decode_worker import (
     _writer,
     mirror,
 )
-from gcs_estimator.frames import Frame
-from gcs_estimator.model.channels import N_OBS
-from gcs_estimator.sources import SourceError, UdpSource
 from gcs_estimator.stop import Stop
-from gcs_estimator.telemetry.counters import LinkCounts
-from gcs_estimator.telemetry.link import MavlinkLink
 
 READY_S = 60.0
 """Longest wait for a starting worker (its imports, on a cold machine) [s]."""
@@ -114,7 +114,7 @@ def _work(job: LiveJob, send: Any) -> None:
     """The worker: receive on the socket through a link, send each receive round's frames,
     then ("end", link stats, its CPU time [s]). SIGINT and SIGTERM end it cleanly: what
     arrived is still decoded and sent, and the recording closed."""
-    from gcs_estimator.telemetry.mavlink import TlogWriter
+    from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 
     stop = Stop().install()
     log: Any = _Lines(send)
@@ -184,7 +184,9 @@ class LinkWorker(WorkerProcess):
 
     def __init__(self, job: LiveJob, log: TextIO | None = None) -> None:
         self.log = sys.stderr if log is None else log
-        super().__init__("gcs_estimator.link_worker", job, pass_fds=(job.fd,), threaded=False)
+        super().__init__(
+            "gcs_estimator.runtime.link_worker", job, pass_fds=(job.fd,), threaded=False
+        )
         self.state: LinkState | None = None
         self.stats: dict[str, Any] | None = None
         self.cpu_s = 0.0
@@ -329,6 +331,6 @@ class WorkerUdpSource:
 if __name__ == "__main__":
     # Through the package's module, not __main__: the classes it pickles must be the
     # ones the parent unpickles.
-    from gcs_estimator import link_worker
+    from gcs_estimator.runtime import link_worker
 
     link_worker.main()

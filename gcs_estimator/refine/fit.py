@@ -75,16 +75,16 @@ from scipy.optimize import minimize
 from gcs_estimator import blas
 from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import REFINE_METHODS
-from gcs_estimator.estimator import EstimatorResult, FilterKind
-from gcs_estimator.metrics import correlation_of, identifiability
+from gcs_estimator.estimation.estimator import EstimatorResult, FilterKind
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.weighting import VARIANCE_FACTOR, WEIGHT_SHARE
+from gcs_estimator.uncertainty.metrics import correlation_of, identifiability
+from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR, WEIGHT_SHARE
 
 if TYPE_CHECKING:
-    from gcs_estimator.session import VehicleResult
+    from gcs_estimator.runtime.session import VehicleResult
 
 
 @njit(cache=True)

@@ -14,11 +14,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-from gcs_estimator import atmosphere
 from gcs_estimator.config import DataConfig, LinkConfig
-from gcs_estimator.model.channels import Channel
-from gcs_estimator.telemetry import pwm
-from gcs_estimator.telemetry.mavlink import (
+from gcs_estimator.ingest.telemetry import pwm
+from gcs_estimator.ingest.telemetry.mavlink import (
     MAV_AUTOPILOT_INVALID,
     MAV_TYPE_FIXED_WING,
     MAV_TYPE_GCS,
@@ -29,6 +27,8 @@ from gcs_estimator.telemetry.mavlink import (
     read_fields,
     text,
 )
+from gcs_estimator.model import atmosphere
+from gcs_estimator.model.channels import Channel
 
 Ranges = Mapping[Channel, tuple[float, float]]
 

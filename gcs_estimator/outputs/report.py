@@ -12,7 +12,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import POWER_COLUMNS, AircraftConfig
-from gcs_estimator.estimator import (
+from gcs_estimator.estimation.estimator import (
     FILTER_KINDS,
     EstimatorResult,
     FilterKind,
@@ -20,7 +20,10 @@ from gcs_estimator.estimator import (
     Snapshot,
     Track,
 )
-from gcs_estimator.metrics import (
+from gcs_estimator.estimation.noise import CLEARLY, MIN_DIFFERENCES, reading_z
+from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
+from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.uncertainty.metrics import (
     CORRELATION_LIMIT,
     NOT_IDENTIFIED,
     WEAK,
@@ -30,13 +33,10 @@ from gcs_estimator.metrics import (
     most_correlated,
     percent_error,
 )
-from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
-from gcs_estimator.noise import CLEARLY, MIN_DIFFERENCES, reading_z
-from gcs_estimator.session import VehicleResult
-from gcs_estimator.weighting import VARIANCE_FACTOR
+from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR
 
 if TYPE_CHECKING:
-    from gcs_estimator.refine import Refined
+    from gcs_estimator.refine.fit import Refined
 
 
 def _fmt(v: float | None, digits: int = 4) -> str:

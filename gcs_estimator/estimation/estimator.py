@@ -20,8 +20,8 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.filters import core
-from gcs_estimator.filters.core import (
+from gcs_estimator.estimation.filters import core
+from gcs_estimator.estimation.filters.core import (
     FILTER_KINDS,
     Backend,
     FilterKind,
@@ -32,7 +32,7 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_INPUTS, N_OBS
 
 if TYPE_CHECKING:
-    from gcs_estimator.session import VehicleResult
+    from gcs_estimator.runtime.session import VehicleResult
 
 __all__ = ["FILTER_KINDS", "Backend", "Estimator", "EstimatorResult", "FilterKind", "StepOutput"]
 
@@ -336,7 +336,8 @@ class EstimatorResult(NamedTuple):
 
 
 class NoiseReading(NamedTuple):
-    """Each channel's noise as a restart read it from the data (gcs_estimator/noise.py)."""
+    """Each channel's noise as a restart read it from the data
+    (gcs_estimator/estimation/noise.py)."""
 
     sigma: tuple[float, ...]
     differences: tuple[int, ...]
@@ -754,7 +755,7 @@ class Estimator:
         self._rerun_tunings = self._noise_from_data(pending.frames)
         means = pending.means
         if means is None:
-            from gcs_estimator.warmstart import equation_error
+            from gcs_estimator.estimation.warmstart import equation_error
 
             frames = self._buffer[: pending.frames]
             t_b, u_b, y_b, _ = (np.array(col) for col in zip(*frames, strict=True))
@@ -782,13 +783,13 @@ class Estimator:
 
     def _noise_from_data(self, frames: int) -> dict[FilterKind, Tuning]:
         """The re-run's settings: each channel's noise read from the first `frames`
-        buffered frames (gcs_estimator/noise.py), the configured sigma the fallback; with
+        buffered frames (gcs_estimator/estimation/noise.py), the configured sigma the fallback; with
         `measurement_noise = "data"` the reading throughout, with "auto" only where it is
         clearly below the configured sigma; with "config" the live pass's settings."""
         policy = self.config.filter.measurement_noise
         if policy == "config":
             return self.tunings
-        from gcs_estimator.noise import CLEARLY, noise_from_differences, reading_z
+        from gcs_estimator.estimation.noise import CLEARLY, noise_from_differences, reading_z
 
         buffered = self._buffer[:frames]
         t = np.array([row[0] for row in buffered])
@@ -893,7 +894,7 @@ def run_recording(
 ) -> VehicleResult:
     """Both filters over a whole recording (frames in time order): the result and its
     summaries against the config's truth."""
-    from gcs_estimator.session import RecordingSource, Session
+    from gcs_estimator.runtime.session import RecordingSource, Session
 
     session = Session(config, backend=backend, keep_history=keep_history)
     session.run(RecordingSource(np.asarray(t_s, float), inputs, measurements))
