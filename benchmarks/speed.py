@@ -9,11 +9,11 @@ step), CPU time, best of 9, from a converged state over 2500 frames of a flight:
   (filters.fast.lane_kernel: process noise, prediction, update, health check, gust
   matching), with nothing around it;
 - runner: one filter's step as the estimator's runner takes it for each frame
-  (Estimator._advance_one: the lane's step, core.Lane.step, the health count and the
+  (Estimator._advance_one: the lane's step, Lane.step, the health count and the
   frame's output; the target figure);
 - FilterState contract: the same step through filters.core's guarded step on a
   FilterState, as the numpy reference is called below;
-- blocks: a lane's block step (core.Lane.block, one compiled call for many frames), 10
+- blocks: a lane's block step (Lane.block, one compiled call for many frames), 10
   frames a call as a restart's re-run steps its buffered frames beside the live pass, and
   100 a call;
 - flops per step: counted from the loop bounds of the step's linear algebra (the model's
@@ -44,6 +44,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator, run_recording
 from gcs_estimator.estimation.filters import core, fast
 from gcs_estimator.estimation.filters.core import FilterKind, FilterState, Tuning
+from gcs_estimator.estimation.filters.lane import Lane, stepper
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_OBS
@@ -79,7 +80,7 @@ class Setup:
         self.flight: Flight = simulate(self.config, seed=1)
         self.model: Model = build_model(self.config)
         self.tuning: Tuning = core.tuning_of(self.config, self.model, kind)  # type: ignore[arg-type]
-        step = core.stepper("fast")
+        step = stepper("fast")
         f = self.flight
         s = core.initial_state(self.model, self.tuning, f.t_s[0], f.inputs[0], f.measurements[0])
         for i in range(WARM):
@@ -125,7 +126,7 @@ class Setup:
         n, t, u, y = self.frames(count)
         est = Estimator(self.config)
         kind: FilterKind = self.kind  # type: ignore[assignment]
-        states: dict[FilterKind, core.Lane | None] = {kind: core.Lane(self.state, "fast")}
+        states: dict[FilterKind, Lane | None] = {kind: Lane(self.state, "fast")}
         advance, tuning = est._advance_one, self.tuning
         t0 = time.process_time()
         for i in range(n):
@@ -136,7 +137,7 @@ class Setup:
         """Steps per second through a lane's block step, `size` frames a call."""
         n, times, u, y = self.frames(count)
         t = np.array(times)
-        lane = core.Lane(self.state, "fast")
+        lane = Lane(self.state, "fast")
         t0 = time.process_time()
         for i in range(0, n, size):
             j = i + size
@@ -256,7 +257,7 @@ def main() -> int:
 
 
 def run() -> int:
-    fast_step, ref_step = core.stepper("fast"), core.stepper("reference")
+    fast_step, ref_step = stepper("fast"), stepper("reference")
     peak = small_matrix_gflops()
     print(f"small-matrix rate of this machine: {peak:.2f} GFLOP/s (15 x 15 products, BLAS)\n")
     print(

@@ -1,7 +1,7 @@
 """Online estimation of one aircraft: EKF and IEKF side by side over synchronised frames.
 
 A frame is (vehicle time [s], inputs [de rad, throttle or thrust N], observations [7],
-NaN where a channel is missing). Each filter's belief is kept in a lane (filters.core.Lane)
+NaN where a channel is missing). Each filter's belief is kept in a lane (filters.Lane)
 and advanced by the step contract; this module adds what makes the zero start work (restarts
 from a better linearisation point), the time histories, and the narrow result type that
 the view, the report and the metrics read.
@@ -28,6 +28,7 @@ from gcs_estimator.estimation.filters.core import (
     StepInfo,
     Tuning,
 )
+from gcs_estimator.estimation.filters.lane import Lane
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_INPUTS, N_OBS
 
@@ -385,7 +386,7 @@ class Estimator:
         self.keep_history = keep_history
         self.backend: Backend = backend
         self._blocks = backend == "fast"
-        """Many frames of a re-run in one compiled call (core.Lane.block); else one at a
+        """Many frames of a re-run in one compiled call (Lane.block); else one at a
         time (the reference backend has no compiled calls)."""
         self.noise_scale = None if noise_scale is None else np.asarray(noise_scale, float)
         """Each channel's measurement variance multiplied by this in every pass, after
@@ -398,7 +399,7 @@ class Estimator:
         """The settings of the re-run under way (measurement noise from the data)."""
         self.noise_reading: NoiseReading | None = None
         """Each channel's noise as read from the data (None: none read)."""
-        self.states: dict[FilterKind, core.Lane | None] = dict.fromkeys(FILTER_KINDS)
+        self.states: dict[FilterKind, Lane | None] = dict.fromkeys(FILTER_KINDS)
         self.health = {k: Health() for k in FILTER_KINDS}
         self.histories = {k: History(self.model.n) for k in FILTER_KINDS}
         self.frame_history = FrameHistory()
@@ -419,7 +420,7 @@ class Estimator:
         """Frames of grace of the restart under way (set where it began)."""
         self.worked_ahead = 0
         """Restart work done in idle time (work_ahead): frames, and 1 per warm start."""
-        self._rerun: dict[FilterKind, core.Lane | None] | None = None
+        self._rerun: dict[FilterKind, Lane | None] | None = None
         """The re-run of a restart while it catches up (None: none under way)."""
         self._rerun_pos = 0
         self.gaps = 0
@@ -597,7 +598,7 @@ class Estimator:
 
     def _advance(
         self,
-        states: dict[FilterKind, core.Lane | None],
+        states: dict[FilterKind, Lane | None],
         t: float,
         u: FloatArray,
         y: FloatArray,
@@ -615,7 +616,7 @@ class Estimator:
     def _advance_one(
         self,
         kind: FilterKind,
-        states: dict[FilterKind, core.Lane | None],
+        states: dict[FilterKind, Lane | None],
         t: float,
         u: FloatArray,
         y: FloatArray,
@@ -626,7 +627,7 @@ class Estimator:
         lane = states[kind]
         if lane is None:
             start = core.initial_state(self.model, tuning, t, u, y, *self._starts[kind])
-            lane = states[kind] = core.Lane(start, self.backend)
+            lane = states[kind] = Lane(start, self.backend)
         elif not inputs_known:
             lane.load(core.rebase(lane.state, self.model, tuning, t, y))
         y_used = y if inputs_known else np.full_like(y, np.nan)
@@ -638,7 +639,7 @@ class Estimator:
     def _advance_block(
         self,
         kind: FilterKind,
-        states: dict[FilterKind, core.Lane | None],
+        states: dict[FilterKind, Lane | None],
         frames: Sequence[tuple[float, FloatArray, FloatArray, bool]],
         tuning: Tuning,
     ) -> StepOutput | None:
@@ -646,7 +647,7 @@ class Estimator:
         (the same steps as _advance_one's, bit for bit): the output at the last frame.
         A pass's first frame and a frame whose inputs are a guess go through
         _advance_one; a step the contract must repair or restart is answered where it
-        falls, as _advance_one's would be (core.Lane.block; docs/decisions/0013)."""
+        falls, as _advance_one's would be (Lane.block; docs/decisions/0013)."""
         ts = np.array([f[0] for f in frames])
         us = np.array([f[1] for f in frames])
         ys = np.array([f[2] for f in frames])

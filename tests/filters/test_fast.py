@@ -21,6 +21,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters import core, fast, reference
 from gcs_estimator.estimation.filters.core import FilterState, GustState, StepInfo, Tuning
+from gcs_estimator.estimation.filters.lane import Lane, stepper
 from gcs_estimator.model.aircraft import Model, build_model, trim
 from gcs_estimator.model.channels import N_OBS
 from sim.truth import simulate
@@ -233,7 +234,7 @@ def test_a_covariance_that_is_not_positive_definite_fails_the_same_way(
         assert np.all(np.isnan(info.innovation)) and np.isnan(info.nis)
         np.testing.assert_array_equal(s.x, state.x)
     for backend in ("fast", "reference"):
-        s, info = core.stepper(backend)(state, state.t, state.u, y, tuning, model)
+        s, info = stepper(backend)(state, state.t, state.u, y, tuning, model)
         assert info.failed and info.repaired and np.linalg.eigvalsh(s.P).min() > 0.0
 
 
@@ -245,7 +246,7 @@ def test_a_non_finite_belief_starts_again_from_the_prior(noc: Aircraft) -> None:
     tuning = core.tuning_of(config, model, "EKF")
     y, _ = model.h(state.x, state.u)
     for backend in ("fast", "reference"):
-        s, info = core.stepper(backend)(state._replace(x=x), 2.0, state.u, y, tuning, model)
+        s, info = stepper(backend)(state._replace(x=x), 2.0, state.u, y, tuning, model)
         assert info.diverged
         np.testing.assert_array_equal(s.x[model.coefficients], tuning.prior_x[model.coefficients])
         assert s.t == s.t_start == 2.0
@@ -394,8 +395,8 @@ def test_a_lane_is_the_step_contract_bit_for_bit(noc_config: AircraftConfig, kin
     u = np.array([model.inputs(v) for v in raw])
     y[90, 0] = 1e12  # an airspeed no aircraft flies: the belief runs away at frame 90
     state = core.initial_state(model, tuning, t[0], u[0], y[0])
-    step = core.stepper("fast")
-    one, lane = state, core.Lane(state, "fast")
+    step = stepper("fast")
+    one, lane = state, Lane(state, "fast")
     counts = np.zeros(3, dtype=int)
     for k in range(1, 120):
         one, info = step(one, t[k], u[k], y[k], tuning, model)
@@ -414,7 +415,7 @@ def test_a_lane_is_the_step_contract_bit_for_bit(noc_config: AircraftConfig, kin
     np.testing.assert_array_equal(lane.P, one.P)
 
     # The same frames in blocks of 30: the last outputs, the counts and the belief.
-    blocked = core.Lane(state, "fast")
+    blocked = Lane(state, "fast")
     totals = np.zeros(3, dtype=int)
     for a in range(1, 120, 30):
         last, got = blocked.block(t[a : a + 30], u[a : a + 30], y[a : a + 30], tuning, model)
@@ -426,14 +427,14 @@ def test_a_lane_is_the_step_contract_bit_for_bit(noc_config: AircraftConfig, kin
     np.testing.assert_array_equal(blocked.gust.sens, lane.gust.sens)
 
     # The reference backend's lane keeps the same contract (to its own rounding).
-    ref = core.Lane(state, "reference")
+    ref = Lane(state, "reference")
     for k in range(1, 60):
         ref_row, _ = ref.step(t[k], u[k], y[k], tuning, model)
-    mid = core.Lane(state, "fast")
+    mid = Lane(state, "fast")
     fast_row, _ = mid.block(t[1:60], u[1:60], y[1:60], tuning, model)
     np.testing.assert_allclose(ref_row, fast_row, rtol=1e-6, atol=1e-9)
     # A belief read out and put back steps on exactly as the one kept in place.
-    moved = core.Lane(mid.state, "fast")
+    moved = Lane(mid.state, "fast")
     r1, _ = mid.step(t[60], u[60], y[60], tuning, model)
     r2, _ = moved.step(t[60], u[60], y[60], tuning, model)
     np.testing.assert_array_equal(r1, r2)

@@ -10,7 +10,7 @@ import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator
-from gcs_estimator.estimation.filters import core
+from gcs_estimator.estimation.filters.lane import Lane
 from sim.truth import simulate
 
 
@@ -20,7 +20,7 @@ def _run(config: AircraftConfig) -> tuple[Estimator, list[int]]:
     fl = simulate(config, seed=5)
     est = Estimator(config)
     calls = [0]
-    step, block = core.Lane.step, core.Lane.block
+    step, block = Lane.step, Lane.block
 
     def counted(lane, *args, **kwargs):  # type: ignore[no-untyped-def]
         calls[0] += 1
@@ -32,8 +32,8 @@ def _run(config: AircraftConfig) -> tuple[Estimator, list[int]]:
 
     per_frame = []
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(core.Lane, "step", counted)
-        mp.setattr(core.Lane, "block", counted_block)
+        mp.setattr(Lane, "step", counted)
+        mp.setattr(Lane, "block", counted_block)
         for t, u, y in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
             calls[0] = 0
             est.step(float(t), u, y)

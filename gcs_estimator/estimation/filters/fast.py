@@ -8,7 +8,7 @@ rows of F below the dynamic blocks are zero, so the transition matrix differs fr
 n_dynamic rows and Phi P Phi^T costs n_dynamic x n x n instead of n^3.
 
 The estimator's runner keeps each filter's belief in one buffer that the call updates
-where it lies (lane_kernel, core.Lane); kernel_step is the same call on a FilterState.
+where it lies (lane_kernel, Lane); kernel_step is the same call on a FilterState.
 The step's own functions are inlined into the kernels (inline="always"): between
 functions compiled apart, every array handed over is reference counted, and inlined
 numba prunes most of those counts (a step about 8 % faster, bit for bit; a cold compile
@@ -503,7 +503,7 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
     return tf, ti
 
 
-# ---- a belief kept in one buffer, stepped in place (core.Lane) -----------------------
+# ---- a belief kept in one buffer, stepped in place (Lane) -----------------------
 # The estimator's runner steps each filter once per frame. Handing a belief over as
 # FilterState and back costs more than a third of a step (numba's dispatch of its fields,
 # boxing the arrays of the new belief and the step's report, and the named tuples built
