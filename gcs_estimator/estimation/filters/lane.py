@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
-from gcs_estimator.estimation.filters import fast, reference
+from gcs_estimator.estimation.filters import reference
 from gcs_estimator.estimation.filters.core import (
     Backend,
     FilterState,
@@ -47,6 +47,9 @@ class Lane:
         """The belief, with the reference backend (the compiled one keeps _buf)."""
         self._buf = np.empty(0)
         if self._compiled:
+            # Imported here: the reference backend runs without the compiler installed.
+            from gcs_estimator.estimation.filters import fast
+
             self._fast = fast
             self._kernel = fast.lane_kernel
             self._width = fast.output_width(self.n)
@@ -160,5 +163,7 @@ class Lane:
 def stepper(backend: Backend) -> StepFn:
     """The step of the chosen backend: "fast" (compiled) or "reference" (numpy)."""
     if backend == "fast":
+        from gcs_estimator.estimation.filters import fast
+
         return guarded(fast.kernel_step)
     return guarded(reference.kernel_step)
