@@ -35,6 +35,7 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import Decoder, read_tlog
 from gcs_estimator.outputs.view.live import RerunView, ViewSink
 from gcs_estimator.outputs.view.outlets import LocalOutlet
+from gcs_estimator.runtime.decode_worker import WorkerTlogSource, tlog_source
 from gcs_estimator.runtime.session import Session, warm_up
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -196,7 +197,7 @@ def _timed_replay(
 ) -> tuple[float, dict[int, Any], dict[str, Any]]:
     """(wall-clock seconds, results, link counters) of a replay with no output."""
     session = Session(config)
-    source = TlogSource([tlog], MavlinkLink(config.link), workers=workers)
+    source = (WorkerTlogSource if workers else TlogSource)([tlog], MavlinkLink(config.link))
     t0 = time.perf_counter()
     results = session.run(source)
     return time.perf_counter() - t0, results, source.link_stats()
@@ -242,7 +243,7 @@ def _replay_memory(config: AircraftConfig, tlog: Path) -> tuple[float, ...]:
     sampler = threading.Thread(target=sample)
     sampler.start()
     session = Session(config)
-    session.run(TlogSource([tlog], MavlinkLink(config.link)))
+    session.run(tlog_source([tlog], MavlinkLink(config.link)))
     session.results()  # the end of a run reads every history
     peak[0] = max(peak[0], _rss_mb())
     done.set()
@@ -278,7 +279,7 @@ def replay_with_view(
     )
     session.add_sink(ViewSink(view, lambda: link.t_first_recv))
     t0 = time.perf_counter()
-    session.run(TlogSource([tlog], link, workers=not live))
+    session.run(TlogSource([tlog], link) if live else WorkerTlogSource([tlog], link))
     elapsed = time.perf_counter() - t0
     return elapsed, path.stat().st_size
 

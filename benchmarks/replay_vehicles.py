@@ -31,9 +31,9 @@ from flights import repeated_manoeuvre
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.ingest.flightdata import Recording
-from gcs_estimator.ingest.sources import TlogSource
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.runtime.decode_worker import tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession
 from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
 from sim.truth import simulate
@@ -96,7 +96,7 @@ def _replay(
     """(the filter workers' start [s], the replay's wall time [s], this process's CPU [s],
     its workers' CPU in the replay [s], results) of one replay."""
     link = MavlinkLink(config.link)
-    source = TlogSource([str(path)], link)
+    source = tlog_source([str(path)], link)
     session: Session | ShardedSession
     start = 0.0
     if workers:

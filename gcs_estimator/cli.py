@@ -32,7 +32,6 @@ from gcs_estimator.ingest.sources import (
     SerialSource,
     SourceError,
     TcpSource,
-    TlogSource,
     UdpSource,
     open_udp,
 )
@@ -49,7 +48,7 @@ from gcs_estimator.outputs.sinks import (
     vehicle_heading,
 )
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
-from gcs_estimator.runtime.decode_worker import LinkArgs
+from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.runtime.session import RecordingSource, Session, Source, VehicleResult, warm_up
@@ -600,7 +599,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     config = _config(args)
     origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
     session, link = _link_session(config, args, origin, status=False)
-    source = TlogSource(args.tlogs, link, speed=args.speed)
+    source = tlog_source(args.tlogs, link, speed=args.speed)
     if sys.stderr.isatty() or args.progress:
         session.add_sink(ProgressSink(source.progress, "replay"))
     return _run(session, source, stop)
@@ -803,13 +802,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return status
-
-
-def entrypoint() -> None:
-    from gcs_estimator.__main__ import entrypoint as first_handlers_then_main
-
-    first_handlers_then_main()
-
-
-if __name__ == "__main__":
-    entrypoint()

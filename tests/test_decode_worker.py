@@ -21,6 +21,7 @@ from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.runtime import decode_worker
+from gcs_estimator.runtime.decode_worker import WorkerTlogSource
 from gcs_estimator.runtime.session import Session, warm_up
 from gcs_estimator.stop import Stop
 from sim.truth import simulate
@@ -51,10 +52,10 @@ def _damaged_tlog(tmp_path: Path) -> tuple[AircraftConfig, Path]:
 
 def _replay(
     config: AircraftConfig, paths: list[Path], workers: bool
-) -> tuple[list[Frame], dict[str, Any], str, TlogSource]:
+) -> tuple[list[Frame], dict[str, Any], str, TlogSource | WorkerTlogSource]:
     log = io.StringIO()
     link = MavlinkLink(config.link, log=log)
-    source = TlogSource(paths, link, log=log, workers=workers)
+    source = (WorkerTlogSource if workers else TlogSource)(paths, link, log=log)
     frames = [f for f in source.frames(Stop()) if f is not None]
     stats = source.link_stats()
     source.close()
@@ -90,7 +91,8 @@ def test_worker_estimates_equal_one_process_estimates(tmp_path: Path) -> None:
     for workers in (False, True):
         link = MavlinkLink(config.link, log=io.StringIO())
         session = Session(config)
-        results = session.run(TlogSource([path], link, log=io.StringIO(), workers=workers))
+        source = WorkerTlogSource if workers else TlogSource
+        results = session.run(source([path], link, log=io.StringIO()))
         est = results[1].result
         finals.append({k: np.r_[f.coefficients, f.sigma] for k, f in est.filters.items()})
     for kind in finals[0]:
@@ -126,7 +128,7 @@ def test_a_stop_ends_the_worker_and_keeps_what_arrived(tmp_path: Path) -> None:
     config, path = _longer_than_the_queue(tmp_path)
     full, _, _, _ = _replay(config, [path], workers=False)
     stop = Stop()
-    source = TlogSource([path], MavlinkLink(config.link, log=io.StringIO()), workers=True)
+    source = WorkerTlogSource([path], MavlinkLink(config.link, log=io.StringIO()))
     got = []
     for f in source.frames(stop):
         if f is not None:
@@ -148,7 +150,7 @@ def test_a_stop_ends_the_worker_and_keeps_what_arrived(tmp_path: Path) -> None:
 
 def test_a_killed_worker_is_an_error_that_names_it(tmp_path: Path) -> None:
     config, path = _damaged_tlog(tmp_path)
-    source = TlogSource([path], MavlinkLink(config.link, log=io.StringIO()), workers=True)
+    source = WorkerTlogSource([path], MavlinkLink(config.link, log=io.StringIO()))
     got = 0
     with pytest.raises(SourceError, match="decoding process ended early"):
         for f in source.frames(Stop()):

@@ -56,7 +56,7 @@ def test_each_vehicle_is_scored_against_its_own_truth(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.abs(ratio - 1), 0.2, rtol=1e-12)
 
     session = Session(config, truths=truths)
-    results = session.run(TlogSource([tlog], MavlinkLink(config.link), workers=False))
+    results = session.run(TlogSource([tlog], MavlinkLink(config.link)))
     cma = names.index("Cma")
     for sid in (1, 2):
         v = results[sid]
@@ -64,7 +64,7 @@ def test_each_vehicle_is_scored_against_its_own_truth(tmp_path: Path) -> None:
         est = v.result.filters["IEKF"].coefficients[cma]
         assert est == pytest.approx(truths[sid][cma], rel=0.05)  # scored against its own
 
-    plain = Session(config).run(TlogSource([tlog], MavlinkLink(config.link), workers=False))
+    plain = Session(config).run(TlogSource([tlog], MavlinkLink(config.link)))
     first = next(iter(plain))
     assert plain[first].truth is not None
     assert all(plain[sid].truth is None for sid in plain if sid != first)

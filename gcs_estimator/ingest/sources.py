@@ -7,7 +7,6 @@ live session's recording makes the same frames as the live run did.
 
 from __future__ import annotations
 
-import os
 import select
 import socket
 import sys
@@ -27,7 +26,6 @@ from gcs_estimator.ingest.telemetry.mavlink import (
     TlogStats,
     read_tlog,
 )
-from gcs_estimator.runtime.decode_worker import DecodeWorker, LinkArgs, mirror
 from gcs_estimator.stop import Stop
 
 if TYPE_CHECKING:
@@ -323,7 +321,6 @@ class TlogSource:
         link: MavlinkLink,
         speed: float = 0.0,
         log: TextIO | None = None,
-        workers: bool | None = None,
     ) -> None:
         self.paths = [Path(p) for p in paths]
         self.link = link
@@ -333,14 +330,6 @@ class TlogSource:
         self._stats = TlogStats()
         self.errors: list[str] = []
         """Files that could not be replayed (the others' frames are processed)."""
-        self.workers = (
-            workers
-            if workers is not None
-            else speed <= 0 and (os.cpu_count() or 1) > 1 and link.recorder is None
-        )
-        """Decode in a worker process while this one runs the filters (as fast as
-        possible, on more than one core); the frames are the same."""
-        self._worker: DecodeWorker | None = None
 
     def _records(self, path: Path, stats: TlogStats) -> Iterator[TlogRecord]:
         """The file's records as they are read (a piece at a time)."""
@@ -375,22 +364,6 @@ class TlogSource:
             )
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
-        if not self.workers:
-            yield from self._frames(stop)
-            return
-        link = self.link
-        args = LinkArgs(link.config, link.linear_inputs, link.ranges)
-        worker = self._worker = DecodeWorker(self.paths, args, self.log)
-        mirrored = None
-        for frame in worker.frames(stop):
-            progress = worker.progress
-            if progress is not mirrored and progress is not None:
-                mirrored = progress
-                mirror(link, progress)
-            yield frame
-        self.errors = worker.errors  # each already said by the worker, through self.log
-
-    def _frames(self, stop: Stop) -> Iterator[Frame | None]:
         t0_rec = t0_wall = None
         for path in self.paths:
             self._stats = stats = TlogStats()
@@ -425,27 +398,15 @@ class TlogSource:
 
     def progress(self) -> tuple[int, int]:
         """(bytes read, bytes in the current file)."""
-        if self._worker is not None:
-            p = self._worker.progress
-            return (0, 0) if p is None else (p.position, p.total)
         return self._stats.position, self.total
 
     @property
     def done(self) -> int:
         """Records of the current file replayed so far."""
-        if self._worker is not None:
-            p = self._worker.progress
-            return 0 if p is None else p.records
         return self._stats.records
 
     def link_stats(self) -> dict[str, Any]:
-        if self._worker is not None:
-            self._worker.close()
-            if self._worker.stats is not None:
-                return self._worker.stats
         return self.link.stats()
 
     def close(self) -> None:
-        if self._worker is not None:
-            self._worker.close()
         self.link.close()

@@ -35,8 +35,10 @@ from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry.counters import LinkCounts
 from gcs_estimator.ingest.telemetry.decode import Ranges
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.stop import Stop
 
 BATCH_FRAMES = 512
@@ -196,13 +198,10 @@ def _read_message(stream: Any) -> tuple[Any, ...] | None:
 def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
     """The worker: replay the files through a link, send the frames in batches, then
     ("end", link stats, errors, progress). SIGINT and SIGTERM end it cleanly."""
-    from gcs_estimator.ingest.sources import SourceError, TlogSource
-    from gcs_estimator.ingest.telemetry.link import MavlinkLink
-
     stop = Stop().install()
     log: Any = _Lines(send)
     link = MavlinkLink(args.config, log=log, linear_inputs=args.linear_inputs, ranges=args.ranges)
-    source = TlogSource(paths, link, log=log, workers=False)
+    source = TlogSource(paths, link, log=log)
 
     def progress() -> Progress:
         position, total = source.progress()
@@ -421,8 +420,6 @@ class DecodeWorker(WorkerProcess):
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         """Frames in order; None while waiting (a tick for the sinks). Raises
         SourceError if the worker could not read its files or died."""
-        from gcs_estimator.ingest.sources import SourceError
-
         told = False
         try:
             while True:
@@ -453,6 +450,73 @@ class DecodeWorker(WorkerProcess):
                     raise RuntimeError(f"decoding process: {msg[1]}")
         finally:
             self.close()
+
+
+class WorkerTlogSource:
+    """A TlogSource whose reading, decoding and synchronising runs in a DecodeWorker
+    while this process runs the filters: the same frames, link counters and notes as
+    TlogSource in this process. The command chooses it (replay as fast as possible on
+    more than one core, see use_decode_worker); a source never starts a process itself."""
+
+    def __init__(self, paths: Sequence[str | Path], link: MavlinkLink, log: TextIO | None = None):
+        self.paths = [Path(p) for p in paths]
+        self.link = link
+        self.log = sys.stderr if log is None else log
+        self.errors: list[str] = []
+        """Files that could not be replayed (the others' frames are processed)."""
+        self._worker: DecodeWorker | None = None
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        link = self.link
+        args = LinkArgs(link.config, link.linear_inputs, link.ranges)
+        worker = self._worker = DecodeWorker(self.paths, args, self.log)
+        mirrored = None
+        for frame in worker.frames(stop):
+            progress = worker.progress
+            if progress is not mirrored and progress is not None:
+                mirrored = progress
+                mirror(link, progress)
+            yield frame
+        self.errors = worker.errors  # each already said by the worker, through self.log
+
+    def progress(self) -> tuple[int, int]:
+        """(bytes read, bytes in the current file)."""
+        p = None if self._worker is None else self._worker.progress
+        return (0, 0) if p is None else (p.position, p.total)
+
+    @property
+    def done(self) -> int:
+        """Records of the current file replayed so far."""
+        p = None if self._worker is None else self._worker.progress
+        return 0 if p is None else p.records
+
+    def link_stats(self) -> dict[str, Any]:
+        if self._worker is not None:
+            self._worker.close()
+            if self._worker.stats is not None:
+                return self._worker.stats
+        return self.link.stats()
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.close()
+        self.link.close()
+
+
+def use_decode_worker(speed: float, link: MavlinkLink) -> bool:
+    """Decode in a worker process when replaying as fast as possible on more than one
+    core, and the link records nothing (a recording is written by the reading process)."""
+    return speed <= 0 and (os.cpu_count() or 1) > 1 and link.recorder is None
+
+
+def tlog_source(
+    paths: Sequence[str | Path], link: MavlinkLink, speed: float = 0.0, log: TextIO | None = None
+) -> TlogSource | WorkerTlogSource:
+    """The replay's source: decoded in a worker process where use_decode_worker says so,
+    else in this one."""
+    if use_decode_worker(speed, link):
+        return WorkerTlogSource(paths, link, log)
+    return TlogSource(paths, link, speed=speed, log=log)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ def start_listen(*args: str, own_group: bool = False) -> tuple[subprocess.Popen[
     its stderr are left for communicate(). own_group: in a process group of its own, with
     the processes it starts (a terminal's Ctrl-C goes to all of them)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gcs_estimator.cli", "listen", *args],
+        [sys.executable, "-m", "gcs_estimator", "listen", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

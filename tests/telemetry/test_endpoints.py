@@ -155,7 +155,7 @@ def test_a_vehicle_over_tcp_with_packets_split_anywhere(
     stream = b"".join(packets[:100]) + b"\xfd\x09junk" + b"".join(packets[100:])
     replayed = [
         f
-        for f in TlogSource([tmp_path / "v.tlog"], MavlinkLink(config.link), workers=False).frames(
+        for f in TlogSource([tmp_path / "v.tlog"], MavlinkLink(config.link)).frames(
             Stop()
         )
         if f

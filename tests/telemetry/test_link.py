@@ -19,9 +19,10 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.flightdata import Recording, load_hfb320
-from gcs_estimator.ingest.sources import TlogSource, UdpSource, open_udp
+from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
+from gcs_estimator.runtime.decode_worker import tlog_source
 from gcs_estimator.runtime.session import Session, warm_up
 from gcs_estimator.stop import Stop
 from sim.cli import command as vehicle_command
@@ -73,7 +74,7 @@ def fly_to_station(
 
 def replay(config: AircraftConfig, path: Path) -> Ground:
     ground = Ground(config)
-    ground.session.run(TlogSource([path], ground.link))
+    ground.session.run(tlog_source([path], ground.link))
     return ground
 
 

@@ -24,6 +24,7 @@ from gcs_estimator.ingest.telemetry.signing import (
     sign_outgoing,
     timestamp_now,
 )
+from gcs_estimator.runtime.decode_worker import WorkerTlogSource
 from gcs_estimator.stop import Stop
 from sim.truth import simulate
 from tests.telemetry.test_link import SHORT, fly_to_station
@@ -95,8 +96,8 @@ def test_unsigned_forged_and_replayed_packets_are_counted_and_dropped(tmp_path: 
     assert [r.packet for r in read_tlog(rejected)] == [p for p, _ in (sent[1:3] + sent[4:])]
     assert str(rejected) in log.getvalue()
 
-    for workers in (False, True):  # a replay with the key accepts the same
-        source = TlogSource([tlog], MavlinkLink(config.link, log=io.StringIO()), workers=workers)
+    for kind in (TlogSource, WorkerTlogSource):  # a replay with the key accepts the same
+        source = kind([tlog], MavlinkLink(config.link, log=io.StringIO()))
         list(source.frames(Stop()))
         stats = source.link_stats()
         source.close()

@@ -21,7 +21,6 @@ from rerun.chunk import RrdReader
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimation.estimator import FILTER_KINDS, Track
-from gcs_estimator.ingest.sources import TlogSource
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
@@ -29,6 +28,7 @@ from gcs_estimator.outputs.report import final_table, live_table
 from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.outputs.view.live import RerunView, ViewSink
 from gcs_estimator.outputs.view.outlets import LocalOutlet
+from gcs_estimator.runtime.decode_worker import tlog_source
 from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
@@ -243,7 +243,7 @@ def test_replay_of_two_vehicles_gives_one_subtree_each_and_link_health(tmp_path:
         link_source=lambda: (link.session_time(), link.health.as_dict()),
     )
     session.add_sink(ViewSink(view, lambda: link.t_first_recv))
-    results = session.run(TlogSource([tlog], link))
+    results = session.run(tlog_source([tlog], link))
     for sid in (1, 2):
         run = results[sid]
         t, v = read_scalars(rrd, path_of(run, "Cmq", sid))
@@ -279,7 +279,7 @@ def test_served_session_outlives_the_run_and_a_late_viewer_gets_it_all(tmp_path:
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     session = subprocess.Popen(
         [
-            sys.executable, "-m", "gcs_estimator.cli", "replay", str(tlog),
+            sys.executable, "-m", "gcs_estimator", "replay", str(tlog),
             "--config", str(ROOT / "configs/noc_uav.toml"), "--set", SHORT[0],
             "--set", "view.serve_linger_s=8", "--out", str(tmp_path),
             "--view", "serve", "--serve-port", str(port),
@@ -358,7 +358,7 @@ def test_run_completes_normally_when_the_viewer_is_unreachable(
     cmd = [
         sys.executable,
         "-m",
-        "gcs_estimator.cli",
+        "gcs_estimator",
         "simulate",
         "--config",
         str(ROOT / "configs/noc_uav.toml"),
