@@ -1,12 +1,24 @@
 """gcs-estimator: aerodynamic coefficients from MAVLink telemetry, live, with an EKF and an
 iterated EKF side by side.
 
+The folders follow the data, each importing only from those above it (tests/test_layout.py):
+
+    arrays, units, frames, stop, schema, blas   shared types and small utilities
+    model/, config                             the aircraft's equations and its airframe file
+    ingest/                                    every source: endpoints, MAVLink, tlogs, data files
+    estimation/                                the filters, the estimator, restarts, warm start, noise
+    uncertainty/                               the sigma to trust, the marks, the structure check
+    refine/                                    the whole-record maximum-likelihood fit
+    outputs/                                   the table, results files, history and the Rerun view
+    runtime/                                   the session loop, worker processes, batches
+    cli, __main__                              the commands; which process runs what is chosen here
+
 Importing the package points numba's on-disk cache of compiled kernels at a folder named
 after a hash of the package's sources (and the simulator's). numba notices a change in
 the file that holds a compiled function, but not in the functions it calls from other
 files: after an update of model/equations.py alone, the filter kernel cached from
-filters/fast.py would run the old equations. A folder per source state cannot be stale.
-A NUMBA_CACHE_DIR set by the user is left as it is.
+estimation/filters/fast.py would run the old equations. A folder per source state cannot
+be stale. A NUMBA_CACHE_DIR set by the user is left as it is.
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import socket
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -24,6 +25,7 @@ from gcs_estimator.config import (
     load_reference,
     load_truths,
 )
+from gcs_estimator.estimation.filters.core import Backend
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.flightdata import FlightDataError, load_recording
 from gcs_estimator.ingest.sources import (
@@ -157,12 +159,6 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         help="the refinement keeps the noise levels the filters used (measurement sigmas; "
         "filter error: the config's process noise) instead of estimating them: for sensors "
         "and air whose noise you know",
-    )
-    p.add_argument(
-        "--backend",
-        choices=("fast", "reference"),
-        default="fast",
-        help="compiled filter kernels or the plain numpy reference path",
     )
     p.add_argument(
         "--reference",
@@ -785,12 +781,26 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+BACKEND_VARIABLE = "GCS_ESTIMATOR_BACKEND"
+"""A developer's switch, not the user's: the filters' backend, "fast" (compiled, the
+default) or "reference" (the numpy path the compiled kernels are tested against)."""
+
+
+def backend_of(environ: Mapping[str, str]) -> Backend:
+    """The filters' backend from the environment (BACKEND_VARIABLE), read here only."""
+    value = environ.get(BACKEND_VARIABLE, "fast") or "fast"
+    if value not in ("fast", "reference"):
+        raise ConfigError(f"{BACKEND_VARIABLE}={value!r}: must be 'fast' or 'reference'")
+    return "reference" if value == "reference" else "fast"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     blas.one_thread()
     args = build_parser().parse_args(argv)
     args.argv = None if argv is None else list(argv)
     started = datetime.now(UTC)
     try:
+        args.backend = backend_of(os.environ)
         if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
             raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
         _window(getattr(args, "window", None))  # a bad --window is refused before any work

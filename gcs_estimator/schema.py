@@ -354,23 +354,32 @@ def leaves(cls: type[Any], context: Mapping[str, tuple[str, ...]], path: str = "
 
 
 def reference(cls: type[Any], context: Mapping[str, tuple[str, ...]]) -> str:
-    """Every key as Markdown tables, one per TOML table: default, unit, allowed, meaning."""
-    out: list[str] = []
-    table_at = None
+    """Every key as Markdown tables, one per TOML table (each once, however the fields of
+    its dataclass interleave scalars and sub-tables): default, unit, allowed, meaning."""
+    tables: dict[str, list[Key]] = {}
     for k in leaves(cls, context):
-        if k.table != table_at:
-            table_at = k.table
-            out += ["", f"## [{k.table}]" if k.table else "## top level", ""]
-            if k.spec.keys and not k.spec.inline:
-                out += [f"One number per key ({k.spec.doc or 'see below'}).", ""]
-            elif k.owner.__doc__:
-                out += [" ".join(k.owner.__doc__.split("\n\n")[0].split()), ""]
-            out += ["| key | default | unit | allowed | meaning |", "|---|---|---|---|---|"]
-        allowed = ", ".join(k.spec.choices) if k.spec.choices else k.spec.bounds()
-        default = "required" if k.default is REQUIRED else _toml(k.default)
-        doc = k.spec.doc + (f" (or {k.name}_deg in degrees)" if k.name in k.spec.degrees else "")
-        out.append(f"| `{k.name}` | {default} | {k.spec.unit} | {allowed} | {doc} |")
+        tables.setdefault(k.table, []).append(k)
+    out: list[str] = []
+    for name, keys in tables.items():
+        out += _table_heading(name, keys[0])
+        out += [_key_row(k) for k in keys]
     return "\n".join(out[1:]) + "\n"
+
+
+def _table_heading(name: str, first: Key) -> list[str]:
+    out = ["", f"## [{name}]" if name else "## top level", ""]
+    if first.spec.keys and not first.spec.inline:
+        out += [f"One number per key ({first.spec.doc or 'see below'}).", ""]
+    elif first.owner.__doc__:
+        out += [" ".join(first.owner.__doc__.split("\n\n")[0].split()), ""]
+    return [*out, "| key | default | unit | allowed | meaning |", "|---|---|---|---|---|"]
+
+
+def _key_row(k: Key) -> str:
+    allowed = ", ".join(k.spec.choices) if k.spec.choices else k.spec.bounds()
+    default = "required" if k.default is REQUIRED else _toml(k.default)
+    doc = k.spec.doc + (f" (or {k.name}_deg in degrees)" if k.name in k.spec.degrees else "")
+    return f"| `{k.name}` | {default} | {k.spec.unit} | {allowed} | {doc} |"
 
 
 def _toml(value: Any) -> str:

@@ -96,7 +96,6 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
     for option, value in (
         ("--refine", args.refine),
         ("--window", args.window),
-        ("--backend", args.backend),
         ("--reference", args.reference),
         ("--truth", args.truth),
         ("--filter-workers", args.filter_workers),
