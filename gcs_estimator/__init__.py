@@ -3,15 +3,15 @@ iterated EKF side by side.
 
 The folders follow the data, each importing only from those above it (tests/test_layout.py):
 
-    arrays, units, frames, stop, schema, blas   shared types and small utilities
-    model/, config                             the aircraft's equations and its airframe file
-    ingest/                                    every source: endpoints, MAVLink, tlogs, data files
-    estimation/                                the filters, the estimator, restarts, warm start, noise
-    uncertainty/                               the sigma to trust, the marks, the structure check
-    refine/                                    the whole-record maximum-likelihood fit
-    outputs/                                   the table, results files, history and the Rerun view
-    runtime/                                   the session loop, worker processes, batches
-    cli, __main__                              the commands; which process runs what is chosen here
+    arrays, units, frames, stop, schema, blas shared types and small utilities
+    model/, config                         the aircraft's equations and its airframe file
+    ingest/                                every source: endpoints, MAVLink, tlogs, data files
+    estimation/                            the filters, the estimator, restarts, warm start, noise
+    uncertainty/                           the sigma to trust, the marks, the structure check
+    refine/                                the whole-record maximum-likelihood fit
+    outputs/                               the table, results files, history and the Rerun view
+    runtime/                               the session loop, worker processes, batches
+    cli, __main__                          the commands; which process runs what is chosen here
 
 Importing the package points numba's on-disk cache of compiled kernels at a folder named
 after a hash of the package's sources (and the simulator's). numba notices a change in
