@@ -3,7 +3,8 @@ iterated EKF side by side.
 
 The folders follow the data, each importing only from those above it (tests/test_layout.py):
 
-    arrays, units, frames, stop, schema, blas shared types and small utilities
+    arrays, units, frames, stop, schema,   shared types and small utilities
+    blas
     model/, config                         the aircraft's equations and its airframe file
     ingest/                                every source: endpoints, MAVLink, tlogs, data files
     estimation/                            the filters, the estimator, restarts, warm start, noise
