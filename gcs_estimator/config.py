@@ -336,13 +336,6 @@ class TurbulenceNoise:
     detection_sigma: float = setting(
         3.0, ge=0, doc="applied only once this many standard errors above zero (calm stays calm)"
     )
-    hold_pass_level: bool = setting(
-        False,
-        doc="once the level averaged over the pass stands detection_sigma standard errors "
-        "above zero, apply it wherever the running level does not pass its own test (weak "
-        "or slow gusts a few seconds cannot tell from calm); helped HFB-320, mixed on the "
-        "JSBSim set (docs/decisions/0026)",
-    )
     still_band_deg: float = setting(
         0.2,
         ge=0,

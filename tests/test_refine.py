@@ -15,7 +15,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import read_tlog
-from gcs_estimator.outputs.report import GUST_BURSTS, results_dict, trust_warnings
+from gcs_estimator.outputs.report import results_dict, trust_warnings
 from gcs_estimator.outputs.sinks import RefineStatus
 from gcs_estimator.refine.fit import (
     RefineError,
@@ -442,16 +442,14 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
     final pass, while the pass's average stands many standard errors above zero. The
     report says so for each filter, `refine`'s auto choice is filter error, and the JSON
     carries the pass's level and its z; the same flight in calm air finds nothing over the
-    pass. With [filter.turbulence] hold_pass_level the filters apply the pass's level
-    once it is found (decision 0026): in most of the pass and at its end."""
+    pass."""
     found = {}
-    for sigma_w, hold in ((0.0, False), (0.05, False), (0.05, True)):
+    for sigma_w in (0.0, 0.05):
         over = [
             'simulation.turbulence.preset="light"',
             f"simulation.turbulence.sigma_w_mps={sigma_w}",
             "simulation.turbulence.length_w_m=530",
             "simulation.turbulence.length_u_m=530",
-            f"filter.turbulence.hold_pass_level={'true' if hold else 'false'}",
         ]
         config = load_config("noc_uav", over)
         flight = simulate(config, seed=1)
@@ -468,16 +466,13 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
         track = run.result.filters["IEKF"].track
         assert track is not None
         assert track.gust_pass_sigma[-1] == pytest.approx(s.gust_pass_sigma, rel=1e-6)
-        found[sigma_w, hold] = (s, warned, choose_method(run.result)[0])
-    s, warned, method = found[0.05, False]
+        found[sigma_w] = (s, warned, choose_method(run.result)[0])
+    s, warned, method = found[0.05]
     assert s.gust_on_share < 0.5 and s.gust_pass_z >= 2 * threshold
     assert warned == {"EKF", "IEKF"} and method == "filter-error"
-    s, warned, method = found[0.0, False]
+    s, warned, method = found[0.0]
     assert s.gust_on_share == 0.0 and s.gust_pass_z < threshold
     assert not warned and method == "output-error"
-    s, warned, method = found[0.05, True]
-    assert s.gust_on_share > 0.5 and s.gust_sigma > 0.0 and method == "filter-error"
-    assert warned == ({"EKF", "IEKF"} if s.gust_on_share < GUST_BURSTS[1] else set())
 
 
 def test_auto_with_a_fixed_turbulence_level_goes_by_the_level_applied() -> None:

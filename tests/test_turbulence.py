@@ -264,35 +264,30 @@ def test_the_gust_level_is_estimated_where_the_inputs_are_still() -> None:
     )
 
 
-def test_a_pass_that_found_turbulence_keeps_a_level_where_the_running_one_dips(
+def test_the_level_applied_is_the_running_one_where_it_passes_its_test(
     noc_config: AircraftConfig,
 ) -> None:
-    """GustState.applied (decision 0026): the running estimate where it passes its
-    detection test (var sqrt(I (2 - g) / g) standard errors); where it does not, with
-    [filter.turbulence] hold_pass_level, the pass's average where that passes its own (sum
-    w * estimate over sum w, in standard errors 1 / sqrt(sum w)); else no level. The step's
-    process noise follows the same rule, and without the setting never holds a level."""
+    """GustState.applied: the running estimate where it passes its detection test (var
+    sqrt(I (2 - g) / g) standard errors), else no level, whatever the pass as a whole
+    found (holding the pass's level was an option, removed: decision 0026). The step's
+    process noise follows the same rule."""
     detection2 = 9.0
     running = core.GustState.start(0.04)._replace(info=1e5, gain=0.01)
-    assert running.applied(detection2, detection2) == pytest.approx(0.04)  # 178 s.e.
+    assert running.applied(detection2) == pytest.approx(0.04)  # 178 s.e.
     weak = running._replace(var=0.0005, info=1e4)  # 0.7 standard errors
-    assert weak.applied(detection2, detection2) == 0.0
+    assert weak.applied(detection2) == 0.0
     found = weak._replace(pass_num=0.02 * 2e5, pass_den=2e5)
     assert found.pass_z() == pytest.approx(0.02 * np.sqrt(2e5))  # 8.9
-    assert found.applied(detection2, detection2) == pytest.approx(0.02)
-    assert found.applied(detection2) == 0.0  # the default: the running level alone
-    faint = weak._replace(pass_num=0.005 * 2e5, pass_den=2e5)  # 2.2 standard errors
-    assert faint.applied(detection2, detection2) == 0.0
+    assert found.applied(detection2) == 0.0  # the running level alone
     again = found._replace(var=0.04, info=1e5)
-    assert again.applied(detection2, detection2) == pytest.approx(0.04)
+    assert again.applied(detection2) == pytest.approx(0.04)
 
-    for hold in (True, False):
-        turbulence = replace(noc_config.filter.turbulence, hold_pass_level=hold)
-        config = replace(noc_config, filter=replace(noc_config.filter, turbulence=turbulence))
-        model = build_model(config)
-        tuning = core.tuning_of(config, model, "EKF")._replace(detection2=detection2)
-        state = core.initial_state(model, tuning, 0.0, np.zeros(2), np.full(7, np.nan))
-        quiet = core.process_noise(state._replace(gust=weak), tuning)
-        kept = core.process_noise(state._replace(gust=found), tuning)
-        assert quiet[1] == 0.0 and kept[1] == pytest.approx(0.02 if hold else 0.0)
-        np.testing.assert_allclose(kept[0], quiet[0] + kept[1] * tuning.gust_unit)
+    model = build_model(noc_config)
+    tuning = core.tuning_of(noc_config, model, "EKF")._replace(detection2=detection2)
+    state = core.initial_state(model, tuning, 0.0, np.zeros(2), np.full(7, np.nan))
+    quiet = core.process_noise(state._replace(gust=weak), tuning)
+    kept = core.process_noise(state._replace(gust=found), tuning)
+    applied = core.process_noise(state._replace(gust=again), tuning)
+    assert quiet[1] == kept[1] == 0.0 and applied[1] == pytest.approx(0.04)
+    np.testing.assert_array_equal(kept[0], quiet[0])
+    np.testing.assert_allclose(applied[0], quiet[0] + applied[1] * tuning.gust_unit)

@@ -821,7 +821,7 @@ class Estimator:
         if s is None:
             return math.nan
         tn = self.tunings[kind]
-        return math.sqrt(s.gust.applied(tn.detection2, tn.pass_detection2))
+        return math.sqrt(s.gust.applied(tn.detection2))
 
     @property
     def history_rows(self) -> int:
@@ -852,7 +852,7 @@ class Estimator:
             cov = s.P[coef, coef]
             biases = self.model.biases
             tn = self.tunings[kind]
-            gust = s.gust.applied(tn.detection2, tn.pass_detection2)
+            gust = s.gust.applied(tn.detection2)
             filters[kind] = FilterResult(
                 kind,
                 s.x[coef].copy(),

@@ -311,9 +311,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                 f"was applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
                 "too slow (a long scale length) for a few seconds of data to tell from "
                 "calm; where none was applied the covariance's σ assumes calm air, so trust "
-                "the corrected σ; `refine` (auto) fits such a record by filter error, and "
-                "[filter.turbulence] hold_pass_level = true applies the pass's level in the "
-                "filters (docs/decisions/0026)"
+                "the corrected σ; `refine` (auto) fits such a record by filter error"
             )
         elif GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
             out.append(

@@ -114,19 +114,12 @@ class GustState(NamedTuple):
             math.nan,
         )
 
-    def applied(self, detection2: float, pass2: float = math.inf) -> float:
+    def applied(self, detection2: float) -> float:
         """The level in the process noise: the running estimate where it stands at least
-        detection_sigma of its standard errors above zero. The exponential average of
-        one-step estimates of variance 1/I has variance g / (2 - g) / I. A level not yet
-        measured in this pass (configured, or carried over by a restart) is used as is.
-        Where the running estimate does not pass: with pass2 (the squared threshold of
-        Tuning.pass_detection2; inf: never, the default) the pass's average where it
-        stands sqrt(pass2) of its standard errors above zero (pass_z), so that once the
-        pass as a whole has found turbulence a few quiet seconds do not make the air calm
-        ([filter.turbulence] hold_pass_level; decision 0026). Else 0."""
-        return gust_applied(
-            self.var, self.info, self.gain, self.pass_num, self.pass_den, detection2, pass2
-        )
+        detection_sigma of its standard errors above zero, else 0. The exponential average
+        of one-step estimates of variance 1/I has variance g / (2 - g) / I. A level not yet
+        measured in this pass (configured, or carried over by a restart) is used as is."""
+        return gust_applied(self.var, self.info, self.gain, detection2)
 
     def pass_average(self) -> float:
         """The pass's information-weighted average level, >= 0 (the running level if
@@ -151,20 +144,10 @@ def pass_average(var: float, pass_num: float, pass_den: float) -> float:
     return max(pass_num / pass_den, 0.0)
 
 
-def gust_applied(
-    var: float,
-    info: float,
-    gain: float,
-    pass_num: float,
-    pass_den: float,
-    detection2: float,
-    pass2: float,
-) -> float:
+def gust_applied(var: float, info: float, gain: float, detection2: float) -> float:
     """See GustState.applied (a function of scalars, so that the kernel shares it)."""
     if var > 0.0 and (info <= 0.0 or var * var * info * (2.0 - gain) >= detection2 * gain):
         return var
-    if pass_num > 0.0 and pass_num * pass_num >= pass2 * pass_den:
-        return pass_num / pass_den
     return 0.0
 
 
@@ -233,10 +216,6 @@ class Tuning(NamedTuple):
     max_wait_s: float
     """When the inputs have not been still for this long [s], every step informs the
     level."""
-    pass_detection2: float
-    """Squared detection threshold of the pass's average level, applied where the running
-    level does not pass (GustState.applied): detection2 with [filter.turbulence]
-    hold_pass_level, else inf (never)."""
 
 
 class StepInfo(NamedTuple):
@@ -318,7 +297,6 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         still_band=math.radians(turb.still_band_deg),
         settle_s=turb.settle_s,
         max_wait_s=turb.max_wait_s,
-        pass_detection2=turb.detection_sigma**2 if turb.hold_pass_level else math.inf,
     )
 
 
@@ -453,9 +431,7 @@ def process_noise(state: FilterState, tuning: Tuning) -> tuple[FloatArray, float
     if decay >= 1e-12:
         q = tuning.q_final + (tuning.q_initial - tuning.q_final) * decay
     g = state.gust
-    gust = gust_applied(
-        g.var, g.info, g.gain, g.pass_num, g.pass_den, tuning.detection2, tuning.pass_detection2
-    )
+    gust = gust_applied(g.var, g.info, g.gain, tuning.detection2)
     if gust > 0.0:
         q = q + gust * tuning.gust_unit
     return q, gust

@@ -408,7 +408,6 @@ _TF_SCALARS = (
     "still_band",
     "settle_s",
     "max_wait_s",
-    "pass_detection2",
 )
 _TI_HEAD = 9
 """iterations, adaptive, linear_inputs, coef_start, n_dynamic, bias_start, then the
@@ -467,7 +466,6 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
         tf[8],
         tf[9],
         tf[10],
-        tf[11],
     )
     h = _TI_HEAD
     model = ModelArrays(
