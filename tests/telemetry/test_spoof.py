@@ -16,7 +16,8 @@ from gcs_estimator.config import load_config
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry import mavlink
-from gcs_estimator.ingest.telemetry.link import PIN_MOVE_S, MavlinkLink, link_name
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.vehicles import PIN_MOVE_S, link_name
 from gcs_estimator.stop import Stop
 
 DEADLINE_S = 30.0

@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+from collections.abc import Callable
 from enum import StrEnum
 from pathlib import Path
 
-from gcs_estimator.ingest.telemetry.mavlink import SIGNED_FLAG, STX_V2, header
+from gcs_estimator.ingest.telemetry.counters import LinkHealth
+from gcs_estimator.ingest.telemetry.mavlink import SIGNED_FLAG, STX_V2, TlogWriter, header
 
 EPOCH_2015_S = 1_420_070_400.0
 """1 January 2015 00:00 UTC [s since the Unix epoch]: the signing timestamps' zero."""
@@ -96,3 +98,46 @@ def sign_outgoing(mav: object, key: bytes, t_unix_s: float, link_id: int = 0) ->
     signing.sign_outgoing = True
     signing.link_id = link_id
     signing.timestamp = timestamp_now(t_unix_s)
+
+
+class SigningGate:
+    """A link's signature check with what it does with the packets that fail it: count
+    them by why, say so once, and record them apart from the estimate's recording."""
+
+    def __init__(
+        self,
+        key: bytes,
+        health: LinkHealth,
+        report_once: Callable[[str, str], None],
+        rejected_path: Path | None = None,
+    ) -> None:
+        self.key = key
+        self.check = SignatureCheck(key)
+        self.health = health
+        self.report_once = report_once
+        self.rejected_path = rejected_path
+        self.rejected: TlogWriter | None = None
+        """The file of rejected packets, opened at the first one."""
+
+    def passes(self, packet: bytes, t_recv_s: float, name: str) -> bool:
+        """Whether a packet passes the signature check; else it is counted by why,
+        dropped, and recorded apart (rejected_path), not in the recording the estimate is
+        made of. The check's state moves only with good packets, so a replay of the
+        recording with the key accepts what the live run accepted. The rejected file is
+        for forensics: replayed alone, a replayed copy there looks fresh."""
+        verdict = self.check.check(packet, t_recv_s)
+        if verdict == Verdict.SIGNED:
+            return True
+        counts = self.health.counts(name)
+        setattr(counts, verdict.value, getattr(counts, verdict.value) + 1)
+        where = ""
+        if self.rejected_path is not None:
+            if self.rejected is None:
+                self.rejected = TlogWriter(self.rejected_path)
+            self.rejected.write(int(round(t_recv_s * 1e6)), packet)
+            where = f", recorded to {self.rejected_path}"
+        self.report_once(
+            f"sign-{verdict.value}",
+            f"{verdict.value.replace('_', ' ')} packet(s) with signing on: dropped{where}",
+        )
+        return False
