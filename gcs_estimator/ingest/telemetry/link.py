@@ -40,6 +40,9 @@ COUNTER_TIME_WRAP_S = 86_400.0
 sequence counters; time_boot_ms (49.7 days) does."""
 
 
+# Over 200 lines: one packet's path from bytes to frames (framing, CRC, signing, pinning,
+# counting, decoding, routing) reads best in one place; the parts with state of their own,
+# the vehicles and the signing gate, are classes apart.
 class MavlinkLink:
     """Decoder, link health and vehicles of one session."""
 
