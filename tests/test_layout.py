@@ -137,3 +137,23 @@ def test_the_import_reader_sees_imports_inside_functions(tmp_path: Path) -> None
     source.write_text("def f():\n    from gcs_estimator.runtime import session\n")
     known = {"gcs_estimator.runtime", "gcs_estimator.runtime.session", "gcs_estimator.m"}
     assert list(_imported("gcs_estimator.m", source, known)) == ["gcs_estimator.runtime.session"]
+
+
+LONG_CLASS_LINES = 200
+"""A class longer than this holds more than one job, unless a comment right above it
+(starting "# Over 200 lines:") says why it should stay whole."""
+
+
+def test_no_class_over_200_lines_without_a_reason() -> None:
+    long = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        lines = path.read_text().splitlines()
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            size = (node.end_lineno or node.lineno) - node.lineno + 1
+            first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+            above = "\n".join(lines[max(0, first - 6) : first - 1])
+            if size > LONG_CLASS_LINES and "# Over 200 lines:" not in above:
+                long.append(f"{path.relative_to(PACKAGE.parent)}: {node.name} ({size} lines)")
+    assert not long, "classes over 200 lines with no reason given:\n" + "\n".join(long)
