@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gcs_estimator.config import AircraftConfig
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters import core, fast, reference
 from gcs_estimator.estimation.filters.core import FilterState, GustState, StepInfo, Tuning
@@ -382,6 +382,34 @@ def _frames_of(config: AircraftConfig, n: int) -> tuple[np.ndarray, np.ndarray, 
     y = flight.measurements[:n].copy()
     y[::5, 3] = np.nan  # a channel missing now and then
     return flight.t_s[:n].astype(float), u, y
+
+
+@pytest.mark.parametrize("kind", ["EKF", "IEKF"])
+def test_the_kernel_unpacks_every_field_as_packed(noc_config: AircraftConfig, kind: str) -> None:
+    """pack lays out Tuning and ModelArrays from their fields (no offset written by hand);
+    the kernel's _unpack gives back every field, value and type, bit for bit. Each
+    scalar is set to a value of its own, so that a field read from another's place
+    shows."""
+    model = build_model(noc_config)
+    tuning = core.tuning_of(noc_config, model, kind)  # type: ignore[arg-type]
+    distinct = {
+        name: 0.125 + slot
+        for slot, name in enumerate(Tuning._fields)
+        if isinstance(getattr(tuning, name), float)
+    }
+    tuning = tuning._replace(**distinct)
+    for m in (model.arrays, build_model(load_config("hfb320")).arrays):
+        tf, ti = fast.pack(tuning, m)
+        tun, arrays = fast._unpack(tf, ti)
+        for got, want in ((tun, tuning), (arrays, m)):
+            assert type(got) is type(want)
+            for name, a, b in zip(want._fields, got, want, strict=True):
+                assert type(a) is type(b) or (
+                    isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
+                ), name
+                np.testing.assert_array_equal(a, b, err_msg=name)
+                if isinstance(b, np.ndarray):
+                    assert a.dtype == b.dtype and a.shape == b.shape, name
 
 
 @pytest.mark.parametrize("kind", ["EKF", "IEKF"])

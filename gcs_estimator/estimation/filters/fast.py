@@ -20,7 +20,7 @@ tests/filters/test_fast.py checks it against the reference, kernel and flight al
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple, get_type_hints
 
 import numpy as np
 from numba import njit
@@ -32,7 +32,7 @@ from gcs_estimator.estimation.filters.core import FilterState, GustState, StepIn
 from gcs_estimator.estimation.filters.hybrid import PSD_JITTER
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model
-from gcs_estimator.model.channels import N_FLIGHT, N_OBS
+from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.model.equations import ModelArrays, dynamics_rows, observe
 
 for _fn in (
@@ -117,7 +117,27 @@ def _rk4(
 
 
 @njit(cache=True, inline="always")
-def _propagate(
+def _substeps(dt: float, max_step: float) -> tuple[int, float]:  # pragma: no cover
+    """The Runge-Kutta steps over dt [s], none longer than max_step [s]: how many, and
+    their length [s]."""
+    steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
+    return steps, dt / steps
+
+
+@njit(cache=True, inline="always")
+def _substep_inputs(
+    u0: FloatArray, u1: FloatArray, j: int, steps: int, ua: FloatArray, ub: FloatArray
+) -> None:  # pragma: no cover
+    """ua, ub <- the inputs at the start and the end of step j of `steps`, the inputs
+    going linearly from u0 to u1 over the interval."""
+    for i in range(u0.shape[0]):
+        du = u1[i] - u0[i]
+        ua[i] = u0[i] + du * (j / steps)
+        ub[i] = u0[i] + du * ((j + 1) / steps)
+
+
+@njit(cache=True, inline="always")
+def propagate(
     x: FloatArray,
     P: FloatArray,
     u0: FloatArray,
@@ -129,12 +149,12 @@ def _propagate(
 ) -> tuple[FloatArray, FloatArray]:  # pragma: no cover
     """hybrid.propagate for the aircraft: rows >= d = n_dynamic of F are zero, so the
     transition matrix differs from I in its first d rows only, and each Runge-Kutta stage
-    of it is d x n. Q = diag(q); the inputs go linearly from u0 to u1 over dt."""
+    of it is d x n. Q = diag(q); the inputs go linearly from u0 to u1 over dt. The
+    filters' one prediction: their step's, and refine's filter error's."""
     P = P.copy()
     if dt <= 0.0:
         return x.copy(), P
-    steps = max(1, int(math.ceil(dt / max_step - 1e-9)))
-    h = dt / steps
+    steps, h = _substeps(dt, max_step)
     d = m.n_dynamic
     n = x.shape[0]
     D = np.empty((d, n))
@@ -142,10 +162,7 @@ def _propagate(
     ua = np.empty(u0.shape[0])
     ub = np.empty(u0.shape[0])
     for j in range(steps):
-        for i in range(u0.shape[0]):
-            du = u1[i] - u0[i]
-            ua[i] = u0[i] + du * (j / steps)
-            ub[i] = u0[i] + du * ((j + 1) / steps)
+        _substep_inputs(u0, u1, j, steps, ua, ub)
         x, F1, F2, F3, F4 = _rk4(x, ua, ub, h, m)
         # Stages of Phi' = F Phi, Phi(0) = I: K = F (I + c E) = F + c F[:, :d] D.
         K2 = _stage(F2, F1, 0.5 * h, d)
@@ -159,6 +176,23 @@ def _propagate(
         _add_process_noise(P, q, D, D_m, h)
     small.symmetrise(P)
     return x, P
+
+
+@njit(cache=True, inline="always")
+def fly(
+    x: FloatArray, u0: FloatArray, u1: FloatArray, dt: float, max_step: float, m: ModelArrays
+) -> FloatArray:  # pragma: no cover
+    """x over dt as propagate moves it, without a covariance: the model flown through the
+    inputs (linear from u0 to u1) in the same Runge-Kutta steps (refine's flights)."""
+    if dt <= 0.0:
+        return x.copy()
+    steps, h = _substeps(dt, max_step)
+    ua = np.empty(u0.shape[0])
+    ub = np.empty(u0.shape[0])
+    for j in range(steps):
+        _substep_inputs(u0, u1, j, steps, ua, ub)
+        x = _rk4(x, ua, ub, h, m)[0]
+    return x
 
 
 @njit(cache=True, inline="always")
@@ -365,7 +399,7 @@ def _step(
     u_prev, u_end = core.input_path(st.u, u, tun.linear_inputs)
     dt = t - st.t
     q, applied = core.process_noise(st, tun)
-    xp, Pp = _propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
+    xp, Pp = propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
     x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
     sigma = np.empty(P.shape[0])
     smallest = math.inf
@@ -393,89 +427,113 @@ def _step(
     return new, info, healthy
 
 
-# The packed form of a filter's Tuning and its aircraft's ModelArrays: two flat arrays, so
-# that a step's call hands the compiled code 2 values instead of 30 (the dispatch cost
-# grows with every argument). Scalar fields first, then the arrays back to back.
-_TF_SCALARS = (
-    "q_decay_s",
-    "tolerance",
-    "relinearise",
-    "max_step_s",
-    "gate",
-    "adapt_time_s",
-    "detection2",
-    "gust_var0",
-    "still_band",
-    "settle_s",
-    "max_wait_s",
+# ---- Tuning and ModelArrays as two flat arrays ---------------------------------------
+# A step's call hands the compiled code two arrays instead of the 28 fields of a Tuning
+# and its aircraft's ModelArrays (numba's dispatch cost grows with every argument). The
+# layout follows from the two NamedTuples' fields and their declared types, in pack
+# alone: the int array opens with a directory, two entries (start, stop) per field in
+# declaration order, saying where its values lie: in the float array for float scalars
+# and arrays, in the int array after the directory for int and bool scalars and int
+# arrays. The kernel finds each field through its slot in the directory (TUNING_SLOTS,
+# MODEL_SLOTS: the records themselves with slot numbers for values), never an offset.
+
+
+def _goes_to_floats(hint: Any) -> bool:
+    """Whether a field of this declared type is packed into the float array."""
+    if hint in (float, FloatArray):
+        return True
+    if hint in (int, bool, IntArray):
+        return False
+    raise TypeError(f"pack does not know fields of type {hint}")
+
+
+_AS_FLOATS = tuple(
+    _goes_to_floats(hint)
+    for record in (Tuning, ModelArrays)
+    for hint in get_type_hints(record).values()
 )
-_TI_HEAD = 9
-"""iterations, adaptive, linear_inputs, coef_start, n_dynamic, bias_start, then the
-lengths of axis (= regressor) and bias_channel, then n."""
+"""Per slot (the fields of Tuning, then ModelArrays): whether its values go into the
+float array, else into the int array."""
+_DIRECTORY = 2 * len(_AS_FLOATS)
+
+TUNING_SLOTS: Any = Tuning._make(range(len(Tuning._fields)))
+"""A Tuning whose fields hold their directory slots (typed Any: ints, not the fields'
+types)."""
+MODEL_SLOTS: Any = ModelArrays._make(range(len(Tuning._fields), len(_AS_FLOATS)))
+"""The same for ModelArrays, whose slots follow Tuning's."""
 
 
 def pack(tuning: Tuning, m: ModelArrays) -> tuple[FloatArray, IntArray]:
-    """Tuning and ModelArrays as (floats, ints) for _kernel (unpacked by _unpack)."""
-    n = tuning.q_final.shape[0]
-    floats = [np.array([getattr(tuning, f) for f in _TF_SCALARS], float)]
-    floats += [np.ravel(tuning.R)]
-    floats += [tuning.q_final, tuning.q_initial, tuning.gust_unit]
-    floats += [tuning.prior_x, tuning.prior_sigma, tuning.state_max, m.k]
-    head = [
-        tuning.iterations,
-        int(tuning.adaptive),
-        int(tuning.linear_inputs),
-        m.coef_start,
-        m.n_dynamic,
-        m.bias_start,
-        m.axis.shape[0],
-        m.bias_channel.shape[0],
-        n,
-    ]
-    ints = np.concatenate([np.array(head), m.axis, m.regressor, m.bias_channel])
-    return np.concatenate(floats).astype(np.float64), ints.astype(np.int64)
+    """Tuning and ModelArrays as (floats, ints) for the kernels (unpacked by _unpack),
+    every value as it is (the float64 values themselves, whole numbers as int64)."""
+    floats: list[float] = []
+    ints: list[int] = [0] * _DIRECTORY
+    for slot, (value, as_floats) in enumerate(zip((*tuning, *m), _AS_FLOATS, strict=True)):
+        values = np.asarray(value, np.float64 if as_floats else np.int64).ravel().tolist()
+        into: list[Any] = floats if as_floats else ints
+        ints[2 * slot] = len(into)
+        into.extend(values)
+        ints[2 * slot + 1] = len(into)
+    return np.array(floats, np.float64), np.array(ints, np.int64)
+
+
+@njit(cache=True, inline="always")
+def _floats(tf: FloatArray, ti: IntArray, slot: int) -> FloatArray:  # pragma: no cover
+    """A float array field (pack's layout), a view of tf."""
+    return tf[ti[2 * slot] : ti[2 * slot + 1]]
+
+
+@njit(cache=True, inline="always")
+def _float(tf: FloatArray, ti: IntArray, slot: int) -> float:  # pragma: no cover
+    return float(tf[ti[2 * slot]])
+
+
+@njit(cache=True, inline="always")
+def _ints(ti: IntArray, slot: int) -> IntArray:  # pragma: no cover
+    """An int array field (pack's layout), a view of ti."""
+    return ti[ti[2 * slot] : ti[2 * slot + 1]]
+
+
+@njit(cache=True, inline="always")
+def _int(ti: IntArray, slot: int) -> int:  # pragma: no cover
+    return int(ti[ti[2 * slot]])
 
 
 @njit(cache=True, inline="always")
 def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # pragma: no cover
-    """pack's inverse, as views of the two arrays."""
-    n = ti[8]
-    n_coef = ti[6]
-    o = len(_TF_SCALARS)
-    R = tf[o : o + N_OBS * N_OBS].reshape((N_OBS, N_OBS))
-    o += N_OBS * N_OBS
+    """pack's inverse, its arrays views of the two: each field through its slot."""
+    t, a = TUNING_SLOTS, MODEL_SLOTS
     tun = Tuning(
-        R,
-        tf[o : o + n],
-        tf[o + n : o + 2 * n],
-        tf[0],
-        tf[o + 2 * n : o + 3 * n],
-        ti[0],
-        tf[1],
-        tf[2],
-        tf[3],
-        tf[4],
-        ti[1] != 0,
-        tf[5],
-        tf[6],
-        tf[o + 3 * n : o + 4 * n],
-        tf[o + 4 * n : o + 5 * n],
-        tf[7],
-        ti[2] != 0,
-        tf[o + 5 * n : o + 5 * n + N_FLIGHT],
-        tf[8],
-        tf[9],
-        tf[10],
+        R=_floats(tf, ti, t.R).reshape((N_OBS, N_OBS)),
+        q_final=_floats(tf, ti, t.q_final),
+        q_initial=_floats(tf, ti, t.q_initial),
+        q_decay_s=_float(tf, ti, t.q_decay_s),
+        gust_unit=_floats(tf, ti, t.gust_unit),
+        iterations=_int(ti, t.iterations),
+        tolerance=_float(tf, ti, t.tolerance),
+        relinearise=_float(tf, ti, t.relinearise),
+        max_step_s=_float(tf, ti, t.max_step_s),
+        gate=_float(tf, ti, t.gate),
+        adaptive=_int(ti, t.adaptive) != 0,
+        adapt_time_s=_float(tf, ti, t.adapt_time_s),
+        detection2=_float(tf, ti, t.detection2),
+        prior_x=_floats(tf, ti, t.prior_x),
+        prior_sigma=_floats(tf, ti, t.prior_sigma),
+        gust_var0=_float(tf, ti, t.gust_var0),
+        linear_inputs=_int(ti, t.linear_inputs) != 0,
+        state_max=_floats(tf, ti, t.state_max),
+        still_band=_float(tf, ti, t.still_band),
+        settle_s=_float(tf, ti, t.settle_s),
+        max_wait_s=_float(tf, ti, t.max_wait_s),
     )
-    h = _TI_HEAD
     model = ModelArrays(
-        tf[o + 5 * n + N_FLIGHT :],
-        ti[h : h + n_coef],
-        ti[h + n_coef : h + 2 * n_coef],
-        ti[3],
-        ti[4],
-        ti[h + 2 * n_coef :],
-        ti[5],
+        k=_floats(tf, ti, a.k),
+        axis=_ints(ti, a.axis),
+        regressor=_ints(ti, a.regressor),
+        coef_start=_int(ti, a.coef_start),
+        n_dynamic=_int(ti, a.n_dynamic),
+        bias_channel=_ints(ti, a.bias_channel),
+        bias_start=_int(ti, a.bias_start),
     )
     return tun, model
 
