@@ -25,7 +25,8 @@ from scipy.stats import chi2
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind, run_recording
+from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind
+from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import FilterSummary, percent_error
 from sim.reference import output_error
 from sim.truth import Flight, perturbed, simulate

@@ -46,6 +46,7 @@ from gcs_estimator import blas
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import FilterKind, StepOutput
+from gcs_estimator.estimation.restarts import GRACE_PER_PEER
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
@@ -154,11 +155,9 @@ def run(args: argparse.Namespace) -> int:
     ft = config.filter
     times = ", ".join(f"{t:g}" for t in ft.restart_times_s) or "none"
     print(
-        f"restarts at {times} s; a re-run waits for idle time for "
-        f"{ft.restart_grace_frames} frames (filter.restart_grace_frames) and "
-        f"{ft.restart_grace_per_peer} more for each other vehicle restarting when it "
-        "begins (filter.restart_grace_per_peer), then steps at "
-        f"least {ft.restart_frames_per_step} frames per new frame "
+        f"restarts at {times} s; a re-run waits for idle time for {GRACE_PER_PEER} frames "
+        "for each other vehicle restarting when it begins (restarts.GRACE_PER_PEER), then "
+        f"steps at least {ft.restart_frames_per_step} frames per new frame "
         "(filter.restart_frames_per_step)"
     )
     warm_up(config)  # compiles the kernels before binding

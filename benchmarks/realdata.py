@@ -47,13 +47,12 @@ from gcs_estimator.estimation.estimator import (
     FILTER_KINDS,
     EstimatorResult,
     FilterKind,
-    run_recording,
 )
 from gcs_estimator.ingest.flightdata import Recording, load_recording
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.report import channel_text
 from gcs_estimator.refine.fit import Refined, RefineError, fit_label, refine_run
-from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.runtime.session import VehicleResult, run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")

@@ -41,13 +41,14 @@ from numba import njit
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimation.estimator import Estimator, run_recording
+from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters import core, fast
 from gcs_estimator.estimation.filters.core import FilterKind, FilterState, Tuning
 from gcs_estimator.estimation.filters.lane import Lane, stepper
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.runtime.session import run_recording
 from sim.truth import Flight, simulate
 
 REPEATS = 9
@@ -122,12 +123,12 @@ class Setup:
 
     def runner_rate(self, count: int) -> float:
         """Steps per second of one filter as the estimator's runner steps it for each
-        frame (Estimator._advance_one on the lane of the converged state)."""
+        frame (Runner.one on the lane of the converged state)."""
         n, t, u, y = self.frames(count)
         est = Estimator(self.config)
         kind: FilterKind = self.kind  # type: ignore[assignment]
         states: dict[FilterKind, Lane | None] = {kind: Lane(self.state, "fast")}
-        advance, tuning = est._advance_one, self.tuning
+        advance, tuning = est.runner.one, self.tuning
         t0 = time.process_time()
         for i in range(n):
             advance(kind, states, t[i], u[i], y[i], True, tuning)

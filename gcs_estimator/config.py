@@ -386,20 +386,6 @@ class FilterTuning:
         doc="frames of a restart's re-run done at least per new frame (it catches up beside "
         "the live pass, and in idle time); 0: all at once",
     )
-    restart_grace_frames: int = setting(
-        0,
-        ge=0,
-        doc="frames after a restart begins before its re-run must progress on the receive "
-        "path (until then idle time only): spreads the work of many vehicles restarting "
-        "together",
-    )
-    restart_grace_per_peer: int = setting(
-        5,
-        ge=0,
-        doc="frames of grace added for each other vehicle of the station whose restart is "
-        "under way when this one's begins: vehicles restarting together take turns on the "
-        "receive path (a lone vehicle gets restart_grace_frames only)",
-    )
     max_gap_s: float = setting(
         2.0,
         gt=0,
@@ -411,19 +397,17 @@ class FilterTuning:
         (5.0, 10.0), ge=0, unit="s", doc="re-run all frames so far from the start at these times"
     )
     restart_sigma_inflation: float = setting(10.0, gt=0, doc="restart prior sigma / estimate sigma")
-    warm_start: str = setting("equation-error", choices=("equation-error", "filter"))
     innovation_gate: float = setting(
         0.0, ge=0, doc="reject channels beyond this many sigma; 0: off"
     )
     measurement_noise: str = setting(
         "auto",
-        choices=("auto", "config", "data"),
+        choices=("auto", "config"),
         doc="where each restart's re-run takes each channel's noise sigma from: auto: the "
         "data's reading (robust fourth differences, gcs_estimator/estimation/noise.py) where it is "
         "clearly below measurement_sigma (the sensor is better than configured), else "
-        "measurement_sigma; data: the reading throughout; config: measurement_sigma "
-        "throughout. Before the first restart, and for channels with too few samples, "
-        "measurement_sigma",
+        "measurement_sigma; config: measurement_sigma throughout. Before the first "
+        "restart, and for channels with too few samples, measurement_sigma",
     )
     structure_check: str = setting(
         "auto",

@@ -10,8 +10,8 @@ import pytest
 
 from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.ingest.flightdata import Recording, load_csv, load_hfb320, write_csv
+from gcs_estimator.runtime.session import run_recording
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.ingest.flightdata import Recording, load_csv, write_csv
 from gcs_estimator.model import atmosphere
+from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.units import FOOT
 from sim.truth import simulate
 

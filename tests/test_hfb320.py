@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.ingest.flightdata import load_hfb320
+from gcs_estimator.runtime.session import run_recording
 
 REQUIRED = ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa")
 TOLERANCE = 0.03

@@ -75,7 +75,7 @@ def test_history_streams_to_disk_and_ends_equal_to_the_whole(tmp_path: Path) -> 
     )
     session, counter = _run(config, tmp_path)
     est = session.estimators[1]
-    assert est.restarts_done == 2
+    assert est.restarts.done == 2
     frames = est.history_rows
     # During the run: a block of both filters on disk once a block of rows is final.
     first = counter.lines.index(1 + 2 * BLOCK)

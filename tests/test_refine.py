@@ -12,7 +12,6 @@ from threadpoolctl import threadpool_info
 
 from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from gcs_estimator.outputs.report import results_dict, trust_warnings
@@ -23,6 +22,7 @@ from gcs_estimator.refine.fit import (
     choose_method,
     refine_run,
 )
+from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from sim.reference import output_error
 from sim.truth import simulate

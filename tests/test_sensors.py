@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import WEAK
 from sim.truth import simulate
 

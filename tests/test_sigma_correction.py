@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.outputs.report import DISAGREE_SIGMAS, GUST_BURSTS, results_dict, trust_warnings
-from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.runtime.session import VehicleResult, run_recording
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, movement_start, sigma_inflation
 from sim.truth import Flight, simulate
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import Estimator, FilterKind, run_recording
+from gcs_estimator.estimation.estimator import Estimator, FilterKind
 from gcs_estimator.outputs.report import final_table, results_dict
-from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult, run_recording
 from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR, structure_check
 from sim.truth import Flight, simulate
 
@@ -42,7 +42,7 @@ def test_the_final_pass_replayed_from_the_history_ends_where_the_run_did() -> No
     session = Session(config)
     session.run(RecordingSource(t, u, y))
     est = session.estimators[RecordingSource.SYSTEM_ID]
-    assert est.gaps == 1 and est.restarts_done == 2
+    assert est.gaps == 1 and est.restarts.done == 2
     again = Estimator(config, keep_history=False)
     again.replay_final_pass(est, *est.frame_history.arrays())
     for kind, state in est.states.items():
@@ -62,7 +62,7 @@ def test_a_channel_trusted_less_has_its_variance_scaled_in_every_pass() -> None:
     for est in (plain, less):
         for row in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
             est.step(*row)
-        assert est.restarts_done == 2  # the final pass's settings came from the data
+        assert est.restarts.done == 2  # the final pass's settings came from the data
     for kind in plain.tunings:
         ratio = np.diag(less.tunings[kind].R) / np.diag(plain.tunings[kind].R)
         np.testing.assert_allclose(ratio, scale)

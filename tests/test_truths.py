@@ -92,7 +92,7 @@ def test_a_reference_that_is_zero_up_to_rounding_gets_no_percent_error() -> None
     """A reference linearised from aerodynamics that lack a term comes out near 1e-14,
     not 0: an error in percent of it would be a number of 17 digits. It is scored as
     the zero it is (no percent), and the others as before."""
-    from gcs_estimator.estimation.estimator import run_recording
+    from gcs_estimator.runtime.session import run_recording
     from gcs_estimator.uncertainty.metrics import percent_error
     from sim.truth import simulate
 

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig, Turbulence, load_config
-from gcs_estimator.estimation.estimator import Estimator, EstimatorResult, run_recording
+from gcs_estimator.estimation.estimator import Estimator, EstimatorResult
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.model.aircraft import build_model, trim
+from gcs_estimator.runtime.session import run_recording
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
 
@@ -135,7 +136,7 @@ def _final_pass_levels(config: AircraftConfig, sigma_w: float, seed: int) -> np.
     for i in range(len(flight.t_s)):
         est.step(float(flight.t_s[i]), flight.inputs[i], flight.measurements[i])
         state = est.states["IEKF"]
-        if not est.restarts_pending and state is not None:
+        if not est.restarts.pending and state is not None:
             rows.append((state.gust.var, state.gust.applied(detection2)))
     return np.array(rows)
 

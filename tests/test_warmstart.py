@@ -9,8 +9,8 @@ import pytest
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation import warmstart
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.runtime.session import run_recording
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
 

@@ -1,5 +1,5 @@
-"""Each sensor's noise level from the record itself (`[filter] measurement_noise`, "auto"
-and "data").
+"""Each sensor's noise level from the record itself (`[filter] measurement_noise = "auto"`),
+and the measurement noise the filters' settings carry.
 
 A channel sampled fast against the aircraft's motion is a smooth signal plus white noise.
 The fourth difference y[k] - 4 y[k+1] + 6 y[k+2] - 4 y[k+3] + y[k+4] of the smooth part
@@ -19,16 +19,18 @@ the simulator and the validation set.
 So a reading can only err high: motion adds to the differences, never takes away. The
 default, "auto", takes the reading only where it is below the configured sigma by more
 than CLEARLY of its standard errors (the sensor is clearly better than configured), and
-keeps the configured sigma elsewhere (docs/decisions/0014).
+keeps the configured sigma elsewhere (docs/decisions/0014); "config" reads nothing.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.estimation.filters.core import FilterKind, Tuning
 
 MIN_DIFFERENCES = 30
 """Differences a channel needs for its own estimate (fewer: the fallback)."""
@@ -91,3 +93,35 @@ def reading_z(sigma: FloatArray, used: np.ndarray, configured: FloatArray) -> Fl
     spread = READING_SPREAD / np.sqrt(np.maximum(m, 1.0))
     z = (np.asarray(sigma, float) / np.asarray(configured, float) - 1.0) / spread
     return np.where(m >= MIN_DIFFERENCES, z, np.nan)
+
+
+class NoiseReading(NamedTuple):
+    """Each channel's noise as a restart read it from the data."""
+
+    sigma: tuple[float, ...]
+    differences: tuple[int, ...]
+    """Differences each channel's reading took (below MIN_DIFFERENCES: none of its own,
+    the configured sigma)."""
+
+
+def sigma_to_use(
+    t: FloatArray, y: FloatArray, configured: FloatArray
+) -> tuple[FloatArray, NoiseReading]:
+    """("auto") Each channel's measurement sigma for a re-run over observations y [N x c]
+    at times t [N]: the data's reading where it is clearly below the configured sigma
+    (reading_z < -CLEARLY), else the configured one; and the reading itself."""
+    sigma, used = noise_from_differences(t, y, configured)
+    reading = NoiseReading(tuple(float(v) for v in sigma), tuple(int(n) for n in used))
+    taken = np.where(reading_z(sigma, used, configured) < -CLEARLY, sigma, configured)
+    return taken, reading
+
+
+def scaled(
+    tunings: dict[FilterKind, Tuning], noise_scale: FloatArray | None
+) -> dict[FilterKind, Tuning]:
+    """The tunings with each channel's measurement variance times noise_scale [c] (None:
+    as they are)."""
+    if noise_scale is None:
+        return tunings
+    root = np.sqrt(noise_scale)
+    return {k: tn._replace(R=tn.R * np.outer(root, root)) for k, tn in tunings.items()}

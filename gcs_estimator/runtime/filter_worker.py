@@ -287,7 +287,7 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
         truths=job.truths,
         truth_for_first=job.index == 0,
     )
-    source.busy = lambda: any(e.restart_under_way for e in session.estimators.values())
+    source.busy = session.restart_under_way
     writer = None
     if job.out_dir is not None:
         writer = ResultsSink(

@@ -19,9 +19,8 @@ import numpy as np
 
 def main() -> int:
     from gcs_estimator.config import load_config
-    from gcs_estimator.estimation.estimator import run_recording
     from gcs_estimator.refine.fit import RefineError, refine_run
-    from gcs_estimator.runtime.session import warm_up
+    from gcs_estimator.runtime.session import run_recording, warm_up
     from sim.truth import simulate
 
     start = time.perf_counter()

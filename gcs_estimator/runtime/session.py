@@ -167,11 +167,15 @@ class Session:
 
     def _restarting(self, but: int) -> int:
         """How many vehicles other than `but` have a restart under way: each adds
-        filter.restart_grace_per_peer frames to the grace of a restart that begins now,
-        so vehicles restarting together take turns on the receive path. It counts from
-        the frames the session was given, in their order, so a replay of the link's
-        recording counts as the live run did."""
-        return sum(e.restart_under_way for sid, e in self.estimators.items() if sid != but)
+        restarts.GRACE_PER_PEER frames to the grace of a restart that begins now, so
+        vehicles restarting together take turns on the receive path. It counts from the
+        frames the session was given, in their order, so a replay of the link's recording
+        counts as the live run did."""
+        return sum(e.restarts.under_way for sid, e in self.estimators.items() if sid != but)
+
+    def restart_under_way(self) -> bool:
+        """Whether any vehicle has a restart under way (work that idle time can do)."""
+        return any(e.restarts.under_way for e in self.estimators.values())
 
     def add_sink(self, sink: Sink) -> None:
         self.sinks.append(sink)
@@ -211,7 +215,7 @@ class Session:
         a round is many fits, and a packet arriving meanwhile would wait for all of them.
         The turn goes on where the last call stopped, so every vehicle's work advances."""
         end = time.perf_counter() + budget_s
-        busy = [sid for sid, e in self.estimators.items() if e.restart_under_way]
+        busy = [sid for sid, e in self.estimators.items() if e.restarts.under_way]
         if not busy:
             return
         later = [sid for sid in busy if sid > self._ahead_turn]
@@ -219,7 +223,7 @@ class Session:
         while order:
             for sid in list(order):
                 self._ahead_turn = sid
-                if self.estimators[sid].work_ahead(WORK_AHEAD_FRAMES) == 0:
+                if self.estimators[sid].restarts.work_ahead(WORK_AHEAD_FRAMES) == 0:
                     order.remove(sid)
                 if time.perf_counter() >= end:
                     return
@@ -307,6 +311,21 @@ class RecordingSource:
 
     def close(self) -> None:
         pass
+
+
+def run_recording(
+    config: AircraftConfig,
+    t_s: Sequence[float] | FloatArray,
+    inputs: FloatArray,
+    measurements: FloatArray,
+    backend: Backend = "fast",
+    keep_history: bool = True,
+) -> VehicleResult:
+    """Both filters over a whole recording (frames in time order): the result and its
+    summaries against the config's truth."""
+    session = Session(config, backend=backend, keep_history=keep_history)
+    session.run(RecordingSource(np.asarray(t_s, float), inputs, measurements))
+    return session.results()[RecordingSource.SYSTEM_ID]
 
 
 def warm_up(

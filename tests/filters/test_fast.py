@@ -296,7 +296,7 @@ def test_fast_equals_reference_over_a_flight(
         # Through turbulence the zero start's transient amplifies rounding further: up to
         # 2e-5 sigma here, against 7e-13 sigma once restarted.
         transient = TRANSIENT_FRACTION * (10.0 if turbulence == "states" else 1.0)
-        fraction = SETTLED_FRACTION if fast_est.restarts_done else transient
+        fraction = SETTLED_FRACTION if fast_est.restarts.done else transient
         for kind in a:
             ia, ib = a[kind].info, b[kind].info
             diff = np.abs(a[kind].x - b[kind].x)
@@ -340,7 +340,7 @@ def test_covariance_stays_symmetric_positive_definite(noc_config: AircraftConfig
     worst_asym = 0.0
     for i in range(len(flight.t_s)):
         est.step(float(flight.t_s[i]), flight.inputs[i], flight.measurements[i])
-        if est.restarts_pending:
+        if est.restarts.pending:
             continue  # the zero-start transient is replaced at the restarts
         for state in est.states.values():
             assert state is not None
@@ -477,13 +477,13 @@ def test_a_re_run_in_blocks_is_the_re_run_frame_by_frame(noc_config: AircraftCon
     runs = []
     for blocks in (True, False):
         est = Estimator(noc_config)
-        est._blocks = blocks
+        est.runner.blocks = blocks
         for k in range(len(t)):
             est.step(t[k], u[k], y[k], inputs_known=k != 200)
         est.finish_restarts()
         runs.append(est)
     a, b = runs
-    assert a.restarts_done == b.restarts_done == 2
+    assert a.restarts.done == b.restarts.done == 2
     for kind in ("EKF", "IEKF"):
         assert a.health[kind] == b.health[kind]
         assert a.health[kind].divergences > 0  # the restart path was exercised

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gcs_estimator.estimation.estimator import HISTORY_CHUNK, Rows
+from gcs_estimator.estimation.history import HISTORY_CHUNK, Rows
 
 
 def test_rows_spill_to_disk_and_read_back_equal() -> None:

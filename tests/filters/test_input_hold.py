@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.config import load_config
-from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.runtime.session import run_recording
 from sim.truth import simulate
 
 MOMENT = ("Cma", "Cmq", "Cmde")

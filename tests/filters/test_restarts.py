@@ -11,14 +11,16 @@ import pytest
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters.lane import Lane
+from gcs_estimator.estimation.restarts import GRACE_PER_PEER
 from sim.truth import simulate
 
 
-def _run(config: AircraftConfig) -> tuple[Estimator, list[int]]:
-    """Both filters over a 15 s simulated flight; kernel steps taken in each frame's call
-    (one at a time or in a re-run's blocks)."""
+def _run(config: AircraftConfig, peers: int = 0) -> tuple[Estimator, list[int]]:
+    """Both filters over a 15 s simulated flight, with `peers` other vehicles' restarts
+    under way whenever one begins; kernel steps taken in each frame's call (one at a time
+    or in a re-run's blocks)."""
     fl = simulate(config, seed=5)
-    est = Estimator(config)
+    est = Estimator(config, peers_restarting=lambda: peers)
     calls = [0]
     step, block = Lane.step, Lane.block
 
@@ -46,7 +48,7 @@ def test_an_incremental_re_run_ends_where_one_at_once_does() -> None:
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
     at_once, heavy = _run(replace(config, filter=replace(config.filter, restart_frames_per_step=0)))
     spread, light = _run(config)
-    assert at_once.restarts_done == spread.restarts_done == 2
+    assert at_once.restarts.done == spread.restarts.done == 2
     for kind, s in at_once.states.items():
         other = spread.states[kind]
         assert s is not None and other is not None
@@ -73,7 +75,7 @@ def test_work_done_ahead_in_idle_time_changes_nothing_but_when_it_is_done() -> N
     rng = np.random.default_rng(3)
     done = 0
     for t, u, y in zip(fl.t_s, fl.inputs, fl.measurements, strict=True):
-        done += ahead.work_ahead(int(rng.integers(0, 40)))
+        done += ahead.restarts.work_ahead(int(rng.integers(0, 40)))
         plain.step(float(t), u, y)
         ahead.step(float(t), u, y)
     assert done > 300  # most of both re-runs was done in "idle time"
@@ -84,14 +86,16 @@ def test_work_done_ahead_in_idle_time_changes_nothing_but_when_it_is_done() -> N
 
 
 def test_a_grace_period_leaves_the_receive_path_alone_then_swaps_later_to_the_same_end() -> None:
+    """A restart that begins while 10 other vehicles' are under way waits 10 turns
+    (GRACE_PER_PEER frames each) before the receive path does any of its work."""
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
-    grace = replace(config, filter=replace(config.filter, restart_grace_frames=50))
     plain, _ = _run(config)
-    spread, per_frame = _run(grace)
+    spread, per_frame = _run(config, peers=10)
+    grace = 10 * GRACE_PER_PEER
     kinds = len(plain.states)
     begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
     # The restart's frame and the grace after it: the live step only, no fit, no re-run.
-    assert set(per_frame[begin : begin + 50]) == {kinds}
+    assert set(per_frame[begin : begin + grace]) == {kinds}
     assert spread.final_pass_from > plain.final_pass_from
     for kind, s in plain.states.items():
         other = spread.states[kind]
@@ -106,43 +110,44 @@ def test_idle_restart_work_stops_at_its_budget_and_takes_vehicles_in_turn() -> N
     meanwhile would wait for all of them. The next call goes on with the next vehicle."""
     from gcs_estimator.runtime.session import Session
 
-    config = load_config(
-        "noc_uav",
-        ["simulation.manoeuvre.duration_s=8", "filter.restart_grace_frames=1000"],
-    )
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])
     fl = simulate(config, seed=5)
     session = Session(config, keep_history=False)
     vehicles = (3, 7, 11)
+    for sid in vehicles:  # as if 200 more vehicles were restarting: 1000 frames of grace
+        session.estimators[sid] = Estimator(
+            config, keep_history=False, peers_restarting=lambda: 200
+        )
     begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
     for t, u, y in zip(fl.t_s[: begin + 1], fl.inputs, fl.measurements, strict=False):
         for sid in vehicles:
             session.estimator(sid).step(float(t), u, y)
     ests = [session.estimators[sid] for sid in vehicles]
-    assert all(e.restart_under_way for e in ests)
-    assert [e.worked_ahead for e in ests] == [0, 0, 0]
+    assert all(e.restarts.under_way for e in ests)
+    assert [e.restarts.worked_ahead for e in ests] == [0, 0, 0]
     turns = []
     for _ in range(6):
-        before = [e.worked_ahead for e in ests]
+        before = [e.restarts.worked_ahead for e in ests]
         session.work_ahead(0.0)
-        moved = [i for i, e in enumerate(ests) if e.worked_ahead != before[i]]
+        moved = [i for i, e in enumerate(ests) if e.restarts.worked_ahead != before[i]]
         assert len(moved) == 1  # one unit, then the spent budget stops it
         turns.append(moved[0])
     # Each vehicle's fit first, then its re-run's frames, in turn.
     assert turns == [0, 1, 2, 0, 1, 2]
-    assert [e.worked_ahead for e in ests] == [1 + 5] * 3
+    assert [e.restarts.worked_ahead for e in ests] == [1 + 5] * 3
 
 
 def test_vehicles_restarting_together_take_turns_and_end_alike() -> None:
     """Each vehicle whose restart begins while others' are under way gets
-    filter.restart_grace_per_peer more frames of grace for each of them: the receive path
-    is not asked for every vehicle's re-run at once. The count comes from the frames the
-    session was given, in their order (not from the machine's load), and the estimates
-    end where a lone vehicle's do."""
+    GRACE_PER_PEER more frames of grace for each of them: the receive path is not asked
+    for every vehicle's re-run at once. The count comes from the frames the session was
+    given, in their order (not from the machine's load), and the estimates end where a
+    lone vehicle's do."""
     from gcs_estimator.runtime.session import Session
 
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=15"])
-    per_peer = config.filter.restart_grace_per_peer
-    assert per_peer > 0 and config.filter.restart_grace_frames == 0  # the defaults
+    per_peer = GRACE_PER_PEER
+    assert per_peer > 0
     fl = simulate(config, seed=5)
     lone, _ = _run(config)
     session = Session(config, keep_history=False)
@@ -171,7 +176,7 @@ def test_vehicles_restarting_together_take_turns_and_end_alike() -> None:
         for sid in vehicles:
             again.estimator(sid).step(float(t), u, y)
             again.work_ahead(0.0)
-    assert sum(again.estimators[sid].worked_ahead for sid in vehicles) > 0
+    assert sum(again.estimators[sid].restarts.worked_ahead for sid in vehicles) > 0
     for sid in vehicles:
         again.estimators[sid].finish_restarts()
     assert [again.estimators[sid].final_pass_from for sid in vehicles] == swaps

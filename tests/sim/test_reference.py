@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimation.estimator import run_recording
+from gcs_estimator.runtime.session import run_recording
 from sim.reference import output_error
 from sim.truth import simulate
 

@@ -16,14 +16,13 @@ import pytest
 
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import AircraftConfig, load_config
-from gcs_estimator.estimation.estimator import run_recording
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.flightdata import Recording, load_hfb320
 from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
 from gcs_estimator.runtime.decode_worker import tlog_source
-from gcs_estimator.runtime.session import Session, warm_up
+from gcs_estimator.runtime.session import Session, run_recording, warm_up
 from gcs_estimator.stop import Stop
 from sim.cli import command as vehicle_command
 from sim.vehicle import SimulatedVehicle
@@ -108,7 +107,7 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
     # Live, the restarts' work went into idle time; the re-runs took over at the same
     # frames as in the replay (which had none), so every frame's estimate is the same.
     live_est, again_est = station.session.estimator(1), again.session.estimator(1)
-    assert live_est.worked_ahead > 100 and again_est.worked_ahead == 0
+    assert live_est.restarts.worked_ahead > 100 and again_est.restarts.worked_ahead == 0
     assert live_est.final_pass_from == again_est.final_pass_from
     live_result, again_result = live_est.result(), again_est.result()
     for kind, f in live_result.filters.items():

@@ -1,0 +1,171 @@
+"""Frames through both filters of a pass: the one place the estimator's lanes are stepped,
+frame by frame, or a re-run's runs of frames in one compiled call each (the same steps,
+bit for bit: docs/decisions/0013).
+
+A pass is a dict of lanes, one per filter kind (None before its first frame), and the
+settings it steps with; a frame is (vehicle time [s], inputs as the equations take them,
+observations [7], whether the inputs are known)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.estimation.filters import core
+from gcs_estimator.estimation.filters.core import FILTER_KINDS, Backend, FilterKind, Tuning
+from gcs_estimator.estimation.filters.lane import Lane
+from gcs_estimator.estimation.history import StepOutput
+from gcs_estimator.estimation.results import Health
+from gcs_estimator.model.aircraft import Model
+
+BLOCK_MIN_FRAMES = 4
+"""Re-run frames worth one compiled call per filter (fewer: a call per frame)."""
+
+Lanes = dict[FilterKind, Lane | None]
+Tunings = dict[FilterKind, Tuning]
+Frame = tuple[float, FloatArray, FloatArray, bool]
+
+
+class Start(NamedTuple):
+    """How a filter's pass starts: coefficient mean and sigma, gust variance (None: the
+    configured ones)."""
+
+    coefficients: FloatArray | None = None
+    sigma: FloatArray | None = None
+    gust_var: float | None = None
+
+
+class Runner:
+    """Steps the lanes of a pass; counts what the steps report (health) and keeps where
+    the newest pass starts (starts)."""
+
+    def __init__(self, model: Model, backend: Backend) -> None:
+        self.model = model
+        self.backend: Backend = backend
+        self.blocks = backend == "fast"
+        """Many frames of a re-run in one compiled call (Lane.block); else one at a
+        time (the reference backend has no compiled calls)."""
+        self.health = {k: Health() for k in FILTER_KINDS}
+        self.starts = {k: Start() for k in FILTER_KINDS}
+        """Each filter's start at a pass's first frame (the newest pass's)."""
+
+    def frame(
+        self,
+        lanes: Lanes,
+        t: float,
+        u: FloatArray,
+        y: FloatArray,
+        inputs_known: bool,
+        tunings: Tunings,
+    ) -> dict[FilterKind, StepOutput]:
+        """One frame through both filters of a pass."""
+        return {
+            kind: self.one(kind, lanes, t, u, y, inputs_known, tunings[kind])
+            for kind in FILTER_KINDS
+        }
+
+    def one(
+        self,
+        kind: FilterKind,
+        lanes: Lanes,
+        t: float,
+        u: FloatArray,
+        y: FloatArray,
+        inputs_known: bool,
+        tuning: Tuning,
+    ) -> StepOutput:
+        """One frame through one filter of a pass."""
+        lane = lanes[kind]
+        if lane is None:
+            start = core.initial_state(self.model, tuning, t, u, y, *self.starts[kind])
+            lane = lanes[kind] = Lane(start, self.backend)
+        elif not inputs_known:
+            lane.load(core.rebase(lane.state, self.model, tuning, t, y))
+        y_used = y if inputs_known else np.full_like(y, np.nan)
+        row, status = lane.step(t, u, y_used, tuning, self.model)
+        if status:
+            self.health[kind].add(*core.flags_of_row(row, lane.n).tolist())
+        return StepOutput(row, lane.n)
+
+    def block(
+        self, kind: FilterKind, lanes: Lanes, frames: Sequence[Frame], tuning: Tuning
+    ) -> StepOutput | None:
+        """Frames through one filter of a pass, runs of them in one compiled call each
+        (the same steps as one()'s, bit for bit): the output at the last frame.
+        A pass's first frame and a frame whose inputs are a guess go through
+        one(); a step the contract must repair or restart is answered where it
+        falls, as one()'s would be (Lane.block; docs/decisions/0013)."""
+        ts = np.array([f[0] for f in frames])
+        us = np.array([f[1] for f in frames])
+        ys = np.array([f[2] for f in frames])
+        known = [f[3] for f in frames]
+        out: StepOutput | None = None
+        i = 0
+        while i < len(frames):
+            lane = lanes[kind]
+            end = i
+            while end < len(frames) and known[end]:
+                end += 1
+            if lane is not None and end > i:
+                row, counts = lane.block(ts[i:end], us[i:end], ys[i:end], tuning, self.model)
+                self.health[kind].add(*counts)
+                out = StepOutput(row, lane.n)
+                i = end
+                continue
+            t, u, y, inputs_known = frames[i]
+            out = self.one(kind, lanes, t, u, y, inputs_known, tuning)
+            i += 1
+        return out
+
+    def frames(
+        self, lanes: Lanes, frames: Sequence[Frame], tunings: Tunings
+    ) -> dict[FilterKind, StepOutput]:
+        """Frames through both filters of a pass, in blocks where they are worth it: the
+        outputs at the last frame (empty if none)."""
+        outs: dict[FilterKind, StepOutput] = {}
+        if not self.blocks or len(frames) < BLOCK_MIN_FRAMES:
+            for t, u, y, known in frames:
+                outs = self.frame(lanes, t, u, y, known, tunings)
+        else:
+            for kind in FILTER_KINDS:
+                out = self.block(kind, lanes, frames, tunings[kind])
+                if out is not None:
+                    outs[kind] = out
+        return outs
+
+    def replay(
+        self,
+        lanes: Lanes,
+        t: FloatArray,
+        u: FloatArray,
+        y: FloatArray,
+        tunings: Tunings,
+        max_gap_s: float,
+    ) -> None:
+        """A record (t, u, y as a history holds them) through both filters of a pass,
+        the flight states started afresh after every gap longer than max_gap_s as a run
+        does, each run of frames in one compiled call per filter where the backend has
+        blocks."""
+        i, n = 0, len(t)
+        while i < n:
+            end = i + 1
+            while end < n and t[end] - t[end - 1] <= max_gap_s:
+                end += 1
+            frames = [
+                (float(t[j]), self.model.inputs(u[j]), np.array(y[j], float), True)
+                for j in range(i, end)
+            ]
+            for kind in FILTER_KINDS:
+                lane = lanes[kind]
+                if lane is not None:
+                    t0, _, y0, _ = frames[0]
+                    lane.load(core.rebase(lane.state, self.model, tunings[kind], t0, y0))
+                if not self.blocks:  # a backend without blocks: frame by frame
+                    for frame in frames:
+                        self.one(kind, lanes, *frame, tunings[kind])
+                else:
+                    self.block(kind, lanes, frames, tunings[kind])
+            i = end
