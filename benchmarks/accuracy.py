@@ -27,7 +27,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind
 from gcs_estimator.runtime.session import run_recording
-from gcs_estimator.uncertainty.metrics import FilterSummary, percent_error
+from gcs_estimator.uncertainty.metrics import CoefficientSummary, FilterSummary, percent_error
 from sim.reference import output_error
 from sim.truth import Flight, perturbed, simulate
 
@@ -73,6 +73,12 @@ class Limit(NamedTuple):
 
 def _num(v: float | None) -> float:
     return math.nan if v is None else v
+
+
+def _z_covariance(c: CoefficientSummary) -> float:
+    """The error in the filter covariance's sigma (the summary's z is in the sigma to
+    trust)."""
+    return math.nan if c.truth is None else (c.estimate - c.truth) / c.sigma_parts.covariance
 
 
 def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
@@ -194,7 +200,7 @@ def report(results: list[RunResult], title: str) -> None:
             errs = np.array(
                 [abs(_num(r.summaries[kind].coefficients[i].error_pct)) for r in results]
             )
-            zs = np.array([abs(_num(r.summaries[kind].coefficients[i].z)) for r in results])
+            zs = np.array([abs(_z_covariance(r.summaries[kind].coefficients[i])) for r in results])
             conv = np.array(
                 [_num(r.summaries[kind].coefficients[i].converged_truth_s) for r in results]
             )
@@ -216,17 +222,22 @@ def report(results: list[RunResult], title: str) -> None:
     print()
     p = len(names)
     for kind in KINDS:
-        zs = np.array([[abs(_num(c.z)) for c in r.summaries[kind].coefficients] for r in results])
+        zs = np.array(
+            [[abs(_z_covariance(c)) for c in r.summaries[kind].coefficients] for r in results]
+        )
         share = float(np.mean(zs <= 3.0))
         zc = np.array(
             [
-                [abs(_num(c.z)) * c.sigma / c.trusted_sigma for c in r.summaries[kind].coefficients]
+                [
+                    abs(_z_covariance(c)) * c.sigma_parts.covariance / c.sigma
+                    for c in r.summaries[kind].coefficients
+                ]
                 for r in results
             ]
         )
         share_c = float(np.mean(zc <= 3.0))
         inflation = np.array(
-            [[c.sigma_inflation for c in r.summaries[kind].coefficients] for r in results]
+            [[c.sigma_parts.inflation for c in r.summaries[kind].coefficients] for r in results]
         )
         nees = np.array([_num(r.summaries[kind].nees) for r in results])
         lo, hi = chi2.ppf(0.025, p * runs) / runs, chi2.ppf(0.975, p * runs) / runs

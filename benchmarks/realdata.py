@@ -50,7 +50,7 @@ from gcs_estimator.estimation.estimator import (
 )
 from gcs_estimator.ingest.flightdata import Recording, load_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.outputs.report import channel_text
+from gcs_estimator.outputs.text import channel_text
 from gcs_estimator.refine.fit import Refined, RefineError, fit_label, refine_run
 from gcs_estimator.runtime.session import VehicleResult, run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
@@ -93,7 +93,7 @@ def evaluate(
     est = {k: res.filters[k].coefficients for k in FILTER_KINDS}
     zs = {k: (est[k] - goal) / res.filters[k].sigma for k in FILTER_KINDS}
     corrected = {
-        k: np.array([c.trusted_sigma for c in vehicle.summaries[k].coefficients])
+        k: np.array([c.sigma for c in vehicle.summaries[k].coefficients])
         for k in FILTER_KINDS
     }
     zc = {k: (est[k] - goal) / corrected[k] for k in FILTER_KINDS}

@@ -40,7 +40,6 @@ from gcs_estimator.ingest.sources import (
 from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
-from gcs_estimator.outputs.report import LiveEstimate, live_table
 from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
@@ -49,12 +48,14 @@ from gcs_estimator.outputs.sinks import (
     results_stem,
     vehicle_heading,
 )
+from gcs_estimator.outputs.table import LiveEstimate, live_table
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import RecordingSource, Session, Source, VehicleResult, warm_up
+from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 
 DEFAULT_CONFIG = "noc_uav"
 VIEW_FILE = "view.rrd"

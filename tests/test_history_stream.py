@@ -11,9 +11,10 @@ from typing import Any
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.outputs.report import write_history_csv
+from gcs_estimator.outputs.history_csv import write_history_csv
 from gcs_estimator.outputs.sinks import ResultsSink
-from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.runtime.session import RecordingSource, Session
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 from tests.conftest import CONFIGS
 

@@ -21,7 +21,8 @@ from gcs_estimator.estimation.noise import (
     reading_z,
 )
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.outputs.report import CHANNEL_NIS_LIMIT, results_dict, trust_warnings
+from gcs_estimator.outputs.diagnosis import CHANNEL_NIS_LIMIT, trust_warnings
+from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import channel_mean_squares
 from sim.truth import simulate

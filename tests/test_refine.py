@@ -14,7 +14,8 @@ from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import read_tlog
-from gcs_estimator.outputs.report import results_dict, trust_warnings
+from gcs_estimator.outputs.diagnosis import trust_warnings
+from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.outputs.sinks import RefineStatus
 from gcs_estimator.refine.fit import (
     RefineError,
@@ -186,18 +187,21 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
     assert fit["method_choice"].endswith("turbulent air, so filter error")
     checked = data["filters"]["IEKF"]["estimates"]
     for name, e in fit["estimates"].items():
-        assert e["difference_sigma"] is not None and e["difference_sigma"] >= 0.0, name
-        assert e["sigma"] >= max(
-            e["cramer_rao_sigma"], e["structure_sigma"], e["difference_sigma"]
-        ), name
+        parts = e["sigma_parts"]
+        assert parts["difference"] is not None and parts["difference"] >= 0.0, name
+        assert e["sigma"] >= max(parts["cramer_rao"], parts["structure"], parts["difference"]), name
         # The session's structure check of the IEKF reached the fit (decision 0031).
-        assert e["filter_structure_sigma"] == checked[name]["structure_sigma"], name
-        assert e["structure_sigma"] >= e["filter_structure_sigma"], name
+        assert parts["filter_structure"] == checked[name]["sigma_parts"]["structure"], name
+        assert parts["structure"] >= parts["filter_structure"], name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
     assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
-    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| ")]
+    rows = [
+        [cell.strip() for cell in line.strip(" |").split("|")]
+        for line in text.splitlines()
+        if line.startswith("| ")
+    ]
     column = rows[0].index("identified? (FE)")
-    shown = {r[0].lstrip("| "): r[column].split(" (ρ")[0] for r in rows[1:]}
+    shown = {r[0]: r[column].split(" (ρ")[0] for r in rows[1:]}
     assert shown == {n: e["identifiability"] for n, e in fit["estimates"].items()}
     assert data["warnings"]
 
@@ -268,7 +272,10 @@ def test_filter_error_estimates_the_noise_as_the_book_does(
     argv = ["refine", "hfb320", "--method", "filter-error", "--out", str(out), "--view", "off"]
     assert cli.main(argv) == 0
     table = capsys.readouterr().out
-    assert "| FE estimate | FE σ | FE Cramer-Rao σ |" in table and "OE estimate" not in table
+    # The fit's column leads, its estimate and its one sigma (decisions 0032, 0033).
+    head = next(line for line in table.splitlines() if line.startswith("| coefficient"))
+    cells = [cell.strip() for cell in head.strip(" |").split("|")]
+    assert cells[1:3] == ["FE estimate", "FE σ"] and "OE estimate" not in table
     fit = json.loads((out / "results_sys1.json").read_text())["refined"]
     assert fit["method"] == "filter error" and fit["converged"]
     assert config.truth is not None
@@ -282,7 +289,7 @@ def test_filter_error_estimates_the_noise_as_the_book_does(
     sigma = np.array([fit["noise_sigma"][n] for n in names])
     assert np.all(sigma > 0.0) and np.all(sigma < np.array(config.filter.measurement_sigma))
     for name, e in fit["estimates"].items():
-        assert e["sigma"] >= e["cramer_rao_sigma"], name
+        assert e["sigma"] >= e["sigma_parts"]["cramer_rao"], name
 
 
 def test_filter_error_finds_the_gusts_where_they_act() -> None:

@@ -1,6 +1,6 @@
-"""A filter's sigma corrected by how far its estimates moved (metrics.sigma_inflation,
+"""A filter's sigma widened by how far its estimates moved (sigma.movement_ratio,
 docs/decisions/0008): about 1 where the model is right, large where it is not, and the
-corrected sigma honest on a flight read with a known model error."""
+sigma to trust honest on a flight read with a known model error."""
 
 from __future__ import annotations
 
@@ -11,9 +11,12 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.outputs.report import DISAGREE_SIGMAS, GUST_BURSTS, results_dict, trust_warnings
-from gcs_estimator.runtime.session import VehicleResult, run_recording
-from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, movement_start, sigma_inflation
+from gcs_estimator.outputs.diagnosis import DISAGREE_SIGMAS, GUST_BURSTS, trust_warnings
+from gcs_estimator.outputs.results_json import results_dict
+from gcs_estimator.runtime.session import run_recording
+from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED
+from gcs_estimator.uncertainty.result import VehicleResult
+from gcs_estimator.uncertainty.sigma import movement_ratio, movement_start, trusted_sigma
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
@@ -46,7 +49,7 @@ def test_movement_is_the_bartlett_weighted_autocovariance_of_the_increments() ->
         acov = [float(d[k:, j] @ d[: w - k, j]) for k in range(lag + 1)]
         weights = [1.0] + [2.0 * (1.0 - k / (lag + 1)) for k in range(1, lag + 1)]
         want.append(np.dot(weights, acov) / (sig[start - 1, j] ** 2 - sig[-1, j] ** 2))
-    np.testing.assert_allclose(sigma_inflation(est, sig, start), want, rtol=1e-10)
+    np.testing.assert_allclose(movement_ratio(est, sig, start), want, rtol=1e-10)
 
 
 def test_an_estimate_that_moves_as_its_covariance_says_needs_no_correction() -> None:
@@ -54,7 +57,7 @@ def test_an_estimate_that_moves_as_its_covariance_says_needs_no_correction() -> 
     ratios = []
     for _ in range(20):
         est, sig = _martingale(4000, rng)
-        ratios.append(sigma_inflation(est, sig, 2000))
+        ratios.append(movement_ratio(est, sig, 2000))
     r = np.concatenate(ratios)
     assert 0.8 < float(np.median(r)) < 1.2
     assert np.all((r > 0.2) & (r < 3.0))
@@ -72,18 +75,36 @@ def test_correlated_or_drifting_increments_are_caught() -> None:
         coloured[i] = 0.95 * coloured[i - 1] + math.sqrt(1 - 0.95**2) * white[i]
     moved = est.copy()
     moved[2000:] = est[1999] + np.cumsum(coloured, axis=0)
-    assert np.all(sigma_inflation(moved, sig, 2000) > 10.0)
+    assert np.all(movement_ratio(moved, sig, 2000) > 10.0)
     drifting = est + np.linspace(0.0, 0.2, len(est))[:, None]
-    assert np.all(sigma_inflation(drifting, sig, 2000) > 10.0)
+    assert np.all(movement_ratio(drifting, sig, 2000) > 10.0)
 
 
 def test_too_little_to_judge_is_said_not_guessed() -> None:
     est, sig = _martingale(100, np.random.default_rng(3))
-    assert np.all(np.isnan(sigma_inflation(est, sig, 80)))  # 20 frames
+    assert np.all(np.isnan(movement_ratio(est, sig, 80)))  # 20 frames
     flat = np.ones_like(sig)
-    assert np.all(np.isnan(sigma_inflation(est, flat, 50)))  # the covariance lost nothing
+    assert np.all(np.isnan(movement_ratio(est, flat, 50)))  # the covariance lost nothing
     assert movement_start(1000, 0) == 500
     assert movement_start(1000, 700) == 701
+
+
+def test_the_sigma_to_trust_is_made_of_its_parts() -> None:
+    """sigma = sqrt((m sigma_P)^2 + sigma_S^2), m = sqrt(max(1, r)): a ratio below 1
+    never narrows the covariance's sigma, a part not judged (NaN) is left out, and where
+    neither check was made the covariance's sigma stands, with no inflation to report."""
+    cov = np.array([1.0, 2.0, 3.0, 4.0])
+    ratio = np.array([4.0, 0.25, np.nan, np.nan])
+    alone = trusted_sigma(cov, ratio)
+    np.testing.assert_array_equal(alone.sigma, [2.0, 2.0, 3.0, 4.0])
+    np.testing.assert_array_equal(alone.movement_factor[:2], [2.0, 1.0])
+    assert np.all(np.isnan(alone.structure)) and np.all(np.isnan(alone.inflation[2:]))
+    structure = np.array([1.5, 0.0, 4.0, np.nan])
+    both = trusted_sigma(cov, ratio, structure)
+    np.testing.assert_allclose(both.sigma, [2.5, 2.0, 5.0, 4.0], rtol=1e-15)
+    parts = both.parts(2)
+    assert (parts.covariance, parts.structure, parts.inflation) == (3.0, 4.0, 5.0 / 3.0)
+    assert math.isnan(parts.movement_factor)
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +115,7 @@ def lagged_servo_flight() -> Flight:
     return simulate(flying, seed=1)
 
 
-def test_a_model_error_the_filter_cannot_see_is_in_the_corrected_sigma(
+def test_a_model_error_the_filter_cannot_see_is_in_the_sigma_to_trust(
     lagged_servo_flight: Flight,
 ) -> None:
     flight = lagged_servo_flight
@@ -102,16 +123,17 @@ def test_a_model_error_the_filter_cannot_see_is_in_the_corrected_sigma(
     vehicle = run_recording(told, flight.t_s, flight.inputs, flight.measurements)
     for kind, s in vehicle.summaries.items():
         well = [c for c in s.coefficients if c.name in WELL_EXCITED]
-        z = np.array([c.z for c in well], float)
-        zc = np.array([(c.estimate - (c.truth or 0.0)) / c.corrected_sigma for c in well])
+        z = np.array([(c.estimate - (c.truth or 0.0)) / c.sigma_parts.covariance for c in well])
+        zc = np.array([c.z for c in well], float)
         assert np.mean(z**2) > 50.0, kind  # the covariance claims far too much
         assert np.mean(zc**2) < 3.0, (kind, zc.round(1))
         assert np.all(np.abs(zc) < 3.0), (kind, zc.round(1))
     warnings = trust_warnings(vehicle)
     assert any("moved more than the covariance allows" in w for w in warnings), warnings
     est = results_dict(vehicle)["filters"]["IEKF"]["estimates"]["Cma"]
-    assert est["corrected_sigma"] == pytest.approx(est["sigma"] * est["sigma_inflation"])
-    assert est["sigma_inflation"] > 2.0
+    parts = est["sigma_parts"]
+    assert est["sigma"] == pytest.approx(parts["covariance"] * parts["inflation"])
+    assert parts["inflation"] > 2.0
 
 
 def test_where_the_model_is_right_the_correction_stays_near_one() -> None:
@@ -119,7 +141,9 @@ def test_where_the_model_is_right_the_correction_stays_near_one() -> None:
     flight = simulate(config, seed=2)
     vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
     for kind, s in vehicle.summaries.items():
-        factors = np.array([c.sigma_inflation for c in s.coefficients if c.name in WELL_EXCITED])
+        factors = np.array(
+            [c.sigma_parts.inflation for c in s.coefficients if c.name in WELL_EXCITED]
+        )
         assert np.all(np.isfinite(factors)) and np.all(factors >= 1.0)
         assert float(np.median(factors)) < 1.3, (kind, factors.round(2))
         assert not any("moved more" in w for w in trust_warnings(vehicle)), kind
@@ -158,7 +182,7 @@ def test_a_turbulence_level_switched_on_and_off_by_what_the_model_misses_is_name
 def test_filters_that_end_apart_are_named_and_filters_that_agree_are_not() -> None:
     """Both filters read the same frames, so where the data fix a coefficient they end
     close together, and a NOC flight raises nothing. Moved apart by more than
-    DISAGREE_SIGMAS of the larger trusted sigma (as an IEKF that follows a ridge of the
+    DISAGREE_SIGMAS of the larger sigma (as an IEKF that follows a ridge of the
     fit ends), a coefficient is named with both estimates; by less, it is not. A
     coefficient the data do not identify is left to the table."""
     config = load_config("noc_uav")
@@ -174,8 +198,7 @@ def test_filters_that_end_apart_are_named_and_filters_that_agree_are_not() -> No
             if c.name != name
             else replace(
                 c,
-                estimate=ekf[name].estimate
-                + sigmas * max(c.trusted_sigma, ekf[name].trusted_sigma),
+                estimate=ekf[name].estimate + sigmas * max(c.sigma, ekf[name].sigma),
                 identifiability=mark or c.identifiability,
             )
             for c in iekf.coefficients

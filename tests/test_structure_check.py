@@ -1,6 +1,6 @@
 """The structure check (gcs_estimator/uncertainty/weighting.py, docs/decisions/0017): the
 run's final pass replayed with each channel trusted half as much; how far the estimates move beyond
-their covariance widens the corrected sigma. Small where the model holds, large enough where
+their covariance widens the sigma to trust. Small where the model holds, large enough where
 it does not to cover an error the movement correction (0008) leaves uncovered."""
 
 from __future__ import annotations
@@ -12,8 +12,10 @@ import pytest
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimation.estimator import Estimator, FilterKind
-from gcs_estimator.outputs.report import final_table, results_dict
-from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult, run_recording
+from gcs_estimator.outputs.results_json import results_dict
+from gcs_estimator.outputs.table import final_table
+from gcs_estimator.runtime.session import RecordingSource, Session, run_recording
+from gcs_estimator.uncertainty.result import VehicleResult
 from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR, structure_check
 from sim.truth import Flight, simulate
 
@@ -21,10 +23,10 @@ WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 
 
 def _z(vehicle: VehicleResult, kind: FilterKind) -> np.ndarray:
-    """Errors of the well-excited coefficients in corrected sigmas."""
+    """Errors of the well-excited coefficients in their sigmas to trust."""
     return np.array(
         [
-            (c.estimate - (c.truth or 0.0)) / c.corrected_sigma
+            (c.estimate - (c.truth or 0.0)) / c.sigma
             for c in vehicle.summaries[kind].coefficients
             if c.name in WELL_EXCITED
         ]
@@ -103,7 +105,7 @@ def test_an_error_the_channels_disagree_on_is_covered_by_the_structure_sigma(
             without.summaries[kind].coefficients, checked.summaries[kind].coefficients, strict=True
         ):
             assert a.estimate == b.estimate
-            assert b.corrected_sigma >= a.corrected_sigma
+            assert b.sigma >= a.sigma
     # The vane's error is in alpha, so alpha and the normal acceleration disagree on
     # the lift: trusting either less pulls CLde (its worst error) the other way.
     moves = checked.structure.moves["EKF"]
@@ -121,7 +123,11 @@ def test_where_the_model_holds_the_structure_sigma_is_small() -> None:
     assert vehicle.structure is not None and not vehicle.structure.skipped
     for kind, s in vehicle.summaries.items():
         ratio = np.array(
-            [c.structure_sigma / c.sigma for c in s.coefficients if c.name in WELL_EXCITED]
+            [
+                c.sigma_parts.structure / c.sigma_parts.covariance
+                for c in s.coefficients
+                if c.name in WELL_EXCITED
+            ]
         )
         assert np.all(np.isfinite(ratio)), kind
         assert float(np.median(ratio)) < 0.5, (kind, ratio.round(2))
@@ -137,8 +143,9 @@ def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None
     assert check["channels"] == ["V", "alpha", "theta", "q", "qdot", "a_x", "a_z"]
     assert set(check["moves"]["EKF"]["q"]) == set(vehicle.result.names)
     for est in d["filters"]["IEKF"]["estimates"].values():
-        assert est["structure_sigma"] is not None and est["structure_sigma"] >= 0.0
-        assert est["corrected_sigma"] >= est["structure_sigma"]
+        structure = est["sigma_parts"]["structure"]
+        assert structure is not None and structure >= 0.0
+        assert est["sigma"] >= structure
     assert "with each of V, alpha, theta, q, qdot, a_x, a_z trusted half" in final_table(vehicle)
 
     frames = len(fl.t_s)
@@ -149,7 +156,7 @@ def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None
     skipped = run_recording(short, fl.t_s, fl.inputs, fl.measurements)
     reason = results_dict(skipped)["diagnostics"]["structure_check"]["skipped"]
     assert "structure_check_max_frames" in reason and str(frames) in reason
-    assert all(np.isnan(c.structure_sigma) for c in skipped.summaries["EKF"].coefficients)
+    assert all(np.isnan(c.sigma_parts.structure) for c in skipped.summaries["EKF"].coefficients)
     assert "structure check: not made" in final_table(skipped)
     forced = load_config(
         "noc_uav",
@@ -170,8 +177,8 @@ def test_the_reference_backend_checks_the_same_structure() -> None:
     fast = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
     numpy = run_recording(config, fl.t_s, fl.inputs, fl.measurements, backend="reference")
     for kind, s in fast.summaries.items():
-        a = np.array([c.structure_sigma for c in s.coefficients])
-        b = np.array([c.structure_sigma for c in numpy.summaries[kind].coefficients])
+        a = np.array([c.sigma_parts.structure for c in s.coefficients])
+        b = np.array([c.sigma_parts.structure for c in numpy.summaries[kind].coefficients])
         assert np.all(np.isfinite(a)) and np.any(a > 0.0), kind
         np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-9 * float(np.abs(a).max()))
 
@@ -207,4 +214,4 @@ def test_the_frame_budget_is_shared_by_the_vehicles_of_a_run() -> None:
     assert second is not None and f"with the {frames} of the vehicles checked before" in (
         second.skipped
     )
-    assert np.isnan(results[5].summaries["EKF"].coefficients[0].structure_sigma)
+    assert np.isnan(results[5].summaries["EKF"].coefficients[0].sigma_parts.structure)

@@ -1,18 +1,23 @@
 """What the terminal shows: a status block redrawn in place (a line per vehicle, each at
-most 100 columns, many vehicles summarised), and a progress bar with rate and time left.
-The escape sequences are played on a small terminal model and the screen is checked."""
+most 100 columns, many vehicles summarised), a progress bar with rate and time left, and
+at the end the paper's Table I within 100 columns. The escape sequences are played on a
+small terminal model and the screen is checked."""
 
 from __future__ import annotations
 
 import io
+import json
 import re
+from pathlib import Path
 
 import numpy as np
+import pytest
 
-from gcs_estimator.cli import STATUS_VEHICLES, _status_lines
+from gcs_estimator.cli import STATUS_VEHICLES, _status_lines, main
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.outputs.sinks import STATUS_WIDTH, ProgressSink, StatusSink
+from gcs_estimator.outputs.text import TERMINAL_WIDTH
 from gcs_estimator.runtime.session import Session
 
 
@@ -103,3 +108,40 @@ def test_progress_in_frames() -> None:
     now[0] = 2.0
     line = bar.line()
     assert "1,500/3,000 frames" in line and "750 frames/s" in line and "2 s left" in line
+
+
+def test_a_runs_table_fits_the_terminal_in_the_papers_layout(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The end of a real run (a short simulated flight) as the terminal shows it: per
+    coefficient the IEKF's and the EKF's estimate and sigma, the truth and the mark, each
+    line of the table and of the notes and warnings under it within TERMINAL_WIDTH
+    columns; the sigma shown is the JSON's one sigma, and the full table (errors,
+    convergence times) is in the results' .md file."""
+    argv = ["simulate", "--config", "noc_uav", "--out", str(tmp_path), "--seed", "3"]
+    assert main([*argv, "--set", "simulation.manoeuvre.duration_s=12"]) == 0
+    out = capsys.readouterr().out
+    lines = [line for line in out.splitlines() if line.startswith("|")]
+    cells = [[c.strip() for c in line.strip(" |").split("|")] for line in lines]
+    assert cells[0] == [
+        "coefficient",
+        "IEKF estimate",
+        "IEKF σ",
+        "EKF estimate",
+        "EKF σ",
+        "truth",
+        "identified?",
+    ]
+    names = load_config("noc_uav").coefficient_names
+    rows = cells[2:]
+    assert [r[0] for r in rows] == list(names)
+    shown = out[out.index(lines[0]) : out.index("\nresults: ")]
+    assert all(len(line) <= TERMINAL_WIDTH for line in shown.splitlines())
+    data = json.loads((tmp_path / "results_sys1.json").read_text())
+    for row in rows:
+        for kind, column in (("IEKF", 2), ("EKF", 4)):
+            estimate = data["filters"][kind]["estimates"][row[0]]
+            assert row[column] == f"{estimate['sigma']:.2g}", (kind, row)
+        assert row[-1] == data["filters"]["IEKF"]["estimates"][row[0]]["identifiability"]
+    full = (tmp_path / "results_sys1.md").read_text()
+    assert "| IEKF error/σ |" in full and "IEKF within 5 % of truth from s" in full

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+import textwrap
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -13,8 +14,11 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.outputs.report import HistoryCsv, final_table, write_results
-from gcs_estimator.runtime.session import VehicleResult
+from gcs_estimator.outputs.history_csv import HistoryCsv
+from gcs_estimator.outputs.report import write_results
+from gcs_estimator.outputs.table import terminal_text
+from gcs_estimator.outputs.text import TERMINAL_WIDTH
+from gcs_estimator.uncertainty.result import VehicleResult
 
 if TYPE_CHECKING:
     from gcs_estimator.refine.fit import Refined, RefineProgress
@@ -27,7 +31,8 @@ the NOC UAV's 50 Hz): what a stop has left to write."""
 
 class ResultsSink:
     """Each vehicle's history CSV as the run goes (given the session's estimators); at
-    the end, its Table I on stdout, its JSON and Markdown, and the rest of the CSV."""
+    the end, its Table I on stdout (table.terminal_text: within TERMINAL_WIDTH columns),
+    its JSON and Markdown (the full table), and the rest of the CSV."""
 
     def __init__(
         self,
@@ -92,7 +97,7 @@ class ResultsSink:
         heading = self.heading(vehicle, self.elapsed())
         refined = None if self.refine is None else self.refine(vehicle)
         print(f"\n{heading}\n", file=out)
-        print(final_table(vehicle, refined), file=out)
+        print(terminal_text(vehicle, refined), file=out)
         extra: dict[str, Any] = {"system_id": sid}
         if link is not None:
             extra["link"] = dict(link)
@@ -104,8 +109,9 @@ class ResultsSink:
 
 
 def link_line(link: Mapping[str, Any]) -> str:
-    """The link's final counts on one line (after the tables)."""
-    return "link: " + ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
+    """The link's final counts (after the tables), wrapped to TERMINAL_WIDTH columns."""
+    counts = ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
+    return textwrap.fill(f"link: {counts}", TERMINAL_WIDTH, subsequent_indent="  ")
 
 
 def results_stem(system_id: int) -> str:
@@ -118,7 +124,7 @@ def vehicle_heading(vehicle: VehicleResult, elapsed_s: float) -> str:
     return f"vehicle {vehicle.system_id}: {vehicle.result.frames} frames in {elapsed_s:.2f} s"
 
 
-STATUS_WIDTH = 100
+STATUS_WIDTH = TERMINAL_WIDTH
 """Columns a status line may take."""
 
 

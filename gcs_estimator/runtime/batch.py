@@ -258,7 +258,7 @@ def _cell(c: dict[str, Any] | None) -> str:
         return "-"
     if c.get("estimate") is None:
         return "-"
-    sigma = c.get("corrected_sigma") or c.get("sigma")
+    sigma = c.get("sigma")  # the sigma to trust
     text = f"{c['estimate']:.4g}" + ("" if sigma is None else f" ± {sigma:.2g}")
     mark = c.get("identifiability")
     return text if mark in (None, "identified") else f"{text} ({mark})"

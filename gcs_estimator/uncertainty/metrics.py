@@ -9,8 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.estimation.estimator import EstimatorResult, FilterKind
+from gcs_estimator.estimation.filters.core import FilterKind
+from gcs_estimator.estimation.history import Track
+from gcs_estimator.estimation.results import EstimatorResult, FilterResult
 from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.uncertainty.sigma import SigmaParts, TrustedSigma, filter_sigma
 
 CONVERGENCE_BAND = 0.05
 """Convergence: the estimate stays within 5 % (docs/model.md)."""
@@ -25,57 +28,6 @@ CORRELATION_LIMIT = 0.95
 """|correlation| with another coefficient above which the two are not told apart."""
 PRIOR_SHRINK_LIMIT = 0.5
 """A filter's sigma still above this share of its prior sigma: the data added little."""
-MOVEMENT_WINDOW_MIN_FRAMES = 50
-"""Frames the movement check needs after the last restart (fewer: no correction)."""
-MOVEMENT_BANDWIDTH = 0.25
-"""Longest lag of the movement check, as a share of its window (Bartlett weights)."""
-
-
-def sigma_inflation(coefficients: FloatArray, sigma: FloatArray, start: int) -> FloatArray:
-    """How much more a filter's coefficient estimates moved from frame `start` to the end
-    than its own covariance said they would (variance ratio per coefficient; 1: as
-    expected; NaN where the window says nothing).
-
-    Under the filter's model the estimate of a constant is a martingale: its increments
-    are uncorrelated, and the variance of their sum over the window is the variance
-    the covariance lost there, sigma(start-1)^2 - sigma(end)^2. Model-structure error
-    and coloured noise break both (the estimate drifts as the manoeuvre changes which
-    error it absorbs, and increments correlate over seconds). The ratio of the
-    increments' long-run variance (Bartlett-weighted autocovariance up to a quarter of
-    the window) to that loss is the factor by which the filter overcounted its
-    information; sigma * sqrt(max(1, ratio)) is the corrected sigma. It is the filter's
-    analogue of the Morelli-Klein correction of an output-error fit's Cramer-Rao bound
-    (docs/decisions/0008).
-
-    The weighted sum is taken in O(N) as the sum of squared moving sums: with the
-    increments d zero-padded, sum_t (d_t + ... + d_t+L)^2 = sum_k (L + 1 - |k|) acov(k),
-    and a moving sum of increments is a difference of two estimates."""
-    p = coefficients.shape[1]
-    w = coefficients.shape[0] - start
-    if start < 1 or w < MOVEMENT_WINDOW_MIN_FRAMES:
-        return np.full(p, np.nan)
-    s2 = np.asarray(sigma[[start - 1, -1]], float) ** 2
-    lag = max(1, int(MOVEMENT_BANDWIDTH * w))
-    # Moving sums of lag + 1 increments d_t .. d_t+lag for t = -lag .. w - 1 (the
-    # increments outside 0 .. w - 1 are zero): x[hi] - x[lo] with x the estimates.
-    t = np.arange(-lag, w)
-    hi = np.minimum(t + lag, w - 1) + 1
-    lo = np.maximum(t, 0)
-    moved = np.empty(p)
-    for j in range(p):  # one column at a time: an hour's history stays a few MB
-        x = np.asarray(coefficients[start - 1 :, j], float)
-        sums = x[hi] - x[lo]
-        moved[j] = (sums @ sums) / (lag + 1)
-    expected = s2[0] - s2[1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(expected > 1e-6 * s2[0], moved / expected, np.nan)
-    return np.asarray(ratio)
-
-
-def movement_start(frames: int, final_pass_from: int) -> int:
-    """First frame of the movement check: the second half of the run, and never before
-    the final pass's second frame (a pass converging from its prior moves by design)."""
-    return max(frames // 2, final_pass_from + 1, 1)
 
 
 def correlation_of(cov: FloatArray) -> FloatArray:
@@ -126,6 +78,10 @@ class CoefficientSummary:
     name: str
     estimate: float
     sigma: float
+    """The sigma to trust (sigma.trusted_sigma): the covariance's, widened by how far the
+    estimate moved against it and by the structure check."""
+    sigma_parts: SigmaParts
+    """What sigma is made of (covariance sigma, movement factor, structure sigma)."""
     truth: float | None
     error_pct: float | None
     """100 * (estimate - truth) / |truth|."""
@@ -136,25 +92,11 @@ class CoefficientSummary:
     converged_truth_s: float | None
     """Time after which it stays within 5 % of truth [s] (NaN: never; None: no truth)."""
     identifiability: str = IDENTIFIED
-    """IDENTIFIED, WEAK or NOT_IDENTIFIED (identifiability())."""
+    """IDENTIFIED, WEAK or NOT_IDENTIFIED (identifiability(), from sigma)."""
     correlated_with: str = ""
     """The coefficient it correlates with most."""
     correlation: float = 0.0
     """That correlation."""
-    corrected_sigma: float = math.nan
-    """sigma corrected for how far the estimate moved against its covariance
-    (sigma_inflation()) and, where the structure check was made, with its structure sigma
-    added in quadrature (weighting.py); NaN: the run was too short to tell."""
-    sigma_inflation: float = math.nan
-    """corrected_sigma / sigma (at least 1; NaN: the run was too short to tell)."""
-    structure_sigma: float = math.nan
-    """How far the estimate depends on how much each channel is trusted, beyond what its
-    covariance allows (weighting.structure_check; NaN: not checked)."""
-
-    @property
-    def trusted_sigma(self) -> float:
-        """The corrected sigma where there is one, else the covariance's."""
-        return self.corrected_sigma if math.isfinite(self.corrected_sigma) else self.sigma
 
 
 @dataclass(frozen=True)
@@ -228,74 +170,85 @@ def summarise(
         track = fr.track
         if track is None or len(track.t) == 0:
             continue
-        x = fr.coefficients
-        t0 = float(track.t[0])
-        corr = correlation_of(fr.covariance)
-        start = movement_start(len(track.t), result.final_pass_from)
-        ratio = sigma_inflation(track.coefficients, track.coefficient_sigma, start)
-        corrected = fr.sigma * np.sqrt(np.maximum(ratio, 1.0))
         struct = None if structure is None else structure.get(kind)
-        if struct is not None:
-            corrected = np.hypot(np.where(np.isfinite(corrected), corrected, fr.sigma), struct)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            factor = corrected / fr.sigma
-        trusted = np.where(np.isfinite(corrected), corrected, fr.sigma)
-        marks = identifiability(
-            x, trusted, corr, np.asarray(result.config.filter.initial_sigma.coefficients)
+        trusted = filter_sigma(
+            track.coefficients, track.coefficient_sigma, fr.sigma, result.final_pass_from, struct
         )
-        coeffs = []
-        for i, name in enumerate(result.names):
-            series = track.coefficients[:, i]
-            tru = None if truth is None else float(truth[i])
-            partner, rho = most_correlated(corr, result.names, i)
-            coeffs.append(
-                CoefficientSummary(
-                    name=name,
-                    estimate=float(x[i]),
-                    sigma=float(fr.sigma[i]),
-                    truth=tru,
-                    error_pct=None if tru is None else percent_error(float(x[i]), tru),
-                    z=None if tru is None else float((x[i] - tru) / fr.sigma[i]),
-                    converged_final_s=stay_within_time(
-                        track.t, series, float(x[i]), CONVERGENCE_BAND
-                    )
-                    - t0,
-                    converged_truth_s=None
-                    if tru is None
-                    else stay_within_time(track.t, series, tru, CONVERGENCE_BAND) - t0,
-                    identifiability=marks[i],
-                    correlated_with=partner,
-                    correlation=rho,
-                    corrected_sigma=float(corrected[i]),
-                    sigma_inflation=float(factor[i]),
-                    structure_sigma=math.nan if struct is None else float(struct[i]),
-                )
-            )
-        used = track.n_used > 0
-        settled = used.copy()  # the pass that runs on: from the last restart's swap
-        settled[: result.final_pass_from] = False
-        channel_nis = channel_mean_squares(
-            track.innovation[settled], track.innovation_sigma[settled]
+        prior = np.asarray(result.config.filter.initial_sigma.coefficients)
+        corr = correlation_of(fr.covariance)
+        marks = identifiability(fr.coefficients, trusted.sigma, corr, prior)
+        coeffs = tuple(
+            _coefficient(result.names, i, fr.coefficients, trusted, track, truth, corr, marks[i])
+            for i in range(len(result.names))
         )
-        nees = None
-        if truth is not None:
-            d = x - truth
-            nees = float(d @ np.linalg.solve(fr.covariance, d))
-        out[kind] = FilterSummary(
-            kind=kind,
-            coefficients=tuple(coeffs),
-            mean_nis=float(track.nis[settled].mean()) if settled.any() else math.nan,
-            mean_nis_all=float(track.nis[used].mean()) if used.any() else math.nan,
-            mean_channels=float(track.n_used[settled].mean()) if settled.any() else math.nan,
-            nees=nees,
-            steps=len(track.t),
-            gust_sigma=fr.gust_sigma,
-            gust_on_share=_share_on(track.gust_sigma[result.final_pass_from :]),
-            gust_pass_sigma=fr.gust_pass_sigma,
-            gust_pass_z=fr.gust_pass_z,
-            channel_nis=channel_nis,
-        )
+        out[kind] = _filter_summary(result, fr, track, coeffs, truth)
     return out
+
+
+def _coefficient(
+    names: tuple[str, ...],
+    i: int,
+    x: FloatArray,
+    trusted: TrustedSigma,
+    track: Track,
+    truth: FloatArray | None,
+    corr: FloatArray,
+    mark: str,
+) -> CoefficientSummary:
+    """Coefficient i's figures: x the final estimates, trusted their sigma."""
+    t0 = float(track.t[0])
+    series = track.coefficients[:, i]
+    tru = None if truth is None else float(truth[i])
+    partner, rho = most_correlated(corr, names, i)
+    return CoefficientSummary(
+        name=names[i],
+        estimate=float(x[i]),
+        sigma=float(trusted.sigma[i]),
+        sigma_parts=trusted.parts(i),
+        truth=tru,
+        error_pct=None if tru is None else percent_error(float(x[i]), tru),
+        z=None if tru is None else float((x[i] - tru) / trusted.sigma[i]),
+        converged_final_s=stay_within_time(track.t, series, float(x[i]), CONVERGENCE_BAND) - t0,
+        converged_truth_s=None
+        if tru is None
+        else stay_within_time(track.t, series, tru, CONVERGENCE_BAND) - t0,
+        identifiability=mark,
+        correlated_with=partner,
+        correlation=rho,
+    )
+
+
+def _filter_summary(
+    result: EstimatorResult,
+    fr: FilterResult,
+    track: Track,
+    coeffs: tuple[CoefficientSummary, ...],
+    truth: FloatArray | None,
+) -> FilterSummary:
+    """A filter's figures around its coefficients': NIS over the pass that runs on (from
+    the last restart's swap) and over the whole run, NEES against truth, turbulence."""
+    used = track.n_used > 0
+    settled = used.copy()  # the pass that runs on: from the last restart's swap
+    settled[: result.final_pass_from] = False
+    channel_nis = channel_mean_squares(track.innovation[settled], track.innovation_sigma[settled])
+    nees = None
+    if truth is not None:
+        d = fr.coefficients - truth
+        nees = float(d @ np.linalg.solve(fr.covariance, d))
+    return FilterSummary(
+        kind=fr.kind,
+        coefficients=coeffs,
+        mean_nis=float(track.nis[settled].mean()) if settled.any() else math.nan,
+        mean_nis_all=float(track.nis[used].mean()) if used.any() else math.nan,
+        mean_channels=float(track.n_used[settled].mean()) if settled.any() else math.nan,
+        nees=nees,
+        steps=len(track.t),
+        gust_sigma=fr.gust_sigma,
+        gust_on_share=_share_on(track.gust_sigma[result.final_pass_from :]),
+        gust_pass_sigma=fr.gust_pass_sigma,
+        gust_pass_z=fr.gust_pass_z,
+        channel_nis=channel_nis,
+    )
 
 
 def channel_mean_squares(innovation: FloatArray, sigma: FloatArray) -> tuple[float, ...]:

@@ -20,10 +20,10 @@ first order the estimate's variance from the weights is
 
     sum_i max(0, d_i^2 - |sigma_i^2 - sigma^2|) / 3,
 
-the structure sigma. The corrected sigma (metrics.summarise) adds it in quadrature to
-the sigma corrected for how the estimates moved over the run (0008): that correction
-sees drift and colour, this one a bias that the channels' disagreement sets and the
-estimates settle on.
+the structure sigma. The sigma to trust (sigma.trusted_sigma) adds it in quadrature to
+the covariance's sigma widened by how the estimates moved over the run (0008): that
+correction sees drift and colour, this one a bias that the channels' disagreement sets
+and the estimates settle on.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from gcs_estimator.estimation.estimator import FILTER_KINDS, Track
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
-from gcs_estimator.outputs.report import final_table, live_table
+from gcs_estimator.outputs.table import final_table, live_table
 from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.outputs.view.live import RerunView, ViewSink
 from gcs_estimator.outputs.view.outlets import LocalOutlet

@@ -183,7 +183,11 @@ def innovation_style() -> SeriesStyle:
 def legend_text(truth_label: str | None, warnings: Sequence[str] = ()) -> str:
     """How to read the coefficient plots (one legend for the whole grid); at the end, what
     to check before trusting them, first (the panel is small)."""
-    text = "**Coefficients:** blue **EKF**, orange **IEKF**; lighter lines of each colour: ±2σ"
+    text = (
+        "**Coefficients:** blue **EKF**, orange **IEKF**; lighter lines of each colour: ±2σ "
+        "of the filter's covariance as the run goes (the final table's σ, the one to trust, "
+        "widens it where the run shows it too small)"
+    )
     if truth_label:
         text += f"; wide green: **{truth_label}**"
     text += (

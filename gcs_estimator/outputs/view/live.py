@@ -42,7 +42,7 @@ from gcs_estimator.outputs.view.outlets import (
 from gcs_estimator.stop import PROCESS_STOP
 
 if TYPE_CHECKING:
-    from gcs_estimator.runtime.session import VehicleResult
+    from gcs_estimator.uncertainty.result import VehicleResult
 
 KINDS = FILTER_KINDS
 
@@ -477,7 +477,8 @@ class ViewSink:
         self.view.tick()
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
-        from gcs_estimator.outputs.report import final_table, trust_warnings
+        from gcs_estimator.outputs.diagnosis import trust_warnings
+        from gcs_estimator.outputs.table import final_table
 
         marks = {}
         for sid, v in results.items():

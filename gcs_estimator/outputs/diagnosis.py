@@ -1,0 +1,334 @@
+"""What a user should know before trusting a run's numbers (trust_warnings): a noise
+model that does not fit, channels the filters' model misses, turbulence switched on and
+off, estimates that moved more than their covariance allows, coefficients the data do
+not identify or the two filters end apart on, signs no conventional aircraft has, and
+what points at the setup (a channel never held, an elevator that never moved)."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gcs_estimator.estimation.filters.core import FILTER_KINDS
+from gcs_estimator.estimation.noise import CLEARLY, reading_z
+from gcs_estimator.estimation.results import EstimatorResult
+from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.outputs.text import fmt
+from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, FilterSummary
+from gcs_estimator.uncertainty.result import VehicleResult
+
+if TYPE_CHECKING:
+    from gcs_estimator.refine import Refined
+
+
+NIS_RATIO_LIMIT = 3.0
+"""Mean NIS this many times the channel count (or a third of it): the noise model is off."""
+CHANNEL_NIS_LIMIT = 2.0
+"""A channel's mean squared innovation this many times what the filter predicts (or less
+than its inverse): that channel says the filter's model or its noise settings are off
+there, where the whole NIS, averaged over the channels, may not."""
+INFLATION_LIMIT = 2.0
+"""A sigma to trust above this multiple of the covariance's (SigmaParts.inflation):
+worth a warning."""
+GUST_BURSTS = (0.02, 0.9)
+"""A turbulence level applied in more than the first and less than the second share of
+the final pass: on and off. Calm simulated flights stay below 1 %, turbulent ones at 100 %;
+model misfit during manoeuvres reads as bursts (docs/decisions/0004)."""
+COLOUR_LIMIT = 5.0
+"""Residual colour above this on a channel: the model misses something the data hold."""
+DISAGREE_SIGMAS = 3.0
+"""The EKF and the IEKF ending further apart on a coefficient than this many of the larger
+of their sigmas: the data do not settle it (both filters read the same frames, so
+their estimates differ by far less than either sigma where the data fix a value)."""
+
+
+def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
+    """What a user should know before trusting the numbers: a noise model that does not
+    fit (NIS far from the channel count), a warm start that fitted few frames, a
+    turbulence level switched on and off or one the whole pass found and the running
+    level missed, coefficients the data do not identify, a filter
+    that diverged and started again, residuals far from white in the whole-record
+    fit, and what points at the setup: a channel the data never hold, an elevator that
+    never moves, a coefficient of the sign no conventional aircraft has."""
+    out: list[str] = []
+    result = vehicle.result
+    for kind, s in vehicle.summaries.items():
+        if s.mean_channels > 0 and math.isfinite(s.mean_nis):
+            ratio = s.mean_nis / s.mean_channels
+            if ratio > NIS_RATIO_LIMIT or ratio < 1.0 / NIS_RATIO_LIMIT:
+                out.append(
+                    f"{kind}: mean NIS {s.mean_nis:.1f} over {s.mean_channels:.1f} channels: "
+                    "the noise model does not fit these data, so its sigmas do not either "
+                    "(check [filter.measurement_sigma] against the sensors)"
+                )
+        out += _channel_warnings(kind, s)
+        threshold = result.config.filter.turbulence.detection_sigma
+        if s.gust_pass_z >= threshold and s.gust_on_share < GUST_BURSTS[1]:
+            out.append(
+                f"{kind}: turbulence over the whole pass (σ_w {s.gust_pass_sigma:.2f} m/s, "
+                f"{s.gust_pass_z:.1f} standard errors above zero) while a turbulence level "
+                f"was applied in only {100 * s.gust_on_share:.0f} % of it: gusts too weak or "
+                "too slow (a long scale length) for a few seconds of data to tell from "
+                "calm; where none was applied the covariance's σ assumes calm air (the σ shown "
+                "is widened where the estimates moved more than it allows); `refine` "
+                "(auto) fits such a record by filter error"
+            )
+        elif GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1]:
+            out.append(
+                f"{kind}: the turbulence level was applied on and off, in "
+                f"{100 * s.gust_on_share:.0f} % of the frames since the last restart: "
+                "turbulence near the detection limit, or what the model misses during the "
+                "manoeuvres read as turbulence (its process noise then discounts the most "
+                "informative seconds); if the air was calm, compare a run with "
+                "[filter.turbulence] adaptive = false"
+            )
+        moved = [
+            f"{c.name} ×{c.sigma_parts.inflation:.1f}"
+            for c in s.coefficients
+            if c.sigma_parts.inflation > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED
+        ]
+        if moved:
+            out.append(
+                f"{kind}: estimates moved more than the covariance allows, over the run or "
+                "with the channels weighted otherwise ("
+                + ", ".join(moved)
+                + "): the model misses something in these data (unmodelled aerodynamics, "
+                "turbulence, sensor errors); the σ shown is the covariance's widened that much: "
+                "trust it, not the covariance's"
+            )
+        weak = [c.name for c in s.coefficients if c.identifiability == NOT_IDENTIFIED]
+        if weak:
+            out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
+        out += _sign_warnings(kind, s)
+    out += _disagreement_warning(vehicle)
+    out += _noise_warning(vehicle)
+    out += _run_warnings(result)
+    if refined is not None:
+        out += _refined_warnings(refined)
+    return out
+
+
+def _channel_warnings(kind: str, s: FilterSummary) -> list[str]:
+    """The channels whose innovations over the final pass are far larger, or far smaller,
+    than the filter predicts (FilterSummary.channel_nis)."""
+    pairs = [(n, v) for n, v in zip(OBS_NAMES, s.channel_nis, strict=True) if math.isfinite(v)]
+    high = [f"{n} {v:.1f}" for n, v in pairs if v > CHANNEL_NIS_LIMIT]
+    low = [f"{n} {v:.2f}" for n, v in pairs if v < 1.0 / CHANNEL_NIS_LIMIT]
+    out = []
+    if high:
+        out.append(
+            f"{kind}: innovations larger than the filter predicts on "
+            + ", ".join(high)
+            + " (their mean square over the predicted σ², 1 expected): the model or the "
+            "noise settings miss something these channels show (aerodynamics the "
+            "structure lacks, turbulence, a sensor noisier or placed otherwise than the "
+            "airframe file says), and the filter counts on them more than it should: "
+            "trust the σ shown, not the covariance's"
+        )
+    if low:
+        out.append(
+            f"{kind}: innovations smaller than the filter predicts on "
+            + ", ".join(low)
+            + ": their [filter.measurement_sigma] is larger than these data show, so the "
+            "filters use them less than they could"
+        )
+    return out
+
+
+def _disagreement_warning(vehicle: VehicleResult) -> list[str]:
+    """The coefficients on which the two filters end more than DISAGREE_SIGMAS apart.
+
+    Both read the same frames, so where the data fix a coefficient they end close
+    together. Where they leave a ridge (coefficients whose combination alone the flight
+    fixes: CLq and CLadot, say), the IEKF's relinearisation can follow it far from where
+    the EKF stays, while each filter's covariance, taken at its own point, still calls the
+    coefficient identified. Not-identified coefficients are left out: the table says so
+    already."""
+    summaries = [vehicle.summaries[k] for k in FILTER_KINDS if k in vehicle.summaries]
+    if len(summaries) < 2:
+        return []
+    a, b = summaries[0], summaries[1]
+    apart = []
+    for ca, cb in zip(a.coefficients, b.coefficients, strict=True):
+        if NOT_IDENTIFIED in (ca.identifiability, cb.identifiability):
+            continue
+        sigma = max(ca.sigma, cb.sigma)
+        if abs(ca.estimate - cb.estimate) > DISAGREE_SIGMAS * sigma:
+            apart.append(f"{ca.name} {fmt(ca.estimate)} against {fmt(cb.estimate)}")
+    if not apart:
+        return []
+    return [
+        f"the {a.kind} and the {b.kind} end more than {DISAGREE_SIGMAS:g} σ apart on "
+        + ", ".join(apart)
+        + ": the data do not settle these coefficients (a ridge of the fit, or one filter "
+        "led off by a bad stretch of data), whatever their σ say; compare `refine` and a "
+        "run with fewer coefficients"
+    ]
+
+
+def _noise_warning(vehicle: VehicleResult) -> list[str]:
+    """What the measurement noise read from the data says (docs/decisions/0014): which
+    channels read clearly noisier than configured (kept at the configured sigma)."""
+    result = vehicle.result
+    if result.noise_reading is None:
+        return []
+    configured = np.array(result.config.filter.measurement_sigma, float)
+    reading = np.array(result.noise_reading.sigma)
+    z = reading_z(reading, np.array(result.noise_reading.differences), configured)
+    above = [
+        f"{n} {r / c:.1f}×"
+        for n, r, c, zc in zip(OBS_NAMES, reading, configured, z, strict=True)
+        if zc > CLEARLY
+    ]
+    if not above:
+        return []
+    return [
+        "the data read noisier than the configured σ on "
+        + ", ".join(above)
+        + " (the configured σ was kept): noisier sensors than configured, or motion "
+        "as rough as noise (gusts of a short scale length, which the filters' process "
+        "noise carries); if the sensors are that noisy, set [filter.measurement_sigma] "
+        "for them"
+    ]
+
+
+EXPECTED_SIGNS: dict[str, tuple[int, str]] = {
+    "CLa": (1, "lift grows with alpha: is alpha read with its sign reversed?"),
+    "Cmq": (-1, "pitch damping opposes the pitch rate: is q read with its sign reversed?"),
+    "Cmde": (
+        -1,
+        "an elevator deflected trailing edge down (positive here) pitches the nose down: "
+        "is the elevator read with its sign reversed ([link] elevator_us_per_rad, or the "
+        "data's elevator column)?",
+    ),
+    "CLde": (
+        1,
+        "an elevator deflected trailing edge down (positive here) adds lift: is the "
+        "elevator read with its sign reversed?",
+    ),
+}
+"""Signs every conventional aircraft's coefficients have (docs/model.md's conventions),
+and what an estimate of the other sign most likely means."""
+
+SIGN_SIGMAS = 3.0
+"""An estimate of the unexpected sign is named when it stands this many of its
+sigmas from zero."""
+
+STILL_ELEVATOR_RAD = math.radians(0.1)
+"""An elevator that moves less than this over a whole flight [rad] did not move: no
+manoeuvre, or the elevator read from the wrong servo or column."""
+
+OPTIONAL_CHANNELS = ("qdot",)
+"""Observation channels a flight may lack with nothing to warn of (the warm start
+differentiates q; the README's CSV layout lets qdot be empty)."""
+
+
+def _sign_warnings(kind: str, s: FilterSummary) -> list[str]:
+    """Estimates of the sign no conventional aircraft's coefficient has (EXPECTED_SIGNS),
+    SIGN_SIGMAS of their sigma from zero: a sensor or the elevator read with its
+    sign reversed, most likely."""
+    out = []
+    for c in s.coefficients:
+        sign, why = EXPECTED_SIGNS.get(c.name, (0, ""))
+        if sign and sign * c.estimate < -SIGN_SIGMAS * c.sigma:
+            out.append(
+                f"{kind}: {c.name} came out {c.estimate:+.4g} "
+                f"({abs(c.estimate) / c.sigma:.0f} σ from zero), of the sign no "
+                f"conventional aircraft's has: {why}"
+            )
+    return out
+
+
+def _run_warnings(result: EstimatorResult) -> list[str]:
+    """A channel the data never held, an elevator that never moved, a filter that
+    diverged, a warm start that fitted few frames."""
+    out: list[str] = []
+    track = next((f.track for f in result.filters.values() if f.track is not None), None)
+    if track is not None and len(track.y):
+        held = np.any(np.isfinite(track.y), axis=0)
+        none = [
+            name
+            for c, name in enumerate(OBS_NAMES)
+            if not held[c] and name not in OPTIONAL_CHANNELS
+        ]
+        elevator = track.u[:, 0]
+        if np.isfinite(elevator).any() and np.nanmax(elevator) - np.nanmin(elevator) < (
+            STILL_ELEVATOR_RAD
+        ):
+            out.append(
+                "the elevator did not move in this flight (less than "
+                f"{math.degrees(STILL_ELEVATOR_RAD):g} deg): the moment "
+                "coefficients cannot be told apart; if the aircraft did manoeuvre, the "
+                "elevator is read from the wrong place ([link] elevator_servo, or "
+                "[data.columns] elevator)"
+            )
+        if none:
+            out.append(
+                f"no {', '.join(none)} in these data at all: the filters ran without "
+                f"{'it' if len(none) == 1 else 'them'}, and what only "
+                f"{'it tells' if len(none) == 1 else 'they tell'} is not identified (a column "
+                "the file lacks, or a message the vehicle does not send)"
+            )
+    for kind, f in result.filters.items():
+        if f.health.divergences:
+            out.append(
+                f"{kind}: the estimate diverged {f.health.divergences} time(s) and started "
+                "again from the prior there (a long gap early in the flight, or bad data); "
+                "the history shows absurd values before each"
+            )
+    if result.warm_start_samples is not None and result.warm_start_frames > 0:
+        least = min(result.warm_start_samples)
+        if least < 0.5 * result.warm_start_frames:
+            cd, cl, cm = result.warm_start_samples
+            out.append(
+                f"the equation-error warm start fitted CD, CL, Cm on only {cd}, {cl}, {cm} of "
+                f"{result.warm_start_frames} frames (gaps or missing channels)"
+            )
+    return out
+
+
+def _refined_warnings(refined: Refined) -> list[str]:
+    out = []
+    coloured = [
+        f"{n} {v:.0f}"
+        for n, v in zip(OBS_NAMES, refined.residual_colour, strict=True)
+        if math.isfinite(v) and v > COLOUR_LIMIT
+    ]
+    if coloured:
+        hint = (
+            "; in turbulence, `--method filter-error` lets a filter follow the gusts"
+            if refined.method == "output error"
+            else ""
+        )
+        fit = refined.label
+        out.append(
+            f"{fit} residuals far from white (" + ", ".join(coloured) + "): the model misses "
+            f"something (turbulence, unmodelled aerodynamics); trust {fit} σ, not "
+            "Cramer-Rao's" + hint
+        )
+    if refined.difference_sigma is not None:
+        apart = [
+            f"{n} ×{s / a:.1f}"
+            for n, s, a, mark in zip(
+                refined.names,
+                refined.sigma,
+                refined.sigma_within_fit,
+                refined.identifiability,
+                strict=True,
+            )
+            if a > 0.0 and s > INFLATION_LIMIT * a and mark != NOT_IDENTIFIED
+        ]
+        if apart:
+            fit = refined.label
+            out.append(
+                f"{fit} lands further from the filter it started from than both covariances "
+                "allow (" + ", ".join(apart) + " on its σ): the two weigh the record "
+                "differently, and where the model misses part of the aircraft (unmodelled "
+                "aerodynamics, turbulence it models otherwise) each settles on its own "
+                f"compromise; {fit} σ includes the difference (docs/decisions/0030)"
+            )
+    if not refined.converged:
+        out.append(f"{refined.label}: {refined.message}")
+    return out
