@@ -220,7 +220,7 @@ def filterpy_rate(setup: Setup, frames: int) -> float | None:
         K3 = F3 @ (eye + 0.5 * dt * K2)
         K4 = F4 @ (eye + dt * K3)
         ekf.F = eye + dt / 6.0 * (F1 + 2.0 * K2 + 2.0 * K3 + K4)
-        ekf.Q = np.diag(tuning.q_final) * dt
+        ekf.Q = np.diag(tuning.q) * dt
         ekf.predict()
         ekf.x = x1
         ekf.update(

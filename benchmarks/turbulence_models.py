@@ -161,7 +161,7 @@ def refine_noise(record: Record) -> list[str]:
     return [
         "filter.turbulence.adaptive=false",
         "filter.turbulence.sigma_w_mps=0",
-        "filter.turbulence.pitch_gust=false",
+        "airframe.wing_span_m=0",  # no pitch gust: the fit's white noise alone
         *(
             f"filter.process_noise.{k}={max(float(q), f)!r}"
             for k, q, f in zip(("V", "alpha", "theta", "q"), fitted, floor, strict=True)

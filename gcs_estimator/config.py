@@ -68,8 +68,6 @@ NOC_SENSOR_SIGMA: tuple[float, ...] = (
     0.2,
 )
 """The simulated sensors' noise, and the filters' measurement sigma unless set."""
-BIAS_SIGMA: tuple[float, ...] = (1.0, math.radians(2.0), math.radians(2.0), 0.01, 0.1, 0.5, 0.5)
-"""Prior 1 sigma of an estimated sensor bias, per channel [SI]."""
 
 PropulsionKind = Literal["propeller", "measured"]
 PowerInput = Literal["throttle", "thrust"]
@@ -92,7 +90,6 @@ class Airframe:
         gt=0, unit="m/s", doc="V0: reference of qhat = q*cbar/(2*V0) and V/V0"
     )
     name: str = setting("aircraft")
-    gravity_mps2: float = setting(9.80665, gt=0, unit="m/s^2")
     thrust_inclination_rad: float = setting(0.0, unit="rad", doc="sigma_T: thrust line to body x")
     thrust_moment_arm_m: float = setting(0.0, unit="m", doc="l_x*sin(sigma_T) + l_z*cos(sigma_T)")
     wing_span_m: float = setting(
@@ -100,7 +97,7 @@ class Airframe:
         ge=0,
         unit="m",
         doc="b: the pitch gust's scale (MIL-F-8785C), which the simulator flies and the "
-        "filters model (filter.turbulence.pitch_gust); 0: no pitch gust",
+        "filters model (docs/decisions/0016); 0: no pitch gust",
     )
 
 
@@ -270,26 +267,23 @@ class Simulation:
 
 @dataclass(frozen=True)
 class InitialSigma:
-    """1 sigma of the initial belief: flight states (inline) and coefficients."""
+    """1 sigma of the initial belief of the coefficients (the flight states start from
+    their first measurement, with filters.core.FLIGHT_PRIOR_SIGMA)."""
 
-    states: tuple[float, ...] = setting(
-        (1.0, 0.02, 0.02, 0.02),
-        keys=FLIGHT_STATES,
-        fill=(1.0, 0.02, 0.02, 0.02),
-        inline=True,
+    coefficients: tuple[float, ...] = setting(
+        (),
+        keys=COEFFICIENT,
+        fill=10.0,
         gt=0,
-        unit="SI",
-    )
-    coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=10.0, gt=0)
-    biases: tuple[float, ...] = _per_channel(
-        BIAS_SIGMA, gt=0, doc="sensor biases ([sensors] bias_states), SI units"
+        doc="what is known of each coefficient before the flight; wider for the large rate "
+        "derivatives (Cmq, CLq)",
     )
 
 
 @dataclass(frozen=True)
 class ProcessNoise:
     """Continuous-time spectral densities: flight states (inline) [unit^2/s] and the
-    coefficient random walk [1/s], which decays from its initial to its final level."""
+    coefficients' random walk [1/s] (the estimated sensor biases are constant)."""
 
     states: tuple[float, ...] = setting(
         (1e-8, 1e-9, 1e-10, 1e-9),
@@ -298,14 +292,12 @@ class ProcessNoise:
         inline=True,
         ge=0,
     )
-    coefficient_decay_s: float = setting(5.0, gt=0, unit="s")
-    coefficients: tuple[float, ...] = setting(
-        (), keys=COEFFICIENT, fill=1e-12, ge=0, doc="final level"
+    coefficients: float = setting(
+        1e-12,
+        ge=0,
+        unit="1/s",
+        doc="random walk of every coefficient: how fast they may change in flight",
     )
-    coefficients_initial: tuple[float, ...] = setting(
-        (), keys=COEFFICIENT, fill=1e-12, ge=0, fallback="coefficients", doc="level at t = 0"
-    )
-    biases: tuple[float, ...] = _per_channel(0.0, ge=0, doc="bias random walk; 0: constant")
 
 
 @dataclass(frozen=True)
@@ -322,47 +314,26 @@ class TurbulenceNoise:
         "noise on the flight states",
     )
     adaptive: bool = setting(True, doc="estimate sigma_w^2 online from the V and alpha innovations")
-    pitch_gust: bool = setting(
-        True,
-        doc="with airframe.wing_span_m, the pitch gust's state p_g (MIL-F-8785C; "
-        "docs/decisions/0016); false: none",
-    )
     sigma_w_mps: float = setting(0.0, ge=0, unit="m/s", doc="initial (adaptive) or fixed level")
     sigma_u_ratio: float = setting(1.5, gt=0)
     length_u_m: float = setting(200.0, gt=0, unit="m")
     length_w_m: float = setting(50.0, gt=0, unit="m")
-    theta_density: float = setting(1.7e-6, ge=0, unit="rad^2/s per (m/s)^2")
-    adapt_time_s: float = setting(2.0, gt=0, unit="s", doc="averaging time of the online estimate")
     detection_sigma: float = setting(
         3.0, ge=0, doc="applied only once this many standard errors above zero (calm stays calm)"
-    )
-    still_band_deg: float = setting(
-        0.2,
-        ge=0,
-        unit="deg",
-        doc="until a level is detected only frames where the inputs are still inform it "
-        "(model-structure error shows in manoeuvres, turbulence everywhere); elevator moves "
-        "within this band leave them still",
     )
     settle_s: float = setting(
         3.0,
         ge=0,
         unit="s",
-        doc="time after the elevator's last move before a frame informs the level (0: every "
-        "frame does)",
-    )
-    max_wait_s: float = setting(
-        10.0,
-        gt=0,
-        unit="s",
-        doc="when the inputs have not been still for this long (they always move), every "
-        "frame informs the level",
+        doc="until a level is detected only frames where the inputs are still inform it "
+        "(model-structure error shows in manoeuvres, turbulence everywhere): this long after "
+        "the elevator's last move (0: every frame does; docs/decisions/0015)",
     )
 
     def unit(self, airspeed_mps: float) -> tuple[float, float, float, float]:
         """Spectral densities of V, alpha, theta, q per unit sigma_w^2."""
         return gusts.gust_densities(
-            airspeed_mps, self.sigma_u_ratio, self.length_u_m, self.length_w_m, self.theta_density
+            airspeed_mps, self.sigma_u_ratio, self.length_u_m, self.length_w_m, gusts.THETA_DENSITY
         )
 
 
@@ -371,34 +342,19 @@ class FilterTuning:
     """Filter settings: initial belief, noise models, iteration control and restarts."""
 
     iterations: int = setting(7, ge=1, doc="IEKF update iterations (1 = EKF; the paper: 7)")
-    iteration_tolerance: float = setting(
-        0.0, ge=0, doc="stop early below this change [prior sigmas]"
-    )
     relinearise_sigma: float = setting(
         1.0,
         ge=0,
         doc="keep the iterations only if they move some coefficient this many sigmas",
     )
-    max_step_s: float = setting(0.02, gt=0, unit="s", doc="longest Runge-Kutta prediction step")
     restart_frames_per_step: int = setting(
         10,
         ge=0,
         doc="frames of a restart's re-run done at least per new frame (it catches up beside "
         "the live pass, and in idle time); 0: all at once",
     )
-    max_gap_s: float = setting(
-        2.0,
-        gt=0,
-        unit="s",
-        doc="longest prediction; after a longer gap the flight states start afresh "
-        "(the coefficients are kept)",
-    )
     restart_times_s: tuple[float, ...] = setting(
         (5.0, 10.0), ge=0, unit="s", doc="re-run all frames so far from the start at these times"
-    )
-    restart_sigma_inflation: float = setting(10.0, gt=0, doc="restart prior sigma / estimate sigma")
-    innovation_gate: float = setting(
-        0.0, ge=0, doc="reject channels beyond this many sigma; 0: off"
     )
     measurement_noise: str = setting(
         "auto",
@@ -426,7 +382,6 @@ class FilterTuning:
         "results say so); the check costs a replay of the final pass per channel, and one "
         "more",
     )
-    initial_coefficients: tuple[float, ...] = setting((), keys=COEFFICIENT, fill=0.0)
     initial_sigma: InitialSigma = table(InitialSigma)
     process_noise: ProcessNoise = table(ProcessNoise)
     measurement_sigma: tuple[float, ...] = _per_channel(NOC_SENSOR_SIGMA, gt=0)
@@ -439,7 +394,7 @@ class FilterTuning:
 
 
 REFINE_METHODS: tuple[str, ...] = ("auto", "output-error", "filter-error")
-"""Whole-record fits (gcs_estimator.refine.fit): chosen from the filters' turbulence level
+"""Whole-record fits (gcs_estimator.refine): chosen from the filters' turbulence level
 (refine.choose_method), output error, or with process noise."""
 
 QUANTITY_KINDS: dict[str, str] = {
@@ -545,7 +500,8 @@ PLAUSIBLE_QUANTITIES: tuple[str, ...] = (
 )
 PLAUSIBLE_MAX: tuple[float, ...] = (300.0, 0.8, 1.6, 5.0, 50.0, 100.0, 100.0, 0.8)
 """Largest magnitudes a fixed-wing aircraft's signals reach [SI: m/s, rad (46 deg for
-alpha and the elevator, 92 deg for theta), rad/s, rad/s^2, m/s^2]."""
+alpha and the elevator, 92 deg for theta), rad/s, rad/s^2, m/s^2]: beyond them a link's
+value is dropped and counted, a file refused with the unit it is likely in."""
 
 
 @dataclass(frozen=True)
@@ -557,25 +513,18 @@ class DataConfig:
         choices=("linear", "previous"),
         doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
     )
-    plausible_max: tuple[float, ...] = setting(
-        PLAUSIBLE_MAX,
-        keys=PLAUSIBLE_QUANTITIES,
-        fill=PLAUSIBLE_MAX,
-        gt=0,
-        unit="SI",
-        doc="largest magnitude a signal can have: beyond it a link's value is dropped and "
-        "counted, a file refused with the unit it is likely in",
-    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
 
-    def plausible(self, quantity: str) -> float:
-        return self.plausible_max[PLAUSIBLE_QUANTITIES.index(quantity)]
+    @staticmethod
+    def plausible(quantity: str) -> float:
+        """The largest magnitude the signal can have (PLAUSIBLE_MAX) [SI]."""
+        return PLAUSIBLE_MAX[PLAUSIBLE_QUANTITIES.index(quantity)]
 
 
 @dataclass(frozen=True)
 class LinkConfig:
-    """How the aircraft's signals map onto MAVLink (telemetry.pwm), and the rates to ask for."""
+    """How the aircraft's signals map onto MAVLink (telemetry.pwm), and the rate to ask for."""
 
     elevator_servo: int = setting(2, ge=1, le=16, doc="SERVO_OUTPUT_RAW channel")
     elevator_pwm_center_us: float = setting(1500.0, unit="us")
@@ -590,13 +539,6 @@ class LinkConfig:
         doc="air density per sample from SCALED_PRESSURE.press_abs at the standard "
         "temperature (its temperature field is the sensor's own); false: the airframe's",
     )
-    frame_window_s: float = setting(0.005, gt=0, unit="s", doc="samples this close form one frame")
-    reorder_window_s: float = setting(
-        0.2,
-        gt=0,
-        unit="s",
-        doc="a frame missing a channel waits until the vehicle's clock is this far past it",
-    )
     max_vehicles: int = setting(
         16, ge=1, doc="system ids estimated per session; packets of more are counted only"
     )
@@ -607,8 +549,12 @@ class LinkConfig:
         doc="the only system ids estimated and sent to (empty: any); packets of others are "
         "counted only",
     )
-    rates_hz: tuple[float, ...] = setting(
-        (50.0,) * 6, keys=STREAMED_MESSAGES, fill=50.0, ge=0, unit="Hz", doc="SET_MESSAGE_INTERVAL"
+    rate_hz: float = setting(
+        50.0,
+        ge=0,
+        unit="Hz",
+        doc="asked of the vehicle (SET_MESSAGE_INTERVAL) for each message the estimator "
+        "reads; the data's rate, for a replayed or simulated record",
     )
     signing_key_file: str = setting(
         "",
@@ -629,9 +575,8 @@ class LinkConfig:
                 raise Invalid(key, f"NAMED_VALUE_FLOAT names are 1..10 characters, got {name!r}")
 
     def rate(self, message: str) -> float:
-        return (
-            self.rates_hz[STREAMED_MESSAGES.index(message)] if message in STREAMED_MESSAGES else 0.0
-        )
+        """The rate asked for a message [Hz] (0 for one the estimator does not read)."""
+        return self.rate_hz if message in STREAMED_MESSAGES else 0.0
 
 
 def _is_host(text: str) -> bool:
@@ -653,10 +598,10 @@ class ViewConfig:
     connect to one, off; auto: spawn and save with a display, else save) and what is kept."""
 
     outputs: tuple[str, ...] = setting(("auto",), choices=VIEW_OUTPUTS, unique=True)
-    rrd_path: str = setting("", doc="empty: a name from the session in the results directory")
+    rrd_path: str = setting("", internal=True)
+    """The .rrd to save (the command line's --rrd; empty: one in the run's folder)."""
     serve_bind: str = setting("127.0.0.1", doc='"0.0.0.0" lets viewers on other machines join')
     serve_port: int = setting(9877, ge=1, le=65535)
-    server_memory_limit: str = setting("1GiB", doc="history kept for late viewers")
     serve_linger_s: float = setting(
         30.0,
         ge=0,
@@ -666,19 +611,6 @@ class ViewConfig:
     )
     connect_url: str = setting("rerun+http://127.0.0.1:9876/proxy")
     viewer_port: int = setting(9876, ge=1, le=65535, doc="port of a spawned viewer")
-    display_rate_hz: float = setting(
-        10.0, gt=0, unit="Hz", doc="display-only series and the ±2σ bands"
-    )
-    estimate_rate_hz: float = setting(
-        25.0,
-        ge=0,
-        unit="Hz",
-        doc="coefficient estimates in the view, and the newest of each batch (0: every "
-        "frame; the history file always has every frame)",
-    )
-    flush_interval_s: float = setting(1.0, gt=0, unit="s", doc="wall clock between batches")
-    results_interval_s: float = setting(5.0, gt=0, unit="s", doc="live results table refresh")
-    shutdown_timeout_s: float = setting(3.0, gt=0, unit="s", doc="a viewer's time to drain at exit")
 
     def check(self) -> None:
         if not _is_host(self.serve_bind):

@@ -70,7 +70,7 @@ class Spec:
     toml: str = ""
     """The TOML key, where it differs from the field name."""
     internal: bool = False
-    """Not read from TOML (set by the loader)."""
+    """Not read from TOML (set by the loader or the command line)."""
 
     def bounds(self) -> str:
         limits = ((">", self.gt), (">=", self.ge), ("<=", self.le))

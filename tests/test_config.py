@@ -90,9 +90,9 @@ ROOT = Path(__file__).resolve().parent.parent
             r"\[filter.turbulence\] detection_sigma: must be a number >= 0, got -3.0",
         ),
         (
-            "display_rate_hz = 10.0",
-            "display_rate_hz = 0",
-            r"\[view\] display_rate_hz: must be a number > 0, got 0",
+            "serve_port = 9877",
+            "serve_port = 0",
+            r"\[view\] serve_port: must be a whole number >= 1 and <= 65535, got 0",
         ),
     ],
 )
@@ -145,7 +145,6 @@ def test_both_shipped_configs_load_with_their_structures() -> None:
         "Cmde",
     )
     assert noc.propulsion.model == "propeller" and hfb.propulsion.model == "measured"
-    assert noc.filter.initial_coefficients == (0.0,) * 11  # the paper's zero start
 
 
 def test_overrides_apply_and_are_validated() -> None:

@@ -135,16 +135,15 @@ def test_a_column_in_the_wrong_unit_is_refused_naming_the_likely_one(
         load_csv(path, load_config("noc_uav", _overrides_without(quantity)).data)
 
 
-def test_absurd_values_are_refused_and_the_limit_is_configurable(
-    tmp_path: Path, flight: Recording
-) -> None:
+def test_absurd_values_are_refused_naming_the_limit(tmp_path: Path, flight: Recording) -> None:
+    """Alpha in degrees read as radians: beyond what a fixed-wing aircraft's alpha can
+    reach (config.PLAUSIBLE_MAX), and the message says the limit."""
     path = tmp_path / "log.csv"
     _write_foreign(path, flight)
-    tight = [*OVERRIDES, "data.plausible_max.airspeed=10"]
     with pytest.raises(
-        FlightDataError, match=r"airspeed reaches .*data\.plausible_max\.airspeed = 10"
+        FlightDataError, match=r"alpha reaches .*beyond the 0\.8 a fixed-wing aircraft's can reach"
     ):
-        load_csv(path, load_config("noc_uav", tight).data)
+        load_csv(path, load_config("noc_uav", _overrides_without("alpha")).data)
 
 
 def test_a_bom_a_latin1_byte_and_an_oversized_field(tmp_path: Path, flight: Recording) -> None:

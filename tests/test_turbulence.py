@@ -67,7 +67,8 @@ def test_a_pitch_gust_is_followed_by_the_pitch_gust_state(
 ) -> None:
     """The simulator flies MIL-F-8785C's pitch gust (a wing span given): with the pitch
     gust's state the coefficients stay within their sigmas, whether turbulence is white
-    process noise or gust states; the same filters without it end far off."""
+    process noise or gust states; the same filters without it (an airframe file that
+    gives no span) end far off."""
     span = 2.9  # about S / cbar of the NOC UAV
     tuning = noc_config.filter
     flown = replace(
@@ -81,9 +82,8 @@ def test_a_pitch_gust_is_followed_by_the_pitch_gust_state(
     flight = simulate(flown, seed=3)
     worst = {}
     for pitch_gust in (True, False):
-        f = flown.filter
         config = replace(
-            flown, filter=replace(f, turbulence=replace(f.turbulence, pitch_gust=pitch_gust))
+            flown, airframe=replace(flown.airframe, wing_span_m=span if pitch_gust else 0.0)
         )
         run = run_recording(
             config, flight.t_s, flight.inputs, flight.measurements, keep_history=False
@@ -244,10 +244,10 @@ def _informing_steps(elevator: Callable[[float], float], level: float = 0.0) -> 
 
 
 def test_the_gust_level_is_estimated_where_the_inputs_are_still() -> None:
-    """filter.turbulence settle_s = 3, still_band_deg = 0.2, max_wait_s = 10 (the
-    defaults): until a level is applied, a step informs the estimate only 3 s after the
-    elevator last moved by more than 0.2 degrees, or once it has not been still for 10 s;
-    with a level applied, every step does."""
+    """filter.turbulence settle_s = 3, filters.core.GUST_STILL_BAND_RAD (0.2 deg) and
+    GUST_MAX_WAIT_S = 10 s (the defaults): until a level is applied, a step informs the
+    estimate only 3 s after the elevator last moved by more than 0.2 degrees, or once it
+    has not been still for 10 s; with a level applied, every step does."""
     steps = np.arange(0.0, 14.0, 0.02)
     assert len(_informing_steps(lambda t: 0.0)) == len(steps)  # still throughout
     assert len(_informing_steps(lambda t: 0.1 * np.sin(t))) == len(steps)  # within the band

@@ -26,7 +26,7 @@ def _first_seconds_fit(config: AircraftConfig, seed: int, seconds: float) -> np.
         flight.t_s[:n],
         flight.inputs[:n],
         flight.measurements[:n],
-        np.array(tuning.initial_coefficients),
+        np.zeros(len(config.coefficient_names)),
         np.array(tuning.initial_sigma.coefficients),
     ).beta
 

@@ -79,7 +79,7 @@ class Estimator:
         self._t0 = math.nan
         self._t_last = -math.inf
         self.gaps = 0
-        """Frames after more than filter.max_gap_s without one: the flight states
+        """Frames after more than core.MAX_GAP_S without one: the flight states
         started afresh there."""
         self.out_of_order = 0
         """Frames at or before the previous frame's time: skipped."""
@@ -97,22 +97,22 @@ class Estimator:
         """The final pass of `source` (the pass that ran to its end) again, over its frames
         (t, u, y as its history holds them), with this estimator's noise_scale on that
         pass's settings: from the same start, the flight states started afresh after every
-        gap longer than filter.max_gap_s as the run did (Runner.replay). With no
+        gap longer than core.MAX_GAP_S as the run did (Runner.replay). With no
         noise_scale it ends where source did. Keeps no history of its own."""
         self.runner.starts = dict(source.runner.starts)
         self.tunings = scaled(dict(source.tunings), self.noise_scale)
-        self.runner.replay(self.states, t, u, y, self.tunings, self.config.filter.max_gap_s)
+        self.runner.replay(self.states, t, u, y, self.tunings, core.MAX_GAP_S)
         self.frames += len(t)
 
     def admit(self, t: float, y: FloatArray) -> bool:
         """Whether a frame at vehicle time t can be processed next. A frame not after the
-        last one is skipped; one after a gap longer than filter.max_gap_s rebases the
-        flight states there, so no prediction spans more than max_gap_s (a far-future
+        last one is skipped; one after a gap longer than core.MAX_GAP_S rebases the
+        flight states there, so no prediction spans more than MAX_GAP_S (a far-future
         time never makes the filters integrate for hours)."""
         if not t > self._t_last:
             self.out_of_order += 1
             return False
-        if self.frames and t - self._t_last > self.config.filter.max_gap_s:
+        if self.frames and t - self._t_last > core.MAX_GAP_S:
             self.gaps += 1
             self.rebase(t, y)
         return True

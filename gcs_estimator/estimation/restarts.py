@@ -3,7 +3,7 @@
 
 At each of filter.restart_times_s both filters begin a re-run of the buffered frames from
 the start: the first from the equation-error warm start's fit to those frames, later ones
-from the live pass's estimates, the coefficient prior widened by restart_sigma_inflation
+from the live pass's estimates, the coefficient prior widened by SIGMA_INFLATION
 (never wider than P0), the measurement noise read from the frames where
 measurement_noise = "auto" (noise.py). The re-run goes on beside the live pass, at least
 filter.restart_frames_per_step frames per new frame once its grace has passed (more
@@ -28,6 +28,11 @@ from gcs_estimator.estimation.history import StepOutput
 from gcs_estimator.estimation.noise import NoiseReading
 from gcs_estimator.estimation.passes import Frame, Lanes, Runner, Start, Tunings
 from gcs_estimator.model.aircraft import Model
+
+SIGMA_INFLATION = 10.0
+"""A restart's prior sigma of each coefficient over the sigma of the estimate it starts
+from: wide enough that re-using the early data in that prior weighs little next to the
+data themselves (docs/decisions/0001)."""
 
 GRACE_PER_PEER = 5
 """Frames a restart waits before the receive path must do its work, for each other
@@ -248,7 +253,7 @@ class Restarts:
             # A data-derived prior, widened so that reusing the early data in it weighs
             # little next to the data themselves; never wider than P0.
             self.runner.starts[kind] = Start(
-                beta, np.minimum(p0, ft.restart_sigma_inflation * sigma), pending.gust[kind]
+                beta, np.minimum(p0, SIGMA_INFLATION * sigma), pending.gust[kind]
             )
         self._pending = None
         self._rerun = dict.fromkeys(FILTER_KINDS)
@@ -266,7 +271,7 @@ def _fit(settings: FilterTuning, model: Model, frames: list[Frame]) -> tuple[War
         t_b,
         u_b,
         y_b,
-        np.array(settings.initial_coefficients),
+        np.zeros(model.n_coefficients),  # the filters' prior: the paper's zero start
         np.array(settings.initial_sigma.coefficients),
     )
     return WarmStart(ws.beta, ws.samples, len(t_b)), ws.sigma

@@ -110,7 +110,7 @@ class EstimatorResult(NamedTuple):
     """Frames the warm start fitted per axis (CD, CL, Cm), of `warm_start_frames`."""
     warm_start_frames: int = 0
     gaps: int = 0
-    """Frames after which the flight states started afresh (filter.max_gap_s)."""
+    """Frames after which the flight states started afresh (filters.core.MAX_GAP_S)."""
     frames_out_of_order: int = 0
     """Frames skipped because they were not after the previous one."""
     final_pass_from: int = 0

@@ -26,6 +26,7 @@ from gcs_estimator import units
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
+    PLAUSIBLE_MAX,
     PLAUSIBLE_QUANTITIES,
     POWER_COLUMNS,
     QUANTITY_KINDS,
@@ -384,7 +385,7 @@ LIKELY_UNITS: dict[str, tuple[str, ...]] = {
 
 def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -> None:
     """Refuse a file whose values, read in the configured units, cannot be a fixed-wing
-    aircraft's (data.plausible_max), naming the unit they are likely in. The time
+    aircraft's (config.PLAUSIBLE_MAX), naming the unit they are likely in. The time
     steps of a flight record are below a second."""
     t = si["time"]
     if len(t) > 2 and float(np.median(np.diff(t))) >= 1.0:
@@ -399,7 +400,7 @@ def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -
             f'are below a second: if the column is in {unit}, set [data.units] time = "{unit}" '
             f"(or --set data.units.time={unit})"
         )
-    limits = dict(zip(PLAUSIBLE_QUANTITIES, data.plausible_max, strict=True))
+    limits = dict(zip(PLAUSIBLE_QUANTITIES, PLAUSIBLE_MAX, strict=True))
     for quantity, limit in limits.items():
         values = si.get(quantity)
         if values is None or not np.any(np.isfinite(values)):
@@ -418,8 +419,8 @@ def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -
                 )
                 break
         raise FlightDataError(
-            f"{path}: {quantity} reaches {worst:g} (SI, read as {now}), beyond "
-            f"data.plausible_max.{quantity} = {limit:g}{hint}"
+            f"{path}: {quantity} reaches {worst:g} (SI, read as {now}), beyond the "
+            f"{limit:g} a fixed-wing aircraft's can reach{hint}"
         )
 
 

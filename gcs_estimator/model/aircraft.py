@@ -16,6 +16,9 @@ from gcs_estimator.model.channels import FLIGHT_STATES, N_INPUTS, REQUIRED_INPUT
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.model.state import StateLayout
 
+STANDARD_GRAVITY_MPS2 = 9.80665
+"""g [m/s^2] (ISO 80000-3): the aircraft of this tool fly low enough for it to hold."""
+
 FLIGHT, GUSTS, COEFFICIENTS, BIASES = "flight", "gusts", "coefficients", "biases"
 """Names of the augmented state's blocks."""
 GUST_STATES = ("u_g", "w_g")
@@ -119,7 +122,7 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     k[eq.CHORD] = a.mean_chord_m
     k[eq.IYY] = a.inertia_yy_kgm2
     k[eq.RHO] = a.air_density_kgpm3
-    k[eq.GRAV] = a.gravity_mps2
+    k[eq.GRAV] = STANDARD_GRAVITY_MPS2
     k[eq.V0] = a.trim_airspeed_mps
     k[eq.SIGMA_T] = a.thrust_inclination_rad
     k[eq.ARM] = a.thrust_moment_arm_m
@@ -142,9 +145,9 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     names = config.structure.names
     biases = tuple(f"{c}_bias" for c in s.bias_states)
     gusts = turbulence.model == "states" if gust_states is None else gust_states
-    # The pitch gust's state with a wing span (unless turned off), but never in the
+    # The pitch gust's state with a wing span, but never in the
     # still-air model the simulators and output error fly (gust_states=False).
-    pitch = a.wing_span_m > 0.0 and gust_states is not False and turbulence.pitch_gust
+    pitch = a.wing_span_m > 0.0 and gust_states is not False
     gust_names = (GUST_STATES if gusts else ()) + ((PITCH_GUST_STATE,) if pitch else ())
     layout = StateLayout.assemble(
         [(FLIGHT, FLIGHT_STATES, True)]

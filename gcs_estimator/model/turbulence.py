@@ -15,6 +15,10 @@ SIGMA_W_PRESETS: dict[str, float] = {"none": 0.0, "light": 0.772, "moderate": 1.
 SIGMA_U_RATIO = 1.5
 """sigma_u / sigma_w of the presets."""
 
+THETA_DENSITY = 1.7e-6
+"""The filters' white process noise on theta per unit sigma_w^2 [rad^2/s per (m/s)^2]
+(gust_densities)."""
+
 
 def gust_densities(
     airspeed_mps: float,

@@ -76,6 +76,7 @@ from gcs_estimator import blas
 from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import REFINE_METHODS
 from gcs_estimator.estimation.estimator import EstimatorResult, FilterKind
+from gcs_estimator.estimation.filters.core import MAX_STEP_S
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
@@ -1124,7 +1125,7 @@ def refine_run(
         start,
         np.asarray(result.measurement_sigma or tuning.measurement_sigma, float),
         np.asarray(tuning.process_noise.states, float),
-        tuning.max_step_s,
+        MAX_STEP_S,
         linear_inputs=config.data.input_hold == "linear",
         estimate_process_noise=method == "filter-error",
         progress=progress,

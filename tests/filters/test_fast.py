@@ -1,8 +1,8 @@
 """The compiled backend keeps the step contract exactly as the numpy reference does.
 
 Kernel level: one step from hypothesis-drawn states (random positive definite
-covariances, missing channels, 1-20 iterations, the innovation and relinearisation gates,
-early stopping, the turbulence matching, near-singular and failing updates), both backends,
+covariances, missing channels, 1-20 iterations, the relinearisation gate, the turbulence
+matching, near-singular and failing updates), both backends,
 compared field by field. Flight level: both backends over the first 12 s of a flight.
 """
 
@@ -75,7 +75,7 @@ def _state(model: Model, truth: np.ndarray, rng: np.random.Generator, spread: fl
         t_moved=float(rng.choice([-math.inf, rng.uniform(-5.0, 1.0)])),
         t_still=float(rng.choice([math.nan, rng.uniform(-12.0, 1.0)])),
     )
-    return FilterState(x, P, 1.0, tr.inputs.copy(), 1.0 - rng.uniform(0.0, 10.0), gust)
+    return FilterState(x, P, 1.0, tr.inputs.copy(), gust)
 
 
 def _assert_same(
@@ -110,7 +110,7 @@ def _assert_same(
     for field in ("var", "info", "gain", "pass_num", "pass_den"):
         assert getattr(ga, field) == pytest.approx(getattr(gb, field), rel=PATHS_RTOL, abs=1e-12)
     np.testing.assert_allclose(ga.sens, gb.sens, rtol=PATHS_RTOL)
-    assert sa.t == sb.t and sa.t_start == sb.t_start
+    assert sa.t == sb.t
     np.testing.assert_array_equal(sa.u, sb.u)
 
 
@@ -128,9 +128,7 @@ STEP_CASES = st.fixed_dictionaries(
     {
         "seed": st.integers(0, 2**31),
         "iterations": st.integers(1, 20),
-        "tolerance": st.sampled_from([0.0, 1e-3, 0.1]),
         "relinearise": st.sampled_from([0.0, 0.5, 1.0, 3.0]),
-        "gate": st.sampled_from([0.0, 2.0, 4.0]),
         "adaptive": st.booleans(),
         "dt": st.sampled_from([0.0, 0.02, 0.05, 0.1]),
         "missing": st.lists(st.booleans(), min_size=N_OBS, max_size=N_OBS),
@@ -143,9 +141,7 @@ def _tuning(config: AircraftConfig, model: Model, case: Case) -> Tuning:
     base = core.tuning_of(config, model, "IEKF")
     return base._replace(
         iterations=case["iterations"],
-        tolerance=case["tolerance"],
         relinearise=case["relinearise"],
-        gate=case["gate"],
         adaptive=case["adaptive"],
     )
 
@@ -248,32 +244,29 @@ def test_a_non_finite_belief_starts_again_from_the_prior(noc: Aircraft) -> None:
     for backend in ("fast", "reference"):
         s, info = stepper(backend)(state._replace(x=x), 2.0, state.u, y, tuning, model)
         assert info.diverged
-        np.testing.assert_array_equal(s.x[model.coefficients], tuning.prior_x[model.coefficients])
-        assert s.t == s.t_start == 2.0
+        np.testing.assert_array_equal(s.x[model.coefficients], 0.0)  # the zero start
+        assert s.t == 2.0
 
 
-def _adaptive_off(config: AircraftConfig, gate: float) -> AircraftConfig:
+def _adaptive_off(config: AircraftConfig) -> AircraftConfig:
     tuning = config.filter
     return replace(
         config,
         filter=replace(
             tuning,
-            innovation_gate=gate,
             relinearise_sigma=0.0,
             turbulence=replace(tuning.turbulence, adaptive=False, sigma_w_mps=0.3),
         ),
     )
 
 
-@pytest.mark.parametrize(("gate", "turbulence"), [(0.0, "noise"), (4.0, "noise"), (0.0, "states")])
-def test_fast_equals_reference_over_a_flight(
-    noc_config: AircraftConfig, gate: float, turbulence: str
-) -> None:
+@pytest.mark.parametrize("turbulence", ["noise", "states"])
+def test_fast_equals_reference_over_a_flight(noc_config: AircraftConfig, turbulence: str) -> None:
     # The turbulence level adapts from the innovations, feeding each path's rounding back
     # into its process noise, and the iteration gate is a threshold: both fixed here so
     # that the flight compares the arithmetic (the kernel tests above cover both). With
     # gust states, the flight is flown through light turbulence.
-    config = _adaptive_off(noc_config, gate)
+    config = _adaptive_off(noc_config)
     if turbulence == "states":
         tuning = config.filter
         config = replace(
@@ -392,7 +385,7 @@ def test_the_kernel_unpacks_every_field_as_packed(noc_config: AircraftConfig, ki
     shows."""
     model = build_model(noc_config)
     tuning = core.tuning_of(noc_config, model, kind)  # type: ignore[arg-type]
-    distinct = {
+    distinct: dict[str, Any] = {
         name: 0.125 + slot
         for slot, name in enumerate(Tuning._fields)
         if isinstance(getattr(tuning, name), float)
@@ -404,12 +397,12 @@ def test_the_kernel_unpacks_every_field_as_packed(noc_config: AircraftConfig, ki
         for got, want in ((tun, tuning), (arrays, m)):
             assert type(got) is type(want)
             for name, a, b in zip(want._fields, got, want, strict=True):
-                assert type(a) is type(b) or (
-                    isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
-                ), name
-                np.testing.assert_array_equal(a, b, err_msg=name)
                 if isinstance(b, np.ndarray):
+                    assert isinstance(a, np.ndarray), name
                     assert a.dtype == b.dtype and a.shape == b.shape, name
+                else:
+                    assert type(a) is type(b), name
+                np.testing.assert_array_equal(a, b, err_msg=name)
 
 
 @pytest.mark.parametrize("kind", ["EKF", "IEKF"])

@@ -217,15 +217,16 @@ def test_recordings_joined_into_one_file_are_read_whole(
     assert (stats.time_jumps, stats.bad_times, stats.junk_bytes) == (1, 0, 0)
 
 
-def test_in_range_but_absurd_values_are_dropped_with_configurable_limits(vehicle: Codec) -> None:
-    """An 80 deg angle of attack is a number a float holds and no fixed wing flies."""
+def test_in_range_but_absurd_values_are_dropped_by_the_ranges_given(vehicle: Codec) -> None:
+    """An 80 deg angle of attack is a number a float holds and no fixed wing flies; the
+    decoder drops by the ranges it is given."""
     from gcs_estimator.config import load_config
     from gcs_estimator.ingest.telemetry.decode import ranges_of
 
     packet = vehicle.pack(vehicle.mav.aoa_ssa_encode(1, 80.0, 0.0))
     stats = DecodeStats()
     assert _decode(packet, stats) == Ignored() and stats.invalid_values == 1
-    wide = ranges_of(load_config("noc_uav", ["data.plausible_max.alpha=1.5"]).data)
+    wide = {**ranges_of(load_config("noc_uav").data), Channel.ALPHA: (-1.5, 1.5)}
     decoded = decode_packet(Decoder(), packet, 1.0, LINK, DecodeStats(), wide)
     assert decoded is not None and isinstance(decoded.event, Sample)
 

@@ -8,7 +8,7 @@ import numpy as np
 from gcs_estimator.config import load_config
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.model.aircraft import trim
-from gcs_estimator.outputs.view.live import RerunView
+from gcs_estimator.outputs.view.live import FLUSH_INTERVAL_S, RerunView
 from gcs_estimator.outputs.view.outlets import Layout, Op, Outlet
 
 
@@ -38,7 +38,7 @@ def test_vehicles_appearing_together_share_one_layout() -> None:
         view.step(sid, 0.01 * sid, 0.0, est.model.inputs(tr.inputs), y, outs)
     layouts = [op for op in out.ops if isinstance(op, Layout)]
     assert [len(op.system_ids) for op in layouts] == [1]  # the first at once
-    now[0] += 2 * config.view.flush_interval_s
+    now[0] += 2 * FLUSH_INTERVAL_S
     view.tick()
     layouts = [op for op in out.ops if isinstance(op, Layout)]
     assert [len(op.system_ids) for op in layouts] == [1, 20]

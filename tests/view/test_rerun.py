@@ -26,6 +26,7 @@ from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.model.channels import FLIGHT_STATES as STATE_NAMES
 from gcs_estimator.outputs.table import final_table, live_table
 from gcs_estimator.outputs.view import layout as lay
+from gcs_estimator.outputs.view import live
 from gcs_estimator.outputs.view.live import RerunView, ViewSink
 from gcs_estimator.outputs.view.outlets import LocalOutlet
 from gcs_estimator.runtime.decode_worker import tlog_source
@@ -112,8 +113,7 @@ def test_coefficients_are_the_filter_outputs_at_the_estimate_rate(
     tr = tracks(run)
     truth = np.array(run.result.config.truth)
     axes = run.result.config.structure.axes
-    rate = run.result.config.view.display_rate_hz
-    e_rate = run.result.config.view.estimate_rate_hz
+    rate, e_rate = live.DISPLAY_RATE_HZ, live.ESTIMATE_RATE_HZ
     assert 0 < e_rate < 1 / np.median(np.diff(t_s))  # the frames come faster: decimated
     for i, name in enumerate(run.result.names):
         t, v = read_scalars(path, path_of(run, name))
@@ -151,7 +151,7 @@ def test_display_series_are_decimated_samples_of_the_same_outputs(
 ) -> None:
     run, path, t_s = short_run
     tr = tracks(run)
-    rate = run.result.config.view.display_rate_hz
+    rate = live.DISPLAY_RATE_HZ
     for j, state in enumerate(STATE_NAMES):
         t, v = read_scalars(path, lay.state_path(1, state))
         assert len(t) == len(np.unique(np.floor(t_s * rate)))  # one row per display interval

@@ -17,8 +17,7 @@ Which backend runs is chosen once (`stepper`); both have the same failure semant
 
 Process noise (Q, continuous-time spectral density, diagonal):
 
-    Q(t) = diag(q_final + (q_initial - q_final) exp(-(t - t_start) / q_decay_s))
-           + sigma_w^2 diag(gust_unit)
+    Q = diag(q) + sigma_w^2 diag(gust_unit)
 
 where sigma_w^2 is the vertical gust variance estimated online by covariance matching
 (GustState), applied only once detected; gust_unit drives the gust states where the
@@ -68,6 +67,35 @@ GUST_CLIP = 25.0
 """Squared innovations count at most this many times their variance (5 sigma) in the
 covariance matching, so that a glitch or the zero-start transient does not set the level."""
 
+GUST_ADAPT_TIME_S = 2.0
+"""Averaging time of the running gust level [s] (GustState): a few seconds of data judge
+it, so that it follows turbulence that comes and goes."""
+
+GUST_STILL_BAND_RAD = math.radians(0.2)
+"""Elevator moves within this band [rad] leave the inputs still (adapt_gust; decision
+0015)."""
+
+GUST_MAX_WAIT_S = 10.0
+"""When the inputs have not been still for this long [s] (a flight with the elevator always
+moving), every step informs the gust level (adapt_gust)."""
+
+MAX_STEP_S = 0.02
+"""Longest Runge-Kutta step of the prediction [s]: 50 Hz, the rate of the paper's data;
+longer intervals (the HFB-320's 10 Hz) are split."""
+
+MAX_GAP_S = 2.0
+"""Longest prediction [s]: after a longer gap between frames the flight states start
+afresh from the next measurement (the coefficients are kept), so that a far-future time
+never makes the filters integrate for hours."""
+
+FLIGHT_PRIOR_SIGMA: tuple[float, ...] = (1.0, 0.02, 0.02, 0.02)
+"""Prior 1 sigma of the flight states [V m/s, alpha rad, theta rad, q rad/s] about their
+first measurement (or trim speed and zeros where it has none)."""
+
+BIAS_SIGMA: tuple[float, ...] = (1.0, math.radians(2.0), math.radians(2.0), 0.01, 0.1, 0.5, 0.5)
+"""Prior 1 sigma of an estimated sensor bias, per channel [SI]; the biases are constant
+(no process noise)."""
+
 
 class GustState(NamedTuple):
     """Online estimate of the vertical gust variance sigma_w^2 [m^2/s^2].
@@ -76,7 +104,7 @@ class GustState(NamedTuple):
     large as predicted, from (e_c^2 - S_c) / G_c per channel, G_c = dt sum_j H_cj^2 unit_j
     the change of S_c per unit gust variance, weighted by G_c^2 / (2 S_c^2) (their Fisher
     information). The running estimate is an exponential average with gain
-    g = dt / adapt_time_s; the pass sums give the average over the whole pass. Which
+    g = dt / GUST_ADAPT_TIME_S; the pass sums give the average over the whole pass. Which
     steps inform it: adapt_gust.
     """
 
@@ -129,7 +157,7 @@ class GustState(NamedTuple):
     def pass_z(self) -> float:
         """The pass's average level in its standard errors, 1/sqrt(sum of the steps'
         information): how far the whole pass says the air was turbulent (NaN: nothing
-        measured). Where the running level, judged over adapt_time_s, stays below its
+        measured). Where the running level, judged over GUST_ADAPT_TIME_S, stays below its
         detection threshold, a whole pass can still find turbulence: weak gusts, or ones of
         a long scale length."""
         if self.pass_den <= 0.0:
@@ -162,8 +190,6 @@ class FilterState(NamedTuple):
     """Vehicle time of the belief [s]."""
     u: FloatArray
     """Inputs held since t [elevator rad, throttle or thrust N]."""
-    t_start: float
-    """Origin of the process-noise schedule [s] (the pass's first frame)."""
     gust: GustState
 
 
@@ -172,50 +198,36 @@ class Tuning(NamedTuple):
 
     R: FloatArray
     """Measurement noise covariance [N_OBS x N_OBS]."""
-    q_final: FloatArray
-    """Settled process-noise spectral density per state [n]."""
-    q_initial: FloatArray
-    """Process-noise spectral density at t_start [n]; decays to q_final."""
-    q_decay_s: float
+    q: FloatArray
+    """Process-noise spectral density per state [n], before turbulence (gust_unit)."""
     gust_unit: FloatArray
     """Process-noise spectral density per unit sigma_w^2 [n] (zero but on the gust states,
     or on the flight states where turbulence is white process noise)."""
     iterations: int
     """Measurement-update iterations: 1 is the EKF, more the IEKF."""
-    tolerance: float
-    """Early stop when no state moves by more than this many prior sigmas (0: off)."""
     relinearise: float
     """Keep the IEKF's iterations only when they move some coefficient by at least this many
     EKF-posterior sigmas (0: always iterate). See hybrid.iekf_update."""
     max_step_s: float
-    """Longest Runge-Kutta step of the prediction [s]."""
-    gate: float
-    """Reject channels whose innovation exceeds this many sigma (0: off)."""
+    """Longest Runge-Kutta step of the prediction [s] (MAX_STEP_S)."""
     adaptive: bool
     """Estimate the gust level online."""
-    adapt_time_s: float
     detection2: float
     """Squared detection threshold of the gust level, in its standard errors."""
-    prior_x: FloatArray
-    """Configured prior mean of the coefficient block; the flight states come from the
-    first measurement."""
     prior_sigma: FloatArray
-    """Configured prior sigma of the whole augmented state [n]."""
+    """Prior sigma of the whole augmented state [n]: the coefficients' as configured, the
+    flight states' FLIGHT_PRIOR_SIGMA about their first measurement. The prior mean of the
+    coefficients is zero (the paper's start; the restarts start from the data)."""
     gust_var0: float
     """Configured initial gust variance [m^2/s^2]."""
     linear_inputs: bool
     """Inputs linear between samples (first-order hold), else held at the earlier sample."""
     state_max: FloatArray
     """Largest magnitude of each flight state [V, alpha, theta, q] a belief may hold
-    (twice what an aircraft's signals reach, data.plausible_max); beyond it, or at an
+    (twice what an aircraft's signals reach, config.PLAUSIBLE_MAX); beyond it, or at an
     airspeed not above zero, the belief has run away (see plausible)."""
-    still_band: float
-    """Elevator moves within this band [rad] leave the inputs still (adapt_gust)."""
     settle_s: float
     """Time after the elevator's last move before a step informs the gust level [s]."""
-    max_wait_s: float
-    """When the inputs have not been still for this long [s], every step informs the
-    level."""
 
 
 class StepInfo(NamedTuple):
@@ -247,12 +259,9 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     ft = config.filter
     n = model.n
     flight, coef = model.flight, model.coefficients
-    q_final = np.zeros(n)
-    q_initial = np.zeros(n)
-    q_final[flight] = ft.process_noise.states
-    q_initial[flight] = ft.process_noise.states
-    q_final[coef] = ft.process_noise.coefficients
-    q_initial[coef] = ft.process_noise.coefficients_initial
+    q = np.zeros(n)
+    q[flight] = ft.process_noise.states
+    q[coef] = ft.process_noise.coefficients
     unit = np.zeros(n)
     turb = ft.turbulence
     v0 = float(model.k[eq.V0])
@@ -261,42 +270,28 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         unit[model.gusts.start : model.gusts.start + 2] = gust_state_densities(
             v0, turb.sigma_u_ratio, turb.length_u_m, turb.length_w_m
         )
-        q_final[model.gusts] = GUST_STATE_FLOOR**2 * unit[model.gusts]
-        q_initial[model.gusts] = q_final[model.gusts]
+        q[model.gusts] = GUST_STATE_FLOOR**2 * unit[model.gusts]
     else:
         unit[flight] = turb.unit(v0)
-    prior_x = np.zeros(n)
-    prior_x[coef] = ft.initial_coefficients
     prior_sigma = np.zeros(n)
-    prior_sigma[flight] = ft.initial_sigma.states
+    prior_sigma[flight] = FLIGHT_PRIOR_SIGMA
     prior_sigma[coef] = ft.initial_sigma.coefficients
-    channels = list(config.sensors.bias_channels)
-    prior_sigma[model.biases] = np.array(ft.initial_sigma.biases)[channels]
-    q_final[model.biases] = np.array(ft.process_noise.biases)[channels]
-    q_initial[model.biases] = q_final[model.biases]
+    prior_sigma[model.biases] = np.array(BIAS_SIGMA)[list(config.sensors.bias_channels)]
     return Tuning(
         R=np.diag(np.square(ft.measurement_sigma)),
-        q_final=q_final,
-        q_initial=q_initial,
-        q_decay_s=ft.process_noise.coefficient_decay_s,
+        q=q,
         gust_unit=unit,
         iterations=1 if kind == "EKF" else ft.iterations,
-        tolerance=ft.iteration_tolerance,
         relinearise=ft.relinearise_sigma,
-        max_step_s=ft.max_step_s,
-        gate=ft.innovation_gate,
+        max_step_s=MAX_STEP_S,
         adaptive=ft.turbulence.adaptive,
-        adapt_time_s=ft.turbulence.adapt_time_s,
         detection2=ft.turbulence.detection_sigma**2,
-        prior_x=prior_x,
         prior_sigma=prior_sigma,
         gust_var0=ft.turbulence.sigma_w_mps**2,
         linear_inputs=config.data.input_hold == "linear",
         state_max=STATE_MARGIN
         * np.array([config.data.plausible(q) for q in ("airspeed", "alpha", "theta", "q")]),
-        still_band=math.radians(turb.still_band_deg),
         settle_s=turb.settle_s,
-        max_wait_s=turb.max_wait_s,
     )
 
 
@@ -313,7 +308,7 @@ def initial_state(
     """The belief at the first frame of a pass: flight states from the measurement where
     present (else trim speed and zeros), coefficients N(coefficients, sigma^2) (default:
     the configured prior), the gust level given (default: configured)."""
-    x = tuning.prior_x.copy()
+    x = np.zeros(model.n)
     sigma = tuning.prior_sigma.copy()
     flight = model.flight
     state = np.array([model.k[eq.V0], 0.0, 0.0, 0.0])
@@ -356,7 +351,6 @@ def initial_state(
         P=P,
         t=t,
         u=np.array(u, float),
-        t_start=t,
         gust=GustState.start(level),
     )
 
@@ -367,7 +361,7 @@ def rebase(
     """A new time base (the vehicle clock reset): keep what is known of the coefficients,
     take the flight states (and a pitch gust's state tied to alpha) afresh from the
     measurement with their initial uncertainty.
-    The process-noise schedule and the gust estimate's clocks keep their age."""
+    The gust estimate's clocks keep their age."""
     fresh = initial_state(model, tuning, t, state.u, y)
     # The flight states, and a pitch gust's state tied to alpha (white gust noise).
     afresh = list(range(model.flight.start, model.flight.stop))
@@ -386,7 +380,6 @@ def rebase(
         P=P,
         t=t,
         u=np.full(state.u.shape, np.nan),
-        t_start=state.t_start + shift,
         gust=g._replace(t_moved=g.t_moved + shift, t_still=g.t_still + shift),
     )
 
@@ -425,11 +418,8 @@ def input_path(u_prev: FloatArray, u: FloatArray, linear: bool) -> tuple[FloatAr
 
 
 def process_noise(state: FilterState, tuning: Tuning) -> tuple[FloatArray, float]:
-    """Diagonal of Q at the state's time, and the gust variance in it."""
-    decay = math.exp(-max(state.t - state.t_start, 0.0) / tuning.q_decay_s)
-    q = tuning.q_final.copy()
-    if decay >= 1e-12:
-        q = tuning.q_final + (tuning.q_initial - tuning.q_final) * decay
+    """Diagonal of Q, and the gust variance in it."""
+    q = tuning.q.copy()
     g = state.gust
     gust = gust_applied(g.var, g.info, g.gain, tuning.detection2)
     if gust > 0.0:
@@ -471,8 +461,9 @@ def adapt_gust(
     plus a correction: averaged over the pass (for the next restart) and running.
 
     While no level is applied, a step informs the estimate only once the inputs are
-    still: settle_s after the elevator last moved beyond still_band; or, when they have
-    not been still for max_wait_s (a flight with the inputs always moving), every step.
+    still: settle_s after the elevator last moved beyond GUST_STILL_BAND_RAD; or, when
+    they have not been still for GUST_MAX_WAIT_S (a flight with the inputs always moving),
+    every step.
     A model that misses part of the aircraft's response leaves innovations in its
     manoeuvres and hardly after them; turbulence leaves them everywhere. So the level
     cannot be switched on by the model's own error, and once turbulence is detected every
@@ -490,19 +481,19 @@ def adapt_gust(
     moved = g.t_moved
     if not math.isfinite(ref):
         ref = u[0]
-    elif math.isfinite(u[0]) and abs(u[0] - ref) > tuning.still_band:
+    elif math.isfinite(u[0]) and abs(u[0] - ref) > GUST_STILL_BAND_RAD:
         ref = u[0]
         moved = t
     still = t - moved >= tuning.settle_s
     last_still = t if still or not math.isfinite(g.t_still) else g.t_still
-    informs = applied > 0.0 or t - last_still >= tuning.max_wait_s or still
+    informs = applied > 0.0 or t - last_still >= GUST_MAX_WAIT_S or still
     num, den = gust_match(e, s, dt * sens)
     if not (informs and den > 0.0):
         return GustState(
             g.var, g.info, g.gain, g.pass_num, g.pass_den, sens, age, ref, moved, last_still
         )
     estimate = applied + num / den
-    gain = min(1.0, dt / tuning.adapt_time_s)
+    gain = min(1.0, dt / GUST_ADAPT_TIME_S)
     info = g.info + gain * (den - g.info) if g.info > 0.0 else den
     var = max(g.var + gain * (estimate - g.var), GUST_VAR_FLOOR)
     return GustState(

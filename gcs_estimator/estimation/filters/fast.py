@@ -196,22 +196,13 @@ def fly(
 
 
 @njit(cache=True, inline="always")
-def _select(
-    y: FloatArray, hx: FloatArray, H: FloatArray, HP: FloatArray, R: FloatArray, gate: float
-) -> IntArray:  # pragma: no cover
-    """Channels present in y and, with gate > 0, within gate sigma of the prediction."""
+def _select(y: FloatArray) -> IntArray:  # pragma: no cover
+    """The channels present in y."""
     idx = np.empty(N_OBS, dtype=np.int64)
     m = 0
     for i in range(N_OBS):
         if not math.isfinite(y[i]):
             continue
-        if gate > 0.0:
-            s_ii = 0.0
-            for j in range(H.shape[1]):
-                s_ii += HP[i, j] * H[i, j]
-            s_ii += R[i, i]
-            if abs(y[i] - hx[i]) > gate * math.sqrt(s_ii):
-                continue
         idx[m] = i
         m += 1
     return idx[:m]
@@ -311,9 +302,6 @@ def _iterate(
     linearisation it came from, the iterations kept, and False if some S_i was not
     positive definite."""
     n = xp.shape[0]
-    check = tun.tolerance > 0.0
-    # The prior sigmas, for the early stop only (a state held exactly cannot move).
-    sigma = np.sqrt(np.maximum(np.diag(Pp), 1e-300)) if check else Pp[0]
     x_i = xp.copy()
     lin = first
     Kt = Kt1 = np.empty((0, n))  # set at the first iteration (iterations >= 1)
@@ -335,15 +323,9 @@ def _iterate(
             # Keep the EKF update: re-linearising moved nothing by `relinearise` sigmas.
             return x_i, Kt1, first, done, True
         done = it + 1
-        biggest = 0.0
-        if check:
-            for j in range(n):
-                biggest = max(biggest, abs(x_next[j] - x_i[j]) / sigma[j])
         x_i = x_next
         if it == 0:
             Kt1 = Kt
-        if check and biggest < tun.tolerance:
-            break
     return x_i, Kt, lin, done, True
 
 
@@ -358,7 +340,7 @@ def _update(
     hx, H = observe(xp, u, m)
     start, cols = small.nonzero_columns(H)
     HP = small.sparse_times(H, start, cols, Pp)
-    idx = _select(y, hx, H, HP, tun.R, tun.gate)
+    idx = _select(y)
     k = idx.shape[0]
     if k == 0:
         return xp, Pp, e_out, s_out, 0.0, 0, 0
@@ -410,7 +392,7 @@ def _step(
         smallest > 0.0 and math.isfinite(x.sum() + P.sum()) and core.plausible(x, tun.state_max)
     )
     gust = core.adapt_gust(st.gust, tun, m, t, dt, x, u, e, s, applied)
-    new = FilterState(x, P, t, u.copy(), st.t_start, gust)
+    new = FilterState(x, P, t, u.copy(), gust)
     info = StepInfo(
         sigma,
         nis,
@@ -505,26 +487,18 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
     t, a = TUNING_SLOTS, MODEL_SLOTS
     tun = Tuning(
         R=_floats(tf, ti, t.R).reshape((N_OBS, N_OBS)),
-        q_final=_floats(tf, ti, t.q_final),
-        q_initial=_floats(tf, ti, t.q_initial),
-        q_decay_s=_float(tf, ti, t.q_decay_s),
+        q=_floats(tf, ti, t.q),
         gust_unit=_floats(tf, ti, t.gust_unit),
         iterations=_int(ti, t.iterations),
-        tolerance=_float(tf, ti, t.tolerance),
         relinearise=_float(tf, ti, t.relinearise),
         max_step_s=_float(tf, ti, t.max_step_s),
-        gate=_float(tf, ti, t.gate),
         adaptive=_int(ti, t.adaptive) != 0,
-        adapt_time_s=_float(tf, ti, t.adapt_time_s),
         detection2=_float(tf, ti, t.detection2),
-        prior_x=_floats(tf, ti, t.prior_x),
         prior_sigma=_floats(tf, ti, t.prior_sigma),
         gust_var0=_float(tf, ti, t.gust_var0),
         linear_inputs=_int(ti, t.linear_inputs) != 0,
         state_max=_floats(tf, ti, t.state_max),
-        still_band=_float(tf, ti, t.still_band),
         settle_s=_float(tf, ti, t.settle_s),
-        max_wait_s=_float(tf, ti, t.max_wait_s),
     )
     model = ModelArrays(
         k=_floats(tf, ti, a.k),
@@ -565,18 +539,25 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
 # boxing the arrays of the new belief and the step's report, and the named tuples built
 # around them), so the runner keeps each belief in one float buffer that the kernel
 # updates where it lies, and the step's report in one output row that the kernel fills.
-# Layout of the buffer: BELIEF_HEAD scalars (t, t_start, the gust estimate's floats as
-# _state_of takes them, its sensitivities' age), then x [n], P [n x n], u, sens [N_OBS].
+# Layout of the buffer: a head of scalars, t and the gust estimate's scalar fields in
+# their order (HEAD_SLOTS), then x [n], P [n x n], u, sens [N_OBS].
 
-BELIEF_HEAD = 11
+_HEAD_GUST = tuple(f for f in GustState._fields if f != "sens")
+"""The gust estimate's scalar fields, in the head after t."""
+BELIEF_HEAD = 1 + len(_HEAD_GUST)
+"""Floats of the buffer's head."""
+HEAD_SLOTS: Any = GustState._make(
+    _HEAD_GUST.index(f) + 1 if f != "sens" else -1 for f in GustState._fields
+)
+"""A GustState whose scalar fields hold their place in the head (t is at 0; typed Any:
+ints, not the fields' types)."""
 
 
 def belief_buffer(state: FilterState) -> FloatArray:
     """A FilterState as one buffer (a new array; belief_of is its inverse)."""
-    x, P, t, u, t_start, g = state
-    head = [t, t_start, g.var, g.info, g.gain, g.pass_num, g.pass_den]
-    head += [g.input_ref, g.t_moved, g.t_still, float(g.sens_age)]
-    return np.concatenate((head, x, np.ravel(P), u, g.sens)).astype(np.float64)
+    g = state.gust
+    head = [state.t, *(float(getattr(g, f)) for f in _HEAD_GUST)]
+    return np.concatenate((head, state.x, np.ravel(state.P), state.u, g.sens)).astype(np.float64)
 
 
 def belief_of(buf: FloatArray, n: int) -> FilterState:
@@ -586,9 +567,9 @@ def belief_of(buf: FloatArray, n: int) -> FilterState:
     P = buf[o + n : o + n + n * n].reshape(n, n).copy()
     u = buf[o + n + n * n : buf.shape[0] - N_OBS].copy()
     sens = buf[buf.shape[0] - N_OBS :].copy()
-    h = buf[:BELIEF_HEAD].tolist()
-    g = GustState(h[2], h[3], h[4], h[5], h[6], sens, int(h[10]), h[7], h[8], h[9])
-    return FilterState(x, P, h[0], u, h[1], g)
+    head = dict(zip(_HEAD_GUST, buf[1:BELIEF_HEAD].tolist(), strict=True))
+    g = GustState(**{**head, "sens": sens, "sens_age": int(head["sens_age"])})
+    return FilterState(x, P, float(buf[0]), u, g)
 
 
 def output_width(n: int) -> int:
@@ -606,10 +587,20 @@ def _belief_views(buf: FloatArray, n: int, nu: int) -> FilterState:  # pragma: n
     P = buf[o + n : o + n + n * n].reshape((n, n))
     u = buf[o + n + n * n : o + n + n * n + nu]
     sens = buf[o + n + n * n + nu :]
+    h = HEAD_SLOTS
     g = GustState(
-        buf[2], buf[3], buf[4], buf[5], buf[6], sens, int(buf[10]), buf[7], buf[8], buf[9]
+        var=buf[h.var],
+        info=buf[h.info],
+        gain=buf[h.gain],
+        pass_num=buf[h.pass_num],
+        pass_den=buf[h.pass_den],
+        sens=sens,
+        sens_age=int(buf[h.sens_age]),
+        input_ref=buf[h.input_ref],
+        t_moved=buf[h.t_moved],
+        t_still=buf[h.t_still],
     )
-    return FilterState(x, P, buf[0], u, buf[1], g)
+    return FilterState(x, P, buf[0], u, g)
 
 
 @njit(cache=True, inline="always")
@@ -625,20 +616,20 @@ def _lane_step(
     """_step on the belief in buf, written back into it, and the step's report into out
     (output_width's layout): 0 healthy, 1 healthy with a failed update, 2 unhealthy (the
     belief in buf is the step's, for the contract to repair or restart)."""
-    n = tun.q_final.shape[0]
+    n = tun.q.shape[0]
     st = _belief_views(buf, n, u.shape[0])
     new, info, healthy = _step(st, t, u, y, tun, m)
-    g = new.gust
+    g, h = new.gust, HEAD_SLOTS
     buf[0] = new.t
-    buf[2] = g.var
-    buf[3] = g.info
-    buf[4] = g.gain
-    buf[5] = g.pass_num
-    buf[6] = g.pass_den
-    buf[7] = g.input_ref
-    buf[8] = g.t_moved
-    buf[9] = g.t_still
-    buf[10] = g.sens_age
+    buf[h.var] = g.var
+    buf[h.info] = g.info
+    buf[h.gain] = g.gain
+    buf[h.pass_num] = g.pass_num
+    buf[h.pass_den] = g.pass_den
+    buf[h.sens_age] = g.sens_age
+    buf[h.input_ref] = g.input_ref
+    buf[h.t_moved] = g.t_moved
+    buf[h.t_still] = g.t_still
     # Element by element: numba's slice assignment costs more than these copies.
     o = BELIEF_HEAD
     for i in range(n):

@@ -102,26 +102,15 @@ def available(y: FloatArray) -> BoolArray:
     return np.asarray(np.isfinite(y))
 
 
-def gate_channels(e: FloatArray, S: FloatArray, used: BoolArray, gate: float) -> BoolArray:
-    """Drop channels whose innovation exceeds `gate` standard deviations (0 = keep all)."""
-    if gate <= 0.0:
-        return used
-    keep = used.copy()
-    idx = np.flatnonzero(used)
-    z = np.abs(e) / np.sqrt(np.diag(S))
-    keep[idx[z > gate]] = False
-    return keep
-
-
 def ekf_update(
-    h: Observation, belief: Belief, y: FloatArray, R: FloatArray, gate: float = 0.0
+    h: Observation, belief: Belief, y: FloatArray, R: FloatArray
 ) -> tuple[Belief, UpdateInfo]:
     """EKF measurement update on the channels of y that are not NaN (Joseph form).
 
     K = P H^T (H P H^T + R)^-1,  x+ = x + K (y - h(x)),
     P+ = (I - K H) P (I - K H)^T + K R K^T
     """
-    return iekf_update(h, belief, y, R, iterations=1, gate=gate)
+    return iekf_update(h, belief, y, R, iterations=1)
 
 
 def iekf_update(
@@ -131,7 +120,6 @@ def iekf_update(
     R: FloatArray,
     iterations: int = 7,
     tolerance: float = 0.0,
-    gate: float = 0.0,
     relinearise: float = 0.0,
     judged: slice | None = None,
 ) -> tuple[Belief, UpdateInfo]:
@@ -165,7 +153,6 @@ def iekf_update(
     hx, H = h(x_prior)
     e_all = y - hx
     S_all = H @ P @ H.T + R
-    used = gate_channels(e_all[used], S_all[np.ix_(used, used)], used, gate)
     if not used.any():
         empty = np.zeros(0)
         return belief, UpdateInfo(empty, np.zeros((0, 0)), 0.0, used, 0)

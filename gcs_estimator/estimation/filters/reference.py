@@ -40,8 +40,6 @@ def kernel_step(
             y,
             tuning.R,
             iterations=tuning.iterations,
-            tolerance=tuning.tolerance,
-            gate=tuning.gate,
             relinearise=tuning.relinearise,
             judged=model.coefficients,
         )
@@ -59,7 +57,7 @@ def kernel_step(
         and core.plausible(post.x, tuning.state_max)
     )
     gust = core.adapt_gust(state.gust, tuning, model.arrays, t, dt, post.x, u, e, s, applied)
-    new = FilterState(post.x, post.P, t, np.array(u, float), state.t_start, gust)
+    new = FilterState(post.x, post.P, t, np.array(u, float), gust)
     info = StepInfo(
         sigma=np.sqrt(np.maximum(variances, 0.0)),
         nis=float(nis),

@@ -34,7 +34,7 @@ Ranges = Mapping[Channel, tuple[float, float]]
 
 
 def ranges_of(data: DataConfig) -> dict[Channel, tuple[float, float]]:
-    """The values a fixed-wing aircraft's signals can take [SI] (data.plausible_max); a
+    """The values a fixed-wing aircraft's signals can take [SI] (config.PLAUSIBLE_MAX); a
     value outside is absurd and dropped (and counted)."""
     out = {
         ch: (-data.plausible(q), data.plausible(q))

@@ -1,7 +1,7 @@
 """Synchronise one vehicle's samples into frames by the vehicle's own clock.
 
 Every timed observation joins the frame its vehicle time belongs to (samples within
-`frame_window_s` of each other form one frame), however late it arrives, as long as that
+FRAME_WINDOW_S of each other form one frame), however late it arrives, as long as that
 frame is still open. Inputs are not part of a frame: each input sample keeps its own
 time, and a frame's inputs are the input streams interpolated at the frame's time (or the
 earlier sample held, `data.input_hold = "previous"`). So a lost, late or duplicated
@@ -10,7 +10,7 @@ leaves its channel missing in its own frame and nothing else.
 
 Frames leave in time order: a frame goes as soon as it holds every channel the vehicle
 streams and its inputs are known at its time, else once the vehicle's clock (from any
-later sample) is `reorder_window_s` past it. Nothing here reads a wall clock: a stall of
+later sample) is REORDER_WINDOW_S past it. Nothing here reads a wall clock: a stall of
 the ground station, or a replay at any speed, makes the same frames.
 
 The vehicle clock itself is checked:
@@ -36,6 +36,11 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry.decode import Sample
 from gcs_estimator.model.channels import N_INPUTS, N_OBS, REQUIRED_INPUTS, Channel
 
+FRAME_WINDOW_S = 0.005
+"""Samples this close in vehicle time form one frame [s]: the messages of one autopilot
+loop carry times within a few milliseconds of each other."""
+REORDER_WINDOW_S = 0.2
+"""A frame missing a channel waits until the vehicle's clock is this far past it [s]."""
 CLOCK_RESET_S = 1.0
 """A vehicle time this far behind the newest is a clock reset (reboot) once confirmed."""
 JUMP_S = 1.0
@@ -262,7 +267,7 @@ class Synchronizer:
     def _accept(self, t: float, sample: Sample) -> list[Frame]:
         if t > self._newest:
             self._newest = t
-        window = self.link.frame_window_s
+        window = FRAME_WINDOW_S
         obs = []
         for ch, v in sample.values:
             if ch >= N_OBS:
@@ -280,7 +285,7 @@ class Synchronizer:
 
     def _frame_at(self, t: float, t_recv_s: float) -> _Open:
         """The open frame that time t belongs to (a new one if none)."""
-        window = self.link.frame_window_s
+        window = FRAME_WINDOW_S
         times = [f.t for f in self._open]
         i = bisect.bisect_left(times, t - window)
         if i < len(times) and times[i] <= t + window:
@@ -299,7 +304,7 @@ class Synchronizer:
         """A sample without a timestamp (VFR_HUD) belongs with the newest open frame, or
         with the next one if that has gone."""
         obs = [(ch, v) for ch, v in sample.values if ch < N_OBS]
-        if self._open and self._open[-1].t >= self._newest - self.link.frame_window_s:
+        if self._open and self._open[-1].t >= self._newest - FRAME_WINDOW_S:
             frame = self._open[-1]
             for ch, v in obs:
                 frame.y[ch] = v
@@ -309,7 +314,7 @@ class Synchronizer:
         return []
 
     def _ready(self, frame: _Open) -> bool:
-        if self._newest > frame.t + self.link.reorder_window_s:
+        if self._newest > frame.t + REORDER_WINDOW_S:
             return True
         y = frame.y
         for c in self._expected:
@@ -317,7 +322,7 @@ class Synchronizer:
                 return False
         if frame.t - self._last_emitted > HOLE_PERIODS * self._period:
             return False
-        window = self.link.frame_window_s
+        window = FRAME_WINDOW_S
         return all(tr.known_at(frame.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
 
     def _emit_ready(self) -> list[Frame]:
@@ -351,7 +356,7 @@ class Synchronizer:
         for c in range(N_OBS):
             presence[c] += PRESENCE_GAIN * (have[c] - presence[c])
         self._expected = [c for c in range(N_OBS) if presence[c] >= EXPECT_PRESENCE]
-        window = self.link.frame_window_s
+        window = FRAME_WINDOW_S
         u = [tr.at(op.t, window, self.linear_inputs) for tr in self._inputs]
         guessed = any(tr.uncertain_at(op.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
         for tr in self._inputs:

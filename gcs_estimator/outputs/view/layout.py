@@ -3,7 +3,7 @@
 Entity paths (documented in the README; tests read them back):
 
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}
-        Scalars [EKF, IEKF] at [view] estimate_rate_hz, and the newest of each batch
+        Scalars [EKF, IEKF] at live.ESTIMATE_RATE_HZ, and the newest of each batch
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/band
         Scalars [EKF - 2σ, EKF + 2σ, IEKF - 2σ, IEKF + 2σ] at the display rate
     /vehicle/{id}/coefficients/{drag|lift|moment}/{name}/truth
@@ -29,7 +29,7 @@ Entity paths (documented in the README; tests read them back):
 Timelines (durations, seconds): "flight_time", the vehicle's own clock (the data's time
 offline), and "receive_time", seconds since the session's first packet (the data's first
 sample offline). The link entities take the flight time of the newest frame. Display-only
-series are decimated to [view] display_rate_hz.
+series are decimated to live.DISPLAY_RATE_HZ.
 """
 
 from __future__ import annotations

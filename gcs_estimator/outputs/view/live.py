@@ -1,11 +1,11 @@
 """The live view: buffers what each filter step produced and sends it to Rerun in blocks.
 
 Per frame the estimator loop only appends references to lists (about a microsecond).
-Every `flush_interval_s` of wall-clock time (and at the end) the rows are stacked into
+Every FLUSH_INTERVAL_S of wall-clock time (and at the end) the rows are stacked into
 columns and sent with `send_columns`, one call per entity, so logging costs little next
 to estimation however fast a replay runs. Coefficient estimates are decimated to
-`estimate_rate_hz` (and the newest of each batch is always sent); their bands and the
-display-only series to `display_rate_hz`.
+ESTIMATE_RATE_HZ (and the newest of each batch is always sent); their bands and the
+display-only series to DISPLAY_RATE_HZ.
 """
 
 from __future__ import annotations
@@ -71,6 +71,19 @@ LAYOUT_INTERVAL_S = 5.0
 SETTLE_AFTER_RESTART_S = 1.0
 """Vehicle time after the last restart from which the estimates set the ranges for good
 (before it, the zero start's wild seconds: only the newest batch does)."""
+DISPLAY_RATE_HZ = 10.0
+"""Rate of the display-only series and the ±2σ bands [Hz]."""
+ESTIMATE_RATE_HZ = 25.0
+"""Rate of the coefficient estimates in the view [Hz], the newest of each batch always
+sent (the history file has every frame)."""
+FLUSH_INTERVAL_S = 1.0
+"""Wall clock between batches to the view [s]."""
+RESULTS_INTERVAL_S = 5.0
+"""Wall clock between refreshes of the live results table [s]."""
+SHUTDOWN_TIMEOUT_S = 3.0
+"""A viewer connection's time to drain at exit [s]."""
+SERVER_MEMORY_LIMIT = "1GiB"
+"""History a served view keeps for viewers that join late."""
 
 
 @dataclass
@@ -85,7 +98,7 @@ class _Rows:
     last_bucket: float = math.nan
     """Display decimation: the last display interval a row was kept for."""
     last_estimate_bucket: float = math.nan
-    """The same for the estimates (estimate_rate_hz)."""
+    """The same for the estimates (ESTIMATE_RATE_HZ)."""
     last_times: dict[str, float] = field(default_factory=dict)
     """Both timelines' values at the newest frame sent."""
     t_first: float = math.nan
@@ -143,8 +156,8 @@ class RerunView:
         self.link_source = link_source
         self.table_source = table_source
         self.clock = clock
-        self.rate = config.view.display_rate_hz
-        self.estimate_rate = config.view.estimate_rate_hz
+        self.rate = DISPLAY_RATE_HZ
+        self.estimate_rate = ESTIMATE_RATE_HZ
         self.rows: dict[int, _Rows] = {}
         self._layout_due = False
         self._chi2 = _chi2_bounds()
@@ -185,7 +198,7 @@ class RerunView:
 
     def tick(self) -> None:
         """Send what is buffered if the flush interval has passed (call it when idle too)."""
-        if self.clock() - self._last_flush >= self.config.view.flush_interval_s:
+        if self.clock() - self._last_flush >= FLUSH_INTERVAL_S:
             self.flush()
 
     def _announce(self, system_id: int) -> None:
@@ -278,7 +291,7 @@ class RerunView:
             self._send_layout()
         self._send_link()
         if self.table_source is not None and (
-            self._last_flush - self._last_table >= self.config.view.results_interval_s
+            self._last_flush - self._last_table >= RESULTS_INTERVAL_S
         ):
             self._last_table = self._last_flush
             for sid, rows in self.rows.items():
@@ -368,7 +381,7 @@ class RerunView:
         x: dict[FilterKind, FloatArray],
         sd: dict[FilterKind, FloatArray],
     ) -> None:
-        """The ±2σ bands at the display rate (the estimates at estimate_rate_hz)."""
+        """The ±2σ bands at the display rate (the estimates at ESTIMATE_RATE_HZ)."""
         c0 = self.coefficients.start
         for i, name in enumerate(self.names):
             cols = []
@@ -566,8 +579,8 @@ def open_outlets(
         local = LocalOutlet(
             recording_id,
             save=choice.save,
-            serve=(vc.serve_bind, vc.serve_port, vc.server_memory_limit) if choice.serve else None,
-            shutdown_timeout_s=vc.shutdown_timeout_s,
+            serve=(vc.serve_bind, vc.serve_port, SERVER_MEMORY_LIMIT) if choice.serve else None,
+            shutdown_timeout_s=SHUTDOWN_TIMEOUT_S,
             linger_s=vc.serve_linger_s,
             stop=PROCESS_STOP,
             log=log,
@@ -587,7 +600,7 @@ def open_outlets(
     if choice.connect is not None:
         remote.append(("connect", choice.connect))
     if remote:
-        outlet = ProcessOutlet(remote, recording_id, vc.shutdown_timeout_s)
+        outlet = ProcessOutlet(remote, recording_id, SHUTDOWN_TIMEOUT_S)
         outlets.append(outlet)
         print(f"view: {outlet.description}", file=log)
     return outlets
