@@ -9,7 +9,7 @@ step), CPU time, best of 9, from a converged state over 2500 frames of a flight:
   (filters.fast.lane_kernel: process noise, prediction, update, health check, gust
   matching), with nothing around it;
 - runner: one filter's step as the estimator's runner takes it for each frame
-  (Estimator._advance_one: the lane's step, Lane.step, the health count and the
+  (Runner.one: the lane's step, Lane.step, the health count and the
   frame's output; the target figure);
 - FilterState contract: the same step through filters.core's guarded step on a
   FilterState, as the numpy reference is called below;
