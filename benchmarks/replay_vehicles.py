@@ -35,7 +35,8 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter, read_tlog
 from gcs_estimator.runtime.decode_worker import tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession
-from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
+from gcs_estimator.runtime.session import Session, warm_up
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 

@@ -32,8 +32,9 @@ from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.outputs.report import write_results
 from gcs_estimator.outputs.sinks import ResultsSink
-from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
+from gcs_estimator.runtime.session import Session, warm_up
 from gcs_estimator.stop import Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 
 

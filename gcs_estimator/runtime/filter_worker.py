@@ -70,8 +70,9 @@ from gcs_estimator.runtime.decode_worker import (
     read_messages,
 )
 from gcs_estimator.runtime.link_worker import pack, unpack
-from gcs_estimator.runtime.session import Session, Sink, Source, VehicleResult, truth_of, warm_up
+from gcs_estimator.runtime.session import Session, Sink, Source, truth_of, warm_up
 from gcs_estimator.stop import Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 
 BATCH_FRAMES = 64
 """Frames of one worker sent at a time at most (a batch also goes at each turn of the
@@ -438,6 +439,31 @@ class FilterShard(WorkerProcess):
         return self._process.wait()
 
 
+def start_shards(jobs: Sequence[ShardJob]) -> tuple[list[FilterShard], float]:
+    """Start a worker per job and wait until each has its kernels ready: the shards, and
+    the workers' CPU time to ready [s]. Raises SourceError (the workers ended) if one
+    could not start."""
+    shards = [FilterShard(job) for job in jobs]
+    start_cpu_s = 0.0
+    deadline = time.monotonic() + READY_S
+    try:
+        for shard in shards:
+            while not shard.ready_seen:
+                if time.monotonic() > deadline:
+                    raise SourceError(f"filter process {shard.index} did not start in time")
+                for msg in shard.messages(POLL_S):
+                    if msg is None or msg[0] != "ready":
+                        why = "ended" if msg is None else f"failed: {msg[1]}"
+                        raise SourceError(f"filter process {shard.index} {why} at its start")
+                    shard.ready_seen = True
+                    start_cpu_s += float(msg[1])
+    except BaseException:
+        for shard in shards:
+            shard.close()
+        raise
+    return shards, start_cpu_s
+
+
 class ShardedSession:
     """A station whose vehicles are estimated by `workers` filter processes (the module's
     text): the sinks given here see every frame's outputs and the final results as a
@@ -505,27 +531,9 @@ class ShardedSession:
         return truth_of(self.config, self.truths, self.estimators, system_id)
 
     def start(self) -> None:
-        """Start the workers and wait until each has its kernels ready. Raises
-        SourceError (the workers ended) if one could not start."""
-        if self.shards:
-            return
-        self.shards = [FilterShard(job) for job in self.jobs]
-        deadline = time.monotonic() + READY_S
-        try:
-            for shard in self.shards:
-                while not shard.ready_seen:
-                    if time.monotonic() > deadline:
-                        raise SourceError(f"filter process {shard.index} did not start in time")
-                    for msg in shard.messages(POLL_S):
-                        if msg is None or msg[0] != "ready":
-                            why = "ended" if msg is None else f"failed: {msg[1]}"
-                            raise SourceError(f"filter process {shard.index} {why} at its start")
-                        shard.ready_seen = True
-                        self.workers_start_cpu_s += float(msg[1])
-        except BaseException:
-            for shard in self.shards:
-                shard.close()
-            raise
+        """Start the workers and wait until each has its kernels ready (start_shards)."""
+        if not self.shards:
+            self.shards, self.workers_start_cpu_s = start_shards(self.jobs)
 
     def run(self, source: Source, stop: Stop | None = None) -> dict[int, VehicleResult]:
         """As Session.run, the frames going to the workers."""

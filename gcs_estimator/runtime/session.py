@@ -14,7 +14,7 @@ import gc
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -24,14 +24,14 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.estimator import (
     Backend,
     Estimator,
-    EstimatorResult,
     FilterKind,
     StepOutput,
 )
 from gcs_estimator.frames import Frame
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty import weighting
-from gcs_estimator.uncertainty.metrics import FilterSummary, summarise
+from gcs_estimator.uncertainty.metrics import summarise
+from gcs_estimator.uncertainty.result import VehicleResult
 from gcs_estimator.uncertainty.weighting import StructureCheck
 
 WORK_AHEAD_S = 0.002
@@ -53,40 +53,6 @@ class Source(Protocol):
         ...
 
     def close(self) -> None: ...
-
-
-@dataclass(frozen=True)
-class VehicleResult:
-    """The end of one vehicle's run: the estimator's result and its summaries."""
-
-    system_id: int
-    result: EstimatorResult
-    summaries: dict[FilterKind, FilterSummary]
-    truth: FloatArray | None
-    structure: StructureCheck | None = None
-    """The structure check (weighting.py); None: not asked about (a result made
-    without a session)."""
-    updated: bool | None = None
-    """Whether any frame updated a filter with a channel, where the result's tracks were
-    left where they were made (a filter worker's, without_tracks); None: read the
-    tracks."""
-
-    def without_tracks(self) -> VehicleResult:
-        """This result without its time histories (what a filter worker sends back: they
-        are in the history CSV it wrote), with whether any frame updated a filter."""
-        filters = {k: f._replace(track=None) for k, f in self.result.filters.items()}
-        result = self.result._replace(filters=filters)
-        return replace(self, result=result, updated=self.any_update())
-
-    def any_update(self) -> bool:
-        """Whether any frame updated either filter with a channel (a result without
-        tracks counts as updated)."""
-        if self.updated is not None:
-            return self.updated
-        return any(
-            f.track is None or bool(np.any(f.track.n_used > 0))
-            for f in self.result.filters.values()
-        )
 
 
 class Sink(Protocol):
@@ -344,7 +310,6 @@ def warm_up(
 
 
 def _compile(config: AircraftConfig) -> None:
-    from dataclasses import replace
 
     from gcs_estimator.model.aircraft import trim
 

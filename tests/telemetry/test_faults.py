@@ -27,8 +27,8 @@ from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry.decode import WRAP_US32_S
 from gcs_estimator.ingest.telemetry.mavlink import Decoder, TlogWriter, read_tlog
-from gcs_estimator.runtime.session import VehicleResult
 from gcs_estimator.stop import Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import ROOT, SHORT, Ground, recorded_flight, run_records

@@ -23,8 +23,9 @@ from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.runtime.filter_worker import ShardedSession, output_row, read_row
-from gcs_estimator.runtime.session import Session, VehicleResult
+from gcs_estimator.runtime.session import Session
 from gcs_estimator.stop import Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from tests.telemetry.station import bound_port, start_listen

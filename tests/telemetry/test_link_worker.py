@@ -28,8 +28,9 @@ from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.runtime import link_worker
 from gcs_estimator.runtime.decode_worker import LinkArgs
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import Session, VehicleResult
+from gcs_estimator.runtime.session import Session
 from gcs_estimator.stop import Stop
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle

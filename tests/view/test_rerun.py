@@ -30,7 +30,8 @@ from gcs_estimator.outputs.view import live
 from gcs_estimator.outputs.view.live import RerunView, ViewSink
 from gcs_estimator.outputs.view.outlets import LocalOutlet
 from gcs_estimator.runtime.decode_worker import tlog_source
-from gcs_estimator.runtime.session import RecordingSource, Session, VehicleResult
+from gcs_estimator.runtime.session import RecordingSource, Session
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
