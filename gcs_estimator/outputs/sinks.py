@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import sys
-import textwrap
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -17,7 +16,7 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.outputs.history_csv import HistoryCsv
 from gcs_estimator.outputs.report import write_results
 from gcs_estimator.outputs.table import terminal_text
-from gcs_estimator.outputs.text import TERMINAL_WIDTH
+from gcs_estimator.outputs.text import TERMINAL_WIDTH, wrap
 from gcs_estimator.uncertainty.result import VehicleResult
 
 if TYPE_CHECKING:
@@ -105,13 +104,24 @@ class ResultsSink:
             extra["run"] = self.run()
         history = self.histories.pop(sid, None)
         paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
-        print("results: " + ", ".join(str(p) for p in paths.values()), file=out)
+        written = "results: " + ", ".join(str(p) for p in paths.values())
+        print(wrap(written), file=out)
 
 
 def link_line(link: Mapping[str, Any]) -> str:
-    """The link's final counts (after the tables), wrapped to TERMINAL_WIDTH columns."""
-    counts = ", ".join(f"{k} {v}" for k, v in link.items() if k != "vehicles")
-    return textwrap.fill(f"link: {counts}", TERMINAL_WIDTH, subsequent_indent="  ")
+    """The link's final counts (after the tables): what it received and lost, and the
+    other counts that are not zero (the JSON's `link` has them all, and each link's),
+    wrapped to TERMINAL_WIDTH columns."""
+    shown = [
+        f"{k} {v}"
+        for k, v in link.items()
+        if k != "vehicles" and (k in LINK_ALWAYS or (isinstance(v, int | float) and v != 0))
+    ]
+    return wrap("link: " + ", ".join(shown))
+
+
+LINK_ALWAYS = ("received", "lost")
+"""The link's counts shown even at zero."""
 
 
 def results_stem(system_id: int) -> str:

@@ -6,7 +6,6 @@ a run under way."""
 from __future__ import annotations
 
 import math
-import textwrap
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Protocol
 
@@ -26,6 +25,7 @@ from gcs_estimator.outputs.text import (
     fmt,
     fmt_sigma,
     fmt_time,
+    wrap,
 )
 from gcs_estimator.uncertainty.metrics import (
     CORRELATION_LIMIT,
@@ -54,13 +54,6 @@ SIGMA_LEGEND = (
     "estimate moves beyond its covariance when one channel at a time is trusted half as "
     "much added in quadrature (the JSON keeps these parts in sigma_parts); error/σ: the "
     "error in that σ"
-)
-TERMINAL_LEGEND = (
-    "σ: one standard deviation to trust (the filter covariance's, widened where the run "
-    "showed it too small; its parts are in the JSON's sigma_parts); identified?: the "
-    "IEKF's mark (the fit's, where there is one), from that σ and the correlations. The "
-    "full table, with errors and convergence times, and the run's notes are in the "
-    "results' .md file."
 )
 
 
@@ -179,10 +172,7 @@ def terminal_table(
     if pairs:
         text += (
             "\n"
-            + textwrap.fill(
-                f"weak for a correlation above {CORRELATION_LIMIT:g}: " + ", ".join(pairs),
-                TERMINAL_WIDTH,
-            )
+            + wrap(f"weak for a correlation above {CORRELATION_LIMIT:g}: " + ", ".join(pairs))
             + "\n"
         )
     return text
@@ -354,13 +344,27 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
     return text
 
 
+def terminal_legend(refined: Refined | None) -> str:
+    """The terminal's legend of its table: which σ, whose marks, where the rest is."""
+    marks = "the IEKF's mark" if refined is None else f"the {refined.label} fit's mark"
+    return (
+        "σ: one standard deviation to trust (the filter covariance's, widened where the "
+        "run showed it too small"
+        + ("" if refined is None else f"; {refined.label}: the whole-record fit's")
+        + "; its parts are in the JSON's sigma_parts); identified?: "
+        + marks
+        + ", from that σ and the correlations. The full table, with errors and convergence "
+        "times, and the run's notes are in the results' .md file."
+    )
+
+
 def terminal_text(vehicle: VehicleResult, refined: Refined | None = None) -> str:
     """The finished run as the terminal shows it, within TERMINAL_WIDTH columns: Table I
     (terminal_table), a short legend, the sensor biases and the whole-record fit's note
     where there are some, and the warnings; the rest is in results.md (final_table)."""
     table = terminal_table(vehicle.summaries, vehicle.result.config.truth_label, refined)
     notes = _bias_notes(vehicle.result) + ([] if refined is None else [_refined_note(refined)])
-    text = table + "\n" + bullets([TERMINAL_LEGEND, *notes], TERMINAL_WIDTH)
+    text = table + "\n" + bullets([terminal_legend(refined), *notes], TERMINAL_WIDTH)
     warnings = trust_warnings(vehicle, refined)
     if warnings:
         text += f"\n{WARNINGS_HEAD}\n\n" + bullets(warnings, TERMINAL_WIDTH)

@@ -38,12 +38,22 @@ def channel_text(values: FloatArray | Sequence[float]) -> str:
     )
 
 
+def wrap(text: str, width: int = TERMINAL_WIDTH, first: str = "") -> str:
+    """text wrapped to `width` columns between its words (a word, a path or a key stays
+    whole), after `first` on the first line and indented two columns on the rest."""
+    return textwrap.fill(
+        text,
+        width,
+        initial_indent=first,
+        subsequent_indent="  ",
+        break_long_words=False,
+        break_on_hyphens=False,
+    )
+
+
 def bullets(items: Sequence[str], width: int | None = None) -> str:
     """Markdown list items, one a line, or wrapped to `width` columns with the item's
     continuation indented under its text."""
     if width is None:
         return "".join(f"- {item}\n" for item in items)
-    return "".join(
-        textwrap.fill(item, width, initial_indent="- ", subsequent_indent="  ") + "\n"
-        for item in items
-    )
+    return "".join(wrap(item, width, "- ") + "\n" for item in items)
