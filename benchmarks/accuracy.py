@@ -29,6 +29,7 @@ from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import CoefficientSummary, FilterSummary, percent_error
 from sim.reference import output_error
+from sim.scenario import scenario_of
 from sim.truth import Flight, perturbed, simulate
 
 KINDS = FILTER_KINDS
@@ -91,7 +92,7 @@ def run_one(args: tuple[str, list[str], int, float, bool]) -> RunResult:
     filters = run.result.filters
     reference = None
     early = None
-    turbulent = config.simulation.turbulence.sigma_w > 0.0
+    turbulent = scenario_of(config).turbulence.sigma_w > 0.0
     if with_reference and not turbulent:
         fit = output_error(config, flight)
         reference = (tuple(fit.coefficients.tolist()), tuple(fit.sigma.tolist()))
@@ -125,7 +126,7 @@ def limit_config(config: AircraftConfig) -> AircraftConfig:
     says how close). Started at the truth without restarts instead, the EKF diverged on
     one seed in 20 and was inconsistent on several: the restarts are part of what makes
     the filter efficient."""
-    sim = config.simulation.turbulence
+    sim = scenario_of(config).turbulence
     ft = config.filter
     turbulence = replace(
         ft.turbulence,

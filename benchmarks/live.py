@@ -57,6 +57,7 @@ from gcs_estimator.runtime.filter_worker import ShardedSession
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
 from sim.cli import command as vehicle_command
+from sim.scenario import scenario_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -234,7 +235,7 @@ def one_run(
         sim_cpu = used.ru_utime + used.ru_stime - before.ru_utime - before.ru_stime
         sim_cpu -= link_cpu + filters_cpu
 
-    per_vehicle = round(args.seconds * config.simulation.sample_rate_hz) + 1
+    per_vehicle = round(args.seconds * scenario_of(config).sample_rate_hz) + 1
     flown = per_vehicle * args.vehicles
     got = sum(v.result.frames for v in results.values())
     by_vehicle = {sid: np.array(v) * 1e3 for sid, v in sorted(latency.complete.items())}

@@ -386,13 +386,15 @@ def _recording_session(
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from sim.scenario import scenario_of
     from sim.truth import simulate
 
     config = _config(args)
     if config.truth is None:
         raise ConfigError(f"{config.source}: [truth] is needed to simulate this aircraft")
-    seed = args.seed if args.seed is not None else config.simulation.seed
-    flight = simulate(config, seed=seed)
+    scenario = scenario_of(config)
+    seed = args.seed if args.seed is not None else scenario.seed
+    flight = simulate(config, seed=seed, scenario=scenario)
     source = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
     return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
@@ -606,8 +608,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """The simulated UAV and the ground station as two processes talking UDP."""
     import subprocess
 
+    from sim.scenario import scenario_of
+
     stop = PROCESS_STOP.install()
     config = _config(args)
+    duration_s = scenario_of(config).manoeuvre.duration_s
     sock = open_udp("127.0.0.1", 0)
     port = sock.getsockname()[1]
     record = Path(args.out) / TLOG_FILE
@@ -617,7 +622,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cmd = vehicle_command(args.config, f"127.0.0.1:{port}", args.speed, args.set, seed=args.seed)
     print(
         f"demo: simulated NOC UAV -> udp 127.0.0.1:{port} -> ground station "
-        f"({config.simulation.manoeuvre.duration_s:.0f} s flight at {args.speed:g}x; "
+        f"({duration_s:.0f} s flight at {args.speed:g}x; "
         f"recording {record})",
         file=sys.stderr,
     )

@@ -2,9 +2,11 @@
 
 Every key is declared once, below, on its dataclass field (gcs_estimator.schema): default,
 unit, bounds and allowed values. `gcs-estimator keys` lists them all; configs/noc_uav.toml
-sets every one. Configs ship with the package and are found by name (``--config hfb320``)
-or by path. A file may start from another (``extends = "hfb320"``, a shipped name or a
-path relative to the file) and set only what differs.
+sets every one. The file may also hold a [simulation] table for the simulator, which
+declares and reads it itself (sim/scenario.py, `gcs-sim --keys`). Configs ship with the
+package and are found by name (``--config hfb320``) or by path. A file may start from
+another (``extends = "hfb320"``, a shipped name or a path relative to the file) and set
+only what differs.
 """
 
 from __future__ import annotations
@@ -183,55 +185,9 @@ class Reference:
     label: str = setting("truth", doc="column heading in the results")
 
 
-@dataclass(frozen=True)
-class Manoeuvre:
-    """Elevator excitation around trim: 3-2-1-1 multisteps and pulses (docs/model.md)."""
-
-    duration_s: float = setting(60.0, gt=0, unit="s")
-    multistep_starts_s: tuple[float, ...] = setting((2.0, 6.0), ge=0, unit="s")
-    multistep_unit_s: float = setting(0.2, gt=0, unit="s")
-    multistep_amplitude_deg: float = setting(3.0, unit="deg")
-    pulse_starts_s: tuple[float, ...] = setting((12.0, 30.0), ge=0, unit="s")
-    pulse_durations_s: tuple[float, ...] = setting((2.0, 2.0), ge=0, unit="s")
-    pulse_amplitudes_deg: tuple[float, ...] = setting((-3.0, 3.0), unit="deg")
-
-    def check(self) -> None:
-        n = len(self.pulse_starts_s)
-        for key in ("pulse_durations_s", "pulse_amplitudes_deg"):
-            if len(getattr(self, key)) != n:
-                raise Invalid(key, f"must have {n} values, one per pulse_starts_s")
-
-
-@dataclass(frozen=True)
-class Turbulence:
-    """Dryden longitudinal gusts of the simulator; a preset sets the intensities."""
-
-    preset: str = setting(
-        "none", choices=("none", "light", "moderate", "custom"), doc="defaults of the sigmas below"
-    )
-    sigma_w_mps: float | None = setting(None, ge=0, unit="m/s", doc="unset: the preset's")
-    sigma_u_mps: float | None = setting(None, ge=0, unit="m/s", doc="unset: 1.5 sigma_w")
-    length_u_m: float = setting(200.0, gt=0, unit="m")
-    length_w_m: float = setting(50.0, gt=0, unit="m")
-
-    def __post_init__(self) -> None:
-        w = self.sigma_w_mps
-        if w is None:
-            w = gusts.SIGMA_W_PRESETS.get(self.preset, 0.0)
-            object.__setattr__(self, "sigma_w_mps", w)
-        if self.sigma_u_mps is None:
-            object.__setattr__(self, "sigma_u_mps", gusts.SIGMA_U_RATIO * w)
-
-    @property
-    def sigma_w(self) -> float:
-        return self.sigma_w_mps or 0.0
-
-    @property
-    def sigma_u(self) -> float:
-        return self.sigma_u_mps or 0.0
-
-
-def _per_channel(fill: float | tuple[float, ...], **spec: Any) -> Any:
+def per_channel(fill: float | tuple[float, ...], **spec: Any) -> Any:
+    """A schema field of one number per observation channel (OBS_NAMES), angles also in
+    degrees (KEY_deg)."""
     return setting(
         fill if isinstance(fill, tuple) else (fill,) * 7,
         keys=OBS_NAMES,
@@ -239,30 +195,6 @@ def _per_channel(fill: float | tuple[float, ...], **spec: Any) -> Any:
         degrees=ANGLES,
         **spec,
     )
-
-
-@dataclass(frozen=True)
-class Sensors:
-    """Measurement errors of the simulated aircraft per channel, SI units (or KEY_deg)."""
-
-    noise_sigma: tuple[float, ...] = _per_channel(NOC_SENSOR_SIGMA, ge=0, doc="white noise 1 sigma")
-    bias: tuple[float, ...] = _per_channel(0.0)
-    quantum: tuple[float, ...] = _per_channel(0.0, ge=0, doc="quantisation step; 0: none")
-
-
-@dataclass(frozen=True)
-class Simulation:
-    """Truth simulator settings."""
-
-    sample_rate_hz: float = setting(50.0, gt=0, unit="Hz")
-    integration_step_s: float = setting(0.002, gt=0, unit="s")
-    seed: int = setting(1)
-    actuator_time_constant_s: float = setting(
-        0.0, ge=0, unit="s", doc="first-order servo lag; 0: each command holds until the next"
-    )
-    manoeuvre: Manoeuvre = table(Manoeuvre)
-    sensors: Sensors = table(Sensors)
-    turbulence: Turbulence = table(Turbulence)
 
 
 @dataclass(frozen=True)
@@ -384,7 +316,7 @@ class FilterTuning:
     )
     initial_sigma: InitialSigma = table(InitialSigma)
     process_noise: ProcessNoise = table(ProcessNoise)
-    measurement_sigma: tuple[float, ...] = _per_channel(NOC_SENSOR_SIGMA, gt=0)
+    measurement_sigma: tuple[float, ...] = per_channel(NOC_SENSOR_SIGMA, gt=0)
     turbulence: TurbulenceNoise = table(TurbulenceNoise)
 
     def check(self) -> None:
@@ -637,7 +569,6 @@ class AircraftConfig:
     )
     sensors: SensorPlacement = table(SensorPlacement)
     reference: Reference | None = table(Reference, optional=True, toml="truth")
-    simulation: Simulation = table(Simulation)
     filter: FilterTuning = table(FilterTuning)
     data: DataConfig = table(DataConfig)
     link: LinkConfig = table(LinkConfig)
@@ -677,8 +608,14 @@ class AircraftConfig:
         )
 
 
+SIMULATOR_TABLE = "simulation"
+"""The table an airframe file may hold for the simulator, which reads and checks it
+(sim.scenario); the estimator does not look at it."""
+
+
 def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftConfig:
-    """Validate a parsed TOML mapping (configs/noc_uav.toml sets every key)."""
+    """Validate a parsed TOML mapping (configs/noc_uav.toml sets every key), all but the
+    simulator's table (kept in `raw` for it)."""
     where = Where(source)
     coefficients = data.get("coefficients")
     if not isinstance(coefficients, Mapping):
@@ -686,7 +623,8 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> AircraftC
             "coefficients", "missing table; add it" if coefficients is None else "must be a table"
         )
     names = build(CoefficientStructure, coefficients, where.sub("coefficients")).names
-    return build(AircraftConfig, data, where, {COEFFICIENT: names}, source=source, raw=dict(data))
+    tables = {k: v for k, v in data.items() if k != SIMULATOR_TABLE}
+    return build(AircraftConfig, tables, where, {COEFFICIENT: names}, source=source, raw=dict(data))
 
 
 def config_path(name: str | Path) -> Path:

@@ -353,11 +353,12 @@ def leaves(cls: type[Any], context: Mapping[str, tuple[str, ...]], path: str = "
             yield Key(path, key, spec, tp, REQUIRED if f.default is MISSING else f.default, cls)
 
 
-def reference(cls: type[Any], context: Mapping[str, tuple[str, ...]]) -> str:
+def reference(cls: type[Any], context: Mapping[str, tuple[str, ...]], path: str = "") -> str:
     """Every key as Markdown tables, one per TOML table (each once, however the fields of
-    its dataclass interleave scalars and sub-tables): default, unit, allowed, meaning."""
+    its dataclass interleave scalars and sub-tables): default, unit, allowed, meaning.
+    path: the table cls is read from (empty: the top level)."""
     tables: dict[str, list[Key]] = {}
-    for k in leaves(cls, context):
+    for k in leaves(cls, context, path):
         tables.setdefault(k.table, []).append(k)
     out: list[str] = []
     for name, keys in tables.items():

@@ -15,6 +15,7 @@ from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.endpoints import Endpoint
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
 from sim.ports import Port, SerialPort, Shared, UdpIn
+from sim.scenario import scenario_of, scenario_reference
 from sim.truth import simulate
 from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
 
@@ -127,6 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
         "`gcs-estimator listen --truth FILE`",
     )
     ap.add_argument(
+        "--keys",
+        action="store_true",
+        help="print the keys of the [simulation] table (Markdown) and exit",
+    )
+    ap.add_argument(
         "--playback",
         default=None,
         help="stream flight data instead: a bundled record's name (hfb320), an HFB-320 .asc "
@@ -147,7 +153,7 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
         return [rec] * args.vehicles
     out = []
     truths: dict[int, tuple[float, ...]] = {}
-    base = config.simulation.seed if args.seed is None else args.seed
+    base = scenario_of(config).seed if args.seed is None else args.seed
     for k in range(args.vehicles):
         c = config
         if k > 0 and args.perturb and config.truth is not None:
@@ -163,6 +169,9 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.keys:
+        print(scenario_reference(), end="")
+        return 0
     try:
         config = load_config(args.config, args.set)
         recs = recordings(args)

@@ -17,6 +17,7 @@ from scipy.optimize import least_squares
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.model.aircraft import build_model
+from sim.scenario import scenario_of
 from sim.truth import Flight, integrate
 
 
@@ -42,7 +43,7 @@ def output_error(
     start from (default: the flight's first true state and the true coefficients, the
     most favourable start). until_s: use only the samples up to this time."""
     model = build_model(config, gust_states=False)
-    sim = config.simulation
+    sim = scenario_of(config)
     per_sample = max(1, round(1.0 / (sim.sample_rate_hz * sim.integration_step_s)))
     dt = 1.0 / (sim.sample_rate_hz * per_sample)
     n = len(flight.t_s) if until_s is None else int(np.searchsorted(flight.t_s, until_s, "right"))

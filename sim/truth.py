@@ -15,12 +15,13 @@ from numba import njit
 from scipy.linalg import solve_continuous_lyapunov
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
+from gcs_estimator.config import AircraftConfig
 from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe_in_gust
+from sim.scenario import Manoeuvre, Simulation, Turbulence, scenario_of
 
 
 @dataclass(frozen=True)
@@ -178,8 +179,10 @@ def simulate(
     config: AircraftConfig,
     seed: int | None = None,
     truth: FloatArray | None = None,
+    scenario: Simulation | None = None,
 ) -> Flight:
-    """Fly the configured manoeuvre with the true coefficients and sample the sensors.
+    """Fly the manoeuvre of `scenario` (default: the config file's [simulation] table,
+    sim.scenario) with the true coefficients and sample the sensors.
 
     The state flown is the motion over the ground; the air-relative state (V + u_g,
     alpha + w_g/V) drives the aerodynamics and is what the air-data sensors see
@@ -189,7 +192,7 @@ def simulate(
         if config.truth is None:
             raise ValueError(f"{config.source}: [truth] is needed to simulate this aircraft")
         truth = np.array(config.truth)
-    sim = config.simulation
+    sim = scenario_of(config) if scenario is None else scenario
     rng = np.random.default_rng(sim.seed if seed is None else seed)
     model = build_model(config, gust_states=False)
     trimmed = trim(model, truth)

@@ -20,6 +20,7 @@ from gcs_estimator.config import (
     parse_config,
 )
 from gcs_estimator.schema import Spec, leaves
+from sim.scenario import scenario_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -97,12 +98,14 @@ ROOT = Path(__file__).resolve().parent.parent
     ],
 )
 def test_errors_name_file_key_and_allowed(tmp_path: Path, old: str, new: str, message: str) -> None:
+    """The airframe's keys are checked as the file is read, the [simulation] table's as
+    the simulator reads it (scenario_of), with the same kind of message."""
     base = (ROOT / "configs" / "noc_uav.toml").read_text()
     assert old in base
     p = tmp_path / "plane.toml"
     p.write_text(base.replace(old, new, 1))
     with pytest.raises(ConfigError, match=message) as info:
-        load_config(p)
+        scenario_of(load_config(p))
     assert str(p) in str(info.value)
 
 
@@ -151,7 +154,7 @@ def test_overrides_apply_and_are_validated() -> None:
     path = ROOT / "configs" / "noc_uav.toml"
     c = load_config(path, ["filter.iterations=3", 'simulation.turbulence.preset="light"'])
     assert c.filter.iterations == 3
-    assert c.simulation.turbulence.sigma_w > 0
+    assert scenario_of(c).turbulence.sigma_w > 0
     with pytest.raises(ConfigError, match=r"\[filter\] iterations: must be a whole number >= 1"):
         load_config(path, ["filter.iterations=0"])
     with pytest.raises(ConfigError, match="expected KEY=VALUE"):
@@ -212,7 +215,7 @@ def test_every_key_refuses_a_bad_value_and_names_itself(
 )
 def test_rules_between_keys_name_the_key_to_fix(override: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
-        load_config("noc_uav", [override])
+        scenario_of(load_config("noc_uav", [override]))
 
 
 def test_defaults_are_declared_once_and_match_the_complete_example() -> None:
@@ -225,7 +228,7 @@ def test_defaults_are_declared_once_and_match_the_complete_example() -> None:
     # The one per-aircraft choice the example makes: wider priors on the qhat derivatives.
     sigma = replace(full.filter.initial_sigma, coefficients=small.filter.initial_sigma.coefficients)
     assert small.filter == replace(full.filter, initial_sigma=sigma)
-    assert small.simulation == full.simulation
+    assert scenario_of(small) == scenario_of(full)
     assert small.link == full.link and small.view == full.view
 
 
@@ -286,9 +289,25 @@ def test_a_config_extends_another_and_sets_only_what_differs(tmp_path: Path) -> 
 
 def test_the_configuration_reference_is_generated_from_the_schema() -> None:
     """docs/configuration.md is what `gcs-estimator keys` prints: regenerate it with
-    `./run gcs keys > docs/configuration.md` after changing a key."""
+    `./run gcs keys > docs/configuration.md` after changing a key. Each table comes once,
+    with all its keys (a table whose dataclass lists a key after a sub-table too)."""
     text = (ROOT / "docs" / "configuration.md").read_text()
     assert text == config_reference(NOC_NAMES)
+    headings = [line for line in text.splitlines() if line.startswith("## [")]
+    assert len(headings) == len(set(headings)) and "## [link]" in headings
+    link = text.split("## [link]")[1].split("\n## ")[0]
+    assert "`signing_key_file`" in link and "`elevator_servo`" in link
+
+
+def test_the_simulator_table_is_not_the_estimators() -> None:
+    """The airframe's schema leaves [simulation] to the simulator: none of its keys is
+    listed by `keys`, a mistake in it does not stop the estimator reading the file, and
+    the simulator's reading of it names the file and key."""
+    assert not any(k.table.startswith("simulation") for k in KEYS)
+    config = load_config("noc_uav", ["simulation.sample_rate_hz=0"])
+    assert config.raw["simulation"]["sample_rate_hz"] == 0
+    with pytest.raises(ConfigError, match=r"\[simulation\] sample_rate_hz: must be a number > 0"):
+        scenario_of(config)
 
 
 @pytest.mark.parametrize("bind", ["0.0.0.0:9877", "bad host", ""])

@@ -25,6 +25,7 @@ from gcs_estimator.outputs.diagnosis import CHANNEL_NIS_LIMIT, trust_warnings
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import channel_mean_squares
+from sim.scenario import scenario_of
 from sim.truth import simulate
 from tests.conftest import CONFIGS
 
@@ -142,7 +143,7 @@ def test_each_channels_reading_is_reported_and_config_reads_none(tmp_path: Path)
     config = load_config(CONFIGS / "noc_uav.toml", over)
     flight = simulate(config, seed=6)
     run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
-    flown = np.array(config.simulation.sensors.noise_sigma)
+    flown = np.array(scenario_of(config).sensors.noise_sigma)
     assert run.result.noise_reading is not None
     np.testing.assert_allclose(run.result.noise_reading.sigma, flown, rtol=0.2)
     assert min(run.result.noise_reading.differences) >= MIN_DIFFERENCES

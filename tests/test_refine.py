@@ -26,6 +26,7 @@ from gcs_estimator.refine.fit import (
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from sim.reference import output_error
+from sim.scenario import scenario_of
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
@@ -53,7 +54,7 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
     assert np.all(refined.difference_sigma < 0.3 * refined.crb_sigma)
     assert not any("lands further from the filter" in w for w in trust_warnings(run, refined))
     assert np.all(refined.residual_colour < 2.0)
-    simulated = np.array(noc_config.simulation.sensors.noise_sigma)
+    simulated = np.array(scenario_of(noc_config).sensors.noise_sigma)
     np.testing.assert_allclose(refined.noise_sigma[:4], simulated[:4], rtol=0.1)
     truth = np.array(noc_config.truth)
     z = (refined.coefficients - truth) / refined.sigma

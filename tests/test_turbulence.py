@@ -12,11 +12,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gcs_estimator.config import AircraftConfig, Turbulence, load_config
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator, EstimatorResult
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.model.aircraft import build_model, trim
 from gcs_estimator.runtime.session import run_recording
+from sim.scenario import Turbulence, scenario_of
 from sim.truth import perturbed, simulate
 from tests.conftest import CONFIGS
 
@@ -25,9 +26,9 @@ WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 
 def _fly(config: AircraftConfig, sigma_w: float, seed: int) -> tuple[EstimatorResult, np.ndarray]:
     turbulence = Turbulence(sigma_u_mps=1.5 * sigma_w, sigma_w_mps=sigma_w)
-    flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
-    flight = simulate(flown, seed=seed)
-    run = run_recording(flown, flight.t_s, flight.inputs, flight.measurements, keep_history=False)
+    flown = replace(scenario_of(config), turbulence=turbulence)
+    flight = simulate(config, seed=seed, scenario=flown)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements, keep_history=False)
     return run.result, flight.truth
 
 
@@ -75,11 +76,9 @@ def test_a_pitch_gust_is_followed_by_the_pitch_gust_state(
         noc_config,
         airframe=replace(noc_config.airframe, wing_span_m=span),
         filter=replace(tuning, turbulence=replace(tuning.turbulence, model=kind)),
-        simulation=replace(
-            noc_config.simulation, turbulence=Turbulence(sigma_u_mps=1.158, sigma_w_mps=0.772)
-        ),
     )
-    flight = simulate(flown, seed=3)
+    light = Turbulence(sigma_u_mps=1.158, sigma_w_mps=0.772)
+    flight = simulate(flown, seed=3, scenario=replace(scenario_of(noc_config), turbulence=light))
     worst = {}
     for pitch_gust in (True, False):
         config = replace(
@@ -128,9 +127,9 @@ def _final_pass_levels(config: AircraftConfig, sigma_w: float, seed: int) -> np.
     """The IEKF's running gust variance and the level its process noise used, on every
     frame after the last restart: [[estimate, used], ...]."""
     turbulence = Turbulence(sigma_u_mps=1.5 * sigma_w, sigma_w_mps=sigma_w)
-    flown = replace(config, simulation=replace(config.simulation, turbulence=turbulence))
-    flight = simulate(flown, seed=seed)
-    est = Estimator(flown, keep_history=False)
+    flown = replace(scenario_of(config), turbulence=turbulence)
+    flight = simulate(config, seed=seed, scenario=flown)
+    est = Estimator(config, keep_history=False)
     detection2 = est.tunings["IEKF"].detection2
     rows = []
     for i in range(len(flight.t_s)):

@@ -24,6 +24,7 @@ from gcs_estimator.estimation.filters.core import FilterState, GustState, StepIn
 from gcs_estimator.estimation.filters.lane import Lane, stepper
 from gcs_estimator.model.aircraft import Model, build_model, trim
 from gcs_estimator.model.channels import N_OBS
+from sim.scenario import scenario_of
 from sim.truth import simulate
 
 # The two backends do the same arithmetic in a different order (fused loops, their own
@@ -270,14 +271,12 @@ def test_fast_equals_reference_over_a_flight(noc_config: AircraftConfig, turbule
     if turbulence == "states":
         tuning = config.filter
         config = replace(
-            config,
-            filter=replace(tuning, turbulence=replace(tuning.turbulence, model="states")),
-            simulation=replace(
-                config.simulation,
-                turbulence=replace(config.simulation.turbulence, sigma_w_mps=0.772),
-            ),
+            config, filter=replace(tuning, turbulence=replace(tuning.turbulence, model="states"))
         )
-    flight = simulate(config, seed=4)
+    scenario = scenario_of(config)
+    if turbulence == "states":
+        scenario = replace(scenario, turbulence=replace(scenario.turbulence, sigma_w_mps=0.772))
+    flight = simulate(config, seed=4, scenario=scenario)
     n = 600  # 12 s: both restarts and the first multisteps
     y = flight.measurements[:n].copy()
     y[::7, 4] = np.nan  # missing channels on some frames

@@ -12,6 +12,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters.lane import Lane
 from gcs_estimator.estimation.restarts import GRACE_PER_PEER
+from sim.scenario import scenario_of
 from sim.truth import simulate
 
 
@@ -93,7 +94,7 @@ def test_a_grace_period_leaves_the_receive_path_alone_then_swaps_later_to_the_sa
     spread, per_frame = _run(config, peers=10)
     grace = 10 * GRACE_PER_PEER
     kinds = len(plain.states)
-    begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
+    begin = round(config.filter.restart_times_s[0] * scenario_of(config).sample_rate_hz)
     # The restart's frame and the grace after it: the live step only, no fit, no re-run.
     assert set(per_frame[begin : begin + grace]) == {kinds}
     assert spread.final_pass_from > plain.final_pass_from
@@ -118,7 +119,7 @@ def test_idle_restart_work_stops_at_its_budget_and_takes_vehicles_in_turn() -> N
         session.estimators[sid] = Estimator(
             config, keep_history=False, peers_restarting=lambda: 200
         )
-    begin = round(config.filter.restart_times_s[0] * config.simulation.sample_rate_hz)
+    begin = round(config.filter.restart_times_s[0] * scenario_of(config).sample_rate_hz)
     for t, u, y in zip(fl.t_s[: begin + 1], fl.inputs, fl.measurements, strict=False):
         for sid in vehicles:
             session.estimator(sid).step(float(t), u, y)

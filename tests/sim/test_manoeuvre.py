@@ -8,11 +8,12 @@ from dataclasses import replace
 import numpy as np
 
 from gcs_estimator.config import load_config
+from sim.scenario import scenario_of
 from sim.truth import elevator_offset_rad, elevator_offsets_rad
 
 
 def test_all_times_at_once_equal_each_time_alone() -> None:
-    base = load_config("noc_uav").simulation.manoeuvre
+    base = scenario_of(load_config("noc_uav")).manoeuvre
     rng = np.random.default_rng(7)
     for _ in range(100):
         n_pulses = int(rng.integers(0, 5))

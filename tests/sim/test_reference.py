@@ -9,13 +9,15 @@ import numpy as np
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.runtime.session import run_recording
 from sim.reference import output_error
+from sim.scenario import scenario_of
 from sim.truth import simulate
 
 
 def test_recovers_every_coefficient_from_noise_free_data(noc_config: AircraftConfig) -> None:
-    sensors = replace(noc_config.simulation.sensors, noise_sigma=(0.0,) * 7)
-    config = replace(noc_config, simulation=replace(noc_config.simulation, sensors=sensors))
-    flight = simulate(config, seed=1)
+    scenario = scenario_of(noc_config)
+    sensors = replace(scenario.sensors, noise_sigma=(0.0,) * 7)
+    config = noc_config
+    flight = simulate(config, seed=1, scenario=replace(scenario, sensors=sensors))
     # Start 20 % off every coefficient and 0.5 m/s, 0.01 rad off the initial state.
     start = np.concatenate(
         [flight.states[0] + np.array([0.5, 0.01, -0.01, 0.0]), flight.truth * 1.2]

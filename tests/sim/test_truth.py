@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gcs_estimator.config import AircraftConfig, Manoeuvre, Turbulence
+from gcs_estimator.config import AircraftConfig
+from sim.scenario import Manoeuvre, Turbulence, scenario_of
 from sim.truth import _GustModel, elevator_offset_rad, simulate
 
 
@@ -58,7 +59,7 @@ def test_multistep_and_pulses() -> None:
 def test_sensor_noise_has_the_configured_sigma(noc_config: AircraftConfig) -> None:
     flight = simulate(noc_config, seed=3)
     err = flight.measurements - flight.clean
-    sigma = np.array(noc_config.simulation.sensors.noise_sigma)
+    sigma = np.array(scenario_of(noc_config).sensors.noise_sigma)
     # 3001 samples: the sample sigma is within ~2.6 % of the true one at 3 standard errors.
     np.testing.assert_allclose(err.std(axis=0), sigma, rtol=0.04)
     # Zero mean: within 4 standard errors per channel.
@@ -66,14 +67,14 @@ def test_sensor_noise_has_the_configured_sigma(noc_config: AircraftConfig) -> No
 
 
 def test_bias_and_quantisation(noc_config: AircraftConfig) -> None:
+    scenario = scenario_of(noc_config)
     sensors = replace(
-        noc_config.simulation.sensors,
+        scenario.sensors,
         noise_sigma=(0.0,) * 7,
         bias=(0.0, math.radians(1.0), 0.0, 0.01, 0.0, 0.0, 0.5),
         quantum=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
     )
-    config = replace(noc_config, simulation=replace(noc_config.simulation, sensors=sensors))
-    flight = simulate(config, seed=1)
+    flight = simulate(noc_config, seed=1, scenario=replace(scenario, sensors=sensors))
     np.testing.assert_allclose(flight.measurements[:, 1] - flight.clean[:, 1], math.radians(1.0))
     np.testing.assert_allclose(flight.measurements[:, 6] - flight.clean[:, 6], 0.5)
     v = flight.measurements[:, 0]
@@ -82,9 +83,8 @@ def test_bias_and_quantisation(noc_config: AircraftConfig) -> None:
 
 def test_turbulence_moves_the_aircraft_with_the_set_intensity(noc_config: AircraftConfig) -> None:
     turb = Turbulence(sigma_u_mps=1.0, sigma_w_mps=0.8, length_u_m=200.0, length_w_m=50.0)
-    config = replace(noc_config, simulation=replace(noc_config.simulation, turbulence=turb))
     calm = simulate(noc_config, seed=5)
-    rough = simulate(config, seed=5)
+    rough = simulate(noc_config, seed=5, scenario=replace(scenario_of(noc_config), turbulence=turb))
     before = calm.t_s < 2.0  # trimmed: any motion here is the gusts
     assert np.ptp(calm.states[before, 1]) < 1e-9
     # Alpha seen by the vane carries w_g/V: tenths of a degree to degrees at 0.8 m/s.
