@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs_estimator.cli import main
+from gcs_estimator.cli import BACKEND_VARIABLE, backend_of, main
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording, load_csv, load_hfb320, write_csv
 from gcs_estimator.runtime.session import run_recording
@@ -121,6 +121,23 @@ def test_bad_inputs_give_one_clear_error(
     assert main(["refine", "hfb320", "--window", "10:5", "--out", str(tmp_path / "w")]) == 2
     assert "--window '10:5': FROM must come before TO" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
+
+
+def test_the_backend_is_a_developers_environment_variable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The numpy reference backend is chosen by GCS_ESTIMATOR_BACKEND, read once at the
+    edge; the user's command line has no --backend."""
+    assert backend_of({}) == "fast"
+    assert backend_of({BACKEND_VARIABLE: "reference"}) == "reference"
+    with pytest.raises(SystemExit):
+        main(["simulate", "--backend", "reference", "--out", str(tmp_path)])
+    assert "unrecognized arguments: --backend" in capsys.readouterr().err
+    monkeypatch.setenv(BACKEND_VARIABLE, "numpy")
+    assert main(["simulate", "--out", str(tmp_path)]) == 2
+    assert "GCS_ESTIMATOR_BACKEND='numpy': must be 'fast' or 'reference'" in (
+        capsys.readouterr().err
+    )
 
 
 def test_the_json_says_which_run_made_it(tmp_path: Path) -> None:
