@@ -128,6 +128,194 @@ def first_in_interval(
     return keep, float(bucket[-1])
 
 
+class PanelRanges:
+    """Each vehicle's coefficient panels' y ranges: the estimates with their ±2σ bands
+    since the settle time (before it, over the newest batch) and the vehicle's truth,
+    with a margin; and whether the ranges the viewer was sent are out of date."""
+
+    def __init__(
+        self,
+        coefficients: slice,
+        count: int,
+        settle_s: float,
+        truth_of: Callable[[int], FloatArray | None] | None,
+    ) -> None:
+        self.coefficients = coefficients
+        """Where the coefficients are in the augmented state."""
+        self.count = count
+        """How many coefficients."""
+        self.settle_s = settle_s
+        """Vehicle time after the first frame from which the estimates set the ranges."""
+        self.truth_of = truth_of
+        """Each vehicle's truth (None: no truth lines are drawn)."""
+        self.sent: dict[int, list[lay.Range | None]] = {}
+        """The ranges of the last layout, per vehicle."""
+
+    def track(
+        self,
+        rows: _Rows,
+        tv: FloatArray,
+        x: dict[FilterKind, FloatArray],
+        sd: dict[FilterKind, FloatArray],
+    ) -> None:
+        """Lowest and highest estimate with its band (the band clipped to the estimate's
+        own magnitude, so a coefficient the data barely constrain keeps its line in
+        view) per coefficient: over this batch, and since the settle time."""
+        if math.isnan(rows.t_first):
+            rows.t_first = float(tv[0])
+        coef = self.coefficients
+        lows, highs = [], []
+        for k in KINDS:
+            est = x[k][:, coef]
+            band = np.minimum(2.0 * sd[k][:, coef], np.abs(est))
+            lows.append(est - band)
+            highs.append(est + band)
+        lo = np.fmin.reduce(lows)
+        hi = np.fmax.reduce(highs)
+        with np.errstate(all="ignore"):
+            rows.recent = np.column_stack([np.nanmin(lo, axis=0), np.nanmax(hi, axis=0)])
+            late = tv - rows.t_first >= self.settle_s
+            if late.any():
+                now = np.column_stack([np.nanmin(lo[late], axis=0), np.nanmax(hi[late], axis=0)])
+                if rows.settled is None:
+                    rows.settled = now
+                else:
+                    rows.settled = np.column_stack(
+                        [
+                            np.fmin(rows.settled[:, 0], now[:, 0]),
+                            np.fmax(rows.settled[:, 1], now[:, 1]),
+                        ]
+                    )
+
+    def of(self, sid: int, rows: _Rows, margin: float = 0.25) -> list[lay.Range | None]:
+        """Each coefficient panel's range: the estimates and bands since the settle time
+        (before it, of the newest batch) and the vehicle's truth, with a margin."""
+        span = rows.settled if rows.settled is not None else rows.recent
+        truth = None if self.truth_of is None else self.truth_of(sid)
+        out: list[lay.Range | None] = []
+        for i in range(self.count):
+            t = None if truth is None else float(truth[i])
+            if span is None:
+                out.append(lay.coefficient_range(math.nan, math.nan, t, margin))
+            else:
+                lo, hi = float(span[i, 0]), float(span[i, 1])
+                out.append(lay.coefficient_range(lo, hi, t, margin))
+        return out
+
+    def moved(self, vehicles: Mapping[int, _Rows]) -> bool:
+        """Whether an estimate left its panel's range, or the range it would get now is
+        less than half the one it has (the scale shrank as the estimates converged)."""
+        for sid, rows in vehicles.items():
+            sent = self.sent.get(sid)
+            if sent is None:
+                return True
+            held = self.of(sid, rows, margin=0.0)
+            wanted = self.of(sid, rows)
+            for old, now, want in zip(sent, held, wanted, strict=True):
+                if now is None or want is None:
+                    continue
+                if old is None or now[0] < old[0] or now[1] > old[1]:
+                    return True
+                if (want[1] - want[0]) < 0.5 * (old[1] - old[0]):
+                    return True
+        return False
+
+
+def style_ops(
+    sid: int, names: Sequence[str], axes: Sequence[str], truth_label: str | None
+) -> list[Op]:
+    """A new vehicle's series styles (sent once; truth_label None: no truth lines)."""
+    ops: list[Op] = []
+    for n, a in zip(names, axes, strict=True):
+        ops.append(Style(lay.coefficient_path(sid, n, a), lay.COEFFICIENT_STYLE))
+        ops.append(Style(lay.band_path(sid, n, a), lay.BAND_STYLE))
+        if truth_label is not None:
+            ops.append(Style(lay.truth_path(sid, n, a), lay.truth_style(truth_label)))
+    ops += [
+        Style(lay.state_path(sid, s), lay.state_style(s, unit))
+        for s, unit in zip(FLIGHT_STATES, lay.STATE_UNITS, strict=True)
+    ]
+    ops.append(Style(lay.nis_path(sid), lay.NIS_STYLE))
+    ops.append(Style(lay.turbulence_path(sid), lay.TURBULENCE_STYLE))
+    ops += [Style(lay.innovation_path(sid, k), lay.innovation_style()) for k in KINDS]
+    return ops
+
+
+def band_columns(
+    sid: int,
+    names: Sequence[str],
+    axes: Sequence[str],
+    c0: int,
+    times: dict[str, FloatArray],
+    x: dict[FilterKind, FloatArray],
+    sd: dict[FilterKind, FloatArray],
+) -> list[Op]:
+    """The ±2σ bands at the display rate (the estimates at ESTIMATE_RATE_HZ): the
+    filters' covariance sigma as the run goes; c0: the first coefficient's column."""
+    ops: list[Op] = []
+    for i, name in enumerate(names):
+        cols = []
+        for k in KINDS:
+            est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
+            cols += [est - s2, est + s2]
+        ops.append(Columns(lay.band_path(sid, name, axes[i]), times, np.column_stack(cols)))
+    return ops
+
+
+def display_columns(
+    sid: int,
+    rows: _Rows,
+    idx: np.ndarray,
+    times: dict[str, FloatArray],
+    x: dict[FilterKind, FloatArray],
+    flight_start: int,
+    power_input: str,
+    chi2: FloatArray,
+) -> list[Op]:
+    """The display-only series of the rows idx: states measured and estimated, inputs,
+    NIS with its 95 % bounds (chi2: _chi2_bounds), turbulence levels, innovations in
+    their sigmas."""
+    y = np.array(rows.y)[idx]
+    u = np.array(rows.u)[idx]
+    ops: list[Op] = []
+    for j, s in enumerate(FLIGHT_STATES):
+        col = flight_start + j
+        vals = np.column_stack([y[:, j], x["EKF"][idx, col], x["IEKF"][idx, col]])
+        ops.append(Columns(lay.state_path(sid, s), times, vals * _DISPLAY_SCALE[j]))
+    ops.append(Columns(lay.input_path(sid, "elevator"), times, np.degrees(u[:, :1])))
+    ops.append(Columns(lay.input_path(sid, power_input), times, u[:, 1:2]))
+    outs = {k: [rows.outs[k][i] for i in idx] for k in KINDS}
+    m = np.array([o.info.n_used for o in outs["IEKF"]], int)
+    nis = np.column_stack([np.array([o.info.nis for o in outs[k]]) for k in KINDS] + [chi2[m]])
+    ops.append(Columns(lay.nis_path(sid), times, nis))
+    gust = np.column_stack(
+        [np.array([o.info.gust_sigma for o in outs[k]]) for k in KINDS]
+        + [np.array([o.info.gust_pass_sigma for o in outs[k]]) for k in KINDS]
+    )
+    ops.append(Columns(lay.turbulence_path(sid), times, gust))
+    for k in KINDS:
+        e = np.array([o.info.innovation for o in outs[k]])
+        sig = np.array([o.info.innovation_sigma for o in outs[k]])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = e / sig
+        guides = np.tile([-2.0, 2.0], (len(idx), 1))
+        ops.append(Columns(lay.innovation_path(sid, k), times, np.hstack([z, guides])))
+    return ops
+
+
+def link_columns(t: float, counts: Mapping[str, int], last: tuple[float, int]) -> list[Op]:
+    """The link entities at session time t [s]: the packet rate since `last` (session
+    time, packets received then) and the counts of what went wrong."""
+    ops: list[Op] = []
+    received = int(counts.get("received", 0))
+    if t > last[0]:
+        rate = (received - last[1]) / (t - last[0])
+        ops.append(Columns(lay.LINK_RATE, {lay.TIMELINE: np.array([t])}, np.array([[rate]])))
+    vals = [counts.get(k, 0) for k in ("lost", "duplicates", "out_of_order", "corrupt")]
+    ops.append(Columns(lay.LINK_COUNTS, {lay.TIMELINE: np.array([t])}, np.array([vals], float)))
+    return ops
+
+
 class RerunView:
     """Sends estimates, states, inputs and diagnostics of every vehicle to the outlets."""
 
@@ -164,8 +352,12 @@ class RerunView:
         self._last_flush = clock()
         self._last_table = -math.inf
         restarts = config.filter.restart_times_s
-        self._settle_s = (restarts[-1] if restarts else 0.0) + SETTLE_AFTER_RESTART_S
-        self._sent_ranges: dict[int, list[lay.Range | None]] = {}
+        self.ranges = PanelRanges(
+            self.coefficients,
+            len(self.names),
+            (restarts[-1] if restarts else 0.0) + SETTLE_AFTER_RESTART_S,
+            self.truth_of if self.truth is not None else None,
+        )
         self._last_layout = -math.inf
         self._newest: dict[str, float] = {}
         """Both timelines' values at the newest frame of any vehicle (for the link)."""
@@ -203,25 +395,10 @@ class RerunView:
 
     def _announce(self, system_id: int) -> None:
         """A new vehicle: style its series once, and lay the viewer out for all vehicles."""
-        ops: list[Op] = []
-        for n, a in zip(self.names, self.axes, strict=True):
-            ops.append(Style(lay.coefficient_path(system_id, n, a), lay.COEFFICIENT_STYLE))
-            ops.append(Style(lay.band_path(system_id, n, a), lay.BAND_STYLE))
-            if self.truth is not None:
-                ops.append(
-                    Style(lay.truth_path(system_id, n, a), lay.truth_style(self.truth_label))
-                )
-        ops += [
-            Style(lay.state_path(system_id, s), lay.state_style(s, unit))
-            for s, unit in zip(FLIGHT_STATES, lay.STATE_UNITS, strict=True)
-        ]
-        ops.append(Style(lay.nis_path(system_id), lay.NIS_STYLE))
-        ops.append(Style(lay.turbulence_path(system_id), lay.TURBULENCE_STYLE))
-        ops += [Style(lay.innovation_path(system_id, k), lay.innovation_style()) for k in KINDS]
-        for op in ops:
+        label = self.truth_label if self.truth is not None else None
+        for op in style_ops(system_id, self.names, self.axes, label):
             self._send(op)
         if len(self.rows) == 1:
-            label = self.truth_label if self.truth is not None else None
             self._send(Text(lay.LEGEND, {}, lay.legend_text(label)))
             self._send_layout()  # the first vehicle is laid out at once
         else:
@@ -232,46 +409,12 @@ class RerunView:
         range. It is a whole blueprint each time, so it goes at most once per batch:
         vehicles that appear together (a fleet coming up) cost one layout, not one per
         vehicle with all the vehicles before."""
-        ranges = {sid: self._ranges(sid) for sid in self.rows}
-        self._sent_ranges = ranges
+        ranges = {sid: self.ranges.of(sid, rows) for sid, rows in self.rows.items()}
+        self.ranges.sent = ranges
         ids = tuple(sorted(self.rows))
         self._send(Layout(ids, self.names, self.axes, self.power_input, ranges, dict(marks or {})))
         self._layout_due = False
         self._last_layout = self.clock()
-
-    def _ranges(self, sid: int, margin: float = 0.25) -> list[lay.Range | None]:
-        """Each coefficient panel's range: the estimates and bands since the settle time
-        (before it, of the newest batch) and the vehicle's truth, with a margin."""
-        rows = self.rows[sid]
-        span = rows.settled if rows.settled is not None else rows.recent
-        truth = self.truth_of(sid) if self.truth is not None else None
-        out: list[lay.Range | None] = []
-        for i in range(len(self.names)):
-            t = None if truth is None else float(truth[i])
-            if span is None:
-                out.append(lay.coefficient_range(math.nan, math.nan, t, margin))
-            else:
-                lo, hi = float(span[i, 0]), float(span[i, 1])
-                out.append(lay.coefficient_range(lo, hi, t, margin))
-        return out
-
-    def _ranges_moved(self) -> bool:
-        """Whether an estimate left its panel's range, or the range it would get now is
-        less than half the one it has (the scale shrank as the estimates converged)."""
-        for sid in self.rows:
-            sent = self._sent_ranges.get(sid)
-            if sent is None:
-                return True
-            held = self._ranges(sid, margin=0.0)
-            wanted = self._ranges(sid)
-            for old, now, want in zip(sent, held, wanted, strict=True):
-                if now is None or want is None:
-                    continue
-                if old is None or now[0] < old[0] or now[1] > old[1]:
-                    return True
-                if (want[1] - want[0]) < 0.5 * (old[1] - old[0]):
-                    return True
-        return False
 
     # ------------------------------------------------------------ sending
     def _send(self, op: Op) -> None:
@@ -286,7 +429,8 @@ class RerunView:
             if rows.t:
                 self._send_rows(sid, rows)
         if self._layout_due or (
-            self._last_flush - self._last_layout >= LAYOUT_INTERVAL_S and self._ranges_moved()
+            self._last_flush - self._last_layout >= LAYOUT_INTERVAL_S
+            and self.ranges.moved(self.rows)
         ):
             self._send_layout()
         self._send_link()
@@ -305,7 +449,7 @@ class RerunView:
         x = {k: np.array([o.x for o in rows.outs[k]]) for k in KINDS}
         sd = {k: np.array([o.info.sigma for o in rows.outs[k]]) for k in KINDS}
         c0 = self.coefficients.start
-        self._track_ranges(rows, tv, x, sd)
+        self.ranges.track(rows, tv, x, sd)
         ends = [0, n - 1] if n > 1 else [0]
         own = self.truth_of(sid) if self.truth is not None else None
         keep, rows.last_estimate_bucket = first_in_interval(
@@ -332,114 +476,23 @@ class RerunView:
         idx = np.flatnonzero(keep)
         if len(idx):
             shown = {name: v[idx] for name, v in times.items()}
-            self._send_bands(
-                sid, shown, {k: x[k][idx] for k in KINDS}, {k: sd[k][idx] for k in KINDS}
+            xs, sds = {k: x[k][idx] for k in KINDS}, {k: sd[k][idx] for k in KINDS}
+            ops = band_columns(sid, self.names, self.axes, c0, shown, xs, sds)
+            ops += display_columns(
+                sid, rows, idx, shown, x, self.flight.start, self.power_input, self._chi2
             )
-            self._send_display(sid, rows, idx, shown, x)
+            for op in ops:
+                self._send(op)
         rows.clear()
-
-    def _track_ranges(
-        self,
-        rows: _Rows,
-        tv: FloatArray,
-        x: dict[FilterKind, FloatArray],
-        sd: dict[FilterKind, FloatArray],
-    ) -> None:
-        """Lowest and highest estimate with its band (the band clipped to the estimate's
-        own magnitude, so a coefficient the data barely constrain keeps its line in
-        view) per coefficient: over this batch, and since the settle time."""
-        if math.isnan(rows.t_first):
-            rows.t_first = float(tv[0])
-        coef = self.coefficients
-        lows, highs = [], []
-        for k in KINDS:
-            est = x[k][:, coef]
-            band = np.minimum(2.0 * sd[k][:, coef], np.abs(est))
-            lows.append(est - band)
-            highs.append(est + band)
-        lo = np.fmin.reduce(lows)
-        hi = np.fmax.reduce(highs)
-        with np.errstate(all="ignore"):
-            rows.recent = np.column_stack([np.nanmin(lo, axis=0), np.nanmax(hi, axis=0)])
-            late = tv - rows.t_first >= self._settle_s
-            if late.any():
-                now = np.column_stack([np.nanmin(lo[late], axis=0), np.nanmax(hi[late], axis=0)])
-                if rows.settled is None:
-                    rows.settled = now
-                else:
-                    rows.settled = np.column_stack(
-                        [
-                            np.fmin(rows.settled[:, 0], now[:, 0]),
-                            np.fmax(rows.settled[:, 1], now[:, 1]),
-                        ]
-                    )
-
-    def _send_bands(
-        self,
-        sid: int,
-        times: dict[str, FloatArray],
-        x: dict[FilterKind, FloatArray],
-        sd: dict[FilterKind, FloatArray],
-    ) -> None:
-        """The ±2σ bands at the display rate (the estimates at ESTIMATE_RATE_HZ)."""
-        c0 = self.coefficients.start
-        for i, name in enumerate(self.names):
-            cols = []
-            for k in KINDS:
-                est, s2 = x[k][:, c0 + i], 2.0 * sd[k][:, c0 + i]
-                cols += [est - s2, est + s2]
-            self._send(
-                Columns(lay.band_path(sid, name, self.axes[i]), times, np.column_stack(cols))
-            )
-
-    def _send_display(
-        self,
-        sid: int,
-        rows: _Rows,
-        idx: np.ndarray,
-        times: dict[str, FloatArray],
-        x: dict[FilterKind, FloatArray],
-    ) -> None:
-        y = np.array(rows.y)[idx]
-        u = np.array(rows.u)[idx]
-        for j, s in enumerate(FLIGHT_STATES):
-            col = self.flight.start + j
-            vals = np.column_stack([y[:, j], x["EKF"][idx, col], x["IEKF"][idx, col]])
-            self._send(Columns(lay.state_path(sid, s), times, vals * _DISPLAY_SCALE[j]))
-        self._send(Columns(lay.input_path(sid, "elevator"), times, np.degrees(u[:, :1])))
-        self._send(Columns(lay.input_path(sid, self.power_input), times, u[:, 1:2]))
-        outs = {k: [rows.outs[k][i] for i in idx] for k in KINDS}
-        m = np.array([o.info.n_used for o in outs["IEKF"]], int)
-        nis = np.column_stack(
-            [np.array([o.info.nis for o in outs[k]]) for k in KINDS] + [self._chi2[m]]
-        )
-        self._send(Columns(lay.nis_path(sid), times, nis))
-        gust = np.column_stack(
-            [np.array([o.info.gust_sigma for o in outs[k]]) for k in KINDS]
-            + [np.array([o.info.gust_pass_sigma for o in outs[k]]) for k in KINDS]
-        )
-        self._send(Columns(lay.turbulence_path(sid), times, gust))
-        for k in KINDS:
-            e = np.array([o.info.innovation for o in outs[k]])
-            sig = np.array([o.info.innovation_sigma for o in outs[k]])
-            with np.errstate(invalid="ignore", divide="ignore"):
-                z = e / sig
-            guides = np.tile([-2.0, 2.0], (len(idx), 1))
-            self._send(Columns(lay.innovation_path(sid, k), times, np.hstack([z, guides])))
 
     def _send_link(self) -> None:
         if self.link_source is None:
             return
         t, counts = self.link_source()
-        if not math.isfinite(t):
-            return
-        received = int(counts.get("received", 0))
-        if t > self._link_last[0]:
-            rate = (received - self._link_last[1]) / (t - self._link_last[0])
-            self._send(Columns(lay.LINK_RATE, {lay.TIMELINE: np.array([t])}, np.array([[rate]])))
-        self._link_last = (t, received)
-        vals = [counts.get(k, 0) for k in ("lost", "duplicates", "out_of_order", "corrupt")]
-        self._send(Columns(lay.LINK_COUNTS, {lay.TIMELINE: np.array([t])}, np.array([vals], float)))
+        if math.isfinite(t):
+            for op in link_columns(t, counts, self._link_last):
+                self._send(op)
+            self._link_last = (t, int(counts.get("received", 0)))
 
     def close(
         self,
