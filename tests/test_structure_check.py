@@ -36,7 +36,7 @@ def _z(vehicle: VehicleResult, kind: FilterKind) -> np.ndarray:
 def test_the_final_pass_replayed_from_the_history_ends_where_the_run_did() -> None:
     """The check's base: the run's final pass replayed over its history in compiled
     blocks (Estimator.replay_final_pass) ends bit for bit where the run, frame by frame
-    with its restarts, did; across a gap longer than filter.max_gap_s too."""
+    with its restarts, did; across a gap longer than filters.core.MAX_GAP_S too."""
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=25"])
     fl = simulate(config, seed=4)
     keep = (fl.t_s < 14.0) | (fl.t_s > 17.0)  # a 3 s gap: the flight states start afresh
