@@ -51,7 +51,7 @@ from gcs_estimator.estimation.estimator import (
 from gcs_estimator.ingest.flightdata import Recording, load_recording
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.text import channel_text
-from gcs_estimator.refine.fit import Refined, RefineError, fit_label, refine_run
+from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
 from gcs_estimator.runtime.session import VehicleResult, run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 

@@ -26,7 +26,7 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import load_recording
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.refine.fit import Refined, available_cores, refine_run
+from gcs_estimator.refine import Refined, available_cores, refine_run
 from gcs_estimator.runtime.session import run_recording
 
 TARGETED = ("CLa", "Cma", "Cmq", "Cmde", "CD0", "CDa")

@@ -48,7 +48,7 @@ from scipy.stats import chi2
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.ingest.flightdata import load_recording
-from gcs_estimator.refine.fit import refine_run
+from gcs_estimator.refine import refine_run
 from gcs_estimator.runtime.session import run_recording
 from sim.truth import simulate
 

@@ -17,7 +17,7 @@ from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.outputs.sinks import RefineStatus
-from gcs_estimator.refine.fit import (
+from gcs_estimator.refine import (
     RefineError,
     RefineProgress,
     choose_method,
@@ -324,7 +324,7 @@ def test_constant_gain_kernel_without_gain_flies_open_loop(hfb_config: AircraftC
     included; a gain pulls the flight toward the data (smaller innovations)."""
     from gcs_estimator.ingest.flightdata import load_recording
     from gcs_estimator.model.aircraft import build_model
-    from gcs_estimator.refine.fit import innovations, steady_innovations
+    from gcs_estimator.refine.flights import innovations, steady_innovations
 
     rec = load_recording("hfb320", hfb_config.data)[1]
     model = build_model(hfb_config, gust_states=False)

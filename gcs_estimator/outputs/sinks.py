@@ -20,7 +20,7 @@ from gcs_estimator.outputs.text import TERMINAL_WIDTH, wrap
 from gcs_estimator.uncertainty.result import VehicleResult
 
 if TYPE_CHECKING:
-    from gcs_estimator.refine.fit import Refined, RefineProgress
+    from gcs_estimator.refine import Refined, RefineProgress
 
 
 HISTORY_BLOCK_FRAMES = 1024
@@ -266,7 +266,7 @@ class RefineAsk:
     """Why the fit failed, a line per vehicle where it did (the run's exit status)."""
 
     def __call__(self, vehicle: VehicleResult) -> Refined | None:
-        from gcs_estimator.refine.fit import RefineError, choose_method, refine_run
+        from gcs_estimator.refine import RefineError, choose_method, refine_run
 
         status = RefineStatus()
         try:

@@ -19,7 +19,7 @@ import numpy as np
 
 def main() -> int:
     from gcs_estimator.config import load_config
-    from gcs_estimator.refine.fit import RefineError, refine_run
+    from gcs_estimator.refine import RefineError, refine_run
     from gcs_estimator.runtime.session import run_recording, warm_up
     from sim.truth import simulate
 

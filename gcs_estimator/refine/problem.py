@@ -1,0 +1,130 @@
+"""One record to fit: the model's output over it from an initial state, and the output's
+sensitivities to the parameters.
+
+The sensitivities are forward differences: each column is an independent flight of the
+model, and the columns run in threads (the compiled flights release the GIL), so a fit
+uses the machine's cores; each column is the same number whatever the threads.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.model.aircraft import Model
+from gcs_estimator.refine.flights import innovations
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def thread_pool(threads: int | None) -> ThreadPoolExecutor | None:
+    """The process's pool of `threads` threads (default: available_cores()), made on
+    first use and kept for the next fit; None for one thread."""
+    count = available_cores() if threads is None else threads
+    if count < 2:
+        return None
+    with _POOLS_LOCK:
+        pool = _POOLS.get(count)
+        if pool is None:
+            pool = ThreadPoolExecutor(max_workers=count, thread_name_prefix="refine")
+            _POOLS[count] = pool
+    return pool
+
+
+class Problem:
+    """One record (t [N], model inputs u [N x m], observations y [N x 7] with 0 where
+    mask [N x 7] is 0) and how the model flies over it (Runge-Kutta steps of at most
+    max_step [s]; inputs linear between samples, or held)."""
+
+    def __init__(
+        self,
+        model: Model,
+        t: FloatArray,
+        u: FloatArray,
+        y: FloatArray,
+        mask: FloatArray,
+        max_step: float,
+        linear: bool,
+    ) -> None:
+        self.model = model
+        self.t, self.u, self.y, self.mask = t, u, y, mask
+        self.max_step = max_step
+        self.linear = linear
+        self.runs = 0
+        self._lock = threading.Lock()
+        self.pool: ThreadPoolExecutor | None = None
+        """Threads for the sensitivities' columns (None: the calling thread)."""
+
+    def count_run(self) -> None:
+        with self._lock:
+            self.runs += 1
+
+    def columns(self, column: Callable[[int], FloatArray], count: int) -> list[FloatArray]:
+        """column(j) for j < count: in the pool's threads where there is one."""
+        if self.pool is None or count < 2:
+            return [column(j) for j in range(count)]
+        return list(self.pool.map(column, range(count)))
+
+    def run(
+        self, x0: FloatArray, q: FloatArray, r: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
+        """flights.innovations from x0 at process noise density q and noise variances r."""
+        self.count_run()
+        out: tuple[FloatArray, FloatArray, FloatArray, bool] = innovations(
+            x0,
+            self.t,
+            self.u,
+            self.y,
+            self.mask,
+            self.model.arrays,
+            q,
+            r,
+            self.max_step,
+            self.linear,
+        )
+        return out
+
+    def cost(self, x0: FloatArray, q: FloatArray, r: FloatArray) -> float:
+        """Negative log-likelihood (without its constant): sum e^2 + log det S."""
+        e, logdet, _, ok = self.run(x0, q, r)
+        c = float(np.sum(e * e) + np.sum(logdet))
+        return c if ok and math.isfinite(c) else math.inf
+
+    def jacobian(
+        self, x0: FloatArray, free: IntArray, q: FloatArray, r: FloatArray, e0: FloatArray
+    ) -> FloatArray:
+        """d e / d x0[free] by forward differences [N*7 x len(free)]."""
+
+        def column(col: int) -> FloatArray:
+            j = free[col]
+            step = 1e-6 * max(abs(x0[j]), 1e-3)
+            xp = x0.copy()
+            xp[j] += step
+            e, _, _, ok = self.run(xp, q, r)
+            if not ok:
+                xp[j] = x0[j] - step
+                e, _, _, _ = self.run(xp, q, r)
+                step = -step
+            out: FloatArray = (e - e0).ravel() / step
+            return out
+
+        J = np.empty((e0.size, len(free)))
+        for col, values in enumerate(self.columns(column, len(free))):
+            J[:, col] = values
+        return J

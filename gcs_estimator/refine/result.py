@@ -1,0 +1,122 @@
+"""What a whole-record fit hands back: the fit (Refined), its progress, its failure."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.refine.sigma import FitSigma
+
+
+def fit_label(method: str) -> str:
+    """A fit's short name in tables and notes: "FE" for filter error (a Refined.method or
+    a --method value), "OE" for output error."""
+    return "FE" if method.replace("-", " ").startswith("filter error") else "OE"
+
+
+@dataclass(frozen=True)
+class Refined:
+    """The maximum-likelihood fit of one record."""
+
+    method: str
+    """"output error" (no process noise) or "filter error" (process noise estimated:
+    steady-state gain); ", noise held" added when the noise levels were held at the
+    configured ones (filter error then runs the time-varying filter)."""
+    names: tuple[str, ...]
+    """Coefficient names."""
+    coefficients: FloatArray
+    sigma_parts: FitSigma
+    """The coefficients' sigma to trust and its parts (refine.sigma)."""
+    correlation: FloatArray
+    """Correlation of the coefficients [p x p] (from the Morelli-Klein covariance)."""
+    identifiability: tuple[str, ...]
+    bias_names: tuple[str, ...]
+    biases: FloatArray
+    bias_sigma: FloatArray
+    """The fit's own sigma of the biases (FitSigma.within_fit: no filter compared)."""
+    state0: FloatArray
+    """Fitted initial flight state [V, alpha, theta, q]."""
+    noise_sigma: FloatArray
+    """Measurement noise sigma per observation channel [7] (NaN: not observed). Filter
+    error with the noise estimated: what the innovations' variance leaves after the
+    state's own uncertainty, sqrt(max(R - diag(C P C'), 0))."""
+    process_noise: FloatArray
+    """Process noise spectral density of V, alpha, theta, q (0 for output error; filter
+    error: diag(F F'))."""
+    residual_colour: FloatArray
+    """Per channel: the information its residuals' autocorrelation leaves, relative to
+    white residuals of the same variance, as seen through the parameters' sensitivities
+    (trace of S^T Rvv S over trace of S^T rho(0) S): 1 for white residuals, larger when
+    they are correlated in time (each sample then tells less)."""
+    frames: int
+    iterations: int
+    converged: bool
+    message: str
+    choice: str = ""
+    """Why this method, when it was chosen from the data ("auto": choose_method); empty
+    when it was asked for by name."""
+
+    @property
+    def label(self) -> str:
+        """The fit's short name in tables and notes (fit_label)."""
+        return fit_label(self.method)
+
+    @property
+    def sigma(self) -> FloatArray:
+        """The coefficients' sigma to trust (FitSigma.sigma)."""
+        return self.sigma_parts.sigma
+
+    @property
+    def crb_sigma(self) -> FloatArray:
+        """The coefficients' Cramer-Rao sigma (white residuals assumed)."""
+        return self.sigma_parts.cramer_rao
+
+    @property
+    def structure_sigma(self) -> FloatArray:
+        """How far each coefficient depends on how much each channel is trusted (the fit
+        re-made with one channel's weight halved at a time; decision 0017's check,
+        applied to the whole-record fit): 0 where the model holds. Where the filter it
+        started from was checked too (filter_structure_sigma), the larger of the two
+        (decision 0031)."""
+        return self.sigma_parts.structure
+
+    @property
+    def difference_sigma(self) -> FloatArray | None:
+        """How far the fit lands from the filter it started from, beyond what their
+        covariances allow (decision 0030); None for a fit not started from a filter's
+        run."""
+        return self.sigma_parts.difference
+
+    @property
+    def filter_structure_sigma(self) -> FloatArray | None:
+        """The structure sigma of the filter the fit started from (its check of the same
+        record; NaN where a coefficient was not checked), which structure_sigma does not
+        fall below (decision 0031); None where the run made no check or refine_run was
+        given a bare result."""
+        return self.sigma_parts.filter_structure
+
+    @property
+    def sigma_within_fit(self) -> FloatArray:
+        """The sigma from the fit alone: Morelli-Klein's with the structure sigma, without
+        difference_sigma."""
+        return self.sigma_parts.within_fit
+
+
+class RefineProgress(NamedTuple):
+    """Where a fit stands, after each Gauss-Newton iteration."""
+
+    iterations: int
+    """Gauss-Newton iterations so far."""
+    cost: float
+    """Negative log-likelihood (times 2, without its constant) the iteration started
+    from."""
+    step_sigma: float
+    """Largest parameter step of the iteration, in sigmas (about); 0: none accepted."""
+    runs: int
+    """Filter runs (flights of the model over the record) so far."""
+
+
+class RefineError(RuntimeError):
+    """The fit could not be made (the model, flown over the record, leaves finite
+    numbers from the start, or the record holds too few observations)."""

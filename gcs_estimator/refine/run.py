@@ -1,0 +1,154 @@
+"""A finished run refined: `refine_run` fits the frames the filters saw, from filter
+`kind`'s estimate, by the method "auto" chooses from what the filters found
+(choose_method; decision 0025), and compares the fit with that filter (sigma)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.config import REFINE_METHODS
+from gcs_estimator.estimation.filters.core import MAX_STEP_S, FilterKind
+from gcs_estimator.estimation.history import Track
+from gcs_estimator.estimation.results import EstimatorResult, FilterResult
+from gcs_estimator.model.aircraft import Model, build_model
+from gcs_estimator.model.channels import N_FLIGHT
+from gcs_estimator.refine.fit import refine
+from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
+from gcs_estimator.refine.sigma import FilterEstimate
+
+if TYPE_CHECKING:
+    from gcs_estimator.uncertainty.result import VehicleResult
+
+TURBULENT_SHARE = 0.5
+"""method "auto", where the filters measured no level over the pass (a fixed level:
+[filter.turbulence] adaptive = false): filter error when the level was applied in at
+least this share of the final pass."""
+
+
+def _filter(result: EstimatorResult, kind: FilterKind) -> tuple[FilterResult, Track]:
+    """Filter `kind`'s result and its history, which the fit needs."""
+    fr = result.filters.get(kind)
+    if fr is None or fr.track is None or len(fr.track.t) == 0:
+        raise RefineError("no frames to refine (the run kept no history or saw no data)")
+    return fr, fr.track
+
+
+def choose_method(result: EstimatorResult, kind: FilterKind = "IEKF") -> tuple[str, str]:
+    """The whole-record fit for this run ("auto"; decision 0025): filter error where
+    filter `kind`'s turbulence level averaged over its final pass stands at least
+    [filter.turbulence] detection_sigma standard errors above zero (the filters found
+    turbulence in the record as a whole), output error otherwise; and why, in words. With
+    no level measured (a fixed one), filter error where it was applied in at least
+    TURBULENT_SHARE of the pass."""
+    fr, track = _filter(result, kind)
+    threshold = result.config.filter.turbulence.detection_sigma
+    if math.isfinite(fr.gust_pass_z):
+        turbulent = fr.gust_pass_z >= threshold
+        seen = (
+            f"the {kind}'s turbulence level over its final pass, σ_w {fr.gust_pass_sigma:.2f} "
+            f"m/s, is {fr.gust_pass_z:+.1f} standard errors from zero (turbulent from "
+            f"{threshold:g})"
+        )
+    else:
+        level = track.gust_sigma[result.final_pass_from :]
+        share = float(np.mean(level > 0.0)) if level.size else 0.0
+        seen = f"the {kind} applied a turbulence level in {100.0 * share:.0f} % of its final pass"
+        turbulent = share >= TURBULENT_SHARE
+    if turbulent:
+        return "filter-error", f"{seen}: turbulent air, so filter error"
+    return "output-error", f"{seen}: calm air, so output error"
+
+
+def _frames(t: FloatArray, window_s: tuple[float | None, float | None]) -> IntArray:
+    """The frames within window_s (seconds after the first frame), each at a later time
+    than the one before: frames repeated at one time (a clock that stalled) carry no new
+    interval to fly."""
+    rel = t - t[0]
+    lo = -math.inf if window_s[0] is None else window_s[0]
+    hi = math.inf if window_s[1] is None else window_s[1]
+    idx = np.flatnonzero((rel >= lo) & (rel <= hi))
+    if idx.size:
+        idx = idx[np.concatenate([[True], np.diff(t[idx]) > 0.0])]
+    if idx.size < 10:
+        raise RefineError(f"only {idx.size} frames in the window {window_s}; 10 needed")
+    return idx
+
+
+def _start(model: Model, fr: FilterResult, track: Track, first: int) -> FloatArray:
+    """The fit's starting augmented state: the filter's final coefficients and biases, and
+    the flight states measured at frame `first` (the filter's where not measured)."""
+    start = np.zeros(model.n)
+    start[model.coefficients] = fr.coefficients
+    start[model.biases] = fr.biases
+    measured = track.y[first, :N_FLIGHT] - _bias_on_flight(model, fr.biases)
+    start[:N_FLIGHT] = np.where(np.isfinite(measured), measured, track.x[first, :N_FLIGHT])
+    return start
+
+
+def refine_run(
+    run: EstimatorResult | VehicleResult,
+    method: str = "auto",
+    kind: FilterKind = "IEKF",
+    window_s: tuple[float | None, float | None] = (None, None),
+    progress: Callable[[RefineProgress], None] | None = None,
+    hold_noise: bool = False,
+    threads: int | None = None,
+) -> Refined:
+    """Refine a finished run (an estimator's result, or a session's vehicle): fit the
+    frames the estimator saw (optionally only those within window_s, seconds after the
+    first frame), starting from filter `kind`'s final coefficients and biases and the
+    first frame's measured flight states. method "auto": the one choose_method picks,
+    with its reason in the fit's `choice`. hold_noise: the noise levels stay instead of
+    being estimated: the measurement noise where the filters' final pass had it (the
+    config's [filter] measurement_sigma, or the data's where measurement_noise = "auto"
+    took it), the process noise at the config's. threads: as refine's. The fit's sigma
+    takes in how far it lands from filter `kind` (decision 0030), and a vehicle whose
+    session made the structure check brings that filter's structure sigma, which the
+    fit's own does not fall below (decision 0031)."""
+    if isinstance(run, EstimatorResult):
+        result, filter_structure = run, None
+    else:
+        result, check = run.result, run.structure
+        filter_structure = None if check is None or check.skipped else check.sigma.get(kind)
+    if method not in REFINE_METHODS:
+        raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
+    choice = ""
+    if method == "auto":
+        method, choice = choose_method(result, kind)
+    fr, track = _filter(result, kind)
+    idx = _frames(track.t, window_s)
+    config = result.config
+    model = build_model(config, gust_states=False)
+    tuning = config.filter
+    fit = refine(
+        model,
+        track.t[idx],
+        track.u[idx],
+        track.y[idx],
+        _start(model, fr, track, idx[0]),
+        np.asarray(result.measurement_sigma or tuning.measurement_sigma, float),
+        np.asarray(tuning.process_noise.states, float),
+        MAX_STEP_S,
+        linear_inputs=config.data.input_hold == "linear",
+        estimate_process_noise=method == "filter-error",
+        progress=progress,
+        hold_noise=hold_noise,
+        threads=threads,
+        compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+    )
+    return replace(fit, choice=choice)
+
+
+def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:
+    """The estimated biases on the directly observed flight-state channels [4]."""
+    out = np.zeros(N_FLIGHT)
+    for ch, b in zip(model.arrays.bias_channel, biases, strict=True):
+        if ch < N_FLIGHT:
+            out[ch] += b
+    return out
