@@ -1,7 +1,9 @@
 """Benchmarks keep what they print: docs/results/NAME.md, with the command, date and machine.
 
-The README links these files rather than copying figures into prose, so a figure always
-sits next to the command that produced it. `--record none` writes nothing.
+The docs link these files rather than copying figures into prose, so a figure always sits
+next to the command and the revision that produced it. `./run bench all` (benchmarks/all.py)
+writes every record at one revision; `--record none` writes nothing. Paths under the
+project are written relative to it: a record holds nothing of the machine's folders.
 """
 
 from __future__ import annotations
@@ -62,25 +64,35 @@ def machine() -> str:
     )
 
 
-def revision() -> str:
-    """The commit measured, and whether the tree had changes on top of it (other than the
-    benchmarks' own outputs)."""
+OUTPUTS = ("docs/results/", "docs/view.png")
+"""What the benchmarks write (their records, the README's picture) is not what they
+measure: changes there do not make a tree "with local changes"."""
+
+
+def git(*args: str) -> str:
+    """A git command's output in the project, "" if git fails."""
     try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip()
-        # What the benchmarks write (their records, the README's picture) is not what
-        # they measure: changes there do not make a revision "with local changes".
-        outputs = [":(exclude)docs/results", ":(exclude)docs/view.png"]
-        dirty = (
-            subprocess.run(
-                ["git", "diff", "--quiet", "HEAD", "--", ".", *outputs], cwd=ROOT
-            ).returncode
-            != 0
-        )
+        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
     except OSError:
-        return "unknown"
-    return f"{head}{' with local changes' if dirty else ''}" if head else "unknown"
+        return ""
+    return out.stdout.rstrip() if out.returncode == 0 else ""  # porcelain lines start with " "
+
+
+def tree_revision() -> tuple[str, list[str]]:
+    """The commit checked out ("unknown" outside git) and the paths changed or added on top
+    of it, the benchmarks' outputs aside."""
+    changed = [
+        line[3:]
+        for line in git("status", "--porcelain", "--untracked-files=normal").splitlines()
+        if not line[3:].startswith(OUTPUTS)
+    ]
+    return git("rev-parse", "--short", "HEAD") or "unknown", changed
+
+
+def revision() -> str:
+    """The commit measured, and whether the tree had changes on top of it."""
+    head, changed = tree_revision()
+    return f"{head}{' with local changes' if changed else ''}"
 
 
 @contextlib.contextmanager
@@ -105,5 +117,7 @@ def recorded(script: str, name: str, title: str) -> Iterator[None]:
     )
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.md"
-    path.write_text(head + buffer.getvalue().strip() + "\n")
-    print(f"(written to {path.relative_to(ROOT)})", file=sys.stderr)
+    text = buffer.getvalue().replace(f"{ROOT}{os.sep}", "").strip()
+    path.write_text(head + text + "\n", encoding="utf-8")
+    shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+    print(f"(written to {shown})", file=sys.stderr)
