@@ -28,7 +28,7 @@ from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.refine.flights import steady_innovations
-from gcs_estimator.refine.output_error import Report
+from gcs_estimator.refine.output_error import Report, scaled_normal_equations
 from gcs_estimator.refine.problem import Problem
 from gcs_estimator.refine.result import RefineError
 
@@ -266,12 +266,7 @@ def fit(
         raw = sf.run(theta, r)
         assert raw is not None  # relaxed() left theta feasible at r
         e0 = sf.whitened(raw, r)
-        J = jacobian(sf, theta, r, e0)
-        g = J.T @ e0.ravel()
-        A = J.T @ J
-        d = np.sqrt(np.maximum(np.diag(A), 1e-300))
-        An = A / np.outer(d, d)
-        gn = g / d
+        An, gn, d = scaled_normal_equations(jacobian(sf, theta, r, e0), e0)
         c0, G = _constraint(sf, theta, r)
         base = float(np.sum(e0 * e0))
         moved = 0.0

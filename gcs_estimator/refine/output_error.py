@@ -25,6 +25,17 @@ Report = Callable[[int, float, float], None]
 """(iteration, cost it started from, largest step in sigmas), after each iteration."""
 
 
+def scaled_normal_equations(
+    J: FloatArray, e: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The Gauss-Newton normal equations of the residuals e and their sensitivities J
+    [e.size x p], scaled to a unit diagonal: An = D^-1 J^T J D^-1, gn = D^-1 J^T e and
+    d = diag(D) = sqrt(diag(J^T J)); the step in the parameters is -D^-1 solve(An, gn)."""
+    A = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    return A / np.outer(d, d), (J.T @ e.ravel()) / d, d
+
+
 def gauss_newton(
     prob: Problem,
     x: FloatArray,
@@ -51,12 +62,7 @@ def gauss_newton(
                 "fit a shorter window (--from/--to) or start nearer"
             )
         cost = float(np.sum(e * e) + np.sum(logdet))
-        J = prob.jacobian(x, free, q, r, e)
-        g = J.T @ e.ravel()
-        A = J.T @ J
-        d = np.sqrt(np.maximum(np.diag(A), 1e-300))
-        An = A / np.outer(d, d)
-        gn = g / d
+        An, gn, d = scaled_normal_equations(prob.jacobian(x, free, q, r, e), e)
         accepted = False
         moved = 0.0
         for _ in range(12):
