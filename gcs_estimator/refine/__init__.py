@@ -41,7 +41,7 @@ from gcs_estimator.refine.fit import refine
 from gcs_estimator.refine.problem import available_cores
 from gcs_estimator.refine.result import Refined, RefineError, RefineProgress, fit_label
 from gcs_estimator.refine.run import choose_method, refine_run
-from gcs_estimator.refine.sigma import FitSigma
+from gcs_estimator.uncertainty.sigma import FitSigma
 
 __all__ = [
     "FitSigma",

@@ -25,9 +25,9 @@ from gcs_estimator.refine.covariance import sandwich
 from gcs_estimator.refine.output_error import Report, gauss_newton
 from gcs_estimator.refine.problem import Problem, thread_pool
 from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
-from gcs_estimator.refine.sigma import FilterEstimate, FitSigma, difference_sigma, fit_sigma
 from gcs_estimator.refine.structure import STRUCTURE_ITERATIONS, structure_sigma
 from gcs_estimator.uncertainty.metrics import correlation_of, identifiability
+from gcs_estimator.uncertainty.sigma import FilterEstimate, FitSigma, difference_sigma, fit_sigma
 
 
 class _Progress:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.refine.sigma import FitSigma
+from gcs_estimator.uncertainty.sigma import FitSigma
 
 
 def fit_label(method: str) -> str:
@@ -27,7 +27,7 @@ class Refined:
     """Coefficient names."""
     coefficients: FloatArray
     sigma_parts: FitSigma
-    """The coefficients' sigma to trust and its parts (refine.sigma)."""
+    """The coefficients' sigma to trust and its parts (uncertainty.sigma)."""
     correlation: FloatArray
     """Correlation of the coefficients [p x p] (from the Morelli-Klein covariance)."""
     identifiability: tuple[str, ...]

@@ -20,7 +20,7 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT
 from gcs_estimator.refine.fit import refine
 from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
-from gcs_estimator.refine.sigma import FilterEstimate
+from gcs_estimator.uncertainty.sigma import FilterEstimate
 
 if TYPE_CHECKING:
     from gcs_estimator.uncertainty.result import VehicleResult
