@@ -141,7 +141,7 @@ def execute(run: Run, revision: str) -> Entry:
     else:
         found = problems(path.read_text(encoding="utf-8"))
         status = "ok" + (f", but it holds {' and '.join(found)}" if found else "")
-    return Entry(run.name, run.command(), seconds, revision, date, status)
+    return Entry(run.name, run.command(), round(seconds, 1), revision, date, status)
 
 
 def load_index() -> dict[str, Entry]:
@@ -168,6 +168,8 @@ def render(entries: list[Entry], machine: str) -> str:
     revisions = sorted({e.revision for e in entries})
     dates = sorted(e.date for e in entries)
     missing = [run.name for run in PLAN if run.name not in {e.name for e in entries}]
+    dirty = any("local changes" in r for r in revisions)
+    clean = "" if dirty or not revisions else " (no uncommitted changes)"
     lines = [
         "# Benchmark records",
         "",
@@ -175,8 +177,9 @@ def render(entries: list[Entry], machine: str) -> str:
         "[docs/benchmarks.md](../benchmarks.md). Each record starts with its command, date,",
         "revision and machine.",
         "",
-        f"- revision: {', '.join(revisions) or 'none'}",
-        f"- date: {dates[0] if dates else 'none'} to {dates[-1] if dates else 'none'}",
+        f"- revision: {', '.join(revisions) or 'none'}{clean}",
+        f"- date: {dates[0] if dates else 'none'} (the first record started) to "
+        f"{dates[-1] if dates else 'none'} (the last)",
         f"- machine: {machine}",
         f"- total: {_minutes(sum(e.seconds for e in entries))}",
     ]
@@ -185,10 +188,12 @@ def render(entries: list[Entry], machine: str) -> str:
             "- **these records are of more than one revision** (re-runs with `--only`): "
             "see the revision column; `./run bench all` makes them one"
         )
-    if any("local changes" in r for r in revisions):
+    if dirty:
         lines.append("- **the tree had uncommitted changes**: these records are of no commit")
     if missing:
-        lines.append(f"- **not in this index**: {', '.join(missing)} (the run did not finish)")
+        lines.append(
+            f"- **not in this index**: {', '.join(missing)} (not run, or the run did not finish)"
+        )
     lines += ["", "| record | command | duration | revision | status |", "|---|---|---|---|---|"]
     for e in entries:
         link = f"[{e.name}.md]({e.name}.md)" if e.status.startswith("ok") else e.name

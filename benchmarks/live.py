@@ -55,7 +55,8 @@ from gcs_estimator.outputs.view.outlets import LocalOutlet
 from gcs_estimator.runtime.decode_worker import LinkArgs
 from gcs_estimator.runtime.filter_worker import ShardedSession
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import Session, VehicleResult, warm_up
+from gcs_estimator.runtime.session import Session, warm_up
+from gcs_estimator.uncertainty.result import VehicleResult
 from sim.cli import command as vehicle_command
 from sim.scenario import scenario_of
 

@@ -52,8 +52,9 @@ from gcs_estimator.ingest.flightdata import Recording, load_recording
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.text import channel_text
 from gcs_estimator.refine import Refined, RefineError, fit_label, refine_run
-from gcs_estimator.runtime.session import VehicleResult, run_recording
+from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
+from gcs_estimator.uncertainty.result import VehicleResult
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde", "CD0")
 """The coefficients the elevator manoeuvre excites well enough to be judged on."""

@@ -63,7 +63,7 @@ def _entry(name: str, revision: str, status: str = "ok") -> bench_all.Entry:
 
 def test_index_of_one_revision_links_each_record() -> None:
     text = bench_all.render([_entry("speed", "abc1234"), _entry("fleet", "abc1234")], "a CPU")
-    assert "- revision: abc1234\n" in text
+    assert "- revision: abc1234 (no uncommitted changes)\n" in text
     assert "| [speed.md](speed.md) | `./run bench speed` | 1.5 min | abc1234 | ok |" in text
     assert "more than one revision" not in text
 
