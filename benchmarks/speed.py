@@ -82,22 +82,25 @@ class Setup:
         self.model: Model = build_model(self.config)
         self.tuning: Tuning = core.tuning_of(self.config, self.model, kind)  # type: ignore[arg-type]
         step = stepper("fast")
-        f = self.flight
-        s = core.initial_state(self.model, self.tuning, f.t_s[0], f.inputs[0], f.measurements[0])
+        f, inputs = self.flight, self.model.inputs  # u as the equations take it (3 values)
+        s = core.initial_state(
+            self.model, self.tuning, f.t_s[0], inputs(f.inputs[0]), f.measurements[0]
+        )
         for i in range(WARM):
-            s, _ = step(s, float(f.t_s[i]), f.inputs[i], f.measurements[i], self.tuning, self.model)
+            u = inputs(f.inputs[i])
+            s, _ = step(s, float(f.t_s[i]), u, f.measurements[i], self.tuning, self.model)
         self.state: FilterState = s
 
     def rate(self, step: Step, frames: int) -> tuple[float, float]:
         """(steps per second, mean update iterations per step)."""
         f, s = self.flight, self.state
         n = min(frames, len(f.t_s) - WARM)
+        us = [self.model.inputs(v) for v in f.inputs[WARM : WARM + n]]
         iterations = 0
         t0 = time.process_time()
         for i in range(WARM, WARM + n):
-            s, info = step(
-                s, float(f.t_s[i]), f.inputs[i], f.measurements[i], self.tuning, self.model
-            )[:2]
+            u = us[i - WARM]
+            s, info = step(s, float(f.t_s[i]), u, f.measurements[i], self.tuning, self.model)[:2]
             iterations += info.iterations
         return n / (time.process_time() - t0), iterations / n
 
