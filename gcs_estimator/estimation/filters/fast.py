@@ -544,6 +544,8 @@ def _packed(tuning: Tuning, model: Model) -> tuple[FloatArray, IntArray]:
 
 _HEAD_GUST = tuple(f for f in GustState._fields if f != "sens")
 """The gust estimate's scalar fields, in the head after t."""
+_SENS_AT = GustState._fields.index("sens")
+_SENS_AGE_AT = GustState._fields.index("sens_age")
 BELIEF_HEAD = 1 + len(_HEAD_GUST)
 """Floats of the buffer's head."""
 HEAD_SLOTS: Any = GustState._make(
@@ -567,9 +569,10 @@ def belief_of(buf: FloatArray, n: int) -> FilterState:
     P = buf[o + n : o + n + n * n].reshape(n, n).copy()
     u = buf[o + n + n * n : buf.shape[0] - N_OBS].copy()
     sens = buf[buf.shape[0] - N_OBS :].copy()
-    head = dict(zip(_HEAD_GUST, buf[1:BELIEF_HEAD].tolist(), strict=True))
-    g = GustState(**{**head, "sens": sens, "sens_age": int(head["sens_age"])})
-    return FilterState(x, P, float(buf[0]), u, g)
+    fields = buf[1:BELIEF_HEAD].tolist()  # the head's gust fields, in GustState's order
+    fields.insert(_SENS_AT, sens)
+    fields[_SENS_AGE_AT] = int(fields[_SENS_AGE_AT])
+    return FilterState(x, P, float(buf[0]), u, GustState._make(fields))
 
 
 def output_width(n: int) -> int:
