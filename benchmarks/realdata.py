@@ -94,8 +94,7 @@ def evaluate(
     est = {k: res.filters[k].coefficients for k in FILTER_KINDS}
     zs = {k: (est[k] - goal) / res.filters[k].sigma for k in FILTER_KINDS}
     corrected = {
-        k: np.array([c.sigma for c in vehicle.summaries[k].coefficients])
-        for k in FILTER_KINDS
+        k: np.array([c.sigma for c in vehicle.summaries[k].coefficients]) for k in FILTER_KINDS
     }
     zc = {k: (est[k] - goal) / corrected[k] for k in FILTER_KINDS}
     # The marks the run shows its user (metrics.summarise: from the corrected sigma).

@@ -154,11 +154,7 @@ def test_a_vehicle_over_tcp_with_packets_split_anywhere(
     packets = _flight_packets(config, tmp_path)
     stream = b"".join(packets[:100]) + b"\xfd\x09junk" + b"".join(packets[100:])
     replayed = [
-        f
-        for f in TlogSource([tmp_path / "v.tlog"], MavlinkLink(config.link)).frames(
-            Stop()
-        )
-        if f
+        f for f in TlogSource([tmp_path / "v.tlog"], MavlinkLink(config.link)).frames(Stop()) if f
     ]
 
     if station_listens:
