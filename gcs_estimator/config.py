@@ -101,6 +101,14 @@ class Airframe:
         doc="b: the pitch gust's scale (MIL-F-8785C), which the simulator flies and the "
         "filters model (docs/decisions/0016); 0: no pitch gust",
     )
+    elevator_travel_deg: float = setting(
+        0.0,
+        ge=0,
+        unit="deg",
+        doc="the elevator's deflection at full output (a log's normalised or PWM-end "
+        "command, a CSV's -1..1 column); the one thing about the controls a log cannot "
+        "say; 0: not given",
+    )
 
 
 @dataclass(frozen=True)
