@@ -7,13 +7,16 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from gcs_estimator.config import ConfigError, load_config, truths_text
+from gcs_estimator.config import AircraftConfig, ConfigError, load_config, truths_text
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.endpoints import Endpoint
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
+from sim.formats import flight_record, numbered, write_truth
+from sim.formats.ardupilot import DEFAULT_STREAM_HZ, ArduPlaneVehicle, parse_rates
 from sim.ports import Port, SerialPort, Shared, UdpIn
 from sim.scenario import scenario_of, scenario_reference
 from sim.truth import simulate
@@ -120,6 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         "its 32-bit servo clock has wrapped)",
     )
     ap.add_argument("--tlog", default=None, help="write each vehicle's own .tlog (prefix)")
+    _add_format_options(ap)
     ap.add_argument(
         "--truth",
         default=None,
@@ -141,18 +145,68 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _add_format_options(ap: argparse.ArgumentParser) -> None:
+    """The options that write the flight as an autopilot would (sim/formats)."""
+    ap.add_argument(
+        "--autopilot",
+        choices=("native", "arduplane"),
+        default="native",
+        help="the MAVLink stream: this tool's own (default) or ArduPlane's message set, "
+        "units, stream groups and rates (docs/simulation.md)",
+    )
+    ap.add_argument(
+        "--stream-rate",
+        type=float,
+        default=DEFAULT_STREAM_HZ,
+        metavar="HZ",
+        help="arduplane: every SR0 stream's rate before any request (default %(default)s Hz, "
+        "what MAVProxy asks)",
+    )
+    ap.add_argument(
+        "--msg-rate",
+        action="append",
+        default=[],
+        metavar="NAME=HZ",
+        help="arduplane: one message's rate (as SET_MESSAGE_INTERVAL asks) or one SR0 "
+        "stream's (RAW_SENS, EXTRA1, ...)",
+    )
+    ap.add_argument(
+        "--asked",
+        action="store_true",
+        help="arduplane: the messages the estimator reads at [link] rate_hz, as a station "
+        "asks for them",
+    )
+    ap.add_argument(
+        "--bin", default=None, metavar="FILE", help="write an ArduPilot DataFlash log and exit"
+    )
+    ap.add_argument("--ulg", default=None, metavar="FILE", help="write a PX4 ULog and exit")
+    ap.add_argument(
+        "--log-rates",
+        choices=("default", "fast"),
+        default="default",
+        help="--bin/--ulg logging rates: the autopilot's defaults, or its fast profile "
+        "(ATT at loop rate; PX4 high-rate and system-identification topics)",
+    )
+
+
 def recordings(args: argparse.Namespace) -> list[Recording]:
     """What each vehicle flies (and, with --truth, the file of their true coefficients)."""
+    return simulated(args)[0]
+
+
+def simulated(args: argparse.Namespace) -> tuple[list[Recording], dict[int, tuple[float, ...]]]:
+    """What each vehicle flies and, for a simulated flight, each one's true coefficients
+    by system id (written to --truth FILE where given)."""
     config = load_config(args.config, args.set)
+    truths: dict[int, tuple[float, ...]] = {}
     if args.playback:
         if args.truth:
             raise ConfigError("--truth: played-back data has no true coefficients to write")
         rec = load_recording(args.playback, config.data)[1]
         for note in rec.notes:
             print(f"note: {note}", file=sys.stderr)
-        return [rec] * args.vehicles
+        return [rec] * args.vehicles, truths
     out = []
-    truths: dict[int, tuple[float, ...]] = {}
     base = scenario_of(config).seed if args.seed is None else args.seed
     for k in range(args.vehicles):
         c = config
@@ -164,7 +218,52 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
         truths[k + 1] = tuple(float(v) for v in fl.truth)
     if args.truth:
         Path(args.truth).write_text(truths_text(truths, config.coefficient_names))
-    return out
+    return out, truths
+
+
+def write_logs(
+    args: argparse.Namespace,
+    config: AircraftConfig,
+    recs: list[Recording],
+    truths: dict[int, tuple[float, ...]],
+) -> list[Path]:
+    """--bin and --ulg: each vehicle's flight as an autopilot's log, each with its truth
+    side file where the flight was simulated. Returns the files written."""
+    from sim.formats.dataflash import write_bin
+    from sim.formats.ulog import write_ulg
+
+    fast = args.log_rates == "fast"
+    written: list[Path] = []
+    for k, rec in enumerate(recs):
+        sid = k + 1
+        fr = flight_record(rec, config.link, config.airframe.air_density_kgpm3, sid, args.boot_s)
+        for target, write in ((args.bin, write_bin), (args.ulg, write_ulg)):
+            if target:
+                path = write(fr, numbered(target, sid, len(recs)), fast)
+                written.append(path)
+                if sid in truths:
+                    write_truth(path, {sid: truths[sid]}, config.coefficient_names)
+    return written
+
+
+def _vehicle(
+    args: argparse.Namespace, config: AircraftConfig, rec: Recording, target: Any, k: int
+) -> SimulatedVehicle:
+    """Vehicle k's streamer: this tool's own message set, or ArduPlane's."""
+    tlog = Path(f"{args.tlog}_{k + 1}.tlog") if args.tlog else None
+    common = dict(system_id=k + 1, speed=args.speed, boot_s=args.boot_s, tlog=tlog)
+    if args.autopilot == "arduplane":
+        rates = parse_rates(args.msg_rate, config.link.rate_hz, args.asked)
+        return ArduPlaneVehicle(
+            rec,
+            config.link,
+            target,
+            density=config.airframe.air_density_kgpm3,
+            stream_hz=args.stream_rate,
+            asked_rates=rates,
+            **common,  # type: ignore[arg-type]
+        )
+    return SimulatedVehicle(rec, config.link, target, **common)  # type: ignore[arg-type]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -174,10 +273,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         config = load_config(args.config, args.set)
-        recs = recordings(args)
-    except (ConfigError, FlightDataError) as exc:
+        parse_rates(args.msg_rate, config.link.rate_hz, args.asked)  # a bad item: now
+        recs, truths = simulated(args)
+    except (ConfigError, FlightDataError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.bin or args.ulg:
+        for path in write_logs(args, config, recs, truths):
+            print(f"gcs-sim: wrote {path}", file=sys.stderr)
+        if not args.tlog:
+            return 0
     try:
         targets = _ports(args.target, len(recs))
     except ConfigError as exc:
@@ -185,18 +290,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 0
-    vehicles = [
-        SimulatedVehicle(
-            rec,
-            config.link,
-            targets[k],
-            system_id=k + 1,
-            speed=args.speed,
-            boot_s=args.boot_s,
-            tlog=Path(f"{args.tlog}_{k + 1}.tlog") if args.tlog else None,
-        )
-        for k, rec in enumerate(recs)
-    ]
+    vehicles = [_vehicle(args, config, rec, targets[k], k) for k, rec in enumerate(recs)]
+    if args.tlog:
+        for sid, truth in truths.items():
+            write_truth(f"{args.tlog}_{sid}.tlog", {sid: truth}, config.coefficient_names)
+    return _fly(vehicles)
+
+
+def _fly(vehicles: list[SimulatedVehicle]) -> int:
+    """Every vehicle's flight in a thread of its own, to the end (or Ctrl-C)."""
     threads = [threading.Thread(target=v.run, daemon=True) for v in vehicles]
     for t in threads:
         t.start()

@@ -108,4 +108,6 @@ def scenario_reference() -> str:
         "`gcs-estimator demo`, the tests and benchmarks); the estimator does not read it. "
         "The airframe's own keys: configuration.md.\n\n"
     )
-    return head + reference(Simulation, {}, SIMULATOR_TABLE)
+    from sim.formats import OUTPUTS_REFERENCE
+
+    return head + reference(Simulation, {}, SIMULATOR_TABLE) + OUTPUTS_REFERENCE

@@ -1,0 +1,300 @@
+"""The simulated flight written as real autopilots write theirs: an ArduPlane MAVLink
+stream (ardupilot.py; live and .tlog), an ArduPilot DataFlash .bin (dataflash.py) and a
+PX4 .ulg (ulog.py). Each format is filled from one FlightRecord: the simulator's samples
+plus what a real vehicle also reports (position, baro, attitude quaternion), derived
+here once. Rates, units and their sources: docs/decisions/0040.
+
+Beside each file, its truth side file (truth_path) holds the coefficients the vehicle
+flew, as `gcs-sim --truth` writes them (`--truth FILE` reads it).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import LinkConfig, truths_text
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry import pwm
+
+GRAVITY_MSS = 9.80665
+"""ArduPilot's GRAVITY_MSS (AP_Math/definitions.h), also PX4's CONSTANTS_ONE_G."""
+SEA_LEVEL_PA = 101325.0
+SEA_LEVEL_DENSITY = 1.225
+"""ArduPilot's SSL_AIR_DENSITY: its EAS2TAS = sqrt(1.225 / rho)."""
+GAS_CONSTANT_AIR = 287.26
+"""ArduPilot's ISA_GAS_CONSTANT [J/(kg K)] (AP_Baro: rho = p / (R T))."""
+HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_M = 50.8930, -1.3950, 20.0
+"""Where the simulated flights start: the National Oceanography Centre, Southampton."""
+START_HEIGHT_M = 150.0
+"""Height above home when the record starts [m]."""
+EARTH_RADIUS_M = 6378137.0
+SURFACE_HALF_RANGE_US = 500.0
+"""PWM from trim to either end of the elevator servo's range [us] (SERVOn_MIN/MAX)."""
+
+
+@dataclass(frozen=True)
+class FlightRecord:
+    """One vehicle's flight at the sample rate, in SI units, everything a format writes.
+
+    Body axes forward-right-down; the flight is wings level heading north (roll and yaw
+    0), so the pitch plane is the north-down plane. Position and velocity come from the
+    measured V, alpha and theta (gamma = theta - alpha, integrated); the air is still
+    apart from the simulator's gusts (not reported: wind 0) and of constant density, so
+    pressure falls with height as rho g h and the temperature follows p / (rho R).
+    """
+
+    t_s: FloatArray
+    elevator_rad: FloatArray
+    """Positive trailing edge down (the simulator's sign)."""
+    elevator_pwm: FloatArray
+    """SERVO_OUTPUT_RAW microseconds on the link's elevator servo (whole numbers)."""
+    elevator_out: FloatArray
+    """Normalised elevator command -1..1, positive nose-up (ArduPlane's and PX4's sign)."""
+    power: FloatArray
+    """Throttle 0..1 (propeller model) or thrust [N] (measured)."""
+    throttle_pwm: FloatArray
+    V: FloatArray
+    alpha: FloatArray
+    theta: FloatArray
+    q: FloatArray
+    qdot: FloatArray
+    a_x: FloatArray
+    a_z: FloatArray
+    north_m: FloatArray
+    height_m: FloatArray
+    """Above home [m]."""
+    v_north: FloatArray
+    v_down: FloatArray
+    pressure_pa: FloatArray
+    temperature_c: FloatArray
+    density: float
+    link: LinkConfig
+    throttle_model: bool
+    """power is a throttle setting (else a measured thrust)."""
+    system_id: int = 1
+    boot_s: float = 5.0
+    """Vehicle uptime at the first sample [s]: every format's clock starts here."""
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def time_us(self) -> np.ndarray:
+        """Microseconds since the vehicle booted, per sample (uint64)."""
+        rel = self.t_s - self.t_s[0] + self.boot_s
+        return np.round(rel * 1e6).astype(np.uint64)
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return float((len(self.t_s) - 1) / (self.t_s[-1] - self.t_s[0])) if len(self) > 1 else 1.0
+
+    @property
+    def elevator_travel_rad(self) -> float:
+        """The surface's deflection at full output (SURFACE_HALF_RANGE_US of PWM)."""
+        return SURFACE_HALF_RANGE_US / abs(self.link.elevator_us_per_rad)
+
+    @property
+    def throttle_fraction(self) -> FloatArray:
+        """Throttle 0..1 (0 where the power is a measured thrust)."""
+        if not self.throttle_model:
+            return np.zeros_like(self.power)
+        return np.clip(self.power, 0.0, 1.0)
+
+    @property
+    def lat_deg(self) -> FloatArray:
+        return HOME_LAT_DEG + np.degrees(self.north_m / EARTH_RADIUS_M)
+
+    @property
+    def lon_deg(self) -> FloatArray:
+        return np.full_like(self.north_m, HOME_LON_DEG)
+
+    @property
+    def alt_msl_m(self) -> FloatArray:
+        return HOME_ALT_M + self.height_m
+
+    @property
+    def eas(self) -> FloatArray:
+        """Equivalent airspeed [m/s] (= true at sea-level density)."""
+        return self.V * math.sqrt(self.density / SEA_LEVEL_DENSITY)
+
+
+def flight_record(
+    rec: Recording,
+    link: LinkConfig,
+    density: float,
+    system_id: int = 1,
+    boot_s: float = 5.0,
+) -> FlightRecord:
+    """The recording with everything the formats derive from it. Missing samples (NaN)
+    are held from the last good one: a log has a value in every record."""
+    y = _held(np.asarray(rec.measurements, float))
+    u = _held(np.asarray(rec.inputs[:, :2], float))
+    t = np.asarray(rec.t_s, float)
+    V, alpha, theta = y[:, 0], y[:, 1], y[:, 2]
+    gamma = theta - alpha
+    v_north, v_down = V * np.cos(gamma), -V * np.sin(gamma)
+    north = _integral(t, v_north)
+    height = START_HEIGHT_M - _integral(t, v_down)
+    pressure = SEA_LEVEL_PA - density * GRAVITY_MSS * (HOME_ALT_M + height)
+    temperature = pressure / (density * GAS_CONSTANT_AIR) - 273.15
+    e_pwm = np.round(pwm.elevator_pwm(link, u[:, 0]))
+    throttle_model = rec.power == "throttle"
+    t_pwm = (
+        np.round(pwm.throttle_pwm(link, np.clip(u[:, 1], 0.0, 1.0)))
+        if throttle_model and link.throttle_servo
+        else np.zeros(len(t))
+    )
+    sign = 1.0 if link.elevator_us_per_rad > 0 else -1.0
+    return FlightRecord(
+        t_s=t,
+        elevator_rad=u[:, 0],
+        elevator_pwm=e_pwm,
+        elevator_out=-sign * (e_pwm - link.elevator_pwm_center_us) / SURFACE_HALF_RANGE_US,
+        power=u[:, 1],
+        throttle_pwm=t_pwm,
+        V=V,
+        alpha=alpha,
+        theta=theta,
+        q=y[:, 3],
+        qdot=y[:, 4],
+        a_x=y[:, 5],
+        a_z=y[:, 6],
+        north_m=north,
+        height_m=height,
+        v_north=v_north,
+        v_down=v_down,
+        pressure_pa=pressure,
+        temperature_c=temperature,
+        density=density,
+        link=link,
+        throttle_model=throttle_model,
+        system_id=system_id,
+        boot_s=boot_s,
+    )
+
+
+def _held(a: FloatArray) -> FloatArray:
+    """NaN entries replaced by the last finite value of their column (0 before any)."""
+    out = np.array(a, float)
+    for j in range(out.shape[1]):
+        col = out[:, j]
+        bad = ~np.isfinite(col)
+        if bad.any():
+            idx = np.where(bad, 0, np.arange(len(col)))
+            np.maximum.accumulate(idx, out=idx)
+            col[:] = np.where(np.isfinite(col[idx]), col[idx], 0.0)
+    return out
+
+
+def _integral(t: FloatArray, v: FloatArray) -> FloatArray:
+    """Trapezoidal running integral of v over t, 0 at the first sample."""
+    out = np.zeros_like(v)
+    if len(v) > 1:
+        out[1:] = np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))
+    return out
+
+
+def every(t_s: FloatArray, interval_s: float) -> np.ndarray:
+    """Indices of the samples a logger with this minimum interval keeps: the first, then
+    each sample at least interval_s after the last kept (0: every sample)."""
+    if interval_s <= 0 or len(t_s) == 0:
+        return np.arange(len(t_s))
+    dt = float(np.median(np.diff(t_s))) if len(t_s) > 1 else interval_s
+    step = max(1, round(interval_s / dt - 1e-6))
+    if np.allclose(np.diff(t_s), dt, rtol=1e-6, atol=1e-9):
+        return np.arange(0, len(t_s), step)
+    kept, last = [], -math.inf
+    for i, t in enumerate(t_s):
+        if t - last >= interval_s - 1e-9:
+            kept.append(i)
+            last = t
+    return np.array(kept, dtype=int)
+
+
+def quaternion(theta: FloatArray) -> FloatArray:
+    """[N x 4] Hamilton quaternion (w, x, y, z) body to NED of pitch theta, roll and
+    yaw 0."""
+    half = 0.5 * np.asarray(theta, float)
+    z = np.zeros_like(half)
+    return np.column_stack([np.cos(half), z, np.sin(half), z])
+
+
+def truth_path(path: str | Path) -> Path:
+    """The truth side file that accompanies a written flight: PATH.truth.toml."""
+    p = Path(path)
+    return p.with_name(p.name + ".truth.toml")
+
+
+def write_truth(
+    path: str | Path, truths: Mapping[int, tuple[float, ...]], names: tuple[str, ...]
+) -> Path:
+    """Write the truth side file of `path` (truths by system id); returns its path."""
+    side = truth_path(path)
+    side.write_text(truths_text(truths, names))
+    return side
+
+
+def numbered(path: str | Path, index: int, count: int) -> Path:
+    """Vehicle index's file (1-based) of `count`: the path itself for one vehicle, else
+    with _INDEX before the suffix (flight.bin -> flight_2.bin)."""
+    p = Path(path)
+    return p if count == 1 else p.with_name(f"{p.stem}_{index}{p.suffix}")
+
+
+OUTPUTS_REFERENCE = """
+## Outputs
+
+`gcs-sim` streams each vehicle's flight over MAVLink (`--target`) and can write it as a
+ground station or an autopilot would (docs/decisions/0040 gives the rates, units and
+their sources):
+
+| option | writes |
+|---|---|
+| `--tlog PREFIX` | each vehicle's own .tlog, `PREFIX_N.tlog` (what a station receives) |
+| `--autopilot arduplane` | the stream as ArduPlane sends it (below), live and in the .tlog |
+| `--bin FILE` | an ArduPilot DataFlash log at ArduPlane's logging rates, then exits |
+| `--ulg FILE` | a PX4 ULog at PX4's default logger rates, then exits |
+| `--log-rates fast` | the autopilot's fast logging (below) |
+
+`--log-rates fast` logs ATT every loop in the .bin (LOG_BITMASK ATTITUDE_FULLRATE) and,
+in the .ulg, attitude, angular velocity and actuators every sample (SDLOG_PROFILE
+high-rate and system identification). With several vehicles, `--bin` and `--ulg` get
+`_N` before the suffix. Beside every written file of a simulated flight lies
+`FILE.truth.toml`, the coefficients each vehicle flew by system id (`gcs-estimator ...
+--truth FILE.truth.toml` scores against it).
+
+**ArduPlane stream** (`--autopilot arduplane`): HEARTBEAT (MAV_AUTOPILOT_ARDUPILOTMEGA,
+MAV_TYPE_FIXED_WING) at 1 Hz; the SR0 streams at `--stream-rate` (default 4 Hz, what
+MAVProxy asks for): RAW_SENSORS (RAW_IMU and SCALED_IMU2 in milli-g and mrad/s,
+SCALED_PRESSURE in hPa), EXTENDED_STATUS (SYS_STATUS, GPS_RAW_INT), POSITION
+(GLOBAL_POSITION_INT, LOCAL_POSITION_NED), RC_CHANNELS (SERVO_OUTPUT_RAW), EXTRA1
+(ATTITUDE, AOA_SSA carrying the simulated vane's alpha in degrees), EXTRA2 (VFR_HUD),
+EXTRA3 (WIND, SYSTEM_TIME). `--msg-rate NAME=HZ` sets one message's or one stream's rate
+(as SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM would); `--asked` streams the messages
+the estimator reads at `[link] rate_hz`. Live, the vehicle honours SET_MESSAGE_INTERVAL,
+REQUEST_DATA_STREAM and the parameter protocol. Its parameters (SERVOn_FUNCTION, _MIN,
+_MAX, _TRIM, _REVERSED; SR0_*) are sent once at the start, as a station fetches them on
+connecting, so a .tlog carries them. The elevator is on `[link] elevator_servo` with
+SERVOn_FUNCTION = 19, trim at `elevator_pwm_center_us`, MIN/MAX 500 us either side, and
+REVERSED = 1 where a higher PWM means trailing edge down (ArduPlane's positive elevator
+output is nose-up); the surface's travel at full output is then 500 us /
+`elevator_us_per_rad` (30 deg for the NOC UAV: `elevator_travel_deg`).
+
+**DataFlash** (`--bin`): FMT, UNIT, MULT, FMTU, PARM (SERVOn_*, SCHED_LOOP_RATE,
+LOG_BITMASK), MSG, MODE; IMU at the loop rate (the sample rate), ATT, CTUN, AETR, RCOU and
+XKF2 (wind) at 25 Hz, AOA (the vane's alpha), ARSP and BARO at 10 Hz, GPS at 5 Hz.
+
+**ULog** (`--ulg`): vehicle_attitude (q) at 20 Hz, vehicle_angular_velocity (xyz,
+xyz_derivative) and vehicle_acceleration at 50 Hz, vehicle_local_position,
+actuator_servos (normalised -1..1, positive nose-up; CA_SV_CS0_TYPE = 3 elevator,
+CA_SV_CS0_TRQ_P = 1) and actuator_motors (throttle 0..1) at 10 Hz, airspeed_validated
+and vehicle_air_data at 5 Hz, wind and vehicle_status (fixed wing) at 1 Hz. PX4 logs no
+angle of attack.
+"""
+"""The outputs section of docs/simulation.md (`gcs-sim --keys`)."""
