@@ -206,7 +206,7 @@ def every(t_s: FloatArray, interval_s: float) -> np.ndarray:
     if interval_s <= 0 or len(t_s) == 0:
         return np.arange(len(t_s))
     dt = float(np.median(np.diff(t_s))) if len(t_s) > 1 else interval_s
-    step = max(1, round(interval_s / dt - 1e-6))
+    step = max(1, math.ceil(interval_s / dt - 1e-6))
     if np.allclose(np.diff(t_s), dt, rtol=1e-6, atol=1e-9):
         return np.arange(0, len(t_s), step)
     kept, last = [], -math.inf
@@ -290,11 +290,12 @@ output is nose-up); the surface's travel at full output is then 500 us /
 LOG_BITMASK), MSG, MODE; IMU at the loop rate (the sample rate), ATT, CTUN, AETR, RCOU and
 XKF2 (wind) at 25 Hz, AOA (the vane's alpha), ARSP and BARO at 10 Hz, GPS at 5 Hz.
 
-**ULog** (`--ulg`): vehicle_attitude (q) at 20 Hz, vehicle_angular_velocity (xyz,
-xyz_derivative) and vehicle_acceleration at 50 Hz, vehicle_local_position,
-actuator_servos (normalised -1..1, positive nose-up; CA_SV_CS0_TYPE = 3 elevator,
-CA_SV_CS0_TRQ_P = 1) and actuator_motors (throttle 0..1) at 10 Hz, airspeed_validated
-and vehicle_air_data at 5 Hz, wind and vehicle_status (fixed wing) at 1 Hz. PX4 logs no
-angle of attack.
+**ULog** (`--ulg`), at PX4's logger intervals (the first sample at least the interval
+after the last logged): vehicle_attitude (q) every 50 ms (every third 50 Hz sample),
+vehicle_angular_velocity (xyz, xyz_derivative) and vehicle_acceleration every 20 ms,
+vehicle_local_position, actuator_servos (normalised -1..1, positive nose-up;
+CA_SV_CS0_TYPE = 3 elevator, CA_SV_CS0_TRQ_P = 1) and actuator_motors (throttle 0..1)
+every 100 ms, airspeed_validated and vehicle_air_data every 200 ms, wind and
+vehicle_status (fixed wing) every second. PX4 logs no angle of attack.
 """
 """The outputs section of docs/simulation.md (`gcs-sim --keys`)."""
