@@ -261,9 +261,9 @@ def _vehicle(
             density=config.airframe.air_density_kgpm3,
             stream_hz=args.stream_rate,
             asked_rates=rates,
-            **common,  # type: ignore[arg-type]
+            **common,
         )
-    return SimulatedVehicle(rec, config.link, target, **common)  # type: ignore[arg-type]
+    return SimulatedVehicle(rec, config.link, target, **common)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

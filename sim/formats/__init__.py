@@ -88,7 +88,7 @@ class FlightRecord:
     def time_us(self) -> np.ndarray:
         """Microseconds since the vehicle booted, per sample (uint64)."""
         rel = self.t_s - self.t_s[0] + self.boot_s
-        return np.round(rel * 1e6).astype(np.uint64)
+        return np.asarray(np.round(rel * 1e6), dtype=np.uint64)
 
     @property
     def sample_rate_hz(self) -> float:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from gcs_estimator.ingest.telemetry import mavlink
 from sim.formats import GRAVITY_MSS, SURFACE_HALF_RANGE_US, FlightRecord, flight_record
@@ -301,6 +302,12 @@ BUILDERS: dict[str, Builder] = {
 ATTITUDE last (a frame is complete when its last observation arrives)."""
 
 
+def _message_name(message_id: int) -> str | None:
+    """The name of a MAVLink message id (ardupilotmega dialect), None if unknown."""
+    kind = dialect.mavlink_map.get(message_id)
+    return None if kind is None else str(kind.msgname)
+
+
 def parse_rates(items: list[str], link_rate_hz: float, asked: bool) -> dict[str, float]:
     """--msg-rate NAME=HZ items (a message or an SR0_ stream name) and --asked, as the
     per-message and per-stream rates they set; raises ValueError naming a bad item."""
@@ -425,11 +432,7 @@ class ArduPlaneVehicle(SimulatedVehicle):
     def _set_interval(self, message_id: int, interval_us: float) -> int:
         """SET_MESSAGE_INTERVAL for any message this vehicle sends (-1 stop, 0 its
         stream's rate)."""
-        name = (
-            mavlink.dialect.mavlink_map[message_id].msgname
-            if message_id in mavlink.dialect.mavlink_map
-            else None
-        )
+        name = _message_name(message_id)
         if name not in STREAM_OF:
             return int(mavlink.MAV_RESULT_DENIED)
         if interval_us == 0:
@@ -443,11 +446,7 @@ class ArduPlaneVehicle(SimulatedVehicle):
         if message_id == mavlink.MSG_ID["HEARTBEAT"]:
             self._send_packet(self.codec.heartbeat(mavlink.MAV_TYPE_FIXED_WING))
             return int(mavlink.MAV_RESULT_ACCEPTED)
-        name = (
-            mavlink.dialect.mavlink_map[message_id].msgname
-            if message_id in mavlink.dialect.mavlink_map
-            else None
-        )
+        name = _message_name(message_id)
         if name not in STREAM_OF:
             return int(mavlink.MAV_RESULT_DENIED)
         self.requested.add(str(name))

@@ -50,7 +50,7 @@ def filled(dtype: np.dtype, n: int, **columns: object) -> np.ndarray:
     (float columns of an integer field are rounded), the rest zero."""
     out = np.zeros(n, dtype)
     for name, value in columns.items():
-        kind = out.dtype.fields[name][0]  # type: ignore[index]
+        kind = out.dtype.fields[name][0]
         arr = np.asarray(value)
         if kind.kind in "iu" and arr.dtype.kind == "f":
             info = np.iinfo(kind.base if kind.subdtype else kind)
