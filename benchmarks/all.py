@@ -83,6 +83,8 @@ PLAN = (
     Run("webview", "webview", (), 7.5, needs=("chromium", "chromium-browser")),
 )
 NOT_IN_PLAN = {
+    "formats": "prints how long the simulator's autopilot-format writers take "
+    "(docs/decisions/0040); no record",
     "jsbsim_flights": "writes the validation set, not a record; the benchmarks that use "
     "it fly it themselves",
 }
