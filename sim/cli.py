@@ -16,7 +16,12 @@ from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.endpoints import Endpoint
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
 from sim.formats import flight_record, numbered, write_truth
-from sim.formats.ardupilot import DEFAULT_STREAM_HZ, ArduPlaneVehicle, parse_rates
+from sim.formats.ardupilot import (
+    DEFAULT_STREAM_HZ,
+    ArduPlaneVehicle,
+    check_rates,
+    parse_rates,
+)
 from sim.ports import Port, SerialPort, Shared, UdpIn
 from sim.scenario import scenario_of, scenario_reference
 from sim.truth import simulate
@@ -273,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         config = load_config(args.config, args.set)
-        parse_rates(args.msg_rate, config.link.rate_hz, args.asked)  # a bad item: now
+        check_rates(args.autopilot, args.msg_rate, config.link.rate_hz, args.asked)
         recs, truths = simulated(args)
     except (ConfigError, FlightDataError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

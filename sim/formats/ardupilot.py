@@ -308,6 +308,13 @@ def _message_name(message_id: int) -> str | None:
     return None if kind is None else str(kind.msgname)
 
 
+def check_rates(autopilot: str, items: list[str], link_rate_hz: float, asked: bool) -> None:
+    """Refuse (ValueError) rate options the chosen stream cannot honour."""
+    if autopilot != "arduplane" and (items or asked):
+        raise ValueError("--msg-rate and --asked set ArduPlane's rates: add --autopilot arduplane")
+    parse_rates(items, link_rate_hz, asked)
+
+
 def parse_rates(items: list[str], link_rate_hz: float, asked: bool) -> dict[str, float]:
     """--msg-rate NAME=HZ items (a message or an SR0_ stream name) and --asked, as the
     per-message and per-stream rates they set; raises ValueError naming a bad item."""

@@ -122,6 +122,9 @@ def test_dataflash_log_reads_back_as_flown(
     np.testing.assert_allclose(_column(gps, "Lat"), record.lat_deg[::10], atol=1e-7)
     np.testing.assert_allclose(_column(gps, "Alt"), record.alt_msl_m[::10], atol=0.0051)
     assert set(_column(msgs["XKF2"], "VWN")) == {0.0}
+    # FMTU, UNIT and MULT: a reader gets each field's unit from the log itself
+    assert imu[0].fmt.get_unit("AccX") == "m/s/s" and imu[0].fmt.get_unit("GyrY") == "rad/s"
+    assert msgs["ATT"][0].fmt.get_unit("Pitch") == "deg"
 
 
 def test_dataflash_fullrate_logs_attitude_every_loop(tmp_path: Path, record: FlightRecord) -> None:
@@ -269,6 +272,8 @@ def test_a_bad_message_rate_is_refused_with_the_names_it_knows(
     assert sim_main(["--set", SHORT[0], "--autopilot", "arduplane", "--msg-rate", "FOO=5"]) == 2
     err = capsys.readouterr().err
     assert "FOO" in err and "ATTITUDE" in err
+    assert sim_main(["--set", SHORT[0], "--asked"]) == 2
+    assert "--autopilot arduplane" in capsys.readouterr().err
 
 
 def test_bin_and_ulg_options_write_the_logs_and_their_truth(
