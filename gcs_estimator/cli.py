@@ -27,7 +27,9 @@ from gcs_estimator.config import (
 )
 from gcs_estimator.estimation.filters.core import Backend
 from gcs_estimator.ingest import endpoints
-from gcs_estimator.ingest.flightdata import FlightDataError, load_recording
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording
+from gcs_estimator.ingest.logs import detect
+from gcs_estimator.ingest.logs.reader import NotAFlightError, load_flight, stderr_progress
 from gcs_estimator.ingest.sources import (
     RCVBUF_BYTES,
     LiveSource,
@@ -399,9 +401,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
 
+def _flight(data: str, config: AircraftConfig, progress: bool) -> tuple[Path, Recording]:
+    """A data file or an autopilot's log (by its content); a log's account on stderr."""
+    show = sys.stderr.isatty() or progress
+    report = stderr_progress(f"reading {Path(data).name}") if show else None
+    path, rec, account = load_flight(data, config, report)
+    if account:
+        print(account, file=sys.stderr)
+    return path, rec
+
+
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
-    path, rec = load_recording(args.data, config.data)
+    if Path(args.data).is_file() and detect.kind(args.data) == "tlog":
+        args.tlogs, args.speed, args.progress = [args.data], 0.0, False
+        return cmd_replay(args)
+    path, rec = _flight(args.data, config, getattr(args, "progress", False))
     for note in rec.notes:
         print(f"note: {note}", file=sys.stderr)
     want = config.propulsion.input_name
@@ -589,6 +604,11 @@ def tlog_paths(paths: Sequence[str]) -> list[str]:
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
+    if any(Path(p).is_file() and detect.kind(p) in detect.LOGS for p in args.tlogs):
+        if len(args.tlogs) != 1 or getattr(args, "each", False):
+            raise ConfigError("an autopilot's log (.bin, .log, .ulg) is replayed on its own")
+        args.data = args.tlogs[0]
+        return cmd_offline(args)
     if getattr(args, "each", False):
         from gcs_estimator.runtime.batch import run_each
 
@@ -640,7 +660,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     if args.config is None:
         args.config = "hfb320" if args.flight == "hfb320" else DEFAULT_CONFIG
     args.refine = args.refine or args.method
-    if Path(args.flight).suffix.lower() == ".tlog":
+    if Path(args.flight).is_file() and detect.kind(args.flight) == "tlog":
         args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
         return cmd_replay(args)
     args.data = args.flight
@@ -814,6 +834,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.out = str(run_folder(args, started))
             args.started = started
         status: int = args.func(args)
+    except NotAFlightError as exc:
+        print(f"{exc.account}\nerror: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
