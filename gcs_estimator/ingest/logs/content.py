@@ -32,12 +32,19 @@ class Signal:
     """Message and field, e.g. "IMU.GyrY", with what was done to it."""
 
     def __post_init__(self) -> None:
+        """Samples without a number dropped, the rest in time order, a repeated time once."""
         keep = np.isfinite(self.t_s) & np.isfinite(self.values)
-        order = np.argsort(self.t_s[keep], kind="stable")
-        t, v = self.t_s[keep][order], self.values[keep][order]
-        fresh = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
-        object.__setattr__(self, "t_s", t[fresh])
-        object.__setattr__(self, "values", v[fresh])
+        t, v = (self.t_s, self.values) if keep.all() else (self.t_s[keep], self.values[keep])
+        step = np.diff(t)
+        if np.any(step < 0):  # out of order: the rare case, sorted
+            order = np.argsort(t, kind="stable")
+            t, v = t[order], v[order]
+            step = np.diff(t)
+        if np.any(step == 0):
+            fresh = np.concatenate([[True], step > 0])
+            t, v = t[fresh], v[fresh]
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "values", v)
 
     def rate_hz(self, span: Span | None = None) -> float:
         t = self.t_s if span is None else self.t_s[(self.t_s >= span[0]) & (self.t_s <= span[1])]

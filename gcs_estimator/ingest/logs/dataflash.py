@@ -207,6 +207,7 @@ class DataFlashLog:
     size_bytes: int = 0
     truncated_bytes: int = 0
     """Bytes of a last record cut by the end of the file (not read)."""
+    _seconds: dict[tuple[str, str], FloatArray] = field(default_factory=dict)
     bad: dict[str, str] = field(default_factory=dict)
     """Message types whose FMT this reader cannot follow (name -> why); their records are
     walked over (their length is known) but not read."""
@@ -233,7 +234,11 @@ class DataFlashLog:
         return [_text(bytes(v)) for v in self.table(name)[column]]
 
     def time_s(self, name: str) -> FloatArray:
-        return self.values(name, "TimeUS") * 1e-6
+        """A message type's TimeUS in seconds."""
+        key = (name, "TimeUS")
+        if key not in self._seconds:
+            self._seconds[key] = self.values(name, "TimeUS") * 1e-6
+        return self._seconds[key]
 
     def unit(self, name: str, column: str) -> str:
         """A column's unit label from the log's FMTU and UNIT records ("" where unknown)."""
@@ -322,7 +327,9 @@ def read_bin(path: str | Path, progress: Callable[[float], None] | None = None) 
     """Index a binary DataFlash log (one pass); message types are read when asked for."""
     p = Path(path)
     try:
-        buf = np.fromfile(p, np.uint8)
+        size = p.stat().st_size
+        # mapped, not read: the scan touches each page once, and nothing is copied
+        buf = np.memmap(p, np.uint8, mode="r") if size else np.zeros(0, np.uint8)
     except OSError as exc:
         raise DataFlashError(f"{p}: cannot read: {exc.strerror}") from exc
     lengths = np.zeros(256, np.int64)

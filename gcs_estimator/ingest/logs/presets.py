@@ -79,7 +79,7 @@ def _spans(t: FloatArray, on: FloatArray, end: float) -> list[Span]:
 
 def _instance(log: DataFlashLog, name: str, column: str = "I") -> FloatArray:
     """Which rows of a multi-instance message are the first instance."""
-    n = len(log.values(name, "TimeUS"))
+    n = len(log.table(name)["TimeUS"])
     if not log.has(name, column):
         return np.ones(n, bool)
     inst = log.values(name, column)
