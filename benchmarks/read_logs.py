@@ -103,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"built an ArduPlane log of {size / 1e6:.1f} MB ({TILE_S:g} s tiled)")
             report("read_log", size, timed_reads(path, config, args.runs))
         if args.log is not None:
-            report(f"read_log {args.log.name}", args.log.stat().st_size, timed_reads(args.log, config, args.runs))
+            report(
+                f"read_log {args.log.name}",
+                args.log.stat().st_size,
+                timed_reads(args.log, config, args.runs),
+            )
         print("target: >= 50 MB/s")
     return 0
 

@@ -238,10 +238,12 @@ def elevator_pwm(de_rad: np.ndarray, reversed_: bool) -> np.ndarray:
     up = -np.degrees(de_rad) / TRAVEL_DEG
     if reversed_:
         up = -up
-    return np.where(
-        up >= 0,
-        SERVO["trim"] + up * (SERVO["max"] - SERVO["trim"]),
-        SERVO["trim"] + up * (SERVO["trim"] - SERVO["min"]),
+    return np.asarray(
+        np.where(
+            up >= 0,
+            SERVO["trim"] + up * (SERVO["max"] - SERVO["trim"]),
+            SERVO["trim"] + up * (SERVO["trim"] - SERVO["min"]),
+        )
     )
 
 

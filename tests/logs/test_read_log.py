@@ -43,7 +43,7 @@ def test_every_channel_comes_back_within_the_logs_resolution(
     t = rec.t_s - BOOT_S
 
     def truth(x: np.ndarray) -> np.ndarray:
-        return np.interp(t, fl.t_s, x)
+        return np.asarray(np.interp(t, fl.t_s, x))
 
     # frames: the first IMU's samples (50 Hz) while STAT says flying
     assert t[0] == pytest.approx(fl.takeoff_s) and t[-1] <= fl.landing_s

@@ -272,17 +272,24 @@ class DataFlashLog:
     def messages(self) -> list[str]:
         return self.strings("MSG", "Message") if self.has("MSG") else []
 
+    def _ids(self, name: str) -> list[str]:
+        """A UNIT or MULT record's one-character Id (an int8 in a binary log, the character
+        itself in a text one)."""
+        return [
+            i.decode() if isinstance(i, bytes) else chr(int(i) & 0xFF)
+            for i in self.table(name)["Id"].tolist()
+        ]
+
     def _read_units(self) -> None:
         """Units and multipliers from the log's UNIT, MULT and FMTU records."""
         if self.has("UNIT"):
-            ids = self.table("UNIT")["Id"]
             labels = self.strings("UNIT", "Label")
-            for i, label in zip(ids.tolist(), labels, strict=True):
-                self.unit_labels[chr(int(i) & 0xFF) if not isinstance(i, bytes) else i] = label
+            for i, label in zip(self._ids("UNIT"), labels, strict=True):
+                self.unit_labels[i] = label
         if self.has("MULT"):
-            ids = self.table("MULT")["Id"]
-            for i, m in zip(ids.tolist(), self.values("MULT", "Mult").tolist(), strict=True):
-                self.multipliers[chr(int(i) & 0xFF) if not isinstance(i, bytes) else i] = m
+            mults = self.values("MULT", "Mult").tolist()
+            for i, m in zip(self._ids("MULT"), mults, strict=True):
+                self.multipliers[i] = m
         if self.has("FMTU"):
             by_type = {f.type: f for f in self.formats.values()}
             fmtu = self.table("FMTU")
@@ -406,22 +413,28 @@ def read_text(path: str | Path, progress: Callable[[float], None] | None = None)
         raise DataFlashError(f"{p}: not a DataFlash text log (no FMT line)")
 
     def load(fmt: Format) -> dict[str, NDArray[np.generic]]:
-        got = [r for r in rows.get(fmt.name, []) if len(r) == len(fmt.columns)]
-        out: dict[str, NDArray[np.generic]] = {}
-        for i, (char, col) in enumerate(zip(fmt.format, fmt.columns, strict=False)):
-            cells = [r[i] for r in got]
-            numbers = np.array([_number(c) for c in cells], float)
-            if char in "nNZ" or (cells and np.isnan(numbers).all()):
-                out[col] = np.array([c.encode() for c in cells], dtype=bytes)
-            else:
-                out[col] = numbers
-        return out
+        return _text_columns(fmt, rows.get(fmt.name, []))
 
     if progress is not None:
         progress(1.0)
     log = DataFlashLog(p, formats, {}, load, size_bytes=len(text))
     log._read_units()
     return log
+
+
+def _text_columns(fmt: Format, rows: list[list[str]]) -> dict[str, NDArray[np.generic]]:
+    """A text log's lines of one type as columns: numbers, or bytes for text fields (and
+    for a character field such as UNIT's Id)."""
+    got = [r for r in rows if len(r) == len(fmt.columns)]
+    out: dict[str, NDArray[np.generic]] = {}
+    for i, (char, col) in enumerate(zip(fmt.format, fmt.columns, strict=False)):
+        cells = [r[i] for r in got]
+        numbers = np.array([_number(c) for c in cells], float)
+        if char in "nNZ" or (cells and np.isnan(numbers).all()):
+            out[col] = np.array([c.encode() for c in cells], dtype=bytes)
+        else:
+            out[col] = numbers
+    return out
 
 
 def _number(cell: str) -> float:

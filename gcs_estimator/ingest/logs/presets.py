@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import NDArray
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.ingest.logs.content import LogContent, Signal, Span
@@ -62,7 +63,7 @@ AETR_FULL = 4500.0
 NOT_FIXED_WING = ("ArduCopter", "ArduHeli", "ArduRover", "ArduSub", "Blimp", "AntennaTracker")
 
 
-def _spans(t: FloatArray, on: FloatArray, end: float) -> list[Span]:
+def _spans(t: FloatArray, on: NDArray[np.bool_], end: float) -> list[Span]:
     """The intervals in which a sampled flag is true (each sample holds until the next)."""
     out: list[Span] = []
     start: float | None = None
@@ -210,6 +211,38 @@ def _ardu_vehicle(firmware: str, params: dict[str, float]) -> tuple[str, bool]:
     return "fixed-wing", True
 
 
+def _ardu_motion(log: DataFlashLog, s: dict[str, Signal]) -> None:
+    """The body rates and accelerations (IMU, else RATE), attitude (ATT), alpha (AOA)."""
+    if log.has("IMU", "GyrY"):
+        for ch, col, unit in (
+            ("q", "GyrY", "rad/s"),
+            ("p", "GyrX", "rad/s"),
+            ("r", "GyrZ", "rad/s"),
+            ("a_x", "AccX", "m/s/s"),
+            ("a_z", "AccZ", "m/s/s"),
+        ):
+            s[ch] = _signal(log, "IMU", col, unit)
+    elif log.has("RATE", "P"):
+        s["q"] = _signal(log, "RATE", "P", "deg/s")
+    if log.has("ATT", "Pitch"):
+        s["theta"] = _signal(log, "ATT", "Pitch", "deg")
+        s["phi"] = _signal(log, "ATT", "Roll", "deg")
+    if log.has("AOA", "AOA"):
+        a = _signal(log, "AOA", "AOA", "deg")
+        s["alpha"] = Signal(a.t_s, a.values, "AOA.AOA (the AHRS's estimate, not a vane)")
+
+
+def _ardu_aux(log: DataFlashLog, s: dict[str, Signal]) -> None:
+    """Vertical speed (GPS) and the EKF's wind (XKF2, or EKF2's NKF2)."""
+    if log.has("GPS", "VZ"):
+        s["vz"] = _signal(log, "GPS", "VZ", "m/s")
+    for ekf in ("XKF2", "NKF2"):
+        if log.has(ekf, "VWN"):
+            s["wind_n"] = _signal(log, ekf, "VWN", "m/s")
+            s["wind_e"] = _signal(log, ekf, "VWE", "m/s")
+            break
+
+
 def arduplane(log: DataFlashLog) -> LogContent:
     """A DataFlash log read as ArduPlane logs its flight."""
     params = log.params()
@@ -225,41 +258,17 @@ def arduplane(log: DataFlashLog) -> LogContent:
         airborne = _spans(log.time_s("STAT"), log.values("STAT", "isFlying") > 0, span[1])
     out = LogContent(firmware, vehicle, fixed_wing, span, airborne, "STAT.isFlying")
     out.hover = _ardu_hover(log, params, span[1])
-    s = out.signals
-    if log.has("IMU", "GyrY"):
-        for ch, col, unit in (
-            ("q", "GyrY", "rad/s"),
-            ("p", "GyrX", "rad/s"),
-            ("r", "GyrZ", "rad/s"),
-            ("a_x", "AccX", "m/s/s"),
-            ("a_z", "AccZ", "m/s/s"),
-        ):
-            s[ch] = _signal(log, "IMU", col, unit)
-    elif log.has("RATE", "P"):
-        s["q"] = _signal(log, "RATE", "P", "deg/s")
-    if log.has("ATT", "Pitch"):
-        s["theta"] = _signal(log, "ATT", "Pitch", "deg")
-        s["phi"] = _signal(log, "ATT", "Roll", "deg")
+    _ardu_motion(log, out.signals)
     rho = _ardu_density(log)
-    if rho is not None:
-        s["rho"] = rho
     for ch, sig in (
+        ("rho", rho),
         ("airspeed", _ardu_airspeed(log, rho)),
         ("elevator", _ardu_elevator(log, params)),
         ("throttle", _ardu_throttle(log, params)),
     ):
         if sig is not None:
-            s[ch] = sig
-    if log.has("AOA", "AOA"):
-        a = _signal(log, "AOA", "AOA", "deg")
-        s["alpha"] = Signal(a.t_s, a.values, "AOA.AOA (the AHRS's estimate, not a vane)")
-    if log.has("GPS", "VZ"):
-        s["vz"] = _signal(log, "GPS", "VZ", "m/s")
-    for ekf in ("XKF2", "NKF2"):
-        if log.has(ekf, "VWN"):
-            s["wind_n"] = _signal(log, ekf, "VWN", "m/s")
-            s["wind_e"] = _signal(log, ekf, "VWE", "m/s")
-            break
+            out.signals[ch] = sig
+    _ardu_aux(log, out.signals)
     if log.skipped_bytes:
         out.notes.append(f"{log.path}: {log.skipped_bytes} byte(s) that start no record skipped")
     if log.truncated_bytes:
@@ -403,22 +412,17 @@ def _px4_hover(u: ULogData, end: float) -> list[Span]:
     return []
 
 
-def px4(u: ULogData) -> LogContent:
-    """A ULog read as PX4 logs its flight."""
-    sw = u.info.get("ver_sw_branch") or u.info.get("ver_sw") or ""
-    firmware = f"PX4 {sw}".strip()
-    start, last = (float(u.extra.get(k, 0) or 0) * 1e-6 for k in ("start_us", "last_us"))
-    vehicle, fixed_wing = _px4_vehicle(u)
-    land = u.topic("vehicle_land_detected")
-    airborne = None
-    if land is not None and "landed" in land:
-        airborne = _spans(_px4_time(land), np.asarray(land["landed"], float) == 0, last)
-    out = LogContent(
-        firmware, vehicle, fixed_wing, (start, last), airborne, "vehicle_land_detected.landed"
-    )
-    if vehicle.startswith("VTOL"):
-        out.hover = _px4_hover(u, last)
-    s = out.signals
+def _px4_first(u: ULogData, topics: tuple[str, ...], column: str) -> Signal | None:
+    """The column from the first of the topics the log has it in."""
+    for name in topics:
+        sig = _px4_signal(u, name, column)
+        if sig is not None:
+            return sig
+    return None
+
+
+def _px4_motion(u: ULogData, s: dict[str, Signal]) -> None:
+    """Attitude, body rates, pitch acceleration and the accelerometers."""
     att = _px4_attitude(u)
     if att is not None:
         s["theta"], s["phi"] = att
@@ -437,25 +441,35 @@ def px4(u: ULogData) -> LogContent:
         )
         if sig is not None:
             s[ch] = sig
+
+
+def px4(u: ULogData) -> LogContent:
+    """A ULog read as PX4 logs its flight."""
+    sw = u.info.get("ver_sw_branch") or u.info.get("ver_sw") or ""
+    firmware = f"PX4 {sw}".strip()
+    start, last = (float(str(u.extra.get(k) or 0)) * 1e-6 for k in ("start_us", "last_us"))
+    vehicle, fixed_wing = _px4_vehicle(u)
+    land = u.topic("vehicle_land_detected")
+    airborne = None
+    if land is not None and "landed" in land:
+        airborne = _spans(_px4_time(land), np.asarray(land["landed"], float) == 0, last)
+    out = LogContent(
+        firmware, vehicle, fixed_wing, (start, last), airborne, "vehicle_land_detected.landed"
+    )
+    if vehicle.startswith("VTOL"):
+        out.hover = _px4_hover(u, last)
+    _px4_motion(u, out.signals)
     for ch, sig in (
         ("airspeed", _px4_signal(u, "airspeed_validated", "true_airspeed_m_s")),
         ("rho", _px4_density(u)),
         ("elevator", _px4_elevator(u)),
         ("throttle", _px4_throttle(u)),
         ("vz", _px4_signal(u, "vehicle_local_position", "vz")),
-        (
-            "wind_n",
-            _px4_signal(u, "wind", "windspeed_north")
-            or _px4_signal(u, "wind_estimate", "windspeed_north"),
-        ),
-        (
-            "wind_e",
-            _px4_signal(u, "wind", "windspeed_east")
-            or _px4_signal(u, "wind_estimate", "windspeed_east"),
-        ),
+        ("wind_n", _px4_first(u, ("wind", "wind_estimate"), "windspeed_north")),
+        ("wind_e", _px4_first(u, ("wind", "wind_estimate"), "windspeed_east")),
     ):
         if sig is not None:
-            s[ch] = sig
+            out.signals[ch] = sig
     if u.dropouts:
         out.notes.append(f"{u.path}: {u.dropouts} logging dropout(s) (samples missing there)")
     return out
