@@ -604,7 +604,7 @@ def tlog_paths(paths: Sequence[str]) -> list[str]:
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
-    if any(Path(p).is_file() and detect.kind(p) in detect.LOGS for p in args.tlogs):
+    if any(detect.is_log(p) for p in args.tlogs):
         if len(args.tlogs) != 1 or getattr(args, "each", False):
             raise ConfigError("an autopilot's log (.bin, .log, .ulg) is replayed on its own")
         args.data = args.tlogs[0]

@@ -54,6 +54,15 @@ def kind(path: str | Path) -> Kind:
     )
 
 
+def is_log(path: str | Path) -> bool:
+    """Whether the file is an autopilot's own log (LOGS); False for anything else, and for
+    a file that cannot be read (its reader says why)."""
+    try:
+        return kind(path) in LOGS
+    except FlightDataError:
+        return False
+
+
 def _is_tlog(path: Path) -> bool:
     try:
         next(read_tlog(path), None)
