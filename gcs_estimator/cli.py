@@ -745,12 +745,15 @@ def build_parser() -> argparse.ArgumentParser:
     _truth_option(p)
     p.set_defaults(func=cmd_listen)
 
-    p = sub.add_parser("replay", help="estimate from recorded .tlog files")
+    p = sub.add_parser(
+        "replay", help="estimate from recorded .tlog files (or one ArduPilot/PX4 log)"
+    )
     _common(p)
     p.add_argument(
         "tlogs",
         nargs="+",
-        help=".tlog files, in order (one flight); a folder stands for the .tlog files in it",
+        help=".tlog files, in order (one flight); a folder stands for the .tlog files in it; "
+        "or one autopilot log (.bin, .log, .ulg)",
     )
     p.add_argument(
         "--each",
@@ -775,21 +778,26 @@ def build_parser() -> argparse.ArgumentParser:
     _truth_option(p)
     p.set_defaults(func=cmd_replay)
 
-    p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")
+    p = sub.add_parser(
+        "offline", help="estimate from a log or data file (ArduPilot, PX4, CSV, HFB-320)"
+    )
     _common(p, "hfb320")
     p.add_argument(
         "data",
-        help="flight data: the HFB-320 ASCII record or a CSV (see README), or a folder holding one",
+        help="flight data: an ArduPilot .bin/.log or PX4 .ulg log, the HFB-320 ASCII record or "
+        "a CSV (see README), or a folder holding one; its content says which",
     )
     p.set_defaults(func=cmd_offline)
 
     p = sub.add_parser(
         "refine",
-        help="fit a recorded flight (CSV, HFB-320 record or .tlog) by maximum likelihood "
+        help="fit a recorded flight (a log, CSV, HFB-320 record or .tlog) by maximum likelihood "
         "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
     )
     _common(p, None)
-    p.add_argument("flight", help="a CSV, the HFB-320 record (or 'hfb320'), or a .tlog")
+    p.add_argument(
+        "flight", help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or a .tlog"
+    )
     p.add_argument(
         "--method",
         choices=REFINE_METHODS,

@@ -90,6 +90,11 @@ def test_a_vehicle_that_never_flew_exits_1_with_its_account(
     err = capsys.readouterr().err
     assert "log ground.bin: ArduPlane V4.5.0, fixed-wing, 12.0 s, airborne 0.0 s" in err
     assert "never flew" in err
+    renamed = path.rename(tmp_path / "ground.dat")  # refine and replay know it by content
+    for command in ("refine", "replay"):
+        args = [command, str(renamed), "--config", "noc_uav", "--out", str(tmp_path / command)]
+        assert main(args) == 1
+        assert "log ground.dat: ArduPlane V4.5.0" in capsys.readouterr().err
 
 
 def test_a_multirotor_is_no_fixed_wing_aircraft(tmp_path: Path, noc_config: AircraftConfig) -> None:
