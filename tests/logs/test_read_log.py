@@ -17,6 +17,7 @@ from gcs_estimator.ingest.logs import detect
 from gcs_estimator.ingest.logs.reader import NotAFlightError, read_log
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
 from tests.logs.dataflash_files import TRAVEL_DEG, arduplane_log, flight
+from tests.logs.ulog_files import px4_log
 
 ULOG = Path(__file__).resolve().parent / "data" / "sample_log_small.ulg"
 BOOT_S = 1.0
@@ -139,3 +140,36 @@ def test_formats_are_told_by_content_not_by_name(tmp_path: Path, hfb_data_path: 
     named.write_bytes(b"neither a log nor a table\n" * 200)
     with pytest.raises(FlightDataError, match="not a flight file this tool reads"):
         detect.kind(named)
+
+
+def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
+    tmp_path: Path, noc_config: AircraftConfig
+) -> None:
+    fl = flight(30.0)
+    rec, account = read_log(px4_log(tmp_path / "f.ulg", fl), _with_travel(noc_config))
+    t = rec.t_s - BOOT_S
+
+    def truth(x: np.ndarray) -> np.ndarray:
+        return np.asarray(np.interp(t, fl.t_s, x))
+
+    assert t[0] == pytest.approx(fl.takeoff_s) and t[-1] <= fl.landing_s
+    v, alpha, theta, q, qdot, a_x, a_z = rec.measurements.T
+    np.testing.assert_allclose(theta, truth(fl.theta), atol=1e-6)  # from the quaternion
+    np.testing.assert_allclose(q, truth(fl.q), atol=1e-6)
+    np.testing.assert_allclose(qdot, 0.3, atol=1e-6)
+    np.testing.assert_allclose(a_x, truth(fl.a_x), atol=1e-5)
+    np.testing.assert_allclose(a_z, truth(fl.a_z), atol=1e-5)
+    np.testing.assert_allclose(v, truth(fl.tas), atol=2e-3)
+    assert np.isnan(alpha).all()  # PX4 logs none
+    de, throttle, rho = rec.inputs.T
+    # the servo's torque sign (CA_SV_CS1_TRQ_P < 0) turned into nose-up, then the model's
+    # sign; between two 25 Hz samples a sine interpolated linearly (A w^2 dt^2 / 8)
+    bend = 0.04**2 / 8
+    np.testing.assert_allclose(de, truth(fl.elevator_rad), atol=math.radians(5) * 1.3**2 * bend)
+    np.testing.assert_allclose(throttle, truth(fl.throttle), atol=0.2 * 0.7**2 * bend + 1e-7)
+    np.testing.assert_allclose(rho, truth(fl.rho), rtol=1e-4)
+    np.testing.assert_allclose(rec.aux["phi"], truth(fl.phi), atol=1e-6)
+    assert rec.aux["wind_e"] == pytest.approx(-1.5)
+    assert (
+        account.startswith("log f.ulg: PX4 v1.14.0, fixed-wing, ") and "airborne 20.0 s" in account
+    )
