@@ -29,7 +29,12 @@ from gcs_estimator.estimation.filters.core import Backend
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording
 from gcs_estimator.ingest.logs import detect
-from gcs_estimator.ingest.logs.reader import NotAFlightError, load_flight, stderr_progress
+from gcs_estimator.ingest.logs.reader import (
+    LogError,
+    NotAFlightError,
+    load_flight,
+    stderr_progress,
+)
 from gcs_estimator.ingest.sources import (
     RCVBUF_BYTES,
     LiveSource,
@@ -842,9 +847,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.out = str(run_folder(args, started))
             args.started = started
         status: int = args.func(args)
-    except NotAFlightError as exc:
+    except LogError as exc:  # what the log holds, then why it cannot be used
         print(f"{exc.account}\nerror: {exc}", file=sys.stderr)
-        return EXIT_NOTHING_ESTIMATED
+        return EXIT_NOTHING_ESTIMATED if isinstance(exc, NotAFlightError) else 2
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -75,11 +75,16 @@ def test_every_channel_comes_back_within_the_logs_resolution(
 
 
 def test_an_elevator_without_its_travel_names_the_key(
-    tmp_path: Path, noc_config: AircraftConfig
+    tmp_path: Path, noc_config: AircraftConfig, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = arduplane_log(tmp_path / "f.bin", flight(20.0))
     with pytest.raises(FlightDataError, match=r"\[airframe\] elevator_travel_deg"):
         read_log(path, _with_travel(noc_config, 0.0))
+    args = ["offline", str(path), "--config", "noc_uav", "--out", str(tmp_path / "out")]
+    assert main(args) == 2  # a setting the user must give: the config is not complete
+    err = capsys.readouterr().err
+    assert err.startswith("log f.bin: ArduPlane V4.5.0, fixed-wing")
+    assert "set [airframe] elevator_travel_deg" in err
 
 
 def test_a_vehicle_that_never_flew_exits_1_with_its_account(

@@ -38,14 +38,18 @@ GAP_STEPS = 3.0
 Progress = Callable[[float], None]
 
 
-class NotAFlightError(FlightDataError):
-    """The log is read, but holds no fixed-wing flight: a multirotor, a VTOL that only
-    hovered, a vehicle that never left the ground (exit 1: nothing to estimate). Its
-    account says what the log holds."""
+class LogError(FlightDataError):
+    """A log was read but cannot be estimated from as it is (an elevator output without
+    its travel, no input at all); its account says what the log holds."""
 
     def __init__(self, message: str, account: str) -> None:
         super().__init__(message)
         self.account = account
+
+
+class NotAFlightError(LogError):
+    """The log is read, but holds no fixed-wing flight: a multirotor, a VTOL that only
+    hovered, a vehicle that never left the ground (exit 1: nothing to estimate)."""
 
 
 def stderr_progress(label: str) -> Progress:
@@ -78,8 +82,9 @@ def read_log(
     path: str | Path, config: AircraftConfig, progress: Progress | None = None
 ) -> tuple[Recording, str]:
     """The log's flight as a Recording, and a one-line account of what the log holds.
-    A log with no fixed-wing flight raises NotAFlightError (its message starts with the
-    account); an elevator command without [airframe] elevator_travel_deg, FlightDataError."""
+    A log with no fixed-wing flight raises NotAFlightError, one that cannot be estimated
+    from as it is (an elevator output without [airframe] elevator_travel_deg) LogError,
+    each with the account."""
     content = load_content(path, progress)
     window = flight_window(content)
     text = account(Path(path).name, content, window)
@@ -87,7 +92,12 @@ def read_log(
     if why:
         raise NotAFlightError(f"{path}: {why}: nothing to estimate", text)
     assert window is not None
-    return to_recording(Path(path), content, window, config), text
+    try:
+        return to_recording(Path(path), content, window, config), text
+    except LogError:
+        raise
+    except FlightDataError as exc:
+        raise LogError(str(exc), text) from exc
 
 
 def _total(spans: list[Span]) -> float:
