@@ -279,8 +279,8 @@ def to_recording(
     scale = -math.radians(travel) if content.elevator_normalised else -1.0
     de = _input(frames, elevator, hold) * scale
     thr = _input(frames, throttle, hold)
-    rho_sig = content.signals.get("rho")
-    rho = on_frames(frames, rho_sig) if rho_sig is not None else np.full(len(frames), np.nan)
+    rho_sig = content.signals.get("rho")  # NaN where the log has none: the airframe's
+    rho = np.full(len(frames), np.nan)
     if rho_sig is not None and len(rho_sig.t_s):
         rho = np.interp(frames, rho_sig.t_s, rho_sig.values)
     measured = np.column_stack(
