@@ -68,9 +68,10 @@ _HFB_TIME, _HFB_ELEVATOR, _HFB_THRUST = 0, 1, 3
 _HFB_OBSERVATIONS = [4, 5, 6, 7, 8, 9, 10]
 
 
-DATA_SUFFIXES = (".asc", ".csv", ".bin", ".log", ".ulg")
+DATA_SUFFIXES = (".asc", ".csv", ".bin", ".ulg")
 """Flight-data files a folder may stand for: the HFB-320 ASCII record, CSV, and the
-autopilots' logs (ingest/logs: which of these a file is, its content says)."""
+autopilots' binary logs (ingest/logs: which of these a file is, its content says). A
+text .log is given by itself: a folder's .log may be any program's output."""
 
 
 BUNDLED = Path(__file__).resolve().parent.parent / "data"
