@@ -48,6 +48,10 @@ def kind(path: str | Path) -> Kind:
         return "hfb320"
     if any(d in first for d in (b",", b";", b"\t")):
         return "csv"
+    # text the content does not settle (a one-column table, a record with a title line):
+    # its name decides, and that reader says what is wrong with it
+    if p.suffix.lower() in (".csv", ".asc"):
+        return "csv" if p.suffix.lower() == ".csv" else "hfb320"
     raise FlightDataError(
         f"{p}: not a flight file this tool reads (an ArduPilot DataFlash .bin or .log, a PX4 "
         ".ulg, a MAVLink .tlog, a CSV with a header row, or the HFB-320 ASCII record)"
