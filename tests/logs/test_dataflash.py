@@ -147,3 +147,13 @@ def test_progress_reaches_the_end(tmp_path: Path) -> None:
     seen: list[float] = []
     dataflash.read_bin(path, seen.append)
     assert seen and seen[-1] == 1.0 and seen == sorted(seen)
+
+
+def test_the_terminals_progress_line_ends_at_100(capsys: pytest.CaptureFixture[str]) -> None:
+    from gcs_estimator.ingest.logs.reader import stderr_progress
+
+    report = stderr_progress("reading f.bin")
+    for fraction in (0.0, 0.004, 0.5, 0.5, 1.0):
+        report(fraction)
+    err = capsys.readouterr().err
+    assert err == "\rreading f.bin:   0%\rreading f.bin:  50%\rreading f.bin: 100%\n"
