@@ -159,11 +159,11 @@ def _scan(
 @numba.njit(cache=True, nogil=True)
 def _gather(buf: NDArray[np.uint8], offsets: NDArray[np.int64], length: int) -> NDArray[np.uint8]:
     """The payloads (header dropped) of the records at offsets, one row each."""
-    out = np.empty((offsets.shape[0], length - 3), np.uint8)
+    width = length - 3
+    out = np.empty((offsets.shape[0], width), np.uint8)
     for i in range(offsets.shape[0]):
         start = offsets[i] + 3
-        for j in range(length - 3):
-            out[i, j] = buf[start + j]
+        out[i, :] = buf[start : start + width]
     return out
 
 
@@ -208,6 +208,8 @@ class DataFlashLog:
     truncated_bytes: int = 0
     """Bytes of a last record cut by the end of the file (not read)."""
     _seconds: dict[tuple[str, str], FloatArray] = field(default_factory=dict)
+    memo: dict[tuple[str, str], object] = field(default_factory=dict)
+    """What a preset derived from the log once and uses for several channels."""
     bad: dict[str, str] = field(default_factory=dict)
     """Message types whose FMT this reader cannot follow (name -> why); their records are
     walked over (their length is known) but not read."""

@@ -78,20 +78,28 @@ def _spans(t: FloatArray, on: NDArray[np.bool_], end: float) -> list[Span]:
     return out
 
 
-def _instance(log: DataFlashLog, name: str, column: str = "I") -> FloatArray:
-    """Which rows of a multi-instance message are the first instance."""
-    n = len(log.table(name)["TimeUS"])
-    if not log.has(name, column):
-        return np.ones(n, bool)
-    inst = log.values(name, column)
-    return np.asarray(inst == inst.min(), bool) if n else np.ones(0, bool)
+def _first_instance(log: DataFlashLog, name: str) -> tuple[NDArray[np.bool_] | None, FloatArray]:
+    """Which rows of a message are its first instance (None: all, a message of one), and
+    those rows' times; kept on the log, as each message gives several channels."""
+    key = ("first instance", name)
+    if key not in log.memo:
+        column = "C" if name in ("XKF2", "NKF2") else "I"
+        t = log.time_s(name)
+        keep = None
+        if log.has(name, column) and len(t):
+            inst = log.values(name, column)
+            keep = np.asarray(inst == inst.min(), bool)
+            keep = None if keep.all() else keep
+        log.memo[key] = (keep, t if keep is None else t[keep])
+    found: tuple[NDArray[np.bool_] | None, FloatArray] = log.memo[key]  # type: ignore[assignment]
+    return found
 
 
 def _signal(log: DataFlashLog, name: str, column: str, unit: str, scale: float = 1.0) -> Signal:
-    keep = _instance(log, name, "C" if name in ("XKF2", "NKF2") else "I")
-    t = log.time_s(name)[keep]
-    v = log.si(name, column, unit)[keep] * scale
-    return Signal(t, v, f"{name}.{column}")
+    keep, t = _first_instance(log, name)
+    v = log.si(name, column, unit)
+    v = v if keep is None else v[keep]
+    return Signal(t, v * scale if scale != 1.0 else v, f"{name}.{column}")
 
 
 # ----------------------------------------------------------------------------- ArduPilot
