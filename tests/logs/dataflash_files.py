@@ -254,20 +254,24 @@ def arduplane_log(
     reversed_: bool = True,
     junk: bytes = b"",
     flying: bool = True,
+    hover_mode: int = 0,
 ) -> Path:
     """An ArduPlane log of the flight: IMU at the flight's rate (two instances), ATT, ARSP,
-    BARO, RCOU, AOA at half of it, STAT at 5 Hz; elevator on output 2, throttle on 3."""
+    BARO, RCOU, AOA at half of it, STAT at 5 Hz; elevator on output 2, throttle on 3.
+    hover_mode: a QuadPlane (Q_ENABLE) flying in that mode all along."""
     w = DataFlashWriter()
     w.units(UNIT_IDS, MULT_IDS)
     for t in (VER, ATT, IMU, ARSP, BARO, RCOU, STAT, AOA, GPS, XKF2, MODE):
         w.define(t)
     w.add("MSG", [0, firmware])
     w.add("VER", [0, 10, 5009, 4, 5, 0, 1, 123, firmware, 131])
+    if hover_mode:  # a QuadPlane in a Q mode (QHOVER 18, ...) from the start
+        w.add("MODE", [0, hover_mode, hover_mode, 1])
     w.params({
         "SERVO2_FUNCTION": 19, "SERVO2_MIN": SERVO["min"], "SERVO2_MAX": SERVO["max"],
         "SERVO2_TRIM": SERVO["trim"], "SERVO2_REVERSED": float(reversed_),
         "SERVO3_FUNCTION": 70, "SERVO3_MIN": 1000, "SERVO3_MAX": 2000, "SERVO3_TRIM": 1000,
-        "SERVO3_REVERSED": 0, "Q_ENABLE": 0,
+        "SERVO3_REVERSED": 0, "Q_ENABLE": float(hover_mode > 0),
     })  # fmt: skip
     pwm = elevator_pwm(fl.elevator_rad, reversed_)
     thr = 1000 + 1000 * fl.throttle

@@ -110,6 +110,13 @@ def test_a_multirotor_is_no_fixed_wing_aircraft(tmp_path: Path, noc_config: Airc
     assert err.value.account.startswith("log copter.bin: ArduCopter V4.5.0, multirotor")
 
 
+def test_a_quadplane_that_only_hovered(tmp_path: Path, noc_config: AircraftConfig) -> None:
+    path = arduplane_log(tmp_path / "q.bin", flight(20.0), hover_mode=18)  # QHOVER
+    with pytest.raises(NotAFlightError, match=r"hovered as a multirotor for 10\.0 s") as err:
+        read_log(path, _with_travel(noc_config))
+    assert "QuadPlane (VTOL)" in err.value.account and "(10.0 s hovering)" in err.value.account
+
+
 def test_the_px4_vtol_that_only_hovered(
     noc_config: AircraftConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
