@@ -71,6 +71,7 @@ PLAN = (
     # Speed and the live link: one core's filter steps, a long replay, a station's
     # vehicles over UDP (10, and 50 to load it), its memory, endurance, stop and start.
     Run("speed", "speed", (), 0.4),
+    Run("read_logs", "read_logs", (), 0.5),
     Run("replay", "replay", ("--minutes", "60", "--boot-s", "4000", "--view"), 4),
     Run("replay_vehicles", "replay_vehicles", ("--vehicles", "10", "--minutes", "5"), 3.5),
     Run("live", "live", ("--vehicles", "10", "--seconds", "30"), 0.6),

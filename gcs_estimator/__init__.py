@@ -6,7 +6,7 @@ The folders follow the data, each importing only from those above it (tests/test
     arrays, units, frames, stop, schema,   shared types and small utilities
     blas
     model/, config                         the aircraft's equations and its airframe file
-    ingest/                                every source: endpoints, MAVLink, tlogs, data files
+    ingest/                                every source: endpoints, MAVLink, tlogs, logs, data files
     estimation/                            the filters, the estimator, restarts, warm start, noise
     uncertainty/                           the sigma to trust, the marks, the structure check
     refine/                                the whole-record maximum-likelihood fit

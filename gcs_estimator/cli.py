@@ -27,7 +27,14 @@ from gcs_estimator.config import (
 )
 from gcs_estimator.estimation.filters.core import Backend
 from gcs_estimator.ingest import endpoints
-from gcs_estimator.ingest.flightdata import FlightDataError, load_recording
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording
+from gcs_estimator.ingest.logs import detect
+from gcs_estimator.ingest.logs.reader import (
+    LogError,
+    NotAFlightError,
+    load_flight,
+    stderr_progress,
+)
 from gcs_estimator.ingest.sources import (
     RCVBUF_BYTES,
     LiveSource,
@@ -399,9 +406,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
 
+def _flight(data: str, config: AircraftConfig, progress: bool) -> tuple[Path, Recording]:
+    """A data file or an autopilot's log (by its content); a log's account on stderr."""
+    show = sys.stderr.isatty() or progress
+    report = stderr_progress(f"reading {Path(data).name}") if show else None
+    path, rec, account = load_flight(data, config, report)
+    if account:
+        print(account, file=sys.stderr)
+    return path, rec
+
+
 def cmd_offline(args: argparse.Namespace) -> int:
     config = _config(args)
-    path, rec = load_recording(args.data, config.data)
+    if Path(args.data).is_file() and detect.kind(args.data) == "tlog":
+        args.tlogs, args.speed, args.progress = [args.data], 0.0, False
+        return cmd_replay(args)
+    path, rec = _flight(args.data, config, getattr(args, "progress", False))
     for note in rec.notes:
         print(f"note: {note}", file=sys.stderr)
     want = config.propulsion.input_name
@@ -589,6 +609,11 @@ def tlog_paths(paths: Sequence[str]) -> list[str]:
 def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
+    if any(detect.is_log(p) for p in args.tlogs):
+        if len(args.tlogs) != 1 or getattr(args, "each", False):
+            raise ConfigError("an autopilot's log (.bin, .log, .ulg) is replayed on its own")
+        args.data = args.tlogs[0]
+        return cmd_offline(args)
     if getattr(args, "each", False):
         from gcs_estimator.runtime.batch import run_each
 
@@ -640,7 +665,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     if args.config is None:
         args.config = "hfb320" if args.flight == "hfb320" else DEFAULT_CONFIG
     args.refine = args.refine or args.method
-    if Path(args.flight).suffix.lower() == ".tlog":
+    if Path(args.flight).is_file() and detect.kind(args.flight) == "tlog":
         args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
         return cmd_replay(args)
     args.data = args.flight
@@ -725,12 +750,15 @@ def build_parser() -> argparse.ArgumentParser:
     _truth_option(p)
     p.set_defaults(func=cmd_listen)
 
-    p = sub.add_parser("replay", help="estimate from recorded .tlog files")
+    p = sub.add_parser(
+        "replay", help="estimate from recorded .tlog files (or one ArduPilot/PX4 log)"
+    )
     _common(p)
     p.add_argument(
         "tlogs",
         nargs="+",
-        help=".tlog files, in order (one flight); a folder stands for the .tlog files in it",
+        help=".tlog files, in order (one flight); a folder stands for the .tlog files in it; "
+        "or one autopilot log (.bin, .log, .ulg)",
     )
     p.add_argument(
         "--each",
@@ -755,21 +783,26 @@ def build_parser() -> argparse.ArgumentParser:
     _truth_option(p)
     p.set_defaults(func=cmd_replay)
 
-    p = sub.add_parser("offline", help="estimate from a data file (HFB-320 .asc or CSV)")
+    p = sub.add_parser(
+        "offline", help="estimate from a log or data file (ArduPilot, PX4, CSV, HFB-320)"
+    )
     _common(p, "hfb320")
     p.add_argument(
         "data",
-        help="flight data: the HFB-320 ASCII record or a CSV (see README), or a folder holding one",
+        help="flight data: an ArduPilot .bin/.log or PX4 .ulg log, the HFB-320 ASCII record or "
+        "a CSV (see README), or a folder holding one; its content says which",
     )
     p.set_defaults(func=cmd_offline)
 
     p = sub.add_parser(
         "refine",
-        help="fit a recorded flight (CSV, HFB-320 record or .tlog) by maximum likelihood "
+        help="fit a recorded flight (a log, CSV, HFB-320 record or .tlog) by maximum likelihood "
         "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
     )
     _common(p, None)
-    p.add_argument("flight", help="a CSV, the HFB-320 record (or 'hfb320'), or a .tlog")
+    p.add_argument(
+        "flight", help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or a .tlog"
+    )
     p.add_argument(
         "--method",
         choices=REFINE_METHODS,
@@ -814,6 +847,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.out = str(run_folder(args, started))
             args.started = started
         status: int = args.func(args)
+    except LogError as exc:  # what the log holds, then why it cannot be used
+        print(f"{exc.account}\nerror: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED if isinstance(exc, NotAFlightError) else 2
     except (ConfigError, FlightDataError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

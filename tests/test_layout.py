@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "gcs_estimator"
 FLOW = (
     ("arrays", "units", "stop", "schema", "blas", "frames"),
     ("model", "config"),  # the model and the airframe file that parameterises it
-    ("ingest",),
+    ("ingest",),  # every source; ingest/logs (the autopilots' logs) imports flightdata
     ("estimation",),
     ("uncertainty",),
     ("refine",),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,9 @@ class Recording:
     """What the second input column holds."""
     notes: tuple[str, ...] = ()
     """What reading the file mended or skipped, one sentence each (for the run's output)."""
+    aux: dict[str, FloatArray] = field(default_factory=dict)
+    """Further signals at the sample times, by name (an autopilot's log: roll, roll and
+    yaw rates, vertical speed, wind; ingest/logs/content.py AUX), unused by the filters."""
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -65,8 +68,10 @@ _HFB_TIME, _HFB_ELEVATOR, _HFB_THRUST = 0, 1, 3
 _HFB_OBSERVATIONS = [4, 5, 6, 7, 8, 9, 10]
 
 
-DATA_SUFFIXES = (".asc", ".csv")
-"""Flight-data files the offline command reads: the HFB-320 ASCII record and CSV."""
+DATA_SUFFIXES = (".asc", ".csv", ".bin", ".ulg")
+"""Flight-data files a folder may stand for: the HFB-320 ASCII record, CSV, and the
+autopilots' binary logs (ingest/logs: which of these a file is, its content says). A
+text .log is given by itself: a folder's .log may be any program's output."""
 
 
 BUNDLED = Path(__file__).resolve().parent.parent / "data"
