@@ -84,7 +84,7 @@ def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_
     back = load_csv(csv_path)
     np.testing.assert_array_equal(back.measurements, rec.measurements)
     np.testing.assert_array_equal(back.inputs, rec.inputs)
-    assert main(["offline", str(csv_path), "--out", str(tmp_path / "a")]) == 0
+    assert main(["offline", str(csv_path), "--config", "hfb320", "--out", str(tmp_path / "a")]) == 0
     # The data's folder stands for its one data file (it also holds a README), and the
     # bundled record's name for its folder.
     assert main(["offline", str(hfb_data_path.parent), "--out", str(tmp_path / "b")]) == 0
@@ -100,20 +100,21 @@ def test_bad_inputs_give_one_clear_error(
 ) -> None:
     bad = tmp_path / "x.csv"
     bad.write_text("time_s,airspeed_mps\n0,1\n")
-    assert main(["offline", str(bad), "--out", str(tmp_path)]) == 2
+    assert main(["offline", str(bad), "--config", "noc_uav", "--out", str(tmp_path)]) == 2
     assert "no column 'alpha_rad' for alpha" in capsys.readouterr().err
     assert main(["simulate", "--config", str(tmp_path / "none.toml")]) == 2
     assert "cannot read" in capsys.readouterr().err
     rec = Recording(np.array([0.0, 1.0]), np.zeros((2, 2)), np.zeros((2, 7)), "throttle")
     write_csv(tmp_path / "t.csv", rec)
     # A throttle record offered to an aircraft whose thrust is measured.
-    assert main(["offline", str(tmp_path / "t.csv"), "--out", str(tmp_path)]) == 2
+    hfb = ["--config", "hfb320"]
+    assert main(["offline", str(tmp_path / "t.csv"), *hfb, "--out", str(tmp_path)]) == 2
     assert "[propulsion] model" in capsys.readouterr().err
     # A folder stands for a data file only when it holds exactly one.
-    assert main(["offline", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert main(["offline", str(tmp_path), *hfb, "--out", str(tmp_path / "o")]) == 2
     assert "several flight-data files (t.csv, x.csv); give one" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
-    assert main(["offline", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["offline", str(tmp_path / "empty"), *hfb, "--out", str(tmp_path / "o")]) == 2
     assert "no flight data in it" in capsys.readouterr().err
     assert main(["offline", "hfb321", "--out", str(tmp_path / "o")]) == 2
     assert "bundled records: hfb320" in capsys.readouterr().err
