@@ -165,3 +165,73 @@ def test_observations_that_never_match_the_config_exit_1_with_the_reason(
     status = main(["offline", str(path), "--config", "hfb320", "--out", str(tmp_path / "o")])
     assert status == 1
     assert "no frame's observations could be used" in capsys.readouterr().err
+
+
+def test_airframe_writes_a_starter_that_names_what_to_fill_in(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The starter file is TOML the estimator reads; until a FILL IN value is given the
+    error names that key; filled in, it loads. An existing file is kept unless --force."""
+    from gcs_estimator.config import ConfigError
+
+    path = tmp_path / "my_plane.toml"
+    assert main(["airframe", str(path)]) == 0
+    text = path.read_text()
+    assert "FILL IN" in text and "[propulsion]" in text and "[coefficients]" in text
+    with pytest.raises(ConfigError, match=r"\[airframe\] mass_kg: must be a number > 0"):
+        load_config(path)
+    filled = {
+        "mass_kg": 4.2,
+        "wing_area_m2": 0.45,
+        "mean_chord_m": 0.22,
+        "inertia_yy_kgm2": 0.35,
+        "trim_airspeed_mps": 18.0,
+        "prop_area_m2": 0.05,
+        "motor_constant_mps": 45.0,
+    }
+    for key, value in filled.items():
+        text = re.sub(rf"^{key} = 0\.0 ", f"{key} = {value} ", text, flags=re.MULTILINE)
+    path.write_text(text)
+    config = load_config(path)
+    assert config.airframe.mass_kg == 4.2 and config.propulsion.motor_constant_mps == 45.0
+    assert config.truth is None
+    assert main(["airframe", str(path)]) == 2
+    assert "the file exists" in capsys.readouterr().err
+    assert path.read_text() == text
+    assert main(["airframe", str(path), "--force"]) == 0 and "FILL IN" in path.read_text()
+
+
+def test_a_data_file_without_an_airframe_file_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A CSV is some aircraft's: without --config the run would borrow another's mass and
+    reference values. The bundled record needs none (its airframe ships with it)."""
+    rec = Recording(np.array([0.0, 0.02]), np.zeros((2, 2)), np.zeros((2, 7)), "throttle")
+    write_csv(tmp_path / "mine.csv", rec)
+    assert main(["offline", str(tmp_path / "mine.csv"), "--out", str(tmp_path / "o")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "mine.csv: no airframe file: give --config FILE" in line
+    assert main(["refine", str(tmp_path / "gone.csv"), "--out", str(tmp_path / "o")]) == 2
+    assert "gone.csv: no such file" in capsys.readouterr().err
+
+
+def test_filters_that_diverge_on_most_frames_exit_1_saying_so(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """NaN inputs (what empty CSV cells were before they were held) diverge the filters on
+    most frames: the run says its numbers are not estimates, and exits 1."""
+    from gcs_estimator.cli import EXIT_NOTHING_ESTIMATED, _run
+    from gcs_estimator.runtime.session import RecordingSource, Session
+    from gcs_estimator.stop import Stop
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=4"])
+    flight = simulate(config, seed=1)
+    inputs = flight.inputs.copy()
+    inputs[np.arange(len(inputs)) % 8 != 0, 0] = np.nan  # the elevator in every 8th row
+    session = Session(config, keep_history=False)
+    source = RecordingSource(flight.t_s, inputs, flight.measurements)
+    assert _run(session, source, Stop()) == EXIT_NOTHING_ESTIMATED
+    assert "the filters diverged on most frames of vehicle(s) [1]" in capsys.readouterr().err
+    good = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
+    assert _run(Session(config, keep_history=False), good, Stop()) == 0
