@@ -14,6 +14,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gcs_estimator import blas
 from gcs_estimator.config import (
     REFINE_METHODS,
@@ -455,16 +457,8 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
             file=sys.stderr,
         )
         return EXIT_NOTHING_ESTIMATED
-    diverged = [sid for sid, v in results.items() if _mostly_diverged(v)]
-    if diverged:
-        print(
-            f"error: the filters diverged on most frames of vehicle(s) {diverged} and started "
-            "again from the prior each time: their numbers are not estimates (check the data: "
-            "an input or channel misread, empty or in the wrong unit)",
-            file=sys.stderr,
-        )
-        if len(diverged) == len(results):
-            return EXIT_NOTHING_ESTIMATED
+    if _nothing_identifiable(results, session.config):
+        return EXIT_NOTHING_ESTIMATED
     failed = [
         why
         for sink in session.sinks
@@ -483,6 +477,29 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
     return 0
 
 
+def _nothing_identifiable(results: Mapping[int, VehicleResult], config: AircraftConfig) -> bool:
+    """Say which vehicles never flew (_never_flew) and whose filters diverged on most
+    frames (_mostly_diverged); True when that is every vehicle: nothing was estimated."""
+    grounded = [sid for sid, v in results.items() if _never_flew(v, config)]
+    for sid in grounded:
+        print(
+            f"error: vehicle {sid} never flew: its airspeed never reached "
+            f"{FLYING_SHARE:g} x [airframe] trim_airspeed_mps "
+            f"({FLYING_SHARE * config.airframe.trim_airspeed_mps:g} m/s): on the ground or "
+            "hovering, nothing a fixed wing's coefficients could be read from",
+            file=sys.stderr,
+        )
+    diverged = [sid for sid, v in results.items() if sid not in grounded and _mostly_diverged(v)]
+    if diverged:
+        print(
+            f"error: the filters diverged on most frames of vehicle(s) {diverged} and started "
+            "again from the prior each time: their numbers are not estimates (check the data: "
+            "an input or channel misread, empty or in the wrong unit)",
+            file=sys.stderr,
+        )
+    return len(grounded) + len(diverged) == len(results)
+
+
 DIVERGED_SHARE = 0.5
 """A vehicle whose filter diverged on more than this share of its frames was not
 estimated: its numbers are the prior's (exit EXIT_NOTHING_ESTIMATED)."""
@@ -492,6 +509,19 @@ def _mostly_diverged(v: VehicleResult) -> bool:
     """Whether a filter of the vehicle diverged on most of its frames (DIVERGED_SHARE)."""
     frames = max(v.result.frames, 1)
     return any(f.health.divergences > DIVERGED_SHARE * frames for f in v.result.filters.values())
+
+
+FLYING_SHARE = 0.5
+"""A vehicle whose airspeed never reached this share of the trim airspeed never flew."""
+
+
+def _never_flew(v: VehicleResult, config: AircraftConfig) -> bool:
+    """Whether the vehicle's measured airspeed never reached FLYING_SHARE of the trim
+    airspeed (False where no airspeed was measured, or no history kept: not known)."""
+    track = next((f.track for f in v.result.filters.values() if f.track is not None), None)
+    if track is None or not len(track.y) or not np.isfinite(track.y[:, 0]).any():
+        return False
+    return float(np.nanmax(track.y[:, 0])) < FLYING_SHARE * config.airframe.trim_airspeed_mps
 
 
 def _results_sink(

@@ -235,3 +235,21 @@ def test_filters_that_diverge_on_most_frames_exit_1_saying_so(
     assert "the filters diverged on most frames of vehicle(s) [1]" in capsys.readouterr().err
     good = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
     assert _run(Session(config, keep_history=False), good, Stop()) == 0
+
+
+def test_a_vehicle_that_never_flew_exits_1_saying_so(capsys: pytest.CaptureFixture[str]) -> None:
+    """On the ground (airspeed 1 m/s, the trim 24): nothing to identify, and the run says
+    why rather than print coefficients."""
+    from gcs_estimator.cli import EXIT_NOTHING_ESTIMATED, _run
+    from gcs_estimator.runtime.session import RecordingSource, Session
+    from gcs_estimator.stop import Stop
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=4"])
+    flight = simulate(config, seed=1)
+    ground = flight.measurements.copy()
+    ground[:, 0] = 1.0
+    source = RecordingSource(flight.t_s, flight.inputs, ground)
+    assert _run(Session(config), source, Stop()) == EXIT_NOTHING_ESTIMATED
+    err = capsys.readouterr().err
+    assert "vehicle 1 never flew: its airspeed never reached 0.5 x" in err and "(12 m/s)" in err
