@@ -253,3 +253,17 @@ def test_a_vehicle_that_never_flew_exits_1_saying_so(capsys: pytest.CaptureFixtu
     assert _run(Session(config), source, Stop()) == EXIT_NOTHING_ESTIMATED
     err = capsys.readouterr().err
     assert "vehicle 1 never flew: its airspeed never reached 0.5 x" in err and "(12 m/s)" in err
+
+
+def test_the_throttle_servo_rule_is_a_links_not_a_data_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Measured thrust comes over MAVLink as NAMED_VALUE_FLOAT, so a link or log needs
+    [link] throttle_servo = 0 with it; a data file's thrust column needs no such setting."""
+    measured = ["--config", "noc_uav", "--set", 'propulsion.model="measured"']
+    argv = ["replay", str(tmp_path / "x.tlog"), *measured, "--out", str(tmp_path / "r")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "[link] throttle_servo: must be 0 (thrust comes as NAMED_VALUE_FLOAT" in err
+    config = load_config("noc_uav", ['propulsion.model="measured"'])
+    assert config.link.throttle_servo == 3 and config.link_problem() is not None
