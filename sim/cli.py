@@ -147,7 +147,7 @@ def recordings(args: argparse.Namespace) -> list[Recording]:
     if args.playback:
         if args.truth:
             raise ConfigError("--truth: played-back data has no true coefficients to write")
-        rec = load_recording(args.playback, config.data)[1]
+        rec = load_recording(args.playback, config.data, config.airframe.elevator_travel_deg)[1]
         for note in rec.notes:
             print(f"note: {note}", file=sys.stderr)
         return [rec] * args.vehicles
