@@ -97,7 +97,9 @@ def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]
     junk = tmp_path / "junk.tlog"
     junk.write_bytes(os.urandom(4000))
     out = tmp_path / "batch"
-    done = _gcs("replay", "--each", str(flights[0]), str(junk), "--out", str(out), "--view", "off")
+    done = _gcs(
+        "replay", "--each", str(flights[0]), str(junk), *NOC, "--out", str(out), "--view", "off"
+    )
     assert done.returncode != 0
     summary = json.loads((out / "replays.json").read_text())
     good, bad = summary["files"]
@@ -151,7 +153,7 @@ def test_a_stop_starts_no_more_files_and_keeps_what_ended(
     three = [*map(str, flights), str(flights[0])]
     proc = subprocess.Popen(
         [sys.executable, "-m", "gcs_estimator", "replay", "--each", "--jobs", "1", *three,
-         "--out", str(out), "--view", "off"],
+         *NOC, "--out", str(out), "--view", "off"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert proc.stderr is not None
