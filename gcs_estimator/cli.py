@@ -594,7 +594,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
             f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
             f"in the data, but {path} has {rec.power}"
         )
-    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements)
+    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
     return _recording_session(config, args, source, f"offline {path.name}", str(path))
 
 

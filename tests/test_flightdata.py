@@ -451,3 +451,23 @@ def test_no_thrust_column_is_a_glide_and_a_zero_scale_is_refused(
         load_csv(path, load_config("noc_uav", ROS).data, TRAVEL_DEG)
     with pytest.raises(ConfigError, match=r"\[data.scale\] q: a factor must be"):
         load_config("noc_uav", ["data.scale.q=0"])
+
+
+def test_a_lost_input_sample_where_the_input_changed_is_a_guess(tmp_path: Path) -> None:
+    """An empty cell in a column logged every row is a lost sample: where the samples
+    either side differ, the frame's input is a guess (Frame.inputs_known False), as the
+    link marks it; where they agree, or the column is logged at a lower rate, it is not."""
+    head = "time_s,airspeed_mps,alpha_rad,theta_rad,q_radps,qdot_radps2,ax_mps2,az_mps2,"
+    rows = [f"{0.02 * k:.2f},20,0.05,0.05,0,0,0,-9.8,{e},0.5" for k, e in enumerate(
+        ["0.0", "0.0", "", "0.0", "0.05", "", "0.1", "0.1"])]  # fmt: skip
+    path = tmp_path / "lost.csv"
+    path.write_text(head + "elevator_rad,throttle\n" + "\n".join(rows) + "\n")
+    rec = load_csv(path)
+    assert rec.inputs_known is not None
+    np.testing.assert_array_equal(rec.inputs_known, [1, 1, 1, 1, 1, 0, 1, 1])
+    assert any("1 of them in gaps over 2 x the column's usual" in n for n in rec.notes), rec.notes
+    slow = [
+        f"{0.02 * k:.2f},20,0.05,0.05,0,0,0,-9.8,{'' if k % 2 else 0.01 * k},0.5" for k in range(8)
+    ]
+    path.write_text(head + "elevator_rad,throttle\n" + "\n".join(slow) + "\n")
+    assert load_csv(path).inputs_known is None  # every other row: a lower rate, held

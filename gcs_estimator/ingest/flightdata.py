@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator import units
-from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
     NORMALISED,
@@ -56,6 +56,9 @@ class Recording:
     """What the second input column holds."""
     notes: tuple[str, ...] = ()
     """What reading the file mended or skipped, one sentence each (for the run's output)."""
+    inputs_known: BoolArray | None = None
+    """[N] False where a frame's input is a guess (a lost sample while the input changed,
+    Frame.inputs_known); None: every input known."""
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -316,7 +319,7 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     arr = arr * scale + shift
     arr = _in_time_order(path, cols.time, arr, np.array(lines), notes)
     check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
-    arr = hold_inputs(path, arr, (8, 9), (cols.elevator, getattr(cols, power)), data, notes)
+    arr, known = hold_inputs(path, arr, (8, 9), (cols.elevator, getattr(cols, power)), data, notes)
     if power == "thrust" and not glide and not np.any(arr[:, 9]):
         notes.append(f"{path}: thrust 0 throughout ({cols.thrust!r}): a glide")
     inputs = arr[:, [8, 9]]
@@ -329,6 +332,7 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
         measurements=arr[:, 1:8],
         power="thrust" if power == "thrust" else "throttle",
         notes=tuple(notes),
+        inputs_known=None if known.all() else known,
     )
 
 
@@ -379,12 +383,18 @@ def hold_inputs(
     names: tuple[str, ...],
     data: DataConfig,
     notes: list[str],
-) -> FloatArray:
+) -> tuple[FloatArray, BoolArray]:
     """The rows (in time order, time in the first column) with every empty cell of the
     input columns filled as [data] input_hold says: linear between the samples either
     side, or the earlier sample held; after the last sample, the last held. Rows before
     the first sample of every input are dropped (nothing to hold). Each is counted in
-    notes. An input column with no number at all is refused."""
+    notes. An input column with no number at all is refused.
+
+    Also which rows' inputs are known: an empty run longer than LOST_GAP times the
+    column's usual one (its median: 0 for a column logged every row, 7 for one logged
+    every 8th) is a lost sample, and where the samples either side differ the filled
+    value is a guess (False), as the link marks a frame whose input sample was lost
+    while the input changed."""
     for j, name in zip(columns, names, strict=True):
         if not np.isfinite(arr[:, j]).any():
             raise FlightDataError(f"{path}: {name!r} (an input) holds no number")
@@ -392,10 +402,12 @@ def hold_inputs(
     arr = arr.copy()
     t = arr[:, 0]
     held = 0
+    known_rows = np.ones(len(arr), bool)
     for j in columns:
         v = arr[:, j]
         known = np.isfinite(v)
         held += int((~known[first:]).sum())
+        known_rows &= ~_lost_and_changed(v, known)
         if data.input_hold == "linear":
             arr[:, j] = np.interp(t, t[known], v[known])
         else:
@@ -406,18 +418,49 @@ def hold_inputs(
             f"{path}: {first} row(s) before the first sample of every input skipped (no input "
             "to hold there)"
         )
-        arr = arr[first:]
+        arr, known_rows = arr[first:], known_rows[first:]
     if held:
         how = (
             "interpolated between the samples either side"
             if data.input_hold == "linear"
             else "the earlier sample held"
         )
+        guessed = int((~known_rows).sum())
         notes.append(
             f"{path}: {held} empty input cell(s) filled ([data] input_hold = "
             f'"{data.input_hold}": {how})'
+            + (
+                f"; {guessed} of them in gaps over {LOST_GAP:g} x the column's usual while "
+                "the input changed: those frames' inputs are guesses, and the flight states "
+                "start again from their measurements"
+                if guessed
+                else ""
+            )
         )
-    return arr
+    return arr, known_rows
+
+
+LOST_GAP = 2.0
+"""A run of empty input cells longer than this many times the column's median run is a
+lost sample, not the column's lower rate (a merge of topics spaces a column's samples
+unevenly: up to twice its usual run is still its rate)."""
+
+
+def _lost_and_changed(v: FloatArray, known: BoolArray) -> BoolArray:
+    """The empty cells of an input column that are lost samples (a run of empty cells
+    longer than LOST_GAP times the column's median run between samples) between samples
+    that differ."""
+    n = len(v)
+    idx = np.arange(n)
+    prev = np.maximum.accumulate(np.where(known, idx, -1))
+    nxt = np.minimum.accumulate(np.where(known, idx, n)[::-1])[::-1]
+    inside = ~known & (prev >= 0) & (nxt < n)
+    samples = np.flatnonzero(known)
+    usual = float(np.median(np.diff(samples) - 1)) if len(samples) > 1 else 0.0
+    gap = nxt - prev - 1
+    p, q = np.clip(prev, 0, n - 1), np.clip(nxt, 0, n - 1)
+    out: BoolArray = inside & (gap > LOST_GAP * usual) & (v[p] != v[q])
+    return out
 
 
 def _in_time_order(
