@@ -14,20 +14,28 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gcs_estimator import blas
 from gcs_estimator.config import (
     REFINE_METHODS,
+    STARTER_AIRFRAME,
     VIEW_OUTPUTS,
     AircraftConfig,
     ConfigError,
+    FlightAirframe,
+    config_path,
     config_reference,
+    flight_airframe,
     load_config,
     load_reference,
     load_truths,
+    shipped_configs,
+    truths_text,
 )
 from gcs_estimator.estimation.filters.core import Backend
 from gcs_estimator.ingest import endpoints
-from gcs_estimator.ingest.flightdata import FlightDataError, Recording
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording, data_file
 from gcs_estimator.ingest.logs import detect
 from gcs_estimator.ingest.logs.reader import (
     LogError,
@@ -126,12 +134,137 @@ def _config_arg(p: argparse.ArgumentParser, default: str | None) -> None:
     p.add_argument(
         "--config",
         default=default,
-        help="aircraft config: a shipped name (noc_uav, hfb320) or a TOML path (default: "
-        + ("%(default)s)" if default else f"hfb320 for the HFB-320 record, else {DEFAULT_CONFIG})"),
+        help="the airframe file: a TOML path or a shipped name (noc_uav, hfb320); "
+        + (
+            "default: %(default)s"
+            if default
+            else "a log needs one, unless it is the simulator's (its truth file beside it "
+            "names the airframe) or the bundled HFB-320 record"
+        ),
     )
 
 
-def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CONFIG) -> None:
+SIMULATED = ("demo", "simulate")
+"""Commands whose aircraft is the simulator's: the config's [truth] is what it flies."""
+SIDE_SUFFIX = ".truth.toml"
+"""The truth file beside a recording (telemetry.tlog: telemetry.truth.toml) that names
+the airframe it was flown or estimated with, and its vehicles' truth where known."""
+AIRFRAME_NEEDS = (
+    "give --config FILE, a TOML with [airframe] mass_kg, wing_area_m2, mean_chord_m, "
+    "inertia_yy_kgm2, air_density_kgpm3, trim_airspeed_mps, [propulsion] model and "
+    "[coefficients]; `gcs-estimator airframe FILE` writes one to fill in"
+)
+
+
+def side_file(recording: str | Path) -> Path:
+    """The truth file beside a recording (SIDE_SUFFIX)."""
+    return Path(recording).with_suffix(SIDE_SUFFIX)
+
+
+def _flight_file(args: argparse.Namespace) -> Path | None:
+    """The truth file that names the airframe of a run without --config: --truth's, else
+    the one beside the (first) recording."""
+    truth = getattr(args, "truth", None)
+    if truth is not None and flight_airframe(truth) is not None:
+        return Path(truth)
+    logs = getattr(args, "tlogs", None) or []
+    beside = side_file(logs[0]) if logs else None
+    if beside is not None and beside.is_file() and flight_airframe(beside) is not None:
+        return beside
+    return None
+
+
+def _airframe(args: argparse.Namespace) -> AircraftConfig:
+    """The airframe file of the run: --config (its [truth] is the user's reference),
+    else the simulator's own (demo, simulate), else the one a truth file names, else the
+    bundled record's; listen without one takes the simulated vehicle's airframe (no
+    truth) and says so; a log without one is refused (AIRFRAME_NEEDS)."""
+    args.flight_file = None
+    if args.config is not None:
+        return load_config(args.config, args.set)
+    if args.command in SIMULATED:
+        return load_config(DEFAULT_CONFIG, args.set)
+    flight = _flight_file(args)
+    if flight is not None:
+        named = flight_airframe(flight)
+        assert named is not None
+        print(f"note: the airframe is {named.config}, as {flight} says", file=sys.stderr)
+        config = load_config(named.config, [*named.overrides, *args.set])
+        args.flight_file = flight
+        return config if named.own_truth else replace(config, reference=None)
+    data = getattr(args, "data", None)
+    if data is not None and _bundled_hfb320(data):
+        return load_config("hfb320", args.set)
+    if args.command == "listen":
+        print(
+            f"note: no --config: the airframe is the simulated vehicle's ({DEFAULT_CONFIG}), "
+            f"and no truth is applied; for a real aircraft, {AIRFRAME_NEEDS}",
+            file=sys.stderr,
+        )
+        return replace(load_config(DEFAULT_CONFIG, args.set), reference=None)
+    if data is not None:
+        what = str(data_file(data))  # a file that is not there says so first
+    else:
+        logs = getattr(args, "tlogs", None) or []
+        for log in logs:
+            if not Path(log).is_file():
+                raise ConfigError(f"{log}: cannot read: no such file")
+        what = ", ".join(logs) or "the log"
+    raise ConfigError(f"{what}: no airframe file: {AIRFRAME_NEEDS}")
+
+
+def _bundled_hfb320(data: str) -> bool:
+    """Whether a data argument is the bundled HFB-320 record (its name, folder or file)."""
+    from gcs_estimator.ingest.flightdata import bundled
+
+    if data == "hfb320":
+        return True
+    folder = bundled("hfb320").resolve()
+    p = Path(data).resolve()
+    return p == folder or p.parent == folder
+
+
+def _truths(
+    args: argparse.Namespace, config: AircraftConfig
+) -> dict[int, tuple[float, ...]] | None:
+    """Each vehicle's truth by system id: --truth's, else the truth file the airframe came
+    from (None: the config's [truth] scores the first vehicle, see session.truth_of)."""
+    path = getattr(args, "truth", None) or getattr(args, "flight_file", None)
+    if path is None:
+        return None
+    truths = load_truths(path, config.coefficient_names)
+    if not truths and getattr(args, "flight_file", None) is not None:
+        named = flight_airframe(path)
+        if named is not None and named.own_truth:
+            return None  # the airframe's [truth] is the flight's own
+    return truths
+
+
+def _write_flight_file(
+    args: argparse.Namespace,
+    config: AircraftConfig,
+    record: Path,
+    truths: dict[int, tuple[float, ...]] | None,
+) -> None:
+    """The truth file beside a recording: the airframe the run used (so that a replay
+    without --config uses it too) and the vehicles' truth the run scored against."""
+    if args.flight_file is not None:
+        named = flight_airframe(args.flight_file)
+        assert named is not None
+        airframe = replace(named, overrides=(*named.overrides, *args.set))
+    else:
+        name = args.config or DEFAULT_CONFIG
+        if name not in shipped_configs():
+            name = str(config_path(name).resolve())
+        own = args.command in SIMULATED or (args.config is not None and config.truth is not None)
+        airframe = FlightAirframe(name, tuple(args.set), own)
+    record.parent.mkdir(parents=True, exist_ok=True)
+    side_file(record).write_text(
+        truths_text(truths or {}, config.coefficient_names, airframe), encoding="utf-8"
+    )
+
+
+def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> None:
     _config_arg(p, config_default)
     p.add_argument(
         "--set",
@@ -203,7 +336,8 @@ def _truth_option(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="FILE",
         help="each vehicle's true coefficients by system id (as gcs-sim --truth writes); "
-        "without it only the first vehicle heard is scored, against the config's [truth]",
+        "without it only the first vehicle heard is scored, against --reference or the "
+        "[truth] of the airframe file given with --config",
     )
 
 
@@ -231,7 +365,7 @@ def _positive_int(text: str) -> int:
 
 def _config(args: argparse.Namespace) -> AircraftConfig:
     """The config with --set overrides, --reference values and view options applied."""
-    config = load_config(args.config, args.set)
+    config = _airframe(args)
     view = config.view
     outputs = list(view.outputs)
     if args.view is not None:
@@ -301,7 +435,8 @@ def _refiner(args: argparse.Namespace) -> RefineAsk | None:
 
 
 EXIT_NOTHING_ESTIMATED = 1
-"""The run ended without a usable frame, or no frame's observations matched the config."""
+"""The run ended without a usable frame, no frame's observations matched the config, or
+the filters diverged on most frames."""
 EXIT_REFINE_FAILED = 3
 """The run's results are written, but the whole-record fit asked for (--refine, refine)
 failed for some vehicle."""
@@ -329,6 +464,8 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
             file=sys.stderr,
         )
         return EXIT_NOTHING_ESTIMATED
+    if _nothing_identifiable(results, session.config):
+        return EXIT_NOTHING_ESTIMATED
     failed = [
         why
         for sink in session.sinks
@@ -345,6 +482,53 @@ def _run(session: Session | ShardedSession, source: Source, stop: Stop) -> int:
         )
         return EXIT_REFINE_FAILED
     return 0
+
+
+def _nothing_identifiable(results: Mapping[int, VehicleResult], config: AircraftConfig) -> bool:
+    """Say which vehicles never flew (_never_flew) and whose filters diverged on most
+    frames (_mostly_diverged); True when that is every vehicle: nothing was estimated."""
+    grounded = [sid for sid, v in results.items() if _never_flew(v, config)]
+    for sid in grounded:
+        print(
+            f"error: vehicle {sid} never flew: its airspeed never reached "
+            f"{FLYING_SHARE:g} x [airframe] trim_airspeed_mps "
+            f"({FLYING_SHARE * config.airframe.trim_airspeed_mps:g} m/s): on the ground or "
+            "hovering, nothing a fixed wing's coefficients could be read from",
+            file=sys.stderr,
+        )
+    diverged = [sid for sid, v in results.items() if sid not in grounded and _mostly_diverged(v)]
+    if diverged:
+        print(
+            f"error: the filters diverged on most frames of vehicle(s) {diverged} and started "
+            "again from the prior each time: their numbers are not estimates (check the data: "
+            "an input or channel misread, empty or in the wrong unit)",
+            file=sys.stderr,
+        )
+    return len(grounded) + len(diverged) == len(results)
+
+
+DIVERGED_SHARE = 0.5
+"""A vehicle whose filter diverged on more than this share of its frames was not
+estimated: its numbers are the prior's (exit EXIT_NOTHING_ESTIMATED)."""
+
+
+def _mostly_diverged(v: VehicleResult) -> bool:
+    """Whether a filter of the vehicle diverged on most of its frames (DIVERGED_SHARE)."""
+    frames = max(v.result.frames, 1)
+    return any(f.health.divergences > DIVERGED_SHARE * frames for f in v.result.filters.values())
+
+
+FLYING_SHARE = 0.5
+"""A vehicle whose airspeed never reached this share of the trim airspeed never flew."""
+
+
+def _never_flew(v: VehicleResult, config: AircraftConfig) -> bool:
+    """Whether the vehicle's measured airspeed never reached FLYING_SHARE of the trim
+    airspeed (False where no airspeed was measured, or no history kept: not known)."""
+    track = next((f.track for f in v.result.filters.values() if f.track is not None), None)
+    if track is None or not len(track.y) or not np.isfinite(track.y[:, 0]).any():
+        return False
+    return float(np.nanmax(track.y[:, 0])) < FLYING_SHARE * config.airframe.trim_airspeed_mps
 
 
 def _results_sink(
@@ -430,7 +614,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
             f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
             f"in the data, but {path} has {rec.power}"
         )
-    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements)
+    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
     return _recording_session(config, args, source, f"offline {path.name}", str(path))
 
 
@@ -479,8 +663,12 @@ def _link_session(
     `record`). With --filter-workers the vehicles' filters run in worker processes
     (filter_worker.py), which write their results."""
     workers = getattr(args, "filter_workers", None)
-    truth_file = getattr(args, "truth", None)
-    truths = None if truth_file is None else load_truths(truth_file, config.coefficient_names)
+    problem = config.link_problem()
+    if problem:
+        raise ConfigError(problem)
+    truths = _truths(args, config)
+    if record is not None:
+        _write_flight_file(args, config, record, truths)
     session: Session | ShardedSession
     if workers:
         warm_up(config, args.backend, compile_kernels=False)  # the workers compile theirs
@@ -662,14 +850,28 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_refine(args: argparse.Namespace) -> int:
     """Both filters over a recorded flight, then the whole-record fit from their estimate."""
-    if args.config is None:
-        args.config = "hfb320" if args.flight == "hfb320" else DEFAULT_CONFIG
     args.refine = args.refine or args.method
     if Path(args.flight).is_file() and detect.kind(args.flight) == "tlog":
         args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
         return cmd_replay(args)
     args.data = args.flight
     return cmd_offline(args)
+
+
+def cmd_airframe(args: argparse.Namespace) -> int:
+    """Write a starter airframe file to fill in from the aircraft's spec sheet."""
+    path = Path(args.file)
+    if path.exists() and not args.force:
+        raise ConfigError(f"{path}: the file exists; choose another name, or --force")
+    try:
+        path.write_text(STARTER_AIRFRAME, encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot write: {exc.strerror}") from exc
+    print(
+        f"wrote {path}: fill in the values marked FILL IN, then give it with --config {path}",
+        file=sys.stderr,
+    )
+    return 0
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
@@ -698,14 +900,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="fly the simulated aircraft and estimate offline")
-    _common(p)
+    _common(p, DEFAULT_CONFIG)
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
         "demo", help="the main job: simulated UAV -> MAVLink over UDP -> both filters -> table"
     )
-    _common(p)
+    _common(p, DEFAULT_CONFIG)
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
     p.add_argument(
         "--speed",
@@ -786,7 +988,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "offline", help="estimate from a log or data file (ArduPilot, PX4, CSV, HFB-320)"
     )
-    _common(p, "hfb320")
+    _common(p)
     p.add_argument(
         "data",
         help="flight data: an ArduPilot .bin/.log or PX4 .ulg log, the HFB-320 ASCII record or "
@@ -799,7 +1001,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit a recorded flight (a log, CSV, HFB-320 record or .tlog) by maximum likelihood "
         "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
     )
-    _common(p, None)
+    _common(p)
     p.add_argument(
         "flight", help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or a .tlog"
     )
@@ -813,6 +1015,15 @@ def build_parser() -> argparse.ArgumentParser:
         "process noise estimated too)",
     )
     p.set_defaults(func=cmd_refine)
+
+    p = sub.add_parser(
+        "airframe",
+        help="write a starter airframe file (geometry, mass, inertia, propeller: each key "
+        "with what it means and where to find it) to fill in",
+    )
+    p.add_argument("file", help="the TOML file to write, e.g. my_plane.toml")
+    p.add_argument("--force", action="store_true", help="overwrite the file if it exists")
+    p.set_defaults(func=cmd_airframe)
 
     p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
     _config_arg(p, DEFAULT_CONFIG)

@@ -11,6 +11,7 @@ only what differs.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -373,8 +374,20 @@ def _column(default: str, optional: bool = False, observed: bool = False) -> Any
     return setting(default, doc=doc)
 
 
+NORMALISED = "normalised"
+"""The elevator's unit when its column is the command as a fraction of full travel
+(-1..1, as PX4 and ROS exports write it): [airframe] elevator_travel_deg turns it into a
+deflection."""
+
+
 def _unit(quantity: str) -> Any:
     kind = QUANTITY_KINDS[quantity]
+    if quantity == "elevator":
+        return setting(
+            units.choices(kind)[0],
+            choices=(*units.choices(kind), NORMALISED),
+            doc=f'"{NORMALISED}": a command -1..1, times [airframe] elevator_travel_deg',
+        )
     return setting(units.choices(kind)[0], choices=units.choices(kind))
 
 
@@ -420,12 +433,45 @@ class Units:
     air_temperature: str = _unit("air_temperature")
 
     def factor(self, quantity: str) -> float:
-        """Multiplier from this file's unit of `quantity` to SI."""
-        return units.factor(QUANTITY_KINDS[quantity], getattr(self, quantity))
+        """Multiplier from this file's unit of `quantity` to SI (a normalised elevator:
+        1, its travel is the airframe's)."""
+        unit = getattr(self, quantity)
+        return 1.0 if unit == NORMALISED else units.factor(QUANTITY_KINDS[quantity], unit)
 
     def offset(self, quantity: str) -> float:
         """Added after the factor (temperatures in degC or degF)."""
         return units.offset(getattr(self, quantity))
+
+
+def _scale() -> Any:
+    return setting(1.0, doc="multiplies the column after its unit; -1 flips its sign")
+
+
+@dataclass(frozen=True)
+class Scale:
+    """A factor per CSV column after its unit: -1 flips an axis (a ROS export's body axes
+    are x forward, y left, z up: q and a_z are -1 in the estimator's x forward, z down),
+    another number rescales (a sensor's gain, a command's sign)."""
+
+    airspeed: float = _scale()
+    alpha: float = _scale()
+    theta: float = _scale()
+    q: float = _scale()
+    qdot: float = _scale()
+    a_x: float = _scale()
+    a_z: float = _scale()
+    elevator: float = _scale()
+    throttle: float = _scale()
+    thrust: float = _scale()
+
+    def check(self) -> None:
+        for key, value in vars(self).items():
+            if value == 0 or not math.isfinite(value):
+                raise Invalid(key, f"a factor must be a finite number other than 0, got {value}")
+
+    def of(self, quantity: str) -> float:
+        """The factor of a quantity (1 for those without one: time, the atmosphere's)."""
+        return float(getattr(self, quantity, 1.0))
 
 
 PLAUSIBLE_QUANTITIES: tuple[str, ...] = (
@@ -451,10 +497,12 @@ class DataConfig:
     input_hold: str = setting(
         "linear",
         choices=("linear", "previous"),
-        doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
+        doc="inputs between samples: linear (first-order hold) or held at the earlier "
+        "sample; a CSV's empty input cells are filled the same way",
     )
     columns: Columns = table(Columns)
     units: Units = table(Units)
+    scale: Scale = table(Scale)
 
     @staticmethod
     def plausible(quantity: str) -> float:
@@ -585,14 +633,18 @@ class AircraftConfig:
     raw: Mapping[str, Any] = field(default_factory=dict, metadata={"spec": Spec(internal=True)})
     """The parsed TOML, kept to write into results exactly as used."""
 
-    def check(self) -> None:
+    def link_problem(self) -> str | None:
+        """Why this config cannot read a MAVLink link's power input (None: it can): the
+        measured-thrust model reads thrust as NAMED_VALUE_FLOAT, so no throttle servo; the
+        propeller model a throttle servo. A data file's columns need neither."""
         measured = self.propulsion.model == "measured"
-        if measured != (self.link.throttle_servo == 0):
-            need = "0 (thrust comes as NAMED_VALUE_FLOAT thrust_name)" if measured else "1..16"
-            raise Invalid(
-                "[link] throttle_servo",
-                f'must be {need} with [propulsion] model = "{self.propulsion.model}"',
-            )
+        if measured == (self.link.throttle_servo == 0):
+            return None
+        need = "0 (thrust comes as NAMED_VALUE_FLOAT thrust_name)" if measured else "1..16"
+        return (
+            f"{self.source}: [link] throttle_servo: must be {need} with [propulsion] model = "
+            f'"{self.propulsion.model}" for a MAVLink link or log'
+        )
 
     @property
     def coefficient_names(self) -> tuple[str, ...]:
@@ -727,16 +779,56 @@ def load_reference(path: str | Path, names: tuple[str, ...]) -> tuple[tuple[floa
     return ref.values, ref.label
 
 
+FLIGHT_KEYS = ("airframe", "set", "airframe_truth")
+"""What a truth file may say besides its [vehicle.N] tables: the airframe file the
+flight was flown or estimated with (a shipped name, or a path relative to the truth
+file), its --set overrides, and whether that file's [truth] is the flight's own (a
+simulated flight of it)."""
+
+
+@dataclass(frozen=True)
+class FlightAirframe:
+    """The airframe a truth file names (see FLIGHT_KEYS)."""
+
+    config: str
+    overrides: tuple[str, ...]
+    own_truth: bool
+
+
+def flight_airframe(path: str | Path) -> FlightAirframe | None:
+    """The airframe a truth file names (None: it names none)."""
+    data = read_toml(path)
+    where = Where(str(path))
+    name = data.get("airframe")
+    if name is None:
+        return None
+    overrides = data.get("set", [])
+    if not isinstance(name, str) or not name:
+        raise where.error("airframe", "must be a shipped config's name or a path, as a string")
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise where.error("set", 'must be a list of "table.key=value" strings')
+    own = data.get("airframe_truth", False)
+    if not isinstance(own, bool):
+        raise where.error("airframe_truth", "must be true or false")
+    beside = Path(path).parent / name
+    if name not in shipped_configs() and not Path(name).is_absolute():
+        name = str(beside)
+    return FlightAirframe(name, tuple(overrides), own)
+
+
 def load_truths(path: str | Path, names: tuple[str, ...]) -> dict[int, tuple[float, ...]]:
     """Each vehicle's true coefficients, by system id, from a truth file (as
     `gcs-sim --truth` writes): a [vehicle.N] table per system id N, each like the aircraft
-    config's [truth]."""
+    config's [truth]. A file that names its airframe (FLIGHT_KEYS) may have none."""
     data = read_toml(path)
     where = Where(str(path))
-    unknown = sorted(set(data) - {"vehicle"})
+    unknown = sorted(set(data) - {"vehicle", *FLIGHT_KEYS})
     if unknown:
-        raise where.error(unknown[0], "unknown key; known keys here: ['vehicle']")
+        known = ["vehicle", *FLIGHT_KEYS]
+        raise where.error(unknown[0], f"unknown key; known keys here: {known}")
     vehicles = data.get("vehicle")
+    if vehicles is None and "airframe" in data:
+        return {}
     if not isinstance(vehicles, Mapping) or not vehicles:
         raise where.error("vehicle", "missing: add a [vehicle.N] table per system id N")
     out: dict[int, tuple[float, ...]] = {}
@@ -751,10 +843,80 @@ def load_truths(path: str | Path, names: tuple[str, ...]) -> dict[int, tuple[flo
     return out
 
 
-def truths_text(truths: Mapping[int, tuple[float, ...]], names: tuple[str, ...]) -> str:
-    """A truth file (load_truths reads it back exactly: floats written by repr)."""
+def truths_text(
+    truths: Mapping[int, tuple[float, ...]],
+    names: tuple[str, ...],
+    airframe: FlightAirframe | None = None,
+) -> str:
+    """A truth file (load_truths reads it back exactly: floats written by repr), naming
+    the flight's airframe when given (flight_airframe reads it back)."""
     lines = ["# True coefficients each vehicle flies, by system id (gcs-sim --truth)."]
+    if airframe is not None:
+        lines = [
+            "# What flew: the airframe file this flight was flown or estimated with (a replay",
+            "# without --config reads it), and each vehicle's true coefficients, if known.",
+            f"airframe = {json.dumps(airframe.config)}",
+            f"set = {json.dumps(list(airframe.overrides))}",
+            f"airframe_truth = {'true' if airframe.own_truth else 'false'}",
+        ]
     for sid, values in sorted(truths.items()):
         lines.append(f"\n[vehicle.{sid}]")
         lines += [f"{n} = {float(v)!r}" for n, v in zip(names, values, strict=True)]
     return "\n".join(lines) + "\n"
+
+
+STARTER_AIRFRAME = """\
+# My aircraft's airframe file for gcs-estimator: fill in every value marked FILL IN (0
+# until you do; the estimator refuses a 0 there and names the key), then give the file
+# with --config. Every other key has a default: `gcs-estimator keys` lists them all.
+
+[airframe]
+name = "my plane"
+# The weight as flown, with battery, fuel and payload [kg]: weigh it.
+mass_kg = 0.0                 # FILL IN
+# Wing area [m^2], from the spec sheet (sq in x 0.000645; sq ft x 0.0929).
+wing_area_m2 = 0.0            # FILL IN
+# Mean aerodynamic chord [m]; for a rectangular wing, area / span.
+mean_chord_m = 0.0            # FILL IN
+# Pitch moment of inertia [kg m^2]: rarely on a spec sheet. From a CAD model, or a
+# swing (bifilar pendulum) test. The moment coefficients scale with it.
+inertia_yy_kgm2 = 0.0         # FILL IN
+# Air density at the flying site [kg/m^3] (1.225 at sea level, 15 degC), used wherever
+# the data carry none.
+air_density_kgpm3 = 1.225
+# A typical cruise airspeed [m/s]: V0, the scale of the qhat and V/V0 coefficients.
+trim_airspeed_mps = 0.0       # FILL IN
+# Wing span [m]: with it the filters model turbulence's pitch gust (0: not given).
+wing_span_m = 0.0
+# The elevator's deflection at full output [deg] (a log's normalised or PWM-end
+# command needs it): measure it on the aircraft at full stick (0: not given).
+elevator_travel_deg = 0.0
+# The thrust line: leave at 0 if it runs along the body axis through the CG.
+thrust_inclination_rad = 0.0
+thrust_moment_arm_m = 0.0
+
+[propulsion]
+# "propeller" when the data carry the throttle (0..1), "measured" when they carry thrust
+# in newtons (or none: a glide).
+model = "propeller"
+# Propeller disc area [m^2]: pi * (diameter / 2)^2 (a 14 in propeller: 0.0993).
+prop_area_m2 = 0.0            # FILL IN
+# Thrust = 0.5 rho prop_area prop_coefficient ((motor_constant throttle)^2 - V^2): 1.0
+# unless a static thrust test says otherwise.
+prop_coefficient = 1.0
+# The airspeed at which thrust vanishes at full throttle [m/s]: about the propeller's
+# pitch speed (pitch [m] x rpm at full throttle / 60), or 1.5 to 2 times the top speed.
+motor_constant_mps = 0.0      # FILL IN
+
+# Which regressors CD, CL and Cm have, from "1", "alpha", "qhat", "elevator", "V/V0",
+# "adhat": each pair is one coefficient (CL with "alpha" is CLa). This is the usual set.
+[coefficients]
+CD = ["1", "alpha", "elevator"]
+CL = ["1", "alpha", "qhat", "elevator"]
+Cm = ["1", "alpha", "qhat", "elevator"]
+
+# A log's or CSV's layout: [link] (MAVLink servo outputs), [data.columns], [data.units],
+# [data.scale]; see docs/guide.md.
+"""
+"""What `gcs-estimator airframe FILE` writes: the keys a spec sheet gives, with what each
+means and where to find it."""

@@ -13,7 +13,7 @@ INHG = 3386.389
 PSF = POUND_FORCE / FOOT**2
 
 UNITS: dict[str, dict[str, float]] = {
-    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
     "speed": {"m/s": 1.0, "kt": KNOT, "km/h": 1.0 / 3.6, "ft/s": FOOT},
     "angle": {"rad": 1.0, "deg": math.pi / 180.0},
     "rate": {"rad/s": 1.0, "deg/s": math.pi / 180.0},

@@ -11,7 +11,14 @@ from typing import Any
 
 import numpy as np
 
-from gcs_estimator.config import AircraftConfig, ConfigError, load_config, truths_text
+from gcs_estimator.config import (
+    AircraftConfig,
+    ConfigError,
+    FlightAirframe,
+    load_config,
+    shipped_configs,
+    truths_text,
+)
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.endpoints import Endpoint
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
@@ -207,7 +214,7 @@ def simulated(args: argparse.Namespace) -> tuple[list[Recording], dict[int, tupl
     if args.playback:
         if args.truth:
             raise ConfigError("--truth: played-back data has no true coefficients to write")
-        rec = load_recording(args.playback, config.data)[1]
+        rec = load_recording(args.playback, config.data, config.airframe.elevator_travel_deg)[1]
         for note in rec.notes:
             print(f"note: {note}", file=sys.stderr)
         return [rec] * args.vehicles, truths
@@ -247,7 +254,9 @@ def write_logs(
                 path = write(fr, numbered(target, sid, len(recs)), fast)
                 written.append(path)
                 if sid in truths:
-                    write_truth(path, {sid: truths[sid]}, config.coefficient_names)
+                    write_truth(
+                        path, {sid: truths[sid]}, config.coefficient_names, flown_with(args)
+                    )
     return written
 
 
@@ -298,8 +307,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     vehicles = [_vehicle(args, config, rec, targets[k], k) for k, rec in enumerate(recs)]
     if args.tlog:
         for sid, truth in truths.items():
-            write_truth(f"{args.tlog}_{sid}.tlog", {sid: truth}, config.coefficient_names)
+            write_truth(
+                f"{args.tlog}_{sid}.tlog", {sid: truth}, config.coefficient_names, flown_with(args)
+            )
     return _fly(vehicles)
+
+
+def flown_with(args: argparse.Namespace) -> FlightAirframe:
+    """The airframe file (and the station's --set overrides) a flight was flown with, as
+    its truth file names it: a shipped config by name, any other by its full path."""
+    name = args.config if args.config in shipped_configs() else str(Path(args.config).resolve())
+    station = tuple(s for s in args.set if not s.strip().startswith("simulation."))
+    return FlightAirframe(name, station, True)
 
 
 def _fly(vehicles: list[SimulatedVehicle]) -> int:

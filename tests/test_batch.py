@@ -20,6 +20,9 @@ from gcs_estimator.runtime.batch import child_command
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
+NOC = ("--config", "noc_uav")
+"""A simulated NOC UAV's log names its airframe file (a real log without one is refused)."""
+
 ROOT = Path(__file__).resolve().parent.parent
 SHORT = ["simulation.manoeuvre.duration_s=12"]
 
@@ -63,7 +66,7 @@ def test_each_file_is_replayed_on_its_own_and_the_results_merged(
     tmp_path: Path, flights: list[Path]
 ) -> None:
     out = tmp_path / "batch"
-    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), "--out", str(out),
+    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), *NOC, "--out", str(out),
                 "--view", "off")  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "replaying 2 files as separate flights, 2 at a time" in done.stderr
@@ -76,7 +79,7 @@ def test_each_file_is_replayed_on_its_own_and_the_results_merged(
     # Each file's results are exactly those of a replay of that file alone.
     for f, path in zip(files, flights, strict=True):
         alone = tmp_path / f"alone_{Path(f['folder']).name}"
-        single = _gcs("replay", str(path), "--out", str(alone), "--view", "off")
+        single = _gcs("replay", str(path), *NOC, "--out", str(alone), "--view", "off")
         assert single.returncode == 0, single.stderr
         own = json.loads((alone / "results_sys1.json").read_text())
         assert _estimates(f["vehicles"][0]) == _estimates(own)
@@ -94,7 +97,9 @@ def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]
     junk = tmp_path / "junk.tlog"
     junk.write_bytes(os.urandom(4000))
     out = tmp_path / "batch"
-    done = _gcs("replay", "--each", str(flights[0]), str(junk), "--out", str(out), "--view", "off")
+    done = _gcs(
+        "replay", "--each", str(flights[0]), str(junk), *NOC, "--out", str(out), "--view", "off"
+    )
     assert done.returncode != 0
     summary = json.loads((out / "replays.json").read_text())
     good, bad = summary["files"]
@@ -148,7 +153,7 @@ def test_a_stop_starts_no_more_files_and_keeps_what_ended(
     three = [*map(str, flights), str(flights[0])]
     proc = subprocess.Popen(
         [sys.executable, "-m", "gcs_estimator", "replay", "--each", "--jobs", "1", *three,
-         "--out", str(out), "--view", "off"],
+         *NOC, "--out", str(out), "--view", "off"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert proc.stderr is not None

@@ -84,7 +84,7 @@ def test_offline_csv_round_trip_matches_the_asc_record(tmp_path: Path, hfb_data_
     back = load_csv(csv_path)
     np.testing.assert_array_equal(back.measurements, rec.measurements)
     np.testing.assert_array_equal(back.inputs, rec.inputs)
-    assert main(["offline", str(csv_path), "--out", str(tmp_path / "a")]) == 0
+    assert main(["offline", str(csv_path), "--config", "hfb320", "--out", str(tmp_path / "a")]) == 0
     # The data's folder stands for its one data file (it also holds a README), and the
     # bundled record's name for its folder.
     assert main(["offline", str(hfb_data_path.parent), "--out", str(tmp_path / "b")]) == 0
@@ -100,20 +100,21 @@ def test_bad_inputs_give_one_clear_error(
 ) -> None:
     bad = tmp_path / "x.csv"
     bad.write_text("time_s,airspeed_mps\n0,1\n")
-    assert main(["offline", str(bad), "--out", str(tmp_path)]) == 2
+    assert main(["offline", str(bad), "--config", "noc_uav", "--out", str(tmp_path)]) == 2
     assert "no column 'alpha_rad' for alpha" in capsys.readouterr().err
     assert main(["simulate", "--config", str(tmp_path / "none.toml")]) == 2
     assert "cannot read" in capsys.readouterr().err
     rec = Recording(np.array([0.0, 1.0]), np.zeros((2, 2)), np.zeros((2, 7)), "throttle")
     write_csv(tmp_path / "t.csv", rec)
     # A throttle record offered to an aircraft whose thrust is measured.
-    assert main(["offline", str(tmp_path / "t.csv"), "--out", str(tmp_path)]) == 2
+    hfb = ["--config", "hfb320"]
+    assert main(["offline", str(tmp_path / "t.csv"), *hfb, "--out", str(tmp_path)]) == 2
     assert "[propulsion] model" in capsys.readouterr().err
     # A folder stands for a data file only when it holds exactly one.
-    assert main(["offline", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert main(["offline", str(tmp_path), *hfb, "--out", str(tmp_path / "o")]) == 2
     assert "several flight-data files (t.csv, x.csv); give one" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
-    assert main(["offline", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["offline", str(tmp_path / "empty"), *hfb, "--out", str(tmp_path / "o")]) == 2
     assert "no flight data in it" in capsys.readouterr().err
     assert main(["offline", "hfb321", "--out", str(tmp_path / "o")]) == 2
     assert "bundled records: hfb320" in capsys.readouterr().err
@@ -164,3 +165,105 @@ def test_observations_that_never_match_the_config_exit_1_with_the_reason(
     status = main(["offline", str(path), "--config", "hfb320", "--out", str(tmp_path / "o")])
     assert status == 1
     assert "no frame's observations could be used" in capsys.readouterr().err
+
+
+def test_airframe_writes_a_starter_that_names_what_to_fill_in(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The starter file is TOML the estimator reads; until a FILL IN value is given the
+    error names that key; filled in, it loads. An existing file is kept unless --force."""
+    from gcs_estimator.config import ConfigError
+
+    path = tmp_path / "my_plane.toml"
+    assert main(["airframe", str(path)]) == 0
+    text = path.read_text()
+    assert "FILL IN" in text and "[propulsion]" in text and "[coefficients]" in text
+    with pytest.raises(ConfigError, match=r"\[airframe\] mass_kg: must be a number > 0"):
+        load_config(path)
+    filled = {
+        "mass_kg": 4.2,
+        "wing_area_m2": 0.45,
+        "mean_chord_m": 0.22,
+        "inertia_yy_kgm2": 0.35,
+        "trim_airspeed_mps": 18.0,
+        "prop_area_m2": 0.05,
+        "motor_constant_mps": 45.0,
+    }
+    for key, value in filled.items():
+        text = re.sub(rf"^{key} = 0\.0 ", f"{key} = {value} ", text, flags=re.MULTILINE)
+    path.write_text(text)
+    config = load_config(path)
+    assert config.airframe.mass_kg == 4.2 and config.propulsion.motor_constant_mps == 45.0
+    assert config.truth is None
+    assert main(["airframe", str(path)]) == 2
+    assert "the file exists" in capsys.readouterr().err
+    assert path.read_text() == text
+    assert main(["airframe", str(path), "--force"]) == 0 and "FILL IN" in path.read_text()
+
+
+def test_a_data_file_without_an_airframe_file_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A CSV is some aircraft's: without --config the run would borrow another's mass and
+    reference values. The bundled record needs none (its airframe ships with it)."""
+    rec = Recording(np.array([0.0, 0.02]), np.zeros((2, 2)), np.zeros((2, 7)), "throttle")
+    write_csv(tmp_path / "mine.csv", rec)
+    assert main(["offline", str(tmp_path / "mine.csv"), "--out", str(tmp_path / "o")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "mine.csv: no airframe file: give --config FILE" in line
+    assert main(["refine", str(tmp_path / "gone.csv"), "--out", str(tmp_path / "o")]) == 2
+    assert "gone.csv: no such file" in capsys.readouterr().err
+
+
+def test_filters_that_diverge_on_most_frames_exit_1_saying_so(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """NaN inputs (what empty CSV cells were before they were held) diverge the filters on
+    most frames: the run says its numbers are not estimates, and exits 1."""
+    from gcs_estimator.cli import EXIT_NOTHING_ESTIMATED, _run
+    from gcs_estimator.runtime.session import RecordingSource, Session
+    from gcs_estimator.stop import Stop
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=4"])
+    flight = simulate(config, seed=1)
+    inputs = flight.inputs.copy()
+    inputs[np.arange(len(inputs)) % 8 != 0, 0] = np.nan  # the elevator in every 8th row
+    session = Session(config, keep_history=False)
+    source = RecordingSource(flight.t_s, inputs, flight.measurements)
+    assert _run(session, source, Stop()) == EXIT_NOTHING_ESTIMATED
+    assert "the filters diverged on most frames of vehicle(s) [1]" in capsys.readouterr().err
+    good = RecordingSource(flight.t_s, flight.inputs, flight.measurements)
+    assert _run(Session(config, keep_history=False), good, Stop()) == 0
+
+
+def test_a_vehicle_that_never_flew_exits_1_saying_so(capsys: pytest.CaptureFixture[str]) -> None:
+    """On the ground (airspeed 1 m/s, the trim 24): nothing to identify, and the run says
+    why rather than print coefficients."""
+    from gcs_estimator.cli import EXIT_NOTHING_ESTIMATED, _run
+    from gcs_estimator.runtime.session import RecordingSource, Session
+    from gcs_estimator.stop import Stop
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=4"])
+    flight = simulate(config, seed=1)
+    ground = flight.measurements.copy()
+    ground[:, 0] = 1.0
+    source = RecordingSource(flight.t_s, flight.inputs, ground)
+    assert _run(Session(config), source, Stop()) == EXIT_NOTHING_ESTIMATED
+    err = capsys.readouterr().err
+    assert "vehicle 1 never flew: its airspeed never reached 0.5 x" in err and "(12 m/s)" in err
+
+
+def test_the_throttle_servo_rule_is_a_links_not_a_data_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Measured thrust comes over MAVLink as NAMED_VALUE_FLOAT, so a link or log needs
+    [link] throttle_servo = 0 with it; a data file's thrust column needs no such setting."""
+    measured = ["--config", "noc_uav", "--set", 'propulsion.model="measured"']
+    argv = ["replay", str(tmp_path / "x.tlog"), *measured, "--out", str(tmp_path / "r")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "[link] throttle_servo: must be 0 (thrust comes as NAMED_VALUE_FLOAT" in err
+    config = load_config("noc_uav", ['propulsion.model="measured"'])
+    assert config.link.throttle_servo == 3 and config.link_problem() is not None

@@ -300,3 +300,174 @@ def test_a_time_column_in_microseconds_is_named_as_such(
     data = load_config("noc_uav", [f'data.units.time="{read_as}"']).data
     with pytest.raises(FlightDataError, match=rf"\(read as {read_as}\).*data\.units\.time=us\)"):
         load_csv(path, data)
+
+
+# A ROS (or PX4) export: time in ns since the epoch, body axes x forward, y left, z up
+# (FLU), the elevator as a command -1..1 of a 25 deg travel, the inputs logged at half
+# the rate of the sensors (an empty cell between samples) and no thrust (a glide).
+T0_NS = 1_531_929_211_000_000_000
+TRAVEL_DEG = 25.0
+ROS = [
+    "data.columns.time=stamp_ns",
+    "data.columns.airspeed=airspeed",
+    'data.columns.alpha=""',
+    "data.columns.theta=pitch",
+    "data.columns.q=gyro_y",
+    'data.columns.qdot=""',
+    "data.columns.a_x=acc_x",
+    "data.columns.a_z=acc_z",
+    "data.columns.elevator=elevator_cmd",
+    "data.columns.thrust=thrust",
+    'data.units.time="ns"',
+    'data.units.elevator="normalised"',
+    "data.scale.q=-1",
+    "data.scale.a_z=-1",
+    f"airframe.elevator_travel_deg={TRAVEL_DEG}",
+]
+
+
+def _write_ros(path: Path, rec: Recording, every: int = 2) -> None:
+    """The flight as a ROS export would hold it; the elevator in every `every`-th row."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["stamp_ns", "airspeed", "pitch", "gyro_y", "acc_x", "acc_z", "elevator_cmd",
+                    "thrust"])  # fmt: skip
+        for i in range(len(rec)):
+            v, _, theta, q, _, a_x, a_z = rec.measurements[i]
+            cmd = rec.inputs[i, 0] / math.radians(TRAVEL_DEG)
+            elevator = repr(float(cmd)) if i % every == 0 else ""
+            t_ns = T0_NS + round(float(rec.t_s[i]) * 1e9)
+            w.writerow([t_ns, v, theta, -q, a_x, -a_z, elevator, 0.0])
+
+
+def test_a_ros_export_reads_in_si_and_the_estimators_axes(
+    tmp_path: Path, flight: Recording
+) -> None:
+    """ns time, y and z flipped to x forward z down, a normalised elevator times its
+    travel, empty input cells interpolated (input_hold = linear), zero thrust a glide."""
+    path = tmp_path / "ros.csv"
+    _write_ros(path, flight)
+    config = load_config(
+        "noc_uav", [*ROS, 'propulsion.model="measured"', 'data.input_hold="linear"']
+    )
+    rec = load_csv(path, config.data, config.airframe.elevator_travel_deg)
+    assert rec.power == "thrust" and not np.any(rec.inputs[:, 1])
+    np.testing.assert_allclose(rec.t_s - T0_NS * 1e-9, flight.t_s, atol=1e-6)
+    kept = [0, 2, 3, 5, 6]
+    np.testing.assert_allclose(rec.measurements[:, kept], flight.measurements[:, kept], rtol=1e-12)
+    assert np.all(np.isnan(rec.measurements[:, [1, 4]]))
+    assert np.all(np.isfinite(rec.inputs))
+    sampled = flight.inputs[::2, 0]
+    np.testing.assert_allclose(rec.inputs[::2, 0], sampled, rtol=1e-12, atol=1e-15)
+    between = np.interp(flight.t_s[1::2], flight.t_s[::2], sampled)
+    np.testing.assert_allclose(rec.inputs[1::2, 0], between, rtol=1e-6, atol=1e-9)
+    empty = len(flight) // 2
+    assert any(f"{empty} empty input cell(s) filled" in n for n in rec.notes), rec.notes
+    assert any("a glide" in n for n in rec.notes)
+
+
+def test_empty_input_cells_hold_the_earlier_sample_when_asked(
+    tmp_path: Path, flight: Recording
+) -> None:
+    path = tmp_path / "ros.csv"
+    _write_ros(path, flight, every=3)
+    config = load_config("noc_uav", [*ROS, 'data.input_hold="previous"'])
+    rec = load_csv(path, config.data, config.airframe.elevator_travel_deg)
+    want = np.repeat(flight.inputs[::3, 0], 3)[: len(flight)]
+    np.testing.assert_allclose(rec.inputs[:, 0], want, rtol=1e-12, atol=1e-15)
+    held = len(flight) - len(flight.inputs[::3])
+    assert any(f"{held} empty input cell(s) filled" in n and "earlier" in n for n in rec.notes)
+
+
+def test_rows_before_the_first_input_are_skipped_and_counted(tmp_path: Path) -> None:
+    path = tmp_path / "late.csv"
+    path.write_text(
+        "time_s,airspeed_mps,alpha_rad,theta_rad,q_radps,qdot_radps2,ax_mps2,az_mps2,"
+        "elevator_rad,throttle\n"
+        "0.00,20,0.05,0.05,0,0,0,-9.8,,\n"
+        "0.02,20,0.05,0.05,0,0,0,-9.8,,0.5\n"
+        "0.04,20,0.05,0.05,0,0,0,-9.8,0.01,\n"
+        "0.06,20,0.05,0.05,0,0,0,-9.8,,0.7\n"
+    )
+    rec = load_csv(path)
+    np.testing.assert_allclose(rec.t_s, [0.04, 0.06])
+    np.testing.assert_allclose(rec.inputs, [[0.01, 0.6], [0.01, 0.7]])
+    assert any("2 row(s) before the first sample of every input skipped" in n for n in rec.notes)
+    assert any("2 empty input cell(s) filled" in n for n in rec.notes)
+    path.write_text(path.read_text().replace("0.01,", ","))
+    with pytest.raises(FlightDataError, match=r"'elevator_rad' \(an input\) holds no number"):
+        load_csv(path)
+
+
+def test_a_normalised_elevator_needs_the_travel_and_says_so(
+    tmp_path: Path, flight: Recording
+) -> None:
+    path = tmp_path / "ros.csv"
+    ramp = flight.inputs.copy()  # the command ramps from 1 to -0.3, as in a PX4 Gazebo glide
+    ramp[:, 0] = np.linspace(1.0, -0.3, len(flight)) * math.radians(TRAVEL_DEG)
+    _write_ros(path, Recording(flight.t_s, ramp, flight.measurements, "throttle"))
+    config = load_config("noc_uav", ROS)
+    with pytest.raises(FlightDataError, match=r"set \[airframe\] elevator_travel_deg"):
+        load_csv(path, config.data)  # no travel given
+    # Read as radians, a command reaching 1 is no deflection: the advice is the unit.
+    as_rad = load_config("noc_uav", [o for o in ROS if "units.elevator" not in o])
+    with pytest.raises(FlightDataError, match=r'elevator = "normalised" and \[airframe\]'):
+        load_csv(path, as_rad.data, TRAVEL_DEG)
+
+
+def test_every_missing_column_is_named_in_one_error(tmp_path: Path, flight: Recording) -> None:
+    path = tmp_path / "ros.csv"
+    _write_ros(path, flight)
+    with pytest.raises(FlightDataError) as err:
+        load_csv(path)
+    text = str(err.value)
+    for quantity in ("time", "airspeed", "alpha", "theta", "q", "qdot", "a_x", "a_z", "elevator"):
+        assert f"for {quantity}" in text
+    assert text.count("\n") == 0 and "[data.columns]" in text and "stamp_ns" in text
+
+
+def test_ns_read_as_seconds_names_ns(tmp_path: Path, flight: Recording) -> None:
+    path = tmp_path / "ros.csv"
+    _write_ros(path, flight)
+    config = load_config("noc_uav", [o for o in ROS if "units.time" not in o])
+    with pytest.raises(FlightDataError, match=r"data\.units\.time=ns\b"):
+        load_csv(path, config.data, TRAVEL_DEG)
+
+
+def test_no_thrust_column_is_a_glide_and_a_zero_scale_is_refused(
+    tmp_path: Path, flight: Recording
+) -> None:
+    from gcs_estimator.config import ConfigError
+
+    path = tmp_path / "ros.csv"
+    _write_ros(path, flight)
+    text = path.read_text().splitlines()
+    path.write_text("\n".join(",".join(r.split(",")[:-1]) for r in text) + "\n")
+    config = load_config("noc_uav", [*ROS[:-6], 'data.columns.thrust=""', *ROS[-5:]])
+    rec = load_csv(path, config.data, TRAVEL_DEG)
+    assert rec.power == "thrust" and not np.any(rec.inputs[:, 1])
+    assert any('thrust = ""): a glide' in n for n in rec.notes)
+    with pytest.raises(FlightDataError, match=r'thrust = "" for a glide'):
+        load_csv(path, load_config("noc_uav", ROS).data, TRAVEL_DEG)
+    with pytest.raises(ConfigError, match=r"\[data.scale\] q: a factor must be"):
+        load_config("noc_uav", ["data.scale.q=0"])
+
+
+def test_a_lost_input_sample_where_the_input_changed_is_a_guess(tmp_path: Path) -> None:
+    """An empty cell in a column logged every row is a lost sample: where the samples
+    either side differ, the frame's input is a guess (Frame.inputs_known False), as the
+    link marks it; where they agree, or the column is logged at a lower rate, it is not."""
+    head = "time_s,airspeed_mps,alpha_rad,theta_rad,q_radps,qdot_radps2,ax_mps2,az_mps2,"
+    rows = [f"{0.02 * k:.2f},20,0.05,0.05,0,0,0,-9.8,{e},0.5" for k, e in enumerate(
+        ["0.0", "0.0", "", "0.0", "0.05", "", "0.1", "0.1"])]  # fmt: skip
+    path = tmp_path / "lost.csv"
+    path.write_text(head + "elevator_rad,throttle\n" + "\n".join(rows) + "\n")
+    rec = load_csv(path)
+    assert rec.inputs_known is not None
+    np.testing.assert_array_equal(rec.inputs_known, [1, 1, 1, 1, 1, 0, 1, 1])
+    assert any("1 of them in gaps over 2 x the column's usual" in n for n in rec.notes), rec.notes
+    slow = [
+        f"{0.02 * k:.2f},20,0.05,0.05,0,0,0,-9.8,{'' if k % 2 else 0.01 * k},0.5" for k in range(8)
+    ]
+    path.write_text(head + "elevator_rad,throttle\n" + "\n".join(slow) + "\n")
+    assert load_csv(path).inputs_known is None  # every other row: a lower rate, held

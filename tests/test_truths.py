@@ -109,3 +109,77 @@ def test_a_reference_that_is_zero_up_to_rounding_gets_no_percent_error() -> None
             config.truth[config.coefficient_names.index("CLa")],
         )
     assert percent_error(1.0, 1e-3) == 99900.0  # small, not zero: still in percent
+
+
+def _one_vehicle_tlog(tmp_path: Path) -> Path:
+    """A short simulated flight recorded as a tlog, with nothing beside it."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=8"])
+    args = build_parser().parse_args(["--set", "simulation.manoeuvre.duration_s=8"])
+    (rec,) = recordings(args)
+    path = tmp_path / "flight.tlog"
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+    return path
+
+
+def _truths_in(out: Path) -> dict[str, float | None]:
+    import json
+
+    res = json.loads((out / "results_sys1.json").read_text())
+    return {n: e["truth"] for n, e in res["filters"]["IEKF"]["estimates"].items()}
+
+
+def test_a_log_is_scored_only_against_a_truth_given_for_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No --config: a log is refused in one line saying what the airframe file holds.
+    The truth file beside it may name the airframe (and, for a simulated flight, its
+    truth); an explicit --config's [truth] is the user's own reference."""
+    from gcs_estimator.cli import main, side_file
+    from gcs_estimator.config import FlightAirframe, truths_text
+
+    tlog = _one_vehicle_tlog(tmp_path)
+    quick = ["--view", "off", "--set", "filter.structure_check=off"]
+    assert main(["replay", str(tlog), "--out", str(tmp_path / "a"), *quick]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {tlog}: no airframe file: give --config")
+    assert (
+        "mass_kg" in err[0] and "inertia_yy_kgm2" in err[0] and "gcs-estimator airframe" in err[0]
+    )
+
+    config = load_config("noc_uav")
+    names = config.coefficient_names
+    side = side_file(tlog)
+    side.write_text(truths_text({}, names, FlightAirframe("noc_uav", (), own_truth=False)))
+    assert main(["replay", str(tlog), "--out", str(tmp_path / "b"), *quick]) == 0
+    assert "note: the airframe is noc_uav" in capsys.readouterr().err
+    assert set(_truths_in(tmp_path / "b").values()) == {None}
+
+    other = tuple(2.0 * v for v in config.truth or ())
+    side.write_text(truths_text({1: other}, names, FlightAirframe("noc_uav", (), False)))
+    assert main(["replay", str(tlog), "--out", str(tmp_path / "c"), *quick]) == 0
+    assert list(_truths_in(tmp_path / "c").values()) == list(other)
+
+    # The user's own airframe file: its [truth] is theirs (the file beside the log unread).
+    argv = ["replay", str(tlog), "--config", "noc_uav", "--out", str(tmp_path / "d"), *quick]
+    assert main(argv) == 0
+    assert list(_truths_in(tmp_path / "d").values()) == list(config.truth or ())
+
+
+def test_a_demo_recording_replays_with_its_airframe_and_truth(tmp_path: Path) -> None:
+    """The demo writes the truth file beside its recording: its airframe, the overrides,
+    and that the airframe's [truth] is what the simulated vehicle flew."""
+    from gcs_estimator.cli import main
+    from gcs_estimator.config import flight_airframe
+
+    sets = ["--set", "simulation.manoeuvre.duration_s=8", "--set", "filter.structure_check=off"]
+    demo = tmp_path / "demo"
+    assert main(["demo", "--speed", "0", "--view", "off", "--out", str(demo), *sets]) == 0
+    named = flight_airframe(demo / "telemetry.truth.toml")
+    assert named is not None and named.config == "noc_uav" and named.own_truth
+    assert named.overrides == ("simulation.manoeuvre.duration_s=8", "filter.structure_check=off")
+    again = tmp_path / "again"
+    argv = ["replay", str(demo / "telemetry.tlog"), "--view", "off", "--out", str(again)]
+    assert main(argv) == 0
+    truth = load_config("noc_uav").truth
+    assert list(_truths_in(again).values()) == list(truth or ())
+    assert _truths_in(again) == _truths_in(demo)

@@ -15,6 +15,7 @@ config's [data.columns] (which column holds which quantity) and [data.units].
 from __future__ import annotations
 
 import csv
+import difflib
 import io
 import math
 from dataclasses import dataclass, field
@@ -23,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator import units
-from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
+    NORMALISED,
     PLAUSIBLE_MAX,
     PLAUSIBLE_QUANTITIES,
     POWER_COLUMNS,
@@ -54,6 +56,9 @@ class Recording:
     """What the second input column holds."""
     notes: tuple[str, ...] = ()
     """What reading the file mended or skipped, one sentence each (for the run's output)."""
+    inputs_known: BoolArray | None = None
+    """[N] False where a frame's input is a guess (a lost sample while the input changed,
+    Frame.inputs_known); None: every input known."""
     aux: dict[str, FloatArray] = field(default_factory=dict)
     """Further signals at the sample times, by name (an autopilot's log: roll, roll and
     yaw rates, vertical speed, wind; ingest/logs/content.py AUX), unused by the filters."""
@@ -108,11 +113,15 @@ def data_file(path: str | Path) -> Path:
     raise FlightDataError(f"{p}: a folder with several flight-data files ({names}); give one")
 
 
-def load_recording(path: str | Path, data: DataConfig | None = None) -> tuple[Path, Recording]:
-    """The flight data at path (see data_file): a CSV (read as `data` says), else the
-    HFB-320 ASCII format."""
+def load_recording(
+    path: str | Path, data: DataConfig | None = None, elevator_travel_deg: float = 0.0
+) -> tuple[Path, Recording]:
+    """The flight data at path (see data_file): a CSV (read as `data` says; a normalised
+    elevator times elevator_travel_deg), else the HFB-320 ASCII format."""
     file = data_file(path)
-    return file, load_csv(file, data) if file.suffix.lower() == ".csv" else load_hfb320(file)
+    if file.suffix.lower() == ".csv":
+        return file, load_csv(file, data, elevator_travel_deg)
+    return file, load_hfb320(file)
 
 
 def load_hfb320(path: str | Path) -> Recording:
@@ -209,19 +218,24 @@ OBSERVED: tuple[str, ...] = ("airspeed", "alpha", "theta", "q", "qdot", "a_x", "
 """The quantities of a CSV that are observations, in channel order."""
 
 
-def load_csv(path: str | Path, data: DataConfig | None = None) -> Recording:
+def load_csv(
+    path: str | Path, data: DataConfig | None = None, elevator_travel_deg: float = 0.0
+) -> Recording:
     """Read flight data from a CSV: a header row, one row per sample, an empty cell for a
     missing value. Which column holds which quantity, and in which unit, come from the
     config's [data.columns] and [data.units] (default: the project's own SI layout, see
     the module docstring). One of the throttle and thrust columns must be present; air
-    density comes from the atmosphere columns the file has (config.ATMOSPHERE_QUANTITIES)."""
+    density comes from the atmosphere columns the file has (config.ATMOSPHERE_QUANTITIES).
+    Each column is multiplied by [data.scale] after its unit (-1 flips an axis); a
+    normalised elevator (-1..1) by elevator_travel_deg. Empty input cells are filled as
+    [data] input_hold says (hold_inputs): an input is never missing."""
     data = data or DataConfig()
     try:
-        return _load_csv(path, data, "utf-8-sig")
+        return _load_csv(path, data, elevator_travel_deg, "utf-8-sig")
     except UnicodeDecodeError:
         # Not UTF-8: a byte such as a degree sign from a Windows program. Latin-1 reads
         # every byte; the numbers are ASCII either way.
-        return _load_csv(path, data, "latin-1")
+        return _load_csv(path, data, elevator_travel_deg, "latin-1")
 
 
 DELIMITER_NAMES = {",": "commas", ";": "semicolons", "\t": "tabs"}
@@ -273,40 +287,26 @@ TIME_BACK_S = 1.0
 order); further back, the file holds two recordings and is refused."""
 
 
-def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
-    cols, units = data.columns, data.units
-    try:
-        with open(path, newline="", encoding=encoding) as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: str) -> Recording:
+    cols = data.columns
     notes: list[str] = []
-    delimiter = _delimiter(text)
-    if delimiter != ",":
-        notes.append(
-            f"{path}: columns separated by {DELIMITER_NAMES[delimiter]}; a comma in a number "
-            "read as its decimal point"
-        )
-    reader = csv.DictReader(io.StringIO(text), delimiter=delimiter)
-    try:
-        header = list(reader.fieldnames or [])
-    except csv.Error as exc:
-        raise FlightDataError(f"{path}:1: not a CSV row: {exc}") from exc
+    text, delimiter, reader, header = _open_csv(path, encoding, notes)
     absent = [q for q in OBSERVED if getattr(cols, q) == ""]
-    for quantity in ("time", *OBSERVED, "elevator"):
-        if quantity not in absent:
-            _require(path, header, quantity, getattr(cols, quantity))
+    _require(path, header, [q for q in ("time", *OBSERVED, "elevator") if q not in absent], cols)
     for quantity in absent:
         notes.append(
             f'{path}: no {quantity} column ([data.columns] {quantity} = ""): the filters go '
             "without that channel"
         )
-    power = _power_column(path, header, cols)
+    power, glide = _power_column(path, header, cols)
+    if glide:
+        absent.append("thrust")
+        notes.append(f'{path}: no thrust column ([data.columns] thrust = ""): a glide, thrust 0')
     air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
     wanted = ("time", *OBSERVED, "elevator", power, *air)
     read = [i for i, q in enumerate(wanted) if q not in absent]
-    scale = np.array([units.factor(q) for q in wanted])
-    shift = np.array([units.offset(q) for q in wanted])
+    scale = np.array([_factor(path, data, q, travel_deg) for q in wanted])
+    shift = np.array([units.offset(getattr(data.units, q)) for q in wanted])
     names = [getattr(cols, wanted[i]) for i in read]
     rows, lines, unread = _read_rows(path, reader, names, decimal_comma=delimiter != ",")
     _drop_cut_line(path, text, rows, lines, bool(rows), notes)
@@ -319,9 +319,14 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
         raise FlightDataError(f"{path}: no data rows")
     arr = np.full((len(rows), len(wanted)), np.nan)
     arr[:, read] = np.array(rows, float).reshape(len(rows), len(read))
+    if glide:
+        arr[:, 9] = 0.0
     arr = arr * scale + shift
     arr = _in_time_order(path, cols.time, arr, np.array(lines), notes)
     check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
+    arr, known = hold_inputs(path, arr, (8, 9), (cols.elevator, getattr(cols, power)), data, notes)
+    if power == "thrust" and not glide and not np.any(arr[:, 9]):
+        notes.append(f"{path}: thrust 0 throughout ({cols.thrust!r}): a glide")
     inputs = arr[:, [8, 9]]
     rho = _density(dict(zip(air, arr[:, 10:].T, strict=True)))
     if rho is not None:
@@ -332,7 +337,135 @@ def _load_csv(path: str | Path, data: DataConfig, encoding: str) -> Recording:
         measurements=arr[:, 1:8],
         power="thrust" if power == "thrust" else "throttle",
         notes=tuple(notes),
+        inputs_known=None if known.all() else known,
     )
+
+
+def _open_csv(
+    path: str | Path, encoding: str, notes: list[str]
+) -> tuple[str, str, csv.DictReader[str], list[str]]:
+    """A CSV's text, column separator (noted unless a comma), reader and header row."""
+    try:
+        with open(path, newline="", encoding=encoding) as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise FlightDataError(f"{path}: cannot read: {exc.strerror}") from exc
+    delimiter = _delimiter(text)
+    if delimiter != ",":
+        notes.append(
+            f"{path}: columns separated by {DELIMITER_NAMES[delimiter]}; a comma in a number "
+            "read as its decimal point"
+        )
+    reader = csv.DictReader(io.StringIO(text), delimiter=delimiter)
+    try:
+        header = list(reader.fieldnames or [])
+    except csv.Error as exc:
+        raise FlightDataError(f"{path}:1: not a CSV row: {exc}") from exc
+    if not header:
+        raise FlightDataError(f"{path}: an empty file: a CSV needs a header row and data rows")
+    return text, delimiter, reader, header
+
+
+def _factor(path: str | Path, data: DataConfig, quantity: str, travel_deg: float) -> float:
+    """A column's multiplier to SI: its unit's factor times its [data.scale]; a
+    normalised elevator's unit is the airframe's elevator travel."""
+    unit = data.units.factor(quantity)
+    if quantity == "elevator" and data.units.elevator == NORMALISED:
+        if travel_deg <= 0:
+            raise FlightDataError(
+                f'{path}: the elevator column is a normalised command ([data.units] elevator = "'
+                f'{NORMALISED}"): set [airframe] elevator_travel_deg to the deflection at full '
+                "command in degrees (or --set airframe.elevator_travel_deg=DEG)"
+            )
+        unit = math.radians(travel_deg)
+    return unit * data.scale.of(quantity)
+
+
+def hold_inputs(
+    path: str | Path,
+    arr: FloatArray,
+    columns: tuple[int, ...],
+    names: tuple[str, ...],
+    data: DataConfig,
+    notes: list[str],
+) -> tuple[FloatArray, BoolArray]:
+    """The rows (in time order, time in the first column) with every empty cell of the
+    input columns filled as [data] input_hold says: linear between the samples either
+    side, or the earlier sample held; after the last sample, the last held. Rows before
+    the first sample of every input are dropped (nothing to hold). Each is counted in
+    notes. An input column with no number at all is refused.
+
+    Also which rows' inputs are known: an empty run longer than LOST_GAP times the
+    column's usual one (its median: 0 for a column logged every row, 7 for one logged
+    every 8th) is a lost sample, and where the samples either side differ the filled
+    value is a guess (False), as the link marks a frame whose input sample was lost
+    while the input changed."""
+    for j, name in zip(columns, names, strict=True):
+        if not np.isfinite(arr[:, j]).any():
+            raise FlightDataError(f"{path}: {name!r} (an input) holds no number")
+    first = max(int(np.flatnonzero(np.isfinite(arr[:, j]))[0]) for j in columns)
+    arr = arr.copy()
+    t = arr[:, 0]
+    held = 0
+    known_rows = np.ones(len(arr), bool)
+    for j in columns:
+        v = arr[:, j]
+        known = np.isfinite(v)
+        held += int((~known[first:]).sum())
+        known_rows &= ~_lost_and_changed(v, known)
+        if data.input_hold == "linear":
+            arr[:, j] = np.interp(t, t[known], v[known])
+        else:
+            last = np.maximum.accumulate(np.where(known, np.arange(len(v)), 0))
+            arr[:, j] = v[last]
+    if first:
+        notes.append(
+            f"{path}: {first} row(s) before the first sample of every input skipped (no input "
+            "to hold there)"
+        )
+        arr, known_rows = arr[first:], known_rows[first:]
+    if held:
+        how = (
+            "interpolated between the samples either side"
+            if data.input_hold == "linear"
+            else "the earlier sample held"
+        )
+        guessed = int((~known_rows).sum())
+        notes.append(
+            f"{path}: {held} empty input cell(s) filled ([data] input_hold = "
+            f'"{data.input_hold}": {how})'
+            + (
+                f"; {guessed} of them in gaps over {LOST_GAP:g} x the column's usual while "
+                "the input changed: those frames' inputs are guesses, and the flight states "
+                "start again from their measurements"
+                if guessed
+                else ""
+            )
+        )
+    return arr, known_rows
+
+
+LOST_GAP = 2.0
+"""A run of empty input cells longer than this many times the column's median run is a
+lost sample, not the column's lower rate (a merge of topics spaces a column's samples
+unevenly: up to twice its usual run is still its rate)."""
+
+
+def _lost_and_changed(v: FloatArray, known: BoolArray) -> BoolArray:
+    """The empty cells of an input column that are lost samples (a run of empty cells
+    longer than LOST_GAP times the column's median run between samples) between samples
+    that differ."""
+    n = len(v)
+    idx = np.arange(n)
+    prev = np.maximum.accumulate(np.where(known, idx, -1))
+    nxt = np.minimum.accumulate(np.where(known, idx, n)[::-1])[::-1]
+    inside = ~known & (prev >= 0) & (nxt < n)
+    samples = np.flatnonzero(known)
+    usual = float(np.median(np.diff(samples) - 1)) if len(samples) > 1 else 0.0
+    gap = nxt - prev - 1
+    p, q = np.clip(prev, 0, n - 1), np.clip(nxt, 0, n - 1)
+    out: BoolArray = inside & (gap > LOST_GAP * usual) & (v[p] != v[q])
+    return out
 
 
 def _in_time_order(
@@ -375,7 +508,7 @@ def _in_time_order(
 
 
 LIKELY_UNITS: dict[str, tuple[str, ...]] = {
-    "time": ("ms", "us"),
+    "time": ("ms", "us", "ns"),
     "airspeed": ("km/h", "kt", "ft/s"),
     "alpha": ("deg",),
     "theta": ("deg",),
@@ -415,8 +548,8 @@ def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -
             continue
         now = getattr(data.units, quantity)
         kind = QUANTITY_KINDS[quantity]
-        hint = ""
-        for unit in LIKELY_UNITS.get(quantity, ()):
+        hint = _normalised_hint(quantity, worst, now)
+        for unit in () if hint or now == NORMALISED else LIKELY_UNITS.get(quantity, ()):
             if unit != now and worst / units.factor(kind, now) * units.factor(kind, unit) <= limit:
                 hint = (
                     f"; if the column is in {unit}, set [data.units] {quantity} = "
@@ -427,6 +560,17 @@ def check_units(path: str | Path, si: dict[str, FloatArray], data: DataConfig) -
             f"{path}: {quantity} reaches {worst:g} (SI, read as {now}), beyond the "
             f"{limit:g} a fixed-wing aircraft's can reach{hint}"
         )
+
+
+def _normalised_hint(quantity: str, worst: float, now: str) -> str:
+    """The advice for an elevator column that reaches 1 read as radians: a normalised
+    command (-1..1, a PX4 or ROS export) rather than degrees."""
+    if quantity != "elevator" or now != "rad" or not 0.95 <= worst <= 1.0 + 1e-9:
+        return ""
+    return (
+        f'; if the column is a command -1..1, set [data.units] elevator = "{NORMALISED}" '
+        "and [airframe] elevator_travel_deg (the deflection at full command)"
+    )
 
 
 def _density(air: dict[str, FloatArray]) -> FloatArray | None:
@@ -441,30 +585,49 @@ def _density(air: dict[str, FloatArray]) -> FloatArray | None:
     return None
 
 
-def _require(path: str | Path, header: list[str], quantity: str, column: str) -> None:
-    if column not in header:
-        raise FlightDataError(
-            f"{path}: no column {column!r} for {quantity}; name the file's column with "
-            f'[data.columns] {quantity} = "..." (or --set data.columns.{quantity}=NAME)'
-            + (
-                f'; if the data have no {quantity}, {quantity} = "" (the filters then go '
-                "without it)"
-                if quantity in OBSERVED
-                else ""
-            )
-            + f"; the file has {header}"
+def _require(path: str | Path, header: list[str], quantities: list[str], cols: Columns) -> None:
+    """Refuse a file without the columns of these quantities, naming every one missing,
+    the file's column it may be, and the key to set."""
+    missing = [q for q in quantities if getattr(cols, q) not in header]
+    if not missing:
+        return
+    parts = []
+    for q in missing:
+        guess = difflib.get_close_matches(q, header, n=1, cutoff=0.6)
+        like = f", perhaps {guess[0]!r}" if guess and guess[0] not in _named(cols) else ""
+        parts.append(f"no column {getattr(cols, q)!r} for {q}{like}")
+    keys = ", ".join(f'{q} = "..."' for q in missing)
+    lack = [q for q in missing if q in OBSERVED]
+    raise FlightDataError(
+        f"{path}: {'; '.join(parts)}; name the file's column{'s' if len(missing) > 1 else ''} "
+        f"with [data.columns] {keys} (or --set data.columns.{missing[0]}=NAME)"
+        + (
+            f'; if the data have no {lack[0]}, {lack[0]} = "" (the filters then go without it)'
+            if lack
+            else ""
         )
+        + f"; the file has {header}"
+    )
 
 
-def _power_column(path: str | Path, header: list[str], cols: Columns) -> str:
-    """Which power input the file holds: thrust if its column is there, else throttle."""
-    if cols.thrust in header:
-        return "thrust"
-    if cols.throttle in header:
-        return "throttle"
+def _named(cols: Columns) -> set[str]:
+    """The column names the config gives."""
+    return {str(v) for v in vars(cols).values()}
+
+
+def _power_column(path: str | Path, header: list[str], cols: Columns) -> tuple[str, bool]:
+    """Which power input the file holds: thrust if its column is there, else throttle;
+    and whether it is a glide (thrust = "" and no throttle column: thrust 0)."""
+    if cols.thrust and cols.thrust in header:
+        return "thrust", False
+    if cols.throttle and cols.throttle in header:
+        return "throttle", False
+    if cols.thrust == "":
+        return "thrust", True
     raise FlightDataError(
         f"{path}: no column {cols.throttle!r} (throttle) nor {cols.thrust!r} (thrust); name "
-        f"one with [data.columns] throttle or thrust; the file has {header}"
+        f'one with [data.columns] throttle or thrust, or thrust = "" for a glide (no thrust); '
+        f"the file has {header}"
     )
 
 

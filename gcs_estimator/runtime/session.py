@@ -19,7 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from gcs_estimator.arrays import FloatArray
+from gcs_estimator.arrays import BoolArray, FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.estimator import (
     Backend,
@@ -254,10 +254,18 @@ class RecordingSource:
 
     SYSTEM_ID = 1
 
-    def __init__(self, t_s: FloatArray, inputs: FloatArray, measurements: FloatArray) -> None:
+    def __init__(
+        self,
+        t_s: FloatArray,
+        inputs: FloatArray,
+        measurements: FloatArray,
+        inputs_known: BoolArray | None = None,
+    ) -> None:
         self.t_s = np.asarray(t_s, float)
         self.inputs = np.asarray(inputs, float)
         self.measurements = np.asarray(measurements, float)
+        self.inputs_known = inputs_known
+        """False where a frame's input is a guess (Frame.inputs_known); None: all known."""
         self.done = 0
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
@@ -266,7 +274,10 @@ class RecordingSource:
                 return
             t = float(self.t_s[i])
             self.done = i + 1
-            yield Frame(self.SYSTEM_ID, t, t, self.inputs[i], self.measurements[i])
+            known = True if self.inputs_known is None else bool(self.inputs_known[i])
+            yield Frame(
+                self.SYSTEM_ID, t, t, self.inputs[i], self.measurements[i], inputs_known=known
+            )
 
     def progress(self) -> tuple[int, int]:
         """(frames done, frames in all)."""

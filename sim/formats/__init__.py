@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import LinkConfig, truths_text
+from gcs_estimator.config import FlightAirframe, LinkConfig, truths_text
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import pwm
 
@@ -226,17 +226,21 @@ def quaternion(theta: FloatArray) -> FloatArray:
 
 
 def truth_path(path: str | Path) -> Path:
-    """The truth side file that accompanies a written flight: PATH.truth.toml."""
-    p = Path(path)
-    return p.with_name(p.name + ".truth.toml")
+    """The truth side file that accompanies a written flight, where the station looks for
+    it: the flight's path with the suffix .truth.toml (flight.bin: flight.truth.toml)."""
+    return Path(path).with_suffix(".truth.toml")
 
 
 def write_truth(
-    path: str | Path, truths: Mapping[int, tuple[float, ...]], names: tuple[str, ...]
+    path: str | Path,
+    truths: Mapping[int, tuple[float, ...]],
+    names: tuple[str, ...],
+    airframe: FlightAirframe | None = None,
 ) -> Path:
-    """Write the truth side file of `path` (truths by system id); returns its path."""
+    """Write the truth side file of `path` (truths by system id, and the airframe file the
+    flight was flown with, so that a replay needs no --config); returns its path."""
     side = truth_path(path)
-    side.write_text(truths_text(truths, names))
+    side.write_text(truths_text(truths, names, airframe), encoding="utf-8")
     return side
 
 
@@ -266,8 +270,9 @@ their sources):
 in the .ulg, attitude, angular velocity and actuators every sample (SDLOG_PROFILE
 high-rate and system identification). With several vehicles, `--bin` and `--ulg` get
 `_N` before the suffix. Beside every written file of a simulated flight lies
-`FILE.truth.toml`, the coefficients each vehicle flew by system id (`gcs-estimator ...
---truth FILE.truth.toml` scores against it).
+its truth file (`flight.bin`: `flight.truth.toml`): the airframe file it was flown with
+and the coefficients each vehicle flew by system id, which `replay` and `offline` find by
+themselves (no `--config` needed).
 
 **ArduPlane stream** (`--autopilot arduplane`): HEARTBEAT (MAV_AUTOPILOT_ARDUPILOTMEGA,
 MAV_TYPE_FIXED_WING) at 1 Hz; the SR0 streams at `--stream-rate` (default 4 Hz, what

@@ -81,6 +81,7 @@ def test_an_elevator_without_its_travel_names_the_key(
     with pytest.raises(FlightDataError, match=r"\[airframe\] elevator_travel_deg"):
         read_log(path, _with_travel(noc_config, 0.0))
     args = ["offline", str(path), "--config", "noc_uav", "--out", str(tmp_path / "out")]
+    args += ["--set", "airframe.elevator_travel_deg=0"]
     assert main(args) == 2  # a setting the user must give: the config is not complete
     err = capsys.readouterr().err
     assert err.startswith("log f.bin: ArduPlane V4.5.0, fixed-wing")

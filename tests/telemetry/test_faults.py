@@ -33,6 +33,9 @@ from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import ROOT, SHORT, Ground, recorded_flight, run_records
 
+NOC = ("--config", "noc_uav")
+"""A simulated NOC UAV's log names its airframe file (a real log without one is refused)."""
+
 Records = list[tuple[int, bytes]]
 
 
@@ -185,7 +188,7 @@ def test_a_bad_file_among_good_ones_keeps_the_results_of_the_good(
     bad = tmp_path / "bad.tlog"
     bad.write_text("not a tlog\n" * 1000)
     out = tmp_path / "out"
-    assert gcs_main(["replay", str(good), str(bad), "--out", str(out), "--view", "off"]) == 2
+    assert gcs_main(["replay", str(good), str(bad), *NOC, "--out", str(out), "--view", "off"]) == 2
     assert "not a tlog" in capsys.readouterr().err
     res = json.loads((out / "results_sys1.json").read_text())
     assert res["diagnostics"]["frames"] == 601
@@ -208,7 +211,7 @@ def test_corrupt_receive_times_in_a_tlog_change_no_estimate(
     results = {}
     for path in (clean, mended):
         out = tmp_path / path.stem
-        assert gcs_main(["replay", str(path), "--out", str(out), "--view", "off"]) == 0
+        assert gcs_main(["replay", str(path), *NOC, "--out", str(out), "--view", "off"]) == 0
         results[path] = json.loads((out / "results_sys1.json").read_text())
     err = capsys.readouterr().err
     assert f"{len(recs[25::50])} record(s) with a corrupt receive time kept" in err
@@ -260,7 +263,7 @@ def test_a_gimbal_on_the_vehicles_system_id_changes_no_estimate(
             w.write(t, pkt)
         w.close()
         out = tmp_path / name
-        argv = ["replay", str(tmp_path / f"{name}.tlog"), "--out", str(out), "--view", "off"]
+        argv = ["replay", str(tmp_path / f"{name}.tlog"), *NOC, "--out", str(out), "--view", "off"]
         assert gcs_main(argv) == 0
         results[name] = json.loads((out / "results_sys1.json").read_text())
     err = capsys.readouterr().err

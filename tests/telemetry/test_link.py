@@ -28,6 +28,9 @@ from sim.cli import command as vehicle_command
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.station import start_listen
 
+NOC = ("--config", "noc_uav")
+"""A simulated NOC UAV's log names its airframe file (a real log without one is refused)."""
+
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
 
@@ -280,7 +283,7 @@ def test_truncated_and_garbage_tlogs(tmp_path: Path, capsys: pytest.CaptureFixtu
     data = path.read_bytes()
     (tmp_path / "cut.tlog").write_bytes(data[: len(data) - 7])
     out = tmp_path / "res"
-    assert gcs_main(["replay", str(tmp_path / "cut.tlog"), "--out", str(out)]) == 0
+    assert gcs_main(["replay", str(tmp_path / "cut.tlog"), *NOC, "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "garbage bytes skipped" in err and "truncated at the end" in err
     res = json.loads((out / "results_sys1.json").read_text())
@@ -290,12 +293,16 @@ def test_truncated_and_garbage_tlogs(tmp_path: Path, capsys: pytest.CaptureFixtu
     # A run's folder is never written over: the same --out is refused, --force allows it.
     assert gcs_main(["replay", str(tmp_path / "notes.txt"), "--out", str(out)]) == 2
     assert "holds a run's outputs already" in capsys.readouterr().err
-    assert gcs_main(["replay", str(tmp_path / "notes.txt"), "--out", str(out), "--force"]) == 2
+    assert (
+        gcs_main(["replay", str(tmp_path / "notes.txt"), *NOC, "--out", str(out), "--force"]) == 2
+    )
     assert "not a tlog" in capsys.readouterr().err
 
     # An empty file is skipped as one that is not a tlog is.
     (tmp_path / "empty.tlog").write_bytes(b"")
-    assert gcs_main(["replay", str(tmp_path / "empty.tlog"), "--out", str(tmp_path / "e")]) == 2
+    assert (
+        gcs_main(["replay", str(tmp_path / "empty.tlog"), *NOC, "--out", str(tmp_path / "e")]) == 2
+    )
     err = capsys.readouterr().err
     assert f"error: {tmp_path / 'empty.tlog'}: an empty file (no MAVLink record); skipped" in err
 

@@ -321,5 +321,9 @@ def load_flight(
         return file, rec, text
     if kind == "tlog":
         raise FlightDataError(f"{file}: a MAVLink .tlog: estimate from it with `replay`")
-    rec = load_csv(file, config.data) if kind == "csv" else load_hfb320(file)
+    rec = (
+        load_csv(file, config.data, config.airframe.elevator_travel_deg)
+        if kind == "csv"
+        else load_hfb320(file)
+    )
     return file, rec, None
