@@ -7,6 +7,8 @@ and claims no coefficient that needs it as identified."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 from pathlib import Path
@@ -20,6 +22,7 @@ from gcs_estimator.config import AircraftConfig, load_config, load_truths
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.logs.reader import read_log
 from gcs_estimator.runtime.session import run_recording
+from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, needs_alpha_level
 from sim.cli import main as sim_main
 from sim.formats import truth_path
 from sim.scenario import scenario_of
@@ -89,7 +92,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def _on_native(rec: Recording, flight: Flight) -> np.ndarray:
     """The native sample index of each frame (the log's clock starts at boot_s)."""
     t = rec.t_s - rec.t_s[0] + flight.t_s[0]
-    idx = np.searchsorted(flight.t_s, t - 1e-6)
+    idx = np.asarray(np.searchsorted(flight.t_s, t - 1e-6), dtype=int)
     assert np.allclose(flight.t_s[idx], t, atol=1e-6), "a frame between native samples"
     return idx
 
@@ -145,9 +148,15 @@ def runs(
     folder = tmp_path_factory.mktemp("runs")
     common = ["--config", "noc_uav", "--set", SHORT[0]]
     assert main(["simulate", *common, "--out", str(folder / "native")]) == 0
+    stderr: dict[str, str] = {}
     for fmt, path in logs.items():
-        assert main(["offline", str(path), *common, "--out", str(folder / fmt)]) == 0
-    return {name: _results(folder / name) for name in ("native", *logs)}
+        with contextlib.redirect_stderr(io.StringIO()) as err:
+            assert main(["offline", str(path), *common, "--out", str(folder / fmt)]) == 0
+        stderr[fmt] = err.getvalue()
+    out = {name: _results(folder / name) for name in ("native", *logs)}
+    for fmt, text in stderr.items():
+        out[fmt]["stderr"] = text
+    return out
 
 
 def _final(config: AircraftConfig, t: Any, u: Any, y: Any) -> dict[str, dict[str, Any]]:
@@ -198,3 +207,26 @@ def test_the_dataflash_estimates_agree_with_the_native_stream_and_truth(
             else:
                 assert apart <= sigma, (kind, name, est, theirs[name])
             assert abs(est - truth[i]) <= 3 * sigma, (kind, name, est, truth[i], sigma)
+
+
+def test_the_px4_log_says_alpha_is_missing_and_claims_nothing_that_needs_it(
+    runs: dict[str, dict[str, Any]],
+) -> None:
+    """PX4 logs no angle of attack: the run says so on stderr and in the results, the
+    intercepts and alpha derivatives are not identified and nothing is identified (the
+    sigmas alone called CL0 identified 24 sigma from truth)."""
+    ulg = runs["ulg"]
+    assert "no alpha in the log" in ulg["stderr"]
+    assert any(w.startswith("no alpha in these data at all") for w in ulg["warnings"])
+    names = ulg["coefficients"]
+    for kind in ("IEKF", "EKF"):
+        marks = {n: ulg["filters"][kind]["estimates"][n]["identifiability"] for n in names}
+        assert IDENTIFIED not in marks.values(), (kind, marks)
+        level = [n for n in names if needs_alpha_level(n)]
+        assert level == ["CD0", "CDa", "CL0", "CLa", "Cm0", "Cma"]
+        assert all(marks[n] == NOT_IDENTIFIED for n in level), (kind, marks)
+    # the .bin carries alpha: its marks are the sigmas' own
+    assert "no alpha" not in runs["bin"]["stderr"]
+    assert IDENTIFIED in {
+        e["identifiability"] for e in runs["bin"]["filters"]["IEKF"]["estimates"].values()
+    }
