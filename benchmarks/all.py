@@ -86,6 +86,8 @@ PLAN = (
 NOT_IN_PLAN = {
     "formats": "prints how long the simulator's autopilot-format writers take "
     "(docs/decisions/0040); no record",
+    "log_agreement": "prints how a DataFlash log's estimates lie against the native "
+    "stream's and truth over seeds (docs/decisions/0045); no record",
     "jsbsim_flights": "writes the validation set, not a record; the benchmarks that use "
     "it fly it themselves",
 }

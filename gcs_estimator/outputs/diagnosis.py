@@ -270,6 +270,12 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
                 f"{'it' if len(none) == 1 else 'them'}, and what only "
                 f"{'it tells' if len(none) == 1 else 'they tell'} is not identified (a column "
                 "the file lacks, or a message the vehicle does not send)"
+                + (
+                    "; without alpha the intercepts and alpha derivatives are not identified "
+                    "and every other coefficient is weak at best"
+                    if "alpha" in none
+                    else ""
+                )
             )
     for kind, f in result.filters.items():
         if f.health.divergences:

@@ -12,7 +12,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.estimation.filters.core import FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult
-from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.channels import N_OBS, OBS_NAMES
 from gcs_estimator.uncertainty.sigma import SigmaParts, TrustedSigma, filter_sigma
 
 CONVERGENCE_BAND = 0.05
@@ -60,6 +60,35 @@ def identifiability(
         else:
             out.append(IDENTIFIED)
     return tuple(out)
+
+
+ALPHA = OBS_NAMES.index("alpha")
+
+
+def needs_alpha_level(name: str) -> bool:
+    """A coefficient only a measured angle of attack fixes: an intercept (CD0, CL0, Cm0)
+    or an alpha derivative (CDa, CLa, Cma). Without alpha the filters reconstruct it from
+    the dynamics alone, and an offset in it moves these and nothing the data can see."""
+    return name.endswith("0") or name[2:].startswith("a")
+
+
+def without_alpha(names: tuple[str, ...], marks: tuple[str, ...]) -> tuple[str, ...]:
+    """The marks where the record holds no alpha at all: the intercepts and alpha
+    derivatives not identified, every other coefficient weak at best (alpha's unmeasured
+    motion enters each force and moment with it). On a simulated flight written as a PX4
+    log the sigmas alone left CL0 "identified" 24 sigma from truth (decision 0045)."""
+    out = []
+    for name, mark in zip(names, marks, strict=True):
+        if needs_alpha_level(name):
+            out.append(NOT_IDENTIFIED)
+        else:
+            out.append(WEAK if mark == IDENTIFIED else mark)
+    return tuple(out)
+
+
+def _alpha_absent(track: Track) -> bool:
+    y = np.asarray(track.y)
+    return bool(y.ndim == 2 and y.shape[0] > 0 and not np.isfinite(y[:, ALPHA]).any())
 
 
 def most_correlated(correlation: FloatArray, names: tuple[str, ...], i: int) -> tuple[str, float]:
@@ -177,6 +206,8 @@ def summarise(
         prior = np.asarray(result.config.filter.initial_sigma.coefficients)
         corr = correlation_of(fr.covariance)
         marks = identifiability(fr.coefficients, trusted.sigma, corr, prior)
+        if _alpha_absent(track):
+            marks = without_alpha(result.names, marks)
         coeffs = tuple(
             _coefficient(result.names, i, fr.coefficients, trusted, track, truth, corr, marks[i])
             for i in range(len(result.names))

@@ -21,6 +21,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import FlightAirframe, LinkConfig, truths_text
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import pwm
+from gcs_estimator.model import atmosphere
 
 GRAVITY_MSS = 9.80665
 """ArduPilot's GRAVITY_MSS (AP_Math/definitions.h), also PX4's CONSTANTS_ONE_G."""
@@ -28,7 +29,9 @@ SEA_LEVEL_PA = 101325.0
 SEA_LEVEL_DENSITY = 1.225
 """ArduPilot's SSL_AIR_DENSITY: its EAS2TAS = sqrt(1.225 / rho)."""
 GAS_CONSTANT_AIR = 287.26
-"""ArduPilot's ISA_GAS_CONSTANT [J/(kg K)] (AP_Baro: rho = p / (R T))."""
+"""ArduPilot's ISA_GAS_CONSTANT [J/(kg K)] (AP_Baro's ground temperature). Not the air's:
+the temperature a probe reads is p / (rho R_AIR) with the physical constant
+(atmosphere.R_AIR), else a reader's density is 0.07 % off the flown one (decision 0045)."""
 HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_M = 50.8930, -1.3950, 20.0
 """Where the simulated flights start: the National Oceanography Centre, Southampton."""
 START_HEIGHT_M = 150.0
@@ -142,7 +145,7 @@ def flight_record(
     north = _integral(t, v_north)
     height = START_HEIGHT_M - _integral(t, v_down)
     pressure = SEA_LEVEL_PA - density * GRAVITY_MSS * (HOME_ALT_M + height)
-    temperature = pressure / (density * GAS_CONSTANT_AIR) - 273.15
+    temperature = pressure / (density * atmosphere.R_AIR) - 273.15
     e_pwm = np.round(pwm.elevator_pwm(link, u[:, 0]))
     throttle_model = rec.power == "throttle"
     t_pwm = (
@@ -300,7 +303,8 @@ after the last logged): vehicle_attitude (q) every 50 ms (every third 50 Hz samp
 vehicle_angular_velocity (xyz, xyz_derivative) and vehicle_acceleration every 20 ms,
 vehicle_local_position, actuator_servos (normalised -1..1, positive nose-up;
 CA_SV_CS0_TYPE = 3 elevator, CA_SV_CS0_TRQ_P = 1) and actuator_motors (throttle 0..1)
-every 100 ms, airspeed_validated and vehicle_air_data every 200 ms, wind and
-vehicle_status (fixed wing) every second. PX4 logs no angle of attack.
+every 100 ms, airspeed_validated and vehicle_air_data every 200 ms, airspeed (with the
+probe's air temperature), wind and vehicle_status (fixed wing) every second. PX4 logs
+no angle of attack.
 """
 """The outputs section of docs/simulation.md (`gcs-sim --keys`)."""

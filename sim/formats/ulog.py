@@ -10,10 +10,11 @@ a 3-byte header: uint16 payload size, uint8 type.
 Topics and fields are PX4's uORB messages (msg/*.msg), the ones this tool reads; rates are
 the logger's default profile (src/modules/logger/logged_topics.cpp, intervals in ms):
 vehicle_attitude 50, vehicle_angular_velocity 20, vehicle_acceleration 20,
-airspeed_validated 200, vehicle_air_data 200, vehicle_local_position 100,
-actuator_servos 100, actuator_motors 100, wind 1000; vehicle_status as published (here
-1 Hz). The high-rate and system-identification profiles (SDLOG_PROFILE bits 4 and 3) log
-attitude, angular velocity and the actuators at full rate. PX4 logs no angle of attack.
+airspeed_validated 200, vehicle_air_data 200, vehicle_local_position 100, actuator_servos
+100, actuator_motors 100, airspeed (with the probe's air temperature) 1000, wind 1000;
+vehicle_status as published (here 1 Hz). The high-rate and system-identification
+profiles (SDLOG_PROFILE bits 4 and 3) log attitude, angular velocity and the actuators at
+full rate. PX4 logs no angle of attack.
 
 actuator_servos.control is normalised -1..1: the control allocator's output for a
 surface of CA_SV_CS0_TYPE = 3 (elevator) with CA_SV_CS0_TRQ_P = 1, positive for a
@@ -103,6 +104,12 @@ TOPICS = (
          "float throttle_filtered", "float pitch_filtered",
          "bool airspeed_sensor_measurement_valid", "int8_t selected_airspeed_index"),
         200,
+    ),
+    Topic(
+        "airspeed",
+        ("uint64_t timestamp", "uint64_t timestamp_sample", "float indicated_airspeed_m_s",
+         "float true_airspeed_m_s", "float air_temperature_celsius", "float confidence"),
+        1000,
     ),
     Topic(
         "vehicle_air_data",
@@ -284,6 +291,17 @@ def _airspeed(fr: FlightRecord, i: np.ndarray) -> Values:
     }
 
 
+def _airspeed_sensor(fr: FlightRecord, i: np.ndarray) -> Values:
+    """The differential-pressure sensor's reading with the probe's temperature (the air's,
+    which a reader needs with the pressure for the density: decision 0045)."""
+    return {
+        "indicated_airspeed_m_s": fr.eas[i],
+        "true_airspeed_m_s": fr.V[i],
+        "air_temperature_celsius": fr.temperature_c[i],
+        "confidence": 1.0,
+    }
+
+
 def _air_data(fr: FlightRecord, i: np.ndarray) -> Values:
     return {
         "baro_device_id": 1,
@@ -348,6 +366,7 @@ FILL = {
     "vehicle_angular_velocity": _angular_velocity,
     "vehicle_acceleration": _acceleration,
     "airspeed_validated": _airspeed,
+    "airspeed": _airspeed_sensor,
     "vehicle_air_data": _air_data,
     "vehicle_local_position": _local_position,
     "actuator_servos": _servos,

@@ -24,6 +24,7 @@ from pyulog import ULog
 from gcs_estimator.config import AircraftConfig, load_config, load_truths
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.model import atmosphere
 from sim.cli import main as sim_main
 from sim.formats import GRAVITY_MSS, FlightRecord, every, flight_record, truth_path
 from sim.formats.ardupilot import ArduPlaneVehicle
@@ -116,8 +117,9 @@ def test_dataflash_log_reads_back_as_flown(
     throttle = _column(msgs["RCOU"], "C3")
     np.testing.assert_allclose((throttle - 1000) / 1000, flight.inputs[half, 1], atol=1e-9)
     baro = msgs["BARO"]
-    rho = _column(baro, "Press") / ((_column(baro, "Temp") + 273.15) * 287.26)
-    np.testing.assert_allclose(rho, config.airframe.air_density_kgpm3, rtol=1e-4)
+    rho = _column(baro, "Press") / ((_column(baro, "Temp") + 273.15) * atmosphere.R_AIR)
+    # (Temp in centidegrees: 0.005 K of 290 K)
+    np.testing.assert_allclose(rho, config.airframe.air_density_kgpm3, rtol=2e-5)
     gps = msgs["GPS"]
     np.testing.assert_allclose(_column(gps, "Lat"), record.lat_deg[::10], atol=1e-7)
     np.testing.assert_allclose(_column(gps, "Alt"), record.alt_msl_m[::10], atol=0.0051)

@@ -32,7 +32,8 @@ PX4 (ULog; msg/*.msg):
     elevator           actuator_servos.control[i] where CA_SV_CSi_TYPE = 3 (elevator), its
                        sign from CA_SV_CSi_TRQ_P; older logs: the fixed-wing pitch command
                        actuator_controls_1 (VTOL) or _0 control[1]
-    throttle           actuator_controls_1 (VTOL) or _0 control[3], else
+    throttle           actuator_controls_1 (VTOL) or _0 control[3], else actuator_motors
+                       control[0] (PX4 1.14 on: the first motor, 0..1), else
                        vehicle_thrust_setpoint.xyz[0]
     vz                 vehicle_local_position.vz; wind: wind or wind_estimate
     airborne           vehicle_land_detected.landed; hover: vehicle_status (rotary wing)
@@ -302,6 +303,7 @@ PX4_TOPICS = (
     "vehicle_air_data",
     "vehicle_local_position",
     "actuator_servos",
+    "actuator_motors",
     "actuator_controls_0",
     "actuator_controls_1",
     "vehicle_thrust_setpoint",
@@ -373,6 +375,7 @@ def _px4_throttle(u: ULogData) -> Signal | None:
     for name, col in (
         ("actuator_controls_1", "control[3]"),
         ("actuator_controls_0", "control[3]"),
+        ("actuator_motors", "control[0]"),
         ("vehicle_thrust_setpoint", "xyz[0]"),
     ):
         sig = _px4_signal(u, name, col)

@@ -2,9 +2,10 @@
 
 The frames are the samples of the fastest attitude-rate channel (q, else theta), thinned
 to at most [link] rate_hz, over the time the vehicle flew on its wing (the autopilot's
-own airborne flag, hover removed). A channel at least half as fast as the frames is
+own airborne flag, hover removed). A channel about as fast as the frames (FAST_ENOUGH) is
 interpolated to them; a slower one gives a measurement only at the frame nearest each of
-its samples (no sample is repeated as if it were new). Inputs never hold NaN: they are
+its samples, its value interpolated to that frame's time (no sample is made up between
+samples, nor repeated as if it were new: decision 0045). Inputs never hold NaN: they are
 interpolated (or held, [data] input_hold) and held beyond their first and last samples.
 """
 
@@ -34,6 +35,11 @@ MIN_AIRBORNE_S = 5.0
 """Less time than this on the wing is no flight to identify anything from [s]."""
 GAP_STEPS = 3.0
 """An interpolated channel is missing across a gap of more than this many of its steps."""
+FAST_ENOUGH = 1.25
+"""A channel whose step is at most this many frame steps is interpolated to every frame
+(at most one value in five made up); a slower one is not: a 25 Hz ATT interpolated to
+50 Hz frames doubled the pitch angle's samples, half of them made up, and its noise read
+five times too low from the smoothed record (decision 0045)."""
 
 Progress = Callable[[float], None]
 
@@ -209,9 +215,9 @@ def _frames(content: LogContent, window: Span, max_hz: float) -> FloatArray:
 
 
 def on_frames(frames: FloatArray, sig: Signal) -> FloatArray:
-    """A channel at the frame times: interpolated where it is at least half as fast as the
-    frames (missing across its gaps and outside its samples), else each sample at the
-    frame nearest it and missing elsewhere."""
+    """A channel at the frame times: interpolated where it is about as fast as the frames
+    (missing across its gaps and outside its samples), else each sample at the frame
+    nearest it, its value interpolated to that frame's time, and missing elsewhere."""
     out = np.full(len(frames), np.nan)
     t, v = sig.t_s, sig.values
     if len(t) == 0 or len(frames) == 0:
@@ -220,7 +226,7 @@ def on_frames(frames: FloatArray, sig: Signal) -> FloatArray:
         return v.copy()
     frame_dt = float(np.median(np.diff(frames))) if len(frames) > 1 else 1.0
     step = float(np.median(np.diff(t))) if len(t) > 1 else math.inf
-    if step <= 2.0 * frame_dt:
+    if step <= FAST_ENOUGH * frame_dt:
         out = np.interp(frames, t, v)
         i = np.clip(np.searchsorted(t, frames), 1, len(t) - 1)
         gap = (t[i] - t[i - 1]) > GAP_STEPS * step
@@ -229,7 +235,7 @@ def on_frames(frames: FloatArray, sig: Signal) -> FloatArray:
     inside = (t >= frames[0] - frame_dt / 2) & (t <= frames[-1] + frame_dt / 2)
     j = np.clip(np.searchsorted(frames, t[inside]), 1, len(frames) - 1)
     nearer = np.where(np.abs(frames[j - 1] - t[inside]) <= np.abs(frames[j] - t[inside]), j - 1, j)
-    out[nearer] = v[inside]
+    out[nearer] = np.interp(frames[nearer], t, v)
     return out
 
 
@@ -266,7 +272,8 @@ def to_recording(
         path,
         content,
         "throttle",
-        "the throttle output: RCOU with SERVOn_FUNCTION 70, AETR, CTUN or actuator_controls",
+        "the throttle output: RCOU with SERVOn_FUNCTION 70, AETR, CTUN, actuator_controls or "
+        "actuator_motors",
     )
     travel = config.airframe.elevator_travel_deg
     if content.elevator_normalised and travel <= 0:
