@@ -440,6 +440,9 @@ def _status_lines(
                 if n in names
             )
         lines.append(line)
+        rates = link.rates_status(sid)
+        if rates:
+            lines.append(f"    {rates}")
     more = len(estimators) - STATUS_VEHICLES
     if more > 0:
         lines.append(f"  ... and {more} more vehicle{'s' if more > 1 else ''}")
@@ -482,6 +485,7 @@ def _link_session(
         linear_inputs=config.data.input_hold == "linear",
         ranges=ranges_of(config.data),
         rejected_path=record.with_name(record.stem + ".rejected.tlog") if record else None,
+        elevator_travel_deg=config.airframe.elevator_travel_deg,
     )
     view = _view_sink(config, args, session, link)
     if view is not None:
@@ -529,7 +533,7 @@ def cmd_listen(args: argparse.Namespace) -> int:
         where = _where(endpoint, sock)
         job = LiveJob(
             sock.fileno(),
-            LinkArgs(link.config, link.linear_inputs, link.ranges),
+            LinkArgs(link.config, link.linear_inputs, link.ranges, link.elevator_travel_deg),
             str(record),
             str(link.rejected_path) if link.rejected_path else None,
             args.idle_exit,
