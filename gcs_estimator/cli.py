@@ -40,6 +40,7 @@ from gcs_estimator.ingest.sources import (
 from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
+from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
 from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
@@ -460,7 +461,9 @@ def _link_session(
     """A session over a MAVLink link, with its view and result sinks (and, live, its
     status line); recorder False: the link records nothing here (a link worker records
     `record`). With --filter-workers the vehicles' filters run in worker processes
-    (filter_worker.py), which write their results."""
+    (filter_worker.py), which write their results. Alpha from AOA_SSA is weighed as
+    [link] aoa_ssa says (vehicle_setup.weigh_alpha)."""
+    config = weigh_alpha(config)
     workers = getattr(args, "filter_workers", None)
     truth_file = getattr(args, "truth", None)
     truths = None if truth_file is None else load_truths(truth_file, config.coefficient_names)

@@ -278,7 +278,7 @@ def test_arduplane_parameters_map_the_elevator_and_throttle(vehicle: Codec) -> N
         assert dict(got.values) == pytest.approx(
             {Channel.ELEVATOR: math.radians(deg), Channel.POWER: 0.5}
         )
-    assert setup.report()["servos"].startswith("vehicle parameters: elevator on output 4")
+    assert str(setup.report()["servos"]).startswith("vehicle parameters: elevator on output 4")
 
 
 def test_a_tlog_with_the_ground_stations_parameter_fetch(tmp_path: Path, vehicle: Codec) -> None:

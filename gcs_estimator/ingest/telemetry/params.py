@@ -144,7 +144,7 @@ class VehicleParams:
 
     @property
     def px4(self) -> bool:
-        return self.autopilot_kind == MAV_AUTOPILOT_PX4
+        return bool(self.autopilot_kind == MAV_AUTOPILOT_PX4)
 
     def wanted(self) -> list[str]:
         """The parameters the servo map needs that have not been heard."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from gcs_estimator.config import AircraftConfig, LinkConfig
 from gcs_estimator.ingest.telemetry import mavlink
@@ -18,6 +18,7 @@ from gcs_estimator.ingest.telemetry.channel_sources import MIN_RATE_HZ, ChannelS
 from gcs_estimator.ingest.telemetry.decode import ParamValue, Ranges, Sample
 from gcs_estimator.ingest.telemetry.mavlink import Codec
 from gcs_estimator.ingest.telemetry.params import ServoMap, VehicleParams
+from gcs_estimator.model.channels import Channel
 
 ARDUPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
 PX4 = mavlink.MAV_AUTOPILOT_PX4
@@ -128,20 +129,17 @@ class VehicleSetup:
             return None
         return chosen._replace(aux=())
 
-    def _in_range(self, vals: list[tuple[object, float]]) -> tuple[tuple[object, float], ...]:
+    def _in_range(self, vals: list[tuple[Channel, float]]) -> tuple[tuple[Channel, float], ...]:
+        """The values the vehicle's servo map gives that are finite and in range (others
+        counted, as decode counts its own)."""
         out = []
         for ch, v in vals:
-            lo, hi = self.ranges[ch]  # type: ignore[index]
+            lo, hi = self.ranges[ch]
             if math.isfinite(v) and lo <= v <= hi:
                 out.append((ch, v))
             else:
                 self.invalid_values += 1
         return tuple(out)
-
-    @property
-    def alpha_from_ahrs(self) -> bool:
-        """Whether alpha comes from an ArduPilot vehicle's AOA_SSA (its AHRS estimate)."""
-        return self.autopilot_kind == ARDUPILOT and self.sources.source("alpha") == "AOA_SSA"
 
     # ------------------------------------------------------------------ asked
 
@@ -221,7 +219,7 @@ class VehicleSetup:
             if self.servo_map is not None
             else "[link] servo numbers and PWM calibration"
         )
-        if self.alpha_from_ahrs:
+        if self.sources.source("alpha") == "AOA_SSA" and self.link.aoa_ssa == "ahrs":
             out["alpha_note"] = AHRS_NOTE
         if self.asked:
             out["asked"] = list(self.asked)
@@ -230,9 +228,20 @@ class VehicleSetup:
 
 AHRS_NOTE = (
     "alpha from AOA_SSA: in ArduPilot the AHRS's estimate (velocity minus estimated wind), "
-    f"not a vane; weighed with a noise of at least {AHRS_ALPHA_SIGMA_DEG:g} deg"
+    f"not a vane; weighed with a sigma of at least {AHRS_ALPHA_SIGMA_DEG:g} deg "
+    '([link] aoa_ssa = "ahrs"; "vane" where a vane fills it)'
 )
 
 
-def travel_of(config: AircraftConfig | None) -> float:
-    return 0.0 if config is None else float(config.airframe.elevator_travel_deg)
+def weigh_alpha(config: AircraftConfig) -> AircraftConfig:
+    """The configuration a MAVLink session estimates with: where [link] aoa_ssa says
+    AOA_SSA is an AHRS estimate, alpha's measurement sigma at least AHRS_ALPHA_SIGMA_DEG
+    (a config, not a per-frame choice: the same in every process a session may use)."""
+    if config.link.aoa_ssa != "ahrs":
+        return config
+    sigma = list(config.filter.measurement_sigma)
+    floor = math.radians(AHRS_ALPHA_SIGMA_DEG)
+    if sigma[Channel.ALPHA] >= floor:
+        return config
+    sigma[Channel.ALPHA] = floor
+    return replace(config, filter=replace(config.filter, measurement_sigma=tuple(sigma)))
