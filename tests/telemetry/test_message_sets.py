@@ -212,6 +212,9 @@ def test_the_fastest_source_is_taken_and_never_mixed_with_another() -> None:
     assert report["q"]["others_hz"]["ATTITUDE"] == pytest.approx(4.0, rel=0.02)
     assert report["theta"]["message"] == "ATTITUDE" and "warning" in report["theta"]
     assert report["a_z"]["message"] == "HIGHRES_IMU"
+    status = link.rates_status(1).split()  # the status line: recent rate, "!" if too slow
+    assert status[status.index("q") + 1 : status.index("q") + 3] == ["50", "HIGHRES_IMU"]
+    assert status[status.index("theta") + 1 : status.index("theta") + 3] == ["4!", "ATTITUDE"]
 
 
 def test_a_rate_too_low_is_warned_about() -> None:
@@ -331,3 +334,43 @@ def test_px4_parameters_come_bytewise_and_name_the_elevator(vehicle: Codec) -> N
     got = setup.prepare(raw)
     assert got is not None
     assert dict(got.values)[Channel.ELEVATOR] == pytest.approx(math.radians(-25.0))
+
+
+# ------------------------------------------------------------------ AOA_SSA's weight
+
+
+def test_ardupilots_aoa_ssa_is_weighed_as_an_ahrs_estimate() -> None:
+    """[link] aoa_ssa = "ahrs" (the default: ArduPlane's AOA_SSA is its AHRS estimate)
+    puts alpha's sigma at 3 deg at least, leaving the others; "vane" (the simulator's
+    configs) keeps the [filter] sigma; a sigma already larger is kept."""
+    from dataclasses import replace
+
+    from gcs_estimator.config import load_config
+    from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
+
+    vane = load_config("noc_uav")
+    assert vane.link.aoa_ssa == "vane" and weigh_alpha(vane) == vane
+    ahrs = replace(vane, link=replace(vane.link, aoa_ssa="ahrs"))
+    sigma = weigh_alpha(ahrs).filter.measurement_sigma
+    before = vane.filter.measurement_sigma
+    assert sigma[Channel.ALPHA] == pytest.approx(math.radians(3.0))
+    assert sigma[: Channel.ALPHA] == before[: Channel.ALPHA]
+    assert sigma[Channel.ALPHA + 1 :] == before[Channel.ALPHA + 1 :]
+    assert LinkConfig().aoa_ssa == "ahrs"
+    wide = list(before)
+    wide[Channel.ALPHA] = math.radians(5.0)
+    loose = replace(ahrs, filter=replace(ahrs.filter, measurement_sigma=tuple(wide)))
+    assert weigh_alpha(loose) == loose
+
+
+def test_the_run_says_what_alpha_from_aoa_ssa_is(vehicle: Codec) -> None:
+    link = MavlinkLink(LINK, log=open("/dev/null", "w"))  # noqa: SIM115
+    link.packet(vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING), 1000.0)
+    for k in range(6):
+        link.packet(vehicle.pack(vehicle.mav.aoa_ssa_encode(k * 100_000, 3.0, 0)), 1000.0 + k)
+    sources = link.stats()["sources"]["1"]
+    assert sources["channels"]["alpha"]["message"] == "AOA_SSA"
+    assert "AHRS" in sources["alpha_note"] and "not a vane" in sources["alpha_note"]
+    vane = MavlinkLink(LinkConfig(aoa_ssa="vane"), log=open("/dev/null", "w"))  # noqa: SIM115
+    vane.packet(vehicle.pack(vehicle.mav.aoa_ssa_encode(0, 3.0, 0)), 1000.0)
+    assert "alpha_note" not in vane.stats()["sources"]["1"]
