@@ -74,25 +74,31 @@ SWITCH_RATIO = 1.5
 """A source replaces the one taken when it arrives this many times as fast."""
 
 
+RECENT = 512
+"""Arrival times a meter keeps (RATE_WINDOW_S at up to 100 Hz)."""
+CHECK_EVERY_S = 1.0
+"""A settled channel weighs each challenger's rate at most this often [s]."""
+
+
 @dataclass
 class _Meter:
-    """One (channel, message)'s arrivals."""
+    """One message's arrivals (every sample of a message carries all its channels)."""
 
     first: float
     last: float
     count: int = 0
-    recent: deque[float] = field(default_factory=deque)
+    recent: deque[float] = field(default_factory=lambda: deque(maxlen=RECENT))
 
     def add(self, t: float) -> None:
         self.count += 1
-        self.last = max(self.last, t)
+        if t > self.last:
+            self.last = t
         self.recent.append(t)
-        while self.recent and self.recent[0] < t - RATE_WINDOW_S:
-            self.recent.popleft()
 
     def rate(self, now: float) -> float:
         """Arrivals per second over the last RATE_WINDOW_S before now [Hz]."""
-        n = sum(1 for t in self.recent if t > now - RATE_WINDOW_S)
+        since = now - RATE_WINDOW_S
+        n = sum(1 for t in self.recent if t > since)
         span = min(RATE_WINDOW_S, now - self.first)
         return n / span if n >= 2 and span > 0 else 0.0
 
@@ -109,89 +115,94 @@ def _rank(key: str, message: str) -> int:
 
 @dataclass
 class _Channel:
-    meters: dict[str, _Meter] = field(default_factory=dict)
-    source: str | None = None
+    source: str
+    heard: set[str] = field(default_factory=set)
+    """Every message heard carrying this channel."""
     taken: int = 0
     """Samples taken, from any source."""
     switches: int = 0
+    next_check: dict[str, float] = field(default_factory=dict)
+    """Per challenger: when its rate is weighed next [s of receive time]."""
 
-    def offer(self, key: str, message: str, t: float) -> tuple[bool, str | None]:
-        """Whether a sample of `message` at receive time t is taken; and the source it
-        replaced, if it made the channel change source."""
-        meter = self.meters.get(message)
-        if meter is None:
-            meter = self.meters[message] = _Meter(t, t)
-        meter.add(t)
-        if self.source is None:
-            self.source = message
-        elif message != self.source and self._better(key, message, t):
-            old, self.source = self.source, message
-            settled = self.taken >= MIN_SAMPLES
-            self.taken += 1
-            if not settled:
-                return True, None  # still choosing: not a switch
-            self.switches += 1
-            return True, old
-        if message == self.source:
-            self.taken += 1
-            return True, None
-        return False, None
 
-    def _better(self, key: str, message: str, t: float) -> bool:
-        assert self.source is not None
-        current = self.meters[self.source]
-        challenger = self.meters[message]
-        ranked_higher = _rank(key, message) < _rank(key, self.source)
-        if self.taken < MIN_SAMPLES:
-            return ranked_higher  # the stream's first samples: a better source came up
-        if challenger.count < MIN_SAMPLES:
-            return False
-        ratio = challenger.rate(t) / max(current.rate(t), 1e-9)
-        return ratio > SWITCH_RATIO
+NAMES: tuple[str, ...] = tuple(CHANNEL_NAMES[Channel(i)] for i in range(len(CHANNEL_NAMES)))
+"""Channel names by channel number."""
 
 
 @dataclass
 class ChannelSources:
-    """One vehicle's choice of source per channel and its rates."""
+    """One vehicle's choice of source per channel and its rates. Per sample its cost is a
+    dictionary look-up per value while the sources stand (the replay's common case)."""
 
     system_id: int
     channels: dict[str, _Channel] = field(default_factory=dict)
+    meters: dict[str, _Meter] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
-    """What changed (a channel's first source, each switch), for the link to print."""
+    """What changed (a channel's source once settled, each switch), for the link to print."""
     dropped: int = 0
     """Channel values not taken because another source feeds the channel."""
     t_last: float = -math.inf
 
     def choose(self, sample: Sample) -> Sample | None:
         """The sample with only the values of channels that take it as their source
-        (None if none is left)."""
+        (the sample itself where it is the source of all; None if of none)."""
         t = sample.t_recv_s
-        self.t_last = max(self.t_last, t)
-        values = tuple(
-            (ch, v)
-            for ch, v in sample.values
-            if self._take(CHANNEL_NAMES[Channel(ch)], sample.message, t)
-        )
-        aux = tuple((k, v) for k, v in sample.aux if self._take(k, sample.message, t))
-        self.dropped += len(sample.values) - len(values) + len(sample.aux) - len(aux)
-        if not values and not aux:
+        message = sample.message
+        meter = self.meters.get(message)
+        if meter is None:
+            meter = self.meters[message] = _Meter(t, t)
+        meter.add(t)
+        if t > self.t_last:
+            self.t_last = t
+        take = self._take
+        values = sample.values
+        kept = tuple(v for v in values if take(NAMES[v[0]], message, t))
+        aux = sample.aux
+        kept_aux = tuple(a for a in aux if take(a[0], message, t)) if aux else aux
+        if len(kept) == len(values) and len(kept_aux) == len(aux):
+            return sample
+        self.dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
+        if not kept and not kept_aux:
             return None
-        return sample._replace(values=values, aux=aux)
+        return sample._replace(values=kept, aux=kept_aux)
 
     def _take(self, key: str, message: str, t: float) -> bool:
         channel = self.channels.get(key)
         if channel is None:
-            channel = self.channels[key] = _Channel()
-        taken, old = channel.offer(key, message, t)
-        if taken and channel.taken == MIN_SAMPLES:
-            self.notes.append(f"{key} from {channel.source}")
-        if old is not None:
-            rate = channel.meters[message].rate(t)
-            self.notes.append(
-                f"{key} now from {message} ({rate:.1f} Hz), not {old} "
-                f"({channel.meters[old].rate(t):.1f} Hz)"
-            )
-        return taken
+            channel = self.channels[key] = _Channel(message, {message})
+        if channel.source == message:
+            channel.taken += 1
+            if channel.taken == MIN_SAMPLES:
+                self.notes.append(f"{key} from {message}")
+            return True
+        channel.heard.add(message)
+        if channel.taken < MIN_SAMPLES:  # still choosing: a better-ranked source came up
+            if _rank(key, message) < _rank(key, channel.source):
+                channel.source = message
+                channel.taken += 1
+                return True
+            return False
+        if t < channel.next_check.get(message, -math.inf):
+            return False
+        channel.next_check[message] = t + CHECK_EVERY_S
+        return self._switch(key, channel, message, t)
+
+    def _switch(self, key: str, channel: _Channel, message: str, t: float) -> bool:
+        """Whether a challenger, measured, arrives SWITCH_RATIO times as fast as the source
+        taken: then it is taken from now on (said, counted)."""
+        challenger = self.meters[message]
+        if challenger.count < MIN_SAMPLES:
+            return False
+        new, old = challenger.rate(t), self.meters[channel.source].rate(t)
+        if new <= SWITCH_RATIO * old:
+            return False
+        self.notes.append(
+            f"{key} now from {message} ({new:.1f} Hz), not {channel.source} ({old:.1f} Hz)"
+        )
+        channel.source = message
+        channel.switches += 1
+        channel.taken += 1
+        return True
 
     def source(self, key: str) -> str | None:
         channel = self.channels.get(key)
@@ -200,9 +211,9 @@ class ChannelSources:
     def rate(self, key: str, now: float | None = None) -> float:
         """The current source's recent rate [Hz] (0 if none)."""
         channel = self.channels.get(key)
-        if channel is None or channel.source is None:
+        if channel is None:
             return 0.0
-        return channel.meters[channel.source].rate(self.t_last if now is None else now)
+        return self.meters[channel.source].rate(self.t_last if now is None else now)
 
     def report(self) -> dict[str, dict[str, Any]]:
         """Per channel: its source, the source's mean rate over the session [Hz], the
@@ -211,13 +222,11 @@ class ChannelSources:
         out: dict[str, dict[str, Any]] = {}
         for key in sorted(self.channels, key=_order):
             channel = self.channels[key]
-            if channel.source is None:
-                continue
-            rate = channel.meters[channel.source].mean_rate()
+            rate = self.meters[channel.source].mean_rate()
             entry: dict[str, Any] = {"message": channel.source, "rate_hz": round(rate, 2)}
             others = {
-                m: round(meter.mean_rate(), 2)
-                for m, meter in channel.meters.items()
+                m: round(self.meters[m].mean_rate(), 2)
+                for m in sorted(channel.heard)
                 if m != channel.source
             }
             if others:

@@ -336,7 +336,7 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
     def servo(f: tuple[Any, ...]) -> Found | None:
         if f[1] != 0:
             return None  # ports beyond the first (ArduPilot sends all 16 outputs on port 0)
-        outputs = tuple(float(v) for v in f[2:])
+        outputs = tuple(map(float, f[2:]))
         return Found(f[0] * 1e-6, servo_values(link, outputs), (), outputs)
 
     named = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}
@@ -446,8 +446,10 @@ def _sample(
             good.append((ch, fv))
         else:
             stats.invalid_values += 1
-    fine = tuple((k, float(v)) for k, v in aux if math.isfinite(v))
-    stats.invalid_values += len(aux) - len(fine)
+    fine = aux
+    if aux:
+        fine = tuple((k, float(v)) for k, v in aux if math.isfinite(v))
+        stats.invalid_values += len(aux) - len(fine)
     if not (good or fine or outputs):
         return None
     return Sample(system_id, kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind), fine, outputs)

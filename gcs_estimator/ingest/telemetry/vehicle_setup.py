@@ -122,12 +122,12 @@ class VehicleSetup:
                 values=self._in_range(self.servo_map.values(self.link, sample.outputs))
             )
         chosen = self.sources.choose(sample)
-        for note in self.sources.notes:
-            self.notes.append(f"system id {self.system_id}: {note}")
-        self.sources.notes.clear()
+        if self.sources.notes:
+            self.notes += [f"system id {self.system_id}: {n}" for n in self.sources.notes]
+            self.sources.notes.clear()
         if chosen is None or not chosen.values:
-            return None
-        return chosen._replace(aux=())
+            return None  # auxiliary values only: measured, not for the synchroniser
+        return chosen
 
     def _in_range(self, vals: list[tuple[Channel, float]]) -> tuple[tuple[Channel, float], ...]:
         """The values the vehicle's servo map gives that are finite and in range (others
