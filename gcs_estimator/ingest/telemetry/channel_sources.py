@@ -172,10 +172,14 @@ class ChannelSources:
             channel = self.channels[key] = _Channel(message, {message})
         if channel.source == message:
             channel.taken += 1
-            if channel.taken == MIN_SAMPLES:
-                self.notes.append(f"{key} from {message}")
+            if channel.taken == MIN_SAMPLES and len(channel.heard) > 1:
+                others = ", ".join(sorted(channel.heard - {message}))
+                self.notes.append(f"{key} from {message}, not {others}")
             return True
-        channel.heard.add(message)
+        if message not in channel.heard:
+            channel.heard.add(message)
+            if channel.taken >= MIN_SAMPLES:
+                self.notes.append(f"{key}: {message} heard too; {channel.source} kept for now")
         if channel.taken < MIN_SAMPLES:  # still choosing: a better-ranked source came up
             if _rank(key, message) < _rank(key, channel.source):
                 channel.source = message
