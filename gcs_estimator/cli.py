@@ -55,6 +55,7 @@ from gcs_estimator.ingest.sources import (
 from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
+from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
 from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
@@ -644,6 +645,9 @@ def _status_lines(
                 if n in names
             )
         lines.append(line)
+        rates = link.rates_status(sid)
+        if rates:
+            lines.append(f"    {rates}")
     more = len(estimators) - STATUS_VEHICLES
     if more > 0:
         lines.append(f"  ... and {more} more vehicle{'s' if more > 1 else ''}")
@@ -661,7 +665,9 @@ def _link_session(
     """A session over a MAVLink link, with its view and result sinks (and, live, its
     status line); recorder False: the link records nothing here (a link worker records
     `record`). With --filter-workers the vehicles' filters run in worker processes
-    (filter_worker.py), which write their results."""
+    (filter_worker.py), which write their results. Alpha from AOA_SSA is weighed as
+    [link] aoa_ssa says (vehicle_setup.weigh_alpha)."""
+    config = weigh_alpha(config)
     workers = getattr(args, "filter_workers", None)
     problem = config.link_problem()
     if problem:
@@ -690,6 +696,7 @@ def _link_session(
         linear_inputs=config.data.input_hold == "linear",
         ranges=ranges_of(config.data),
         rejected_path=record.with_name(record.stem + ".rejected.tlog") if record else None,
+        elevator_travel_deg=config.airframe.elevator_travel_deg,
     )
     view = _view_sink(config, args, session, link)
     if view is not None:
@@ -737,7 +744,7 @@ def cmd_listen(args: argparse.Namespace) -> int:
         where = _where(endpoint, sock)
         job = LiveJob(
             sock.fileno(),
-            LinkArgs(link.config, link.linear_inputs, link.ranges),
+            LinkArgs(link.config, link.linear_inputs, link.ranges, link.elevator_travel_deg),
             str(record),
             str(link.rejected_path) if link.rejected_path else None,
             args.idle_exit,

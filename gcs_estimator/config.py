@@ -537,6 +537,14 @@ class LinkConfig:
         doc="the only system ids estimated and sent to (empty: any); packets of others are "
         "counted only",
     )
+    aoa_ssa: str = setting(
+        "ahrs",
+        choices=("ahrs", "vane"),
+        doc='what AOA_SSA carries: "ahrs", ArduPilot\'s estimate from its velocity and wind '
+        "estimates, not a measurement (alpha weighed with a sigma of at least 3 deg); "
+        '"vane", a measured angle (alpha weighed with [filter] measurement_sigma; the '
+        "simulator's)",
+    )
     rate_hz: float = setting(
         50.0,
         ge=0,

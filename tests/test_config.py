@@ -228,7 +228,10 @@ def test_defaults_are_declared_once_and_match_the_complete_example() -> None:
     sigma = replace(full.filter.initial_sigma, coefficients=small.filter.initial_sigma.coefficients)
     assert small.filter == replace(full.filter, initial_sigma=sigma)
     assert scenario_of(small) == scenario_of(full)
-    assert small.link == full.link and small.view == full.view
+    # And its simulated vehicle's AOA_SSA is a vane's (ArduPlane's, the default, is its
+    # AHRS estimate: decision 0038).
+    assert small.link == replace(full.link, aoa_ssa="ahrs") and full.link.aoa_ssa == "vane"
+    assert small.view == full.view
 
 
 def test_shipped_configs_are_found_by_name_from_anywhere(

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.telemetry.channel_sources import rates_line
 from gcs_estimator.outputs.history_csv import HistoryCsv
 from gcs_estimator.outputs.report import write_results
 from gcs_estimator.outputs.table import terminal_text
@@ -109,15 +110,38 @@ class ResultsSink:
 
 
 def link_line(link: Mapping[str, Any]) -> str:
-    """The link's final counts (after the tables): what it received and lost, and the
-    other counts that are not zero (the JSON's `link` has them all, and each link's),
-    wrapped to TERMINAL_WIDTH columns."""
+    """The link's final counts (after the tables): each vehicle's channel sources and
+    rates (sources_lines), then what it received and lost, and the other counts that
+    are not zero (the JSON's `link` has them all, and each link's), wrapped to
+    TERMINAL_WIDTH columns."""
     shown = [
         f"{k} {v}"
         for k, v in link.items()
-        if k != "vehicles" and (k in LINK_ALWAYS or (isinstance(v, int | float) and v != 0))
+        if k not in ("vehicles", "sources")
+        and (k in LINK_ALWAYS or (isinstance(v, int | float) and v != 0))
     ]
-    return wrap("link: " + ", ".join(shown))
+    lines = sources_lines(link.get("sources") or {})
+    return "\n".join([*lines, wrap("link: " + ", ".join(shown))])
+
+
+def sources_lines(sources: Mapping[str, Any]) -> list[str]:
+    """Per vehicle: which message each channel came from at what mean rate ("!": too
+    slow, channel_sources.MIN_RATE_HZ), the warnings, how the servo outputs were read,
+    and what alpha is where it is ArduPilot's AHRS estimate."""
+    out: list[str] = []
+    for sid, entry in sources.items():
+        channels = entry.get("channels") or {}
+        line = rates_line(channels)
+        if line:
+            out.append(wrap(f"channels of system id {sid}: {line}"))
+        for key, ch in channels.items():
+            if "warning" in ch:
+                out.append(wrap(f"warning: {key} from {ch['message']}: {ch['warning']}"))
+        if "servos" in entry:
+            out.append(wrap(f"servos of system id {sid}: {entry['servos']}"))
+        if "alpha_note" in entry:
+            out.append(wrap(f"note: {entry['alpha_note']}"))
+    return out
 
 
 LINK_ALWAYS = ("received", "lost")

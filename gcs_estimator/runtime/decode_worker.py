@@ -61,6 +61,7 @@ class LinkArgs:
     config: LinkConfig
     linear_inputs: bool
     ranges: Ranges
+    elevator_travel_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -200,7 +201,13 @@ def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
     ("end", link stats, errors, progress). SIGINT and SIGTERM end it cleanly."""
     stop = Stop().install()
     log: Any = _Lines(send)
-    link = MavlinkLink(args.config, log=log, linear_inputs=args.linear_inputs, ranges=args.ranges)
+    link = MavlinkLink(
+        args.config,
+        log=log,
+        linear_inputs=args.linear_inputs,
+        ranges=args.ranges,
+        elevator_travel_deg=args.elevator_travel_deg,
+    )
     source = TlogSource(paths, link, log=log)
 
     def progress() -> Progress:
@@ -468,7 +475,7 @@ class WorkerTlogSource:
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         link = self.link
-        args = LinkArgs(link.config, link.linear_inputs, link.ranges)
+        args = LinkArgs(link.config, link.linear_inputs, link.ranges, link.elevator_travel_deg)
         worker = self._worker = DecodeWorker(self.paths, args, self.log)
         mirrored = None
         for frame in worker.frames(stop):

@@ -128,6 +128,7 @@ def _work(job: LiveJob, send: Any) -> None:
             linear_inputs=args.linear_inputs,
             ranges=args.ranges,
             rejected_path=Path(job.rejected) if job.rejected else None,
+            elevator_travel_deg=args.elevator_travel_deg,
         )
         source = UdpSource(sock, link, job.idle_exit_s, job.max_seconds, job.peer)
         send(("ready",))

@@ -66,7 +66,7 @@ def test_each_message_decodes_to_its_channels_in_si_units(vehicle: Codec) -> Non
     assert dict(imu.values) == pytest.approx({Channel.AX: 0.5, Channel.AZ: -9.7, Channel.Q: 0.1})
     att = _decode(vehicle.pack(mav.attitude_encode(2500, 0, 0.05, 0, 0, 0, 0)))
     assert isinstance(att, Sample) and att.t_vehicle_s == pytest.approx(2.5)
-    assert dict(att.values) == pytest.approx({Channel.THETA: 0.05})
+    assert dict(att.values) == pytest.approx({Channel.THETA: 0.05, Channel.Q: 0.0})
     aoa = _decode(vehicle.pack(mav.aoa_ssa_encode(2_500_000, 3.0, 0)))  # degrees on the wire
     assert isinstance(aoa, Sample) and dict(aoa.values) == pytest.approx(
         {Channel.ALPHA: math.radians(3.0)}
@@ -111,7 +111,7 @@ def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
     stats = DecodeStats()
     assert _decode(vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING)) == Heartbeat(False)
     assert _decode(Codec(255, 190).heartbeat(mavlink.MAV_TYPE_GCS)) == Heartbeat(
-        True, mavlink.MAV_TYPE_GCS, autopilot=False
+        True, mavlink.MAV_TYPE_GCS, autopilot=False, autopilot_kind=mavlink.MAV_AUTOPILOT_INVALID
     )
     ack = vehicle.command_ack(
         mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED, 255, 190
@@ -125,9 +125,12 @@ def test_link_events_and_what_carries_nothing(vehicle: Codec) -> None:
 def test_bad_values_are_counted_and_dropped_bad_packets_are_none(vehicle: Codec) -> None:
     mav = vehicle.mav
     stats = DecodeStats()
-    assert _decode(vehicle.pack(mav.vfr_hud_encode(math.nan, 0, 0, 0, 0, 0)), stats) == Ignored()
+    hud = vehicle.pack(mav.vfr_hud_encode(math.nan, 0, 0, 0, 0, math.inf))
+    assert _decode(hud, stats) == Ignored()  # neither airspeed nor climb
+    half = _decode(vehicle.pack(mav.vfr_hud_encode(math.nan, 0, 0, 0, 0, 1.0)), stats)
+    assert isinstance(half, Sample) and half.values == () and half.aux == (("vz", -1.0),)
     assert _decode(vehicle.pack(mav.aoa_ssa_encode(1, 500.0, 0)), stats) == Ignored()
-    assert stats.invalid_values == 2
+    assert stats.invalid_values == 4
     packet = bytearray(vehicle.pack(mav.attitude_encode(1, 0, 0.05, 0, 0, 0, 0)))
     packet[-1] ^= 0xFF  # CRC
     assert _decode(bytes(packet)) is None

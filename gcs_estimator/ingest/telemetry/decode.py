@@ -2,8 +2,11 @@
 
 Channels are model.channels.Channel: the observations 0..6 in the order of the model's
 h(x), then the elevator [rad], the throttle [0..1] or thrust [N] and, where asked for
-(link.density_from_pressure), the air density [kg/m^3]. Downstream code never
-sees a MAVLink object.
+(link.density_from_pressure), the air density [kg/m^3]. Several messages may carry one
+channel (q: HIGHRES_IMU, SCALED_IMU*, RAW_IMU, ATTITUDE): each is decoded; which one a
+vehicle's frames take is channel_sources.py's choice. Auxiliary signals (AUX_NAMES) ride
+along. Units on the wire: docs/telemetry.md. Downstream code never sees a MAVLink
+object.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any, NamedTuple
 from gcs_estimator.config import DataConfig, LinkConfig
 from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.ingest.telemetry.mavlink import (
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
     MAV_TYPE_FIXED_WING,
     MAV_TYPE_GCS,
@@ -71,6 +75,11 @@ class Sample(NamedTuple):
     values: tuple[tuple[Channel, float], ...]
     wrap_s: float | None = None
     """Where the time field wraps [s] (a 32-bit field), None for 64-bit ones."""
+    aux: tuple[tuple[str, float], ...] = ()
+    """Auxiliary values (AUX_NAMES), finite ones only; not used by the filters yet."""
+    outputs: tuple[float, ...] = ()
+    """A servo message's every output (PWM [us]; PX4: as its driver gives it): what the
+    vehicle's own servo parameters map to the elevator and throttle (params.ServoMap)."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +93,9 @@ class Heartbeat:
     """Whether the sending component is an autopilot (its HEARTBEAT autopilot is not
     MAV_AUTOPILOT_INVALID): the vehicle itself, not a gimbal, camera or companion
     computer on the same system id."""
+    autopilot_kind: int = MAV_AUTOPILOT_ARDUPILOTMEGA
+    """Which autopilot (MAV_AUTOPILOT: ArduPilot, PX4, ...): whose conventions its
+    messages and parameters follow."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +104,17 @@ class CommandAck:
     result: int
     target_system: int = 0
     """Whom it answers (0: everyone)."""
+
+
+@dataclass(frozen=True)
+class ParamValue:
+    """A PARAM_VALUE: one of the vehicle's parameters (the answer to a request, or a
+    ground station's fetch recorded in a tlog). The value as sent: PX4 sends integer
+    parameters bytewise in the float (params.param_number reads them)."""
+
+    name: str
+    value: float
+    param_type: int
 
 
 @dataclass(frozen=True)
@@ -106,7 +129,7 @@ class Ignored:
     """A valid message that carries nothing the estimator uses."""
 
 
-Event = Sample | Heartbeat | CommandAck | Unknown | Ignored
+Event = Sample | Heartbeat | CommandAck | ParamValue | Unknown | Ignored
 
 
 class Decoded(NamedTuple):
@@ -153,16 +176,18 @@ def decoded_message(
     kind = msg.get_type()
     event: Event
     plan = _plans(link).get(kind)
-    if plan is not None:
-        found = plan.make(tuple(getattr(msg, f) for f in plan.reader.fields))
-        sample = _sample(int(msg.get_srcSystem()), kind, found, t_recv_s, stats, ranges)
+    if plan is not None or kind == "ACTUATOR_OUTPUT_STATUS":
+        sample = decode_message(msg, t_recv_s, link, stats, ranges)
         event = Ignored() if sample is None else sample
     elif kind == "HEARTBEAT":
         event = Heartbeat(
             int(msg.type) == MAV_TYPE_GCS,
             int(msg.type),
             int(msg.autopilot) != MAV_AUTOPILOT_INVALID,
+            int(msg.autopilot),
         )
+    elif kind == "PARAM_VALUE":
+        event = ParamValue(_name(msg.param_id), float(msg.param_value), int(msg.param_type))
     elif kind == "COMMAND_ACK":
         event = CommandAck(int(msg.command), int(msg.result), int(msg.target_system))
     elif kind.startswith("UNKNOWN"):
@@ -206,15 +231,43 @@ WRAP_MS32_S = 2**32 * 1e-3
 """A 32-bit time_boot_ms wraps after 49.7 days [s]."""
 TIME_WRAP_S: dict[str, float] = {
     "SERVO_OUTPUT_RAW": WRAP_US32_S,
+    "RAW_IMU": WRAP_US32_S,
     "ATTITUDE": WRAP_MS32_S,
+    "SCALED_IMU": WRAP_MS32_S,
+    "SCALED_IMU2": WRAP_MS32_S,
+    "SCALED_IMU3": WRAP_MS32_S,
     "SCALED_PRESSURE": WRAP_MS32_S,
     "NAMED_VALUE_FLOAT": WRAP_MS32_S,
+    "GLOBAL_POSITION_INT": WRAP_MS32_S,
+    "LOCAL_POSITION_NED": WRAP_MS32_S,
 }
-"""Messages whose vehicle time is a 32-bit field (HIGHRES_IMU and AOA_SSA have 64 bits)."""
+"""Messages whose vehicle time is a 32-bit field (HIGHRES_IMU, AOA_SSA and
+ACTUATOR_OUTPUT_STATUS have 64 bits). RAW_IMU's field has 64 bits, but ArduPilot fills
+it from its 32-bit microsecond clock (AP_HAL::micros), so it wraps as that does."""
+
+G_MSS = 9.80665
+"""Standard gravity [m/s^2]: ArduPilot's GRAVITY_MSS, by which it scales milli-g."""
+MILLI_G = G_MSS * 1e-3
+"""One milli-g [m/s^2] (SCALED_IMU* and ArduPilot's RAW_IMU accelerations)."""
+
+AUX_NAMES: tuple[str, ...] = ("phi", "p", "r", "vz", "wind_dir", "wind_speed", "wind_vz")
+"""Auxiliary signals decoded beside the channels (not used by the filters yet):
+bank angle phi [rad], roll and yaw rates p, r [rad/s] (ATTITUDE), vertical speed vz
+[m/s, down positive] (LOCAL_POSITION_NED, GLOBAL_POSITION_INT, VFR_HUD.climb), the wind
+the vehicle estimates: the direction it blows from [rad], its speed and its vertical
+speed [m/s] (WIND)."""
+
+Aux = tuple[tuple[str, float], ...]
 
 
-Found = tuple[float | None, list[tuple[Channel, float]]] | None
-"""(vehicle time [s] or None, channel values) of a message, None if it carries none."""
+class Found(NamedTuple):
+    """What one message carries: its vehicle time [s] (None: untimed), channel values,
+    auxiliary values (AUX_NAMES) and, for a servo message, every output's raw value."""
+
+    t: float | None
+    values: list[tuple[Channel, float]]
+    aux: Aux = ()
+    outputs: tuple[float, ...] = ()
 
 
 class _Plan(NamedTuple):
@@ -222,63 +275,133 @@ class _Plan(NamedTuple):
     makes of them (the same for a pymavlink message and for mavlink.read_fields)."""
 
     reader: FieldReader
-    make: Callable[[tuple[Any, ...]], Found]
+    make: Callable[[tuple[Any, ...]], Found | None]
 
 
 def _name(raw: str | bytes) -> str:
     return (raw if isinstance(raw, str) else text(raw)).rstrip("\x00")
 
 
+SERVO_FIELDS: tuple[str, ...] = tuple(f"servo{i}_raw" for i in range(1, 17))
+
+
+def servo_values(link: LinkConfig, outputs: tuple[float, ...]) -> list[tuple[Channel, float]]:
+    """Elevator [rad] and throttle [0..1] of a servo message's outputs (PWM [us]) by the
+    [link] table's servo numbers and calibration (telemetry.pwm); the vehicle's own
+    SERVOn parameters, where known, replace these (params.ServoMap)."""
+    if len(outputs) < link.elevator_servo:
+        return []
+    vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(outputs[link.elevator_servo - 1])))]
+    if 0 < link.throttle_servo <= len(outputs):
+        vals.append((Channel.POWER, pwm.throttle(link, float(outputs[link.throttle_servo - 1]))))
+    return vals
+
+
+def _imu(scale_acc: float, scale_gyro: float, t_scale: float) -> Callable[[tuple[Any, ...]], Found]:
+    """An IMU message's (time, xacc, zacc, ygyro) in SI."""
+
+    def make(f: tuple[Any, ...]) -> Found:
+        return Found(
+            f[0] * t_scale,
+            [
+                (Channel.AX, f[1] * scale_acc),
+                (Channel.AZ, f[2] * scale_acc),
+                (Channel.Q, f[3] * scale_gyro),
+            ],
+        )
+
+    return make
+
+
+def _attitude(f: tuple[Any, ...]) -> Found:
+    t, roll, pitch, rollspeed, pitchspeed, yawspeed = f
+    return Found(
+        t * 1e-3,
+        [(Channel.THETA, pitch), (Channel.Q, pitchspeed)],
+        (("phi", roll), ("p", rollspeed), ("r", yawspeed)),
+    )
+
+
+def _wind(f: tuple[Any, ...]) -> Found:
+    return Found(
+        None, [], (("wind_dir", math.radians(f[0])), ("wind_speed", f[1]), ("wind_vz", f[2]))
+    )
+
+
 @functools.lru_cache(maxsize=16)
 def _plans(link: LinkConfig) -> dict[str, _Plan]:
     """The messages that carry channels, each with what reads them (per link: servo
     numbers, value names and whether pressure gives the density are the link's)."""
-    servos: tuple[str, ...] = (f"servo{link.elevator_servo}_raw",)
-    if link.throttle_servo > 0:
-        servos += (f"servo{link.throttle_servo}_raw",)
 
-    def servo(f: tuple[Any, ...]) -> Found:
-        vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(f[1])))]
-        if len(f) > 2:
-            vals.append((Channel.POWER, pwm.throttle(link, float(f[2]))))
-        return f[0] * 1e-6, vals
+    def servo(f: tuple[Any, ...]) -> Found | None:
+        if f[1] != 0:
+            return None  # ports beyond the first (ArduPilot sends all 16 outputs on port 0)
+        outputs = tuple(map(float, f[2:]))
+        return Found(f[0] * 1e-6, servo_values(link, outputs), (), outputs)
 
     named = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}
 
-    def named_value(f: tuple[Any, ...]) -> Found:
+    def named_value(f: tuple[Any, ...]) -> Found | None:
         channel = named.get(_name(f[2]))
-        return None if channel is None else (f[0] * 1e-3, [(channel, f[1])])
+        return None if channel is None else Found(f[0] * 1e-3, [(channel, f[1])])
 
-    def pressure(f: tuple[Any, ...]) -> Found:
+    def pressure(f: tuple[Any, ...]) -> Found | None:
         if not link.density_from_pressure:
             return None
         p = 100.0 * float(f[1])
         rho = float(atmosphere.density(p)) if 0.0 < p < math.inf else math.nan  # counted
-        return f[0] * 1e-3, [(Channel.DENSITY, rho)]
+        return Found(f[0] * 1e-3, [(Channel.DENSITY, rho)])
 
-    def plan(name: str, fields: tuple[str, ...], make: Callable[[tuple[Any, ...]], Found]) -> _Plan:
+    def plan(
+        name: str, fields: tuple[str, ...], make: Callable[[tuple[Any, ...]], Found | None]
+    ) -> _Plan:
         return _Plan(FieldReader(name, fields), make)
 
+    imu = ("xacc", "zacc", "ygyro")
     plans = (
+        plan("HIGHRES_IMU", ("time_usec", *imu), _imu(1.0, 1.0, 1e-6)),
+        plan("RAW_IMU", ("time_usec", *imu), _imu(MILLI_G, 1e-3, 1e-6)),
+        plan("SCALED_IMU", ("time_boot_ms", *imu), _imu(MILLI_G, 1e-3, 1e-3)),
+        plan("SCALED_IMU2", ("time_boot_ms", *imu), _imu(MILLI_G, 1e-3, 1e-3)),
+        plan("SCALED_IMU3", ("time_boot_ms", *imu), _imu(MILLI_G, 1e-3, 1e-3)),
         plan(
-            "HIGHRES_IMU",
-            ("time_usec", "xacc", "zacc", "ygyro"),
-            lambda f: (f[0] * 1e-6, [(Channel.AX, f[1]), (Channel.AZ, f[2]), (Channel.Q, f[3])]),
-        ),
-        plan(
-            "ATTITUDE", ("time_boot_ms", "pitch"), lambda f: (f[0] * 1e-3, [(Channel.THETA, f[1])])
+            "ATTITUDE",
+            ("time_boot_ms", "roll", "pitch", "rollspeed", "pitchspeed", "yawspeed"),
+            _attitude,
         ),
         plan(
             "AOA_SSA",
             ("time_usec", "AOA"),
-            lambda f: (f[0] * 1e-6, [(Channel.ALPHA, math.radians(f[1]))]),
+            lambda f: Found(f[0] * 1e-6, [(Channel.ALPHA, math.radians(f[1]))]),
         ),
-        plan("VFR_HUD", ("airspeed",), lambda f: (None, [(Channel.V, f[0])])),
-        plan("SERVO_OUTPUT_RAW", ("time_usec", *servos), servo),
+        plan(
+            "VFR_HUD",
+            ("airspeed", "climb"),
+            lambda f: Found(None, [(Channel.V, f[0])], (("vz", -f[1]),)),
+        ),
+        plan("SERVO_OUTPUT_RAW", ("time_usec", "port", *SERVO_FIELDS), servo),
         plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure),
         plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value),
+        plan(
+            "GLOBAL_POSITION_INT",
+            ("time_boot_ms", "vz"),
+            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1] * 1e-2),)),
+        ),
+        plan(
+            "LOCAL_POSITION_NED",
+            ("time_boot_ms", "vz"),
+            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1]),)),
+        ),
+        plan("WIND", ("direction", "speed", "speed_z"), _wind),
     )
     return {p.reader.msgname: p for p in plans}
+
+
+def actuator_output_status(msg: MAVLinkMessage, link: LinkConfig) -> Found:
+    """PX4's ACTUATOR_OUTPUT_STATUS: its outputs (PWM [us] as PX4's output drivers give
+    them, 0 where unused) read as SERVO_OUTPUT_RAW's."""
+    outputs = tuple(float(v) for v in msg.actuator[:16])
+    return Found(float(msg.time_usec) * 1e-6, servo_values(link, outputs), (), outputs)
 
 
 def decode_message(
@@ -291,17 +414,21 @@ def decode_message(
     """The sample a message carries, or None if it carries none."""
     kind = msg.get_type()
     plan = _plans(link).get(kind)
-    if plan is None:
+    found: Found | None
+    if plan is not None:
+        found = plan.make(tuple(getattr(msg, f) for f in plan.reader.fields))
+    elif kind == "ACTUATOR_OUTPUT_STATUS":
+        found = actuator_output_status(msg, link)
+    else:
         stats.ignored_messages += 1
         return None
-    found = plan.make(tuple(getattr(msg, f) for f in plan.reader.fields))
     return _sample(int(msg.get_srcSystem()), kind, found, t_recv_s, stats, ranges)
 
 
 def _sample(
     system_id: int,
     kind: str,
-    found: Found,
+    found: Found | None,
     t_recv_s: float,
     stats: DecodeStats,
     ranges: Ranges,
@@ -310,7 +437,7 @@ def _sample(
     if found is None:
         stats.ignored_messages += 1
         return None
-    t, vals = found
+    t, vals, aux, outputs = found
     good: list[tuple[Channel, float]] = []
     for ch, v in vals:
         lo, hi = ranges[ch]
@@ -319,6 +446,10 @@ def _sample(
             good.append((ch, fv))
         else:
             stats.invalid_values += 1
-    if not good:
+    fine = aux
+    if aux:
+        fine = tuple((k, float(v)) for k, v in aux if math.isfinite(v))
+        stats.invalid_values += len(aux) - len(fine)
+    if not (good or fine or outputs):
         return None
-    return Sample(system_id, kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind))
+    return Sample(system_id, kind, t, t_recv_s, tuple(good), TIME_WRAP_S.get(kind), fine, outputs)

@@ -25,6 +25,7 @@ from gcs_estimator.ingest.telemetry.decode import (
     Decoded,
     DecodeStats,
     Heartbeat,
+    ParamValue,
     Ranges,
     Sample,
     SampleReader,
@@ -33,6 +34,7 @@ from gcs_estimator.ingest.telemetry.decode import (
 )
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
 from gcs_estimator.ingest.telemetry.signing import SigningGate, load_key, sign_outgoing
+from gcs_estimator.ingest.telemetry.vehicle_setup import VehicleSetup
 from gcs_estimator.ingest.telemetry.vehicles import Address, VehicleLink, Vehicles, link_name
 
 COUNTER_TIME_WRAP_S = 86_400.0
@@ -54,8 +56,14 @@ class MavlinkLink:
         linear_inputs: bool = True,
         ranges: Ranges = PLAUSIBLE,
         rejected_path: Path | None = None,
+        elevator_travel_deg: float = 0.0,
     ) -> None:
         self.config = config
+        self.elevator_travel_deg = elevator_travel_deg
+        """The airframe's elevator travel at full output [deg] (0: not given): what a
+        vehicle's own servo parameters need to give the elevator in radians."""
+        self.setups: dict[int, VehicleSetup] = {}
+        """Per system id: its autopilot, parameters, channel sources and requests."""
         self.recorder = recorder
         self.rejected_path = rejected_path
         """With signing on: where packets that fail the signature check are recorded
@@ -102,8 +110,37 @@ class MavlinkLink:
         return self.fleet.refused_vehicles
 
     def ground_messages(self, codec: Codec, now: float) -> Iterator[tuple[bytes, Address]]:
-        """What the ground station sends each second (Vehicles.ground_messages)."""
-        return self.fleet.ground_messages(codec, now)
+        """What the ground station sends each second: the fleet's heartbeats and rate
+        requests (Vehicles.ground_messages), then each vehicle's further requests
+        (VehicleSetup.requests: its autopilot's own messages, stream groups, parameters)."""
+        yield from self.fleet.ground_messages(codec, now)
+        for v in list(self.vehicles.values()):
+            if v.address is None:
+                continue
+            setup = self.setup(v.system_id)
+            fleet_asked = v.last_rate_request == now
+            for packet in setup.requests(codec, v.acked, fleet_asked, now):
+                yield packet, v.address
+            self._setup_notes(setup)
+
+    def setup(self, system_id: int) -> VehicleSetup:
+        s = self.setups.get(system_id)
+        if s is None:
+            s = self.setups[system_id] = VehicleSetup(
+                system_id, self.config, self.elevator_travel_deg, self.ranges
+            )
+        return s
+
+    def rates_status(self, system_id: int) -> str:
+        """The status line's account of a vehicle's channels: each one's recent rate and
+        source ("!": too slow to identify anything from), "" before any."""
+        setup = self.setups.get(system_id)
+        return "" if setup is None else setup.rates_status()
+
+    def _setup_notes(self, setup: VehicleSetup) -> None:
+        for note in setup.notes:
+            print(f"note: {note}", file=self.log)
+        setup.notes.clear()
 
     def datagram(self, data: bytes, t_recv_s: float, address: Address | None = None) -> list[Frame]:
         """Frames completed by one received datagram (one or more packets, found by
@@ -224,20 +261,51 @@ class MavlinkLink:
         out: list[Frame] = []
         if isinstance(event, Sample):
             if sysid != mavlink.GCS_SYSTEM_ID:
-                v = self.fleet.seen(sysid, address, t_recv_s)
-                if v is not None:
-                    out = self.fleet.sample(v, event, compid)
+                out = self._sample(sysid, compid, event, address, t_recv_s)
         elif isinstance(event, Unknown):
             self.health.counts(name).unknown += 1
             self.report_once("unknown", f"message unknown to the dialect ({event.name}): skipped")
-        elif isinstance(event, Heartbeat):
-            if not event.ground_station:
-                self.fleet.heartbeat(sysid, compid, event, address, t_recv_s)
+        elif isinstance(event, Heartbeat | ParamValue):
+            self._vehicle_event(sysid, compid, event, address, t_recv_s)
         elif isinstance(event, CommandAck):
             self.fleet.ack(sysid, compid, event)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
         return out
+
+    def _vehicle_event(
+        self,
+        sysid: int,
+        compid: int,
+        event: Heartbeat | ParamValue,
+        address: Address | None,
+        t_recv_s: float,
+    ) -> None:
+        """A vehicle's HEARTBEAT (its presence, and which autopilot it is) or one of its
+        parameters."""
+        if isinstance(event, Heartbeat):
+            if not event.ground_station:
+                self.fleet.heartbeat(sysid, compid, event, address, t_recv_s)
+                if event.autopilot and sysid in self.vehicles:
+                    self.setup(sysid).autopilot(event.autopilot_kind)
+        elif sysid != mavlink.GCS_SYSTEM_ID and self.fleet.seen(sysid, address, t_recv_s):
+            setup = self.setup(sysid)
+            setup.param(event)
+            self._setup_notes(setup)
+
+    def _sample(
+        self, sysid: int, compid: int, event: Sample, address: Address | None, t_recv_s: float
+    ) -> list[Frame]:
+        """A vehicle's sample, as its parameters read it and with only the channels it is
+        the chosen source of (VehicleSetup.prepare), into its synchroniser."""
+        v = self.fleet.seen(sysid, address, t_recv_s)
+        if v is None:
+            return []
+        setup = self.setup(sysid)
+        sample = setup.prepare(event)
+        if setup.notes:
+            self._setup_notes(setup)
+        return [] if sample is None else self.fleet.sample(v, sample, compid)
 
     def flush(self) -> Iterator[Frame]:
         """End of stream: whatever is open."""
@@ -264,9 +332,12 @@ class MavlinkLink:
 
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = dict(self.health.as_dict())
-        out["invalid_values"] = self.decode_stats.invalid_values
+        out["invalid_values"] = self.decode_stats.invalid_values + sum(
+            s.invalid_values for s in self.setups.values()
+        )
         out["ignored_messages"] = self.decode_stats.ignored_messages
         if self.refused_vehicles:
             out["refused_vehicles"] = {str(k): n for k, n in self.refused_vehicles.items()}
         out["vehicles"] = {str(v.system_id): v.sync.stats.as_dict() for v in self.vehicles.values()}
+        out["sources"] = {str(sid): s.report() for sid, s in self.setups.items()}
         return out

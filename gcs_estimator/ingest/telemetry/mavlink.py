@@ -41,20 +41,14 @@ RATE_REQUEST_COMPONENT = 1
 """The component the ground station's rate requests go to (MAV_COMP_ID_AUTOPILOT1, where
 autopilots answer them); only its acknowledgement counts."""
 
-MSG_ID = {
-    "HEARTBEAT": dialect.MAVLINK_MSG_ID_HEARTBEAT,
-    "SYSTEM_TIME": dialect.MAVLINK_MSG_ID_SYSTEM_TIME,
-    "ATTITUDE": dialect.MAVLINK_MSG_ID_ATTITUDE,
-    "HIGHRES_IMU": dialect.MAVLINK_MSG_ID_HIGHRES_IMU,
-    "VFR_HUD": dialect.MAVLINK_MSG_ID_VFR_HUD,
-    "SERVO_OUTPUT_RAW": dialect.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
-    "AOA_SSA": dialect.MAVLINK_MSG_ID_AOA_SSA,
-    "NAMED_VALUE_FLOAT": dialect.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT,
-}
+MSG_ID: dict[str, int] = {t.msgname: int(i) for i, t in dialect.mavlink_map.items()}
+"""Every message id of the dialect by name."""
 MESSAGE_NAME = {v: k for k, v in MSG_ID.items()}
 MAV_TYPE_FIXED_WING = dialect.MAV_TYPE_FIXED_WING
 MAV_TYPE_GCS = dialect.MAV_TYPE_GCS
 MAV_AUTOPILOT_INVALID = dialect.MAV_AUTOPILOT_INVALID
+MAV_AUTOPILOT_ARDUPILOTMEGA = dialect.MAV_AUTOPILOT_ARDUPILOTMEGA
+MAV_AUTOPILOT_PX4 = dialect.MAV_AUTOPILOT_PX4
 """The HEARTBEAT autopilot of a component that is not one (a gimbal, a camera, a
 companion computer, a ground station)."""
 MAV_TYPE_GENERIC = dialect.MAV_TYPE_GENERIC
@@ -76,6 +70,7 @@ MAV_DATA_STREAM_RC_CHANNELS = dialect.MAV_DATA_STREAM_RC_CHANNELS
 MAV_DATA_STREAM_EXTRA1 = dialect.MAV_DATA_STREAM_EXTRA1
 MAV_DATA_STREAM_EXTRA2 = dialect.MAV_DATA_STREAM_EXTRA2
 MAV_DATA_STREAM_EXTRA3 = dialect.MAV_DATA_STREAM_EXTRA3
+MAV_DATA_STREAM_POSITION = dialect.MAV_DATA_STREAM_POSITION
 
 
 def new_codec(system_id: int, component_id: int) -> Any:
@@ -133,6 +128,28 @@ class Codec:
             0,
         )
         return self.pack(msg)
+
+    def param_request_read(self, target_system: int, name: str) -> bytes:
+        """PARAM_REQUEST_READ of one parameter by name (the autopilot answers PARAM_VALUE)."""
+        return self.pack(
+            self.mav.param_request_read_encode(
+                target_system, RATE_REQUEST_COMPONENT, name.encode("ascii"), -1
+            )
+        )
+
+    def param_request_list(self, target_system: int) -> bytes:
+        """PARAM_REQUEST_LIST: every parameter (PARAM_VALUE each)."""
+        return self.pack(self.mav.param_request_list_encode(target_system, RATE_REQUEST_COMPONENT))
+
+    def request_data_stream(self, target_system: int, stream: int, rate_hz: float) -> bytes:
+        """REQUEST_DATA_STREAM: a stream group at rate_hz (ArduPilot sets its SRn_ rate of
+        the port it arrives on; whole hertz, at least 1)."""
+        rate = max(1, min(65535, round(rate_hz)))
+        return self.pack(
+            self.mav.request_data_stream_encode(
+                target_system, RATE_REQUEST_COMPONENT, stream, rate, 1
+            )
+        )
 
     def command_ack(
         self, command: int, result: int, target_system: int = 0, target_component: int = 0
@@ -261,6 +278,14 @@ FAST_MESSAGES = (
     "COMMAND_ACK",
     "ATTITUDE",
     "HIGHRES_IMU",
+    "RAW_IMU",
+    "SCALED_IMU",
+    "SCALED_IMU2",
+    "SCALED_IMU3",
+    "GLOBAL_POSITION_INT",
+    "LOCAL_POSITION_NED",
+    "WIND",
+    "PARAM_VALUE",
     "VFR_HUD",
     "SERVO_OUTPUT_RAW",
     "AOA_SSA",
