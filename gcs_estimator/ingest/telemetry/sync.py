@@ -15,7 +15,9 @@ the ground station, or a replay at any speed, makes the same frames.
 
 The vehicle clock itself is checked:
 - 32-bit time fields (SERVO_OUTPUT_RAW.time_usec wraps after 71.6 minutes, every
-  time_boot_ms after 49.7 days) are unwrapped against the vehicle's other clocks;
+  time_boot_ms after 49.7 days) are unwrapped per message against the vehicle's other
+  clocks; one that wrapped before its first packet arrived (a vehicle up for more than
+  71.6 minutes) is aligned to them by whole wraps;
 - a sample more than JUMP_S ahead of the newest time, or more than CLOCK_RESET_S behind,
   is held until CONFIRM_SAMPLES samples agree on the new time base (a reboot, or a real
   gap in the data); a single packet with an absurd time never moves the frames. Samples
@@ -47,6 +49,12 @@ JUMP_S = 1.0
 """A vehicle time this far ahead of the newest is a gap in the data once confirmed."""
 CONFIRM_SAMPLES = 3
 """Timed samples that must agree on a new time base before it is taken."""
+ANCHOR_WRAP_S = 86_400.0
+"""Samples of a clock that wraps sooner than this wait for one of a clock that does not
+(time_boot_ms, a 64-bit time_usec) to align them by whole wraps (VehicleClock) ..."""
+ANCHOR_WAIT_SAMPLES = 200
+"""... unless this many arrive first: the vehicle has no other clock, and they are taken
+as they are."""
 WRAP_MATCH_S = 10.0
 """A 32-bit time that went back is a wrap when, unwrapped, it lies this close to the
 vehicle's newest time, or when it went from this close below the wrap to this close to 0."""
@@ -88,7 +96,13 @@ class SyncStats:
 
 @dataclass
 class VehicleClock:
-    """Unwraps the vehicle's 32-bit time fields, per message (each has its own field)."""
+    """Unwraps the vehicle's 32-bit time fields, per message (each has its own field).
+
+    A field that wraps within hours (SERVO_OUTPUT_RAW.time_usec, every 71.6 min) may have
+    wrapped before its first packet arrived: it is still the vehicle's time since boot,
+    so its first sample is aligned by whole wraps to the newest time of the vehicle's
+    other clocks (`newest`). Synchronizer.add holds such samples until a clock that does
+    not wrap within days has given that time (ANCHOR_WRAP_S)."""
 
     _last: dict[str, float] = field(default_factory=dict)
     _offset: dict[str, float] = field(default_factory=dict)
@@ -98,7 +112,14 @@ class VehicleClock:
         if wrap_s is None:
             return t
         last = self._last.get(message)
-        offset = self._offset.get(message, 0.0)
+        if last is None:
+            offset = 0.0
+            if math.isfinite(newest):
+                offset = max(0, round((newest - t) / wrap_s)) * wrap_s
+                self.wraps += round(offset / wrap_s)
+            self._offset[message] = offset
+        else:
+            offset = self._offset[message]
         if last is not None and t < last - wrap_s / 2:
             near_newest = math.isfinite(newest) and abs(t + offset + wrap_s - newest) < WRAP_MATCH_S
             at_edge = last > wrap_s - WRAP_MATCH_S and t < WRAP_MATCH_S
@@ -201,6 +222,10 @@ class Synchronizer:
     _period: float = math.inf
     """Median spacing of recent frames (inf until known)."""
     _reset_pending: bool = False
+    _anchored: bool = False
+    """Whether a clock that does not wrap within days has given the vehicle's time."""
+    _unanchored: list[Sample] = field(default_factory=list)
+    """Samples of clocks that wrap within hours, held until then (_anchor)."""
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it lets go (in time order)."""
@@ -208,6 +233,29 @@ class Synchronizer:
             if self._pending:
                 self._pending.append((None, sample))
                 return []
+            return self._add_untimed(sample)
+        if self._anchored:
+            return self._timed(sample)
+        return self._anchor(sample)
+
+    def _anchor(self, sample: Sample) -> list[Frame]:
+        """Before the first sample of a clock that does not wrap within days: samples of
+        one that does wait for it (VehicleClock aligns them to it), unless
+        ANCHOR_WAIT_SAMPLES say the vehicle has no such clock."""
+        short = (sample.wrap_s or math.inf) < ANCHOR_WRAP_S
+        if short:
+            self._unanchored.append(sample)
+            if len(self._unanchored) < ANCHOR_WAIT_SAMPLES:
+                return []
+        self._anchored = True
+        held, self._unanchored = self._unanchored, []
+        out = [] if short else self._timed(sample)
+        for s in held:
+            out += self._timed(s)
+        return out
+
+    def _timed(self, sample: Sample) -> list[Frame]:
+        if sample.t_vehicle_s is None:
             return self._add_untimed(sample)
         t = self.clock.unwrap(sample.message, sample.t_vehicle_s, sample.wrap_s, self._newest)
         self.stats.clock_wraps = self.clock.wraps
@@ -340,7 +388,11 @@ class Synchronizer:
 
     def finish(self) -> list[Frame]:
         """End of stream: what is open goes; samples still unconfirmed are dropped."""
-        out = self._drop_pending()
+        held, self._unanchored = self._unanchored, []
+        out: list[Frame] = []
+        for s in held:
+            out += self._timed(s)
+        out += self._drop_pending()
         return out + self.flush()
 
     def _emit(self, op: _Open) -> list[Frame]:
