@@ -165,8 +165,9 @@ class _Stream:
 class _Copies:
     """One (system, component)'s recent packets, to recognise copies."""
 
-    seen: OrderedDict[bytes, int] = field(default_factory=OrderedDict)
-    """Recent packets -> the position they were taken at."""
+    seen: OrderedDict[bytes, tuple[str, int, int]] = field(default_factory=OrderedDict)
+    """Recent packets -> the link they came by, the position they were taken at, and that
+    link's stream index then."""
     position: int = 0
     """Packets sent up to the newest, by its sequence numbers' forward steps of less than
     half a wrap (others count none): packets 256 or more apart may repeat the same bytes
@@ -220,7 +221,7 @@ class LinkHealth:
         t_vehicle_s: the vehicle time it carries, if its clock does not wrap within days;
         kind: its message type (whose own clock that time is)."""
         counts = self.counts(link)
-        if self._is_copy((system_id, component_id), seq, packet, t_vehicle_s):
+        if self._is_copy((system_id, component_id), seq, packet, t_vehicle_s, link):
             counts.duplicates += 1
             return False
         key = (link, system_id, component_id)
@@ -240,20 +241,29 @@ class LinkHealth:
         counts.received += 1
         return True
 
-    def _is_copy(self, key: tuple[int, int], seq: int, packet: bytes, t: float | None) -> bool:
+    def _is_copy(
+        self, key: tuple[int, int], seq: int, packet: bytes, t: float | None, link: str
+    ) -> bool:
+        """Whether the packet is a copy of one taken less than a wrap of its sequence
+        before (on its own link by that link's count of packets sent, losses and whole
+        wraps included; from another link by _Copies.position), or carries a vehicle
+        time not after the newest taken."""
         c = self._copies.get(key)
         if c is None:
             c = self._copies[key] = _Copies()
         seen = c.seen
         step = (seq - c.last_seq) & 0xFF
         position = c.position + (step if 0 < step < 128 else 0)
+        stream = self._streams.get((link, *key))
+        index = -1 if stream is None else stream.index
         at = seen.get(packet)
         if at is not None:
-            if position - at < 256 or (t is not None and t <= c.newest):
+            near = index - at[2] < 255 if at[0] == link else position - at[1] < 256
+            if near or (t is not None and t <= c.newest):
                 return True
             seen.move_to_end(packet)  # a new packet goes in at the end anyway
         c.position, c.last_seq = position, seq
-        seen[packet] = c.position
+        seen[packet] = (link, position, index)
         if len(seen) > COPIES_KEPT:
             seen.popitem(last=False)
         if t is not None and t > c.newest:
@@ -344,7 +354,9 @@ def _believed(s: _Stream, t: float | None) -> float | None:
     once CONFIRM_PACKETS in a row agree (a gap in the data); until then the packet is
     judged by its sequence number alone (None), so a single packet with an absurd time
     moves nothing."""
-    if t is None or math.isnan(s.newest_t) or t <= s.newest_t + STALE_S:
+    if t is None:
+        return None  # untimed packets between neither confirm nor deny
+    if math.isnan(s.newest_t) or t <= s.newest_t + STALE_S:
         s.ahead = 0
         return t
     if s.ahead and abs(t - s.ahead_t) <= STALE_S:
