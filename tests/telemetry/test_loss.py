@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import random
+from typing import Any
 
 import pytest
 
@@ -39,34 +40,33 @@ ATTITUDE, SCALED_PRESSURE and SERVO_OUTPUT_RAW carry a time the estimator reads,
 at 2.5 Hz (as ALFA's ArduPlane 3.9 tlog streams)."""
 
 
-def _message(m: object, kind: str, k: int) -> object:  # noqa: C901 - one line per type
+def _message(mav: Any, kind: str, k: int) -> Any:  # noqa: C901 - one line per type
     """The message of a type at tick k (its fields vary with k)."""
     t_ms = 600_000 + 10 * k
-    mav: object = m
     if kind == "mission_current":
-        return mav.mission_current_encode(k % 7)  # type: ignore[attr-defined]
+        return mav.mission_current_encode(k % 7)
     if kind == "meminfo":
-        return mav.meminfo_encode(k % 65536, 4000 + k % 100)  # type: ignore[attr-defined]
+        return mav.meminfo_encode(k % 65536, 4000 + k % 100)
     if kind == "power_status":
-        return mav.power_status_encode(5000 + k % 50, 5100, 0)  # type: ignore[attr-defined]
+        return mav.power_status_encode(5000 + k % 50, 5100, 0)
     if kind == "sys_status":
-        return mav.sys_status_encode(0, 0, 0, 500, 12000 + k % 90, 100, 80, 0, 0, 0, 0, 0, 0)  # type: ignore[attr-defined]
+        return mav.sys_status_encode(0, 0, 0, 500, 12000 + k % 90, 100, 80, 0, 0, 0, 0, 0, 0)
     if kind == "nav":
-        return mav.nav_controller_output_encode(0.1, 0.2, k % 360, 90, 100, 1.0, 0.5, 0.1)  # type: ignore[attr-defined]
+        return mav.nav_controller_output_encode(0.1, 0.2, k % 360, 90, 100, 1.0, 0.5, 0.1)
     if kind == "rc":
-        return mav.rc_channels_raw_encode(t_ms, 0, *([1500 + k % 7] * 8), 255)  # type: ignore[attr-defined]
+        return mav.rc_channels_raw_encode(t_ms, 0, *([1500 + k % 7] * 8), 255)
     if kind == "raw_imu":
-        return mav.raw_imu_encode(t_ms * 1000, 1, 2, -1000, k % 9, 0, 0, 0, 0, 0)  # type: ignore[attr-defined]
+        return mav.raw_imu_encode(t_ms * 1000, 1, 2, -1000, k % 9, 0, 0, 0, 0, 0)
     if kind == "scaled_pressure":
-        return mav.scaled_pressure_encode(t_ms, 1000.0 + (k % 10) / 10, 0.1, 2000)  # type: ignore[attr-defined]
+        return mav.scaled_pressure_encode(t_ms, 1000.0 + (k % 10) / 10, 0.1, 2000)
     if kind == "gps":
-        return mav.gps_raw_int_encode(t_ms * 1000, 3, k, 0, 100, 100, 100, 2000, 0, 9)  # type: ignore[attr-defined]
+        return mav.gps_raw_int_encode(t_ms * 1000, 3, k, 0, 100, 100, 100, 2000, 0, 9)
     if kind == "attitude":
-        return mav.attitude_encode(t_ms, 0.0, 0.05 + (k % 40) * 1e-3, 0.0, 0.0, 0.01, 0.0)  # type: ignore[attr-defined]
+        return mav.attitude_encode(t_ms, 0.0, 0.05 + (k % 40) * 1e-3, 0.0, 0.0, 0.01, 0.0)
     if kind == "vfr_hud":
-        return mav.vfr_hud_encode(20.0 + (k % 10) / 10, 20.0, 0, 50, 100.0, 0.0)  # type: ignore[attr-defined]
+        return mav.vfr_hud_encode(20.0 + (k % 10) / 10, 20.0, 0, 50, 100.0, 0.0)
     if kind == "servo":
-        return mav.servo_output_raw_encode(t_ms * 1000, 0, *([1500 + k % 11] * 8))  # type: ignore[attr-defined]
+        return mav.servo_output_raw_encode(t_ms * 1000, 0, *([1500 + k % 11] * 8))
     raise AssertionError(kind)
 
 
@@ -82,7 +82,7 @@ def arduplane_like(seconds: float) -> list[tuple[float, bytes]]:
                 if kind == "heartbeat":
                     out.append((t, vehicle.heartbeat(mavlink.MAV_TYPE_FIXED_WING)))
                 else:
-                    out.append((t, vehicle.pack(_message(vehicle.mav, kind, k))))  # type: ignore[arg-type]
+                    out.append((t, vehicle.pack(_message(vehicle.mav, kind, k))))
         if k % 50 == 0:
             gcs.mav.seq = (gcs.mav.seq + k % 3) % 256  # what it sent to others
             out.append((t + 0.001, gcs.heartbeat(mavlink.MAV_TYPE_GCS)))

@@ -202,7 +202,9 @@ def test_a_32_bit_clock_that_wrapped_before_the_first_sample_is_aligned_by_whole
         frames_by_uptime[uptime] = frames
     young, old = frames_by_uptime[10.0], frames_by_uptime[7200.0]
     assert len(old) == len(young) == 50
-    np.testing.assert_allclose([f.t_vehicle_s - 7190.0 for f in old], [f.t_vehicle_s for f in young])
+    np.testing.assert_allclose(
+        [f.t_vehicle_s - 7190.0 for f in old], [f.t_vehicle_s for f in young]
+    )
     np.testing.assert_allclose([f.inputs for f in old], [f.inputs for f in young], atol=1e-12)
 
 
