@@ -136,6 +136,33 @@ class VehicleClock:
 
 
 @dataclass
+class ClockAnchor:
+    """Before the first sample of a clock that does not wrap within days, samples of one
+    that does wait for it (VehicleClock aligns them to it), unless ANCHOR_WAIT_SAMPLES
+    say the vehicle has no such clock."""
+
+    anchored: bool = False
+    """Whether a clock that does not wrap within days has given the vehicle's time."""
+    held: list[Sample] = field(default_factory=list)
+
+    def take(self, sample: Sample) -> list[Sample]:
+        """The timed samples to process now, in order."""
+        if self.anchored:
+            return [sample]
+        if (sample.wrap_s or math.inf) < ANCHOR_WRAP_S:
+            self.held.append(sample)
+            if len(self.held) < ANCHOR_WAIT_SAMPLES:
+                return []
+            return self.release()
+        return [sample, *self.release()]
+
+    def release(self) -> list[Sample]:
+        self.anchored = True
+        held, self.held = self.held, []
+        return held
+
+
+@dataclass
 class InputTrack:
     """One input's samples by vehicle time (kept from just before the oldest open frame)."""
 
@@ -204,6 +231,7 @@ class Synchronizer:
     linear_inputs: bool = True
     stats: SyncStats = field(default_factory=SyncStats)
     clock: VehicleClock = field(default_factory=VehicleClock)
+    anchor: ClockAnchor = field(default_factory=ClockAnchor)
     _open: list[_Open] = field(default_factory=list)
     """Open frames in time order."""
     _newest: float = -math.inf
@@ -222,10 +250,6 @@ class Synchronizer:
     _period: float = math.inf
     """Median spacing of recent frames (inf until known)."""
     _reset_pending: bool = False
-    _anchored: bool = False
-    """Whether a clock that does not wrap within days has given the vehicle's time."""
-    _unanchored: list[Sample] = field(default_factory=list)
-    """Samples of clocks that wrap within hours, held until then (_anchor)."""
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it lets go (in time order)."""
@@ -234,39 +258,16 @@ class Synchronizer:
                 self._pending.append((None, sample))
                 return []
             return self._add_untimed(sample)
-        if self._anchored:
-            return self._timed(sample)
-        return self._anchor(sample)
-
-    def _anchor(self, sample: Sample) -> list[Frame]:
-        """Before the first sample of a clock that does not wrap within days: samples of
-        one that does wait for it (VehicleClock aligns them to it), unless
-        ANCHOR_WAIT_SAMPLES say the vehicle has no such clock."""
-        short = (sample.wrap_s or math.inf) < ANCHOR_WRAP_S
-        if short:
-            self._unanchored.append(sample)
-            if len(self._unanchored) < ANCHOR_WAIT_SAMPLES:
-                return []
-        self._anchored = True
-        held, self._unanchored = self._unanchored, []
-        out = [] if short else self._timed(sample)
-        for s in held:
-            out += self._timed(s)
-        return out
+        return [f for s in self.anchor.take(sample) for f in self._timed(s)]
 
     def _timed(self, sample: Sample) -> list[Frame]:
-        if sample.t_vehicle_s is None:
-            return self._add_untimed(sample)
-        t = self.clock.unwrap(sample.message, sample.t_vehicle_s, sample.wrap_s, self._newest)
-        self.stats.clock_wraps = self.clock.wraps
-        if self._on_base(t):
-            out = self._drop_pending()
-            return out + self._accept(t, sample)
-        return self._off_base(t, sample)
-
-    def _on_base(self, t: float) -> bool:
+        t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor takes timed ones)
         newest = self._newest
-        return newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S
+        t = self.clock.unwrap(sample.message, t0, sample.wrap_s, newest)
+        self.stats.clock_wraps = self.clock.wraps
+        if newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S:  # on base
+            return self._drop_pending() + self._accept(t, sample)
+        return self._off_base(t, sample)
 
     def _drop_pending(self) -> list[Frame]:
         """The vehicle went on at its old time base: what waited was stale (behind) or
@@ -388,11 +389,7 @@ class Synchronizer:
 
     def finish(self) -> list[Frame]:
         """End of stream: what is open goes; samples still unconfirmed are dropped."""
-        held, self._unanchored = self._unanchored, []
-        out: list[Frame] = []
-        for s in held:
-            out += self._timed(s)
-        out += self._drop_pending()
+        out = [f for s in self.anchor.release() for f in self._timed(s)] + self._drop_pending()
         return out + self.flush()
 
     def _emit(self, op: _Open) -> list[Frame]:
