@@ -120,12 +120,12 @@ class _Kind:
         """Whole wraps of 256 lost beyond the n_seq packets the sequence says were sent
         in dt: 0 unless a packet of this type is missing by its own period and the rate
         says more than half a wrap more were sent."""
-        if self.seconds < RATE_EVIDENCE_S or not self.periods:
+        if self.seconds < RATE_EVIDENCE_S:
             return 0
-        if dt < 1.5 * statistics.median(self.periods):
+        wraps = round((self.packets / self.seconds * dt - n_seq) / 256.0)
+        if wraps < 1 or dt < 1.5 * statistics.median(self.periods):
             return 0
-        expected = self.packets / self.seconds * dt
-        return max(0, round((expected - n_seq) / 256.0))
+        return wraps
 
 
 @dataclass
