@@ -279,19 +279,19 @@ class LinkHealth:
             s.kinds[kind] = _Kind(t, 0, 0)
             return Verdict.NEW
         s.behind = 0
-        # A packet whose time is after the newest is no late one (even before a time well
-        # ahead is believed).
-        newer = t is not None and t > s.newest_t + SAME_TIME_S
-        t = _believed(s, t)
         at = s.missing.pop(seq, None)
-        if at is not None and s.index - at < MISSING_KEPT and not newer:
+        if at is not None and s.index - at < MISSING_KEPT and not _forward(s, seq, t, kind, at):
             self._lose(s, counts, -1)
             counts.out_of_order += 1
             return Verdict.LATE
+        t = _believed(s, t)
         d = (seq - s.last_seq) & 0xFF
-        if d >= MISSING_KEPT and t is not None and t < s.newest_t - SAME_TIME_S:
-            # Behind the newest by sequence and by time, yet not counted lost: delayed
-            # beyond MISSING_KEPT packets. Processed, counted late.
+        if d >= MISSING_KEPT and (
+            s.index < 256 - d or (t is not None and t < s.newest_t - SAME_TIME_S)
+        ):
+            # Behind the stream's first packet (sent before it), or behind the newest by
+            # sequence and by time yet not counted lost (delayed beyond MISSING_KEPT
+            # packets): processed, counted late.
             counts.out_of_order += 1
             return Verdict.LATE
         n = d or 256  # the same number with other bytes: a run of 255 lost
@@ -347,6 +347,18 @@ class LinkHealth:
         if len(self.links) > 1:
             out["links"] = {k: c.as_dict() for k, c in self.links.items()}
         return out
+
+
+def _forward(s: _Stream, seq: int, t: float | None, kind: str, at: int) -> bool:
+    """Whether a packet whose sequence number was counted lost at index `at` is rather
+    one a whole wrap later (after a gap): its message type's own time, at the rate
+    measured between its packets, lies nearer the index it would have forward."""
+    k = s.kinds.get(kind)
+    if t is None or k is None or k.seconds < RATE_EVIDENCE_S:
+        return False
+    expected = (t - k.t) * k.packets / k.seconds
+    ahead = s.index + ((seq - s.last_seq) & 0xFF) - k.index
+    return abs(expected - ahead) < abs(expected - (at - k.index))
 
 
 def _believed(s: _Stream, t: float | None) -> float | None:
