@@ -140,6 +140,31 @@ def test_the_vehicle_clock_wrapping_changes_nothing(tmp_path: Path) -> None:
         np.testing.assert_allclose(_final(wrapped)[kind], beta, rtol=1e-6, atol=1e-9)
 
 
+def test_a_vehicle_up_for_hours_is_estimated_as_one_just_booted(tmp_path: Path) -> None:
+    """Up 2 hours before the flight (the station first hears it then): its 32-bit servo
+    clock wrapped before the first packet; aligned to its other clocks by whole wraps, it
+    gives the frames and estimates of the same flight flown at boot (to numerical noise:
+    the vehicle times differ by 7,200 s)."""
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=3)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    runs = {}
+    for boot in (0.0, 7200.0):
+        path = tmp_path / f"boot{boot:.0f}.tlog"
+        SimulatedVehicle(
+            rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path, boot_s=boot
+        ).run()
+        runs[boot] = run_records(config, [(r.t_recv_us, r.packet) for r in read_tlog(path)])
+    up = runs[7200.0]
+    stats = up.link.vehicles[1].sync.stats
+    assert stats.clock_resets == stats.time_jumps == stats.late_samples == 0
+    assert stats.clock_wraps == 1  # the one before first contact
+    assert up.frames() == runs[0.0].frames() == 601
+    assert up.link.health.total().lost == 0
+    for kind, beta in _final(runs[0.0]).items():
+        np.testing.assert_allclose(_final(up)[kind], beta, rtol=1e-6, atol=1e-9)
+
+
 def test_a_packet_from_the_far_future_is_dropped(tmp_path: Path) -> None:
     config, recs = recorded_flight(tmp_path)
     clean = run_records(config, recs)

@@ -111,3 +111,27 @@ def test_a_tlog_keeps_every_record_after_garbage(tmp_path: Path, garbage: bytes)
     records = list(read_tlog(path, stats))
     assert [r.packet for r in records] == pool
     assert stats.junk_bytes == len(garbage) and not stats.truncated_tail
+
+
+@pytest.mark.parametrize("junk", [b"\x00\x11\x22", b"\xfd\x05", b"\xfe" * 7, bytes(range(40))])
+def test_a_tlog_record_keeps_its_packet_after_junk_before_it(tmp_path: Path, junk: bytes) -> None:
+    """Junk between a record's time and its packet: the packet is kept with that time (as
+    a live link's scan skips junk before a packet), the junk counted."""
+    pool = _pool()
+    path = tmp_path / "j.tlog"
+    data = bytearray()
+    damaged = 0
+    for i, p in enumerate(pool):
+        record = tlog_record(1_700_000_000_000_000 + 3_000 * i, p)
+        if i % 20 == 10:
+            record = record[:8] + junk + record[8:]
+            damaged += 1
+        data += record
+    path.write_bytes(bytes(data))
+    stats = TlogStats()
+    records = list(read_tlog(path, stats))
+    assert [r.packet for r in records] == pool
+    assert [r.t_recv_us for r in records] == [
+        1_700_000_000_000_000 + 3_000 * i for i in range(len(pool))
+    ]
+    assert stats.junk_bytes == damaged * len(junk) and damaged == 15

@@ -9,6 +9,7 @@ import io
 import socket
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 
@@ -16,9 +17,11 @@ from gcs_estimator.config import load_config
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import UdpSource, open_udp
 from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.ingest.telemetry.decode import DecodeStats, decode_packet
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.vehicles import PIN_MOVE_S, link_name
 from gcs_estimator.stop import Stop
+from tests.telemetry.test_link import recorded_flight
 
 DEADLINE_S = 30.0
 """Hang guard: every wait below ends when what it waits for happened."""
@@ -141,3 +144,39 @@ def test_only_allowed_system_ids_are_estimated_and_sent_to() -> None:
     assert sent_to == {("::1", 1), ("::1", 3)}
     assert "system id 2 not estimated: not in link.allowed_system_ids" in log.getvalue()
     assert link.stats()["refused_vehicles"] == {"2": 2}
+
+
+def test_a_lone_spoofed_heartbeat_does_not_hold_the_pin_against_the_telemetry(
+    tmp_path: Path,
+) -> None:
+    """Without signing: a heartbeat under the vehicle's id from elsewhere, a second before
+    the vehicle is heard, pins that address; the vehicle's timed telemetry moves the pin
+    to where it comes from (said, and counted as `moved`), none of its telemetry is
+    dropped, and the station sends to it. A sender of telemetry under its id while the
+    vehicle streams does not move the pin."""
+    config, recs = recorded_flight(tmp_path)
+    log = io.StringIO()
+    link = MavlinkLink(config.link, log=log)
+    vehicle, spoofer = ("127.0.0.1", 5000), ("127.0.0.1", 6000)
+    t0 = recs[0][0] / 1e6
+    list(link.datagram(mavlink.Codec(1, 1).heartbeat(mavlink.MAV_TYPE_FIXED_WING), t0 - 1, spoofer))
+    assert link.vehicles[1].address == spoofer
+    frames = 0
+    for t_us, packet in recs[:2000]:
+        frames += len(link.datagram(packet, t_us / 1e6, vehicle))
+    v = link.vehicles[1]
+    assert v.address == vehicle
+    assert link.health.counts(link_name(vehicle)).moved == 1
+    assert "now speaks from 127.0.0.1:5000" in log.getvalue()
+    # Only what came before its first timed sample was dropped.
+    decoder, stats = mavlink.Decoder(), DecodeStats()
+    events = [decode_packet(decoder, p, t / 1e6, config.link, stats) for t, p in recs]
+    timed = [e is not None and getattr(e.event, "t_vehicle_s", None) is not None for e in events]
+    assert link.health.counts(link_name(vehicle)).foreign == timed.index(True)
+    assert frames > 300
+    assert {a for _, a in link.ground_messages(mavlink.Codec(255, 190), t0 + 1)} == {vehicle}
+    # The spoofer now sends telemetry too: the vehicle streams on, so it is foreign.
+    for t_us, packet in recs[2000:2100]:
+        list(link.datagram(packet, t_us / 1e6, spoofer))
+    assert v.address == vehicle
+    assert link.health.counts(link_name(spoofer)).foreign == 100

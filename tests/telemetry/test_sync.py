@@ -184,6 +184,45 @@ def test_a_32_bit_vehicle_clock_wraps_without_a_break() -> None:
     np.testing.assert_allclose([f.inputs[0] for f in frames], 0.01 * np.arange(50), atol=1e-12)
 
 
+def test_a_32_bit_clock_that_wrapped_before_the_first_sample_is_aligned_by_whole_wraps() -> None:
+    """Up 2 hours: the servo output's time wrapped once before the station heard it (its
+    sample comes first in every tick); the frames and inputs are those of a vehicle whose
+    clocks agree."""
+    frames_by_uptime = {}
+    for uptime in (10.0, 7200.0):
+        sync = Synchronizer(1, LINK)
+        samples: list[Sample] = []
+        for k in range(50):
+            t = uptime + k * DT
+            tick = _tick(t, elevator=0.01 * k)
+            tick[0] = _servo(t % WRAP_US32_S, 0.01 * k)
+            samples += tick
+        frames = _feed(sync, samples) + sync.finish()
+        assert sync.stats.clock_resets == sync.stats.time_jumps == sync.stats.late_samples == 0
+        frames_by_uptime[uptime] = frames
+    young, old = frames_by_uptime[10.0], frames_by_uptime[7200.0]
+    assert len(old) == len(young) == 50
+    np.testing.assert_allclose(
+        [f.t_vehicle_s - 7190.0 for f in old], [f.t_vehicle_s for f in young]
+    )
+    np.testing.assert_allclose([f.inputs for f in old], [f.inputs for f in young], atol=1e-12)
+
+
+def test_only_a_wrapping_clock_is_taken_as_it_is() -> None:
+    """A vehicle whose only timed message is the servo output: its samples are not held
+    for ever waiting for another clock."""
+    sync = Synchronizer(1, LINK)
+    obs = tuple((Channel[k.upper()], v) for k, v in OBS.items())
+    samples = []
+    for k in range(200):
+        t = 100.0 + k * DT
+        samples += [_servo(t, 0.001 * k), Sample(1, "OBS32", t, 0.0, obs, WRAP_US32_S)]
+    frames = _feed(sync, samples) + sync.finish()
+    assert len(frames) == 200 and sync.stats.late_samples == 0
+    np.testing.assert_allclose([f.t_vehicle_s for f in frames], 100.0 + DT * np.arange(200))
+    np.testing.assert_allclose([f.inputs[0] for f in frames], 0.001 * np.arange(200))
+
+
 def test_untimed_samples_a_channel_never_sent_and_frames_before_inputs() -> None:
     sync = Synchronizer(1, LINK)
     # No inputs yet: nothing to estimate with.

@@ -1,27 +1,35 @@
 """Link health: packets received, lost, duplicated, late and stale, per link and per vehicle.
 
-Each (link, system, component) has its own 8-bit sequence. A jump of the sequence is
-ambiguous by multiples of 256; where packets carry the vehicle's time, the gap is judged
-by that time and the stream's packet rate, so a burst of more than 255 lost packets is
-counted as such. A packet whose sequence number was counted lost a little earlier is a
-late arrival (out of order): it is processed and the loss taken back. A copy of a packet
-already received (the same bytes, on any link) is dropped. A packet with a vehicle time
-well behind the stream's newest is stale (a copy from long ago, or a delayed one whose
-frame has gone): dropped and counted, unless CONFIRM_PACKETS in a row say the vehicle
-rebooted, which starts the stream afresh.
+Each (link, system, component) has its own 8-bit sequence, and loss is counted from it
+alone: a step of d from the newest sequence number is d - 1 packets lost; a number
+counted lost a little earlier that arrives is a late arrival (out of order), processed,
+and the loss taken back; a step of 0 (the same number, other bytes) is a run of 255 lost.
+A step is ambiguous by whole wraps of 256: 256 lost look like none, 1,000 like 232. Only
+where the vehicle's time says more than a wrap went by are whole wraps added, and only on
+evidence of the same message type (its time before and after the gap, its own period,
+and the packets per second of vehicle time measured between its consecutive packets
+where no loss or gap was counted: decision 0037). A copy of a packet already received
+(the same bytes, on any link) is dropped. A packet with a vehicle time well behind the
+stream's newest is stale (a copy from long ago, or a delayed one whose frame has gone):
+dropped and counted, unless CONFIRM_PACKETS in a row say the vehicle rebooted, which
+starts the stream afresh. A ground station's sequence numbers are not counted for loss:
+it numbers what it sends to every vehicle and link, and only some of that is relayed
+here.
 """
 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
+import statistics
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 STALE_S = 1.0
 """A packet this far behind its stream's newest vehicle time is stale [s]."""
 CONFIRM_PACKETS = 3
-"""Stale packets in a row that mean the vehicle's clock restarted (a reboot)."""
+"""Stale packets in a row that mean the vehicle's clock restarted (a reboot); packets in
+a row that confirm a time this far ahead of the newest (a gap in the data)."""
 SAME_TIME_S = 0.002
 """Times this close are one time (time_boot_ms and time_usec of one instant differ by the
 millisecond's rounding): their order is judged by sequence number."""
@@ -31,6 +39,13 @@ COPIES_KEPT = 1024
 """Packets of a stream remembered to recognise copies. The same bytes more than 255
 packets apart are a copy only if they carry a vehicle time not after the newest (an
 untimed message, such as a heartbeat, can repeat itself byte for byte)."""
+RATE_MEMORY_S = 10.0
+"""The packets per second of a stream are measured over about this much recent vehicle
+time (between one message type's consecutive packets where nothing was lost) [s]."""
+RATE_EVIDENCE_S = 1.0
+"""Whole wraps are added to a gap only once the rate was measured over this long [s]."""
+PERIODS_KEPT = 9
+"""A message type's own period is the median of its last this many spans."""
 
 
 class Verdict:
@@ -53,7 +68,8 @@ class LinkCounts:
     """Packets that failed the CRC or could not be framed."""
     junk_bytes: int = 0
     unknown: int = 0
-    """Messages the dialect does not know (framed, their checksum cannot be checked)."""
+    """Messages the dialect does not know (framed, their checksum cannot be checked): no
+    other counter moves for them."""
     foreign: int = 0
     """Packets under a known vehicle's system id from another address: dropped."""
     unsigned: int = 0
@@ -62,6 +78,9 @@ class LinkCounts:
     """With signing on: packets whose signature is wrong (forged, or another key)."""
     replayed: int = 0
     """With signing on: signed packets whose timestamp is not newer than their stream's."""
+    moved: int = 0
+    """Without signing: times a vehicle's telemetry moved to another address (the pin
+    followed it)."""
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -71,16 +90,57 @@ class LinkCounts:
             setattr(self, k, getattr(self, k) + v)
 
 
+@dataclass(slots=True)
+class _Kind:
+    """One message type's clock on a stream: the evidence for gaps longer than a wrap."""
+
+    t: float
+    """Its newest vehicle time [s]."""
+    index: int
+    """The stream's packet index at that packet."""
+    gaps: int
+    """The stream's gap count at that packet."""
+    packets: float = 0.0
+    seconds: float = 0.0
+    """Packets of the stream, and vehicle seconds, between its consecutive packets where
+    no loss was counted (recent ones weigh most)."""
+    periods: deque[float] = field(default_factory=lambda: deque(maxlen=PERIODS_KEPT))
+    """Its recent spans between consecutive packets with nothing lost [s]."""
+
+    def clean(self, n: int, dt: float) -> None:
+        if self.seconds > RATE_MEMORY_S:
+            keep = RATE_MEMORY_S / self.seconds
+            self.packets *= keep
+            self.seconds *= keep
+        self.packets += n
+        self.seconds += dt
+        self.periods.append(dt)
+
+    def wraps_missed(self, n_seq: int, dt: float) -> int:
+        """Whole wraps of 256 lost beyond the n_seq packets the sequence says were sent
+        in dt: 0 unless a packet of this type is missing by its own period and the rate
+        says more than half a wrap more were sent."""
+        if self.seconds < RATE_EVIDENCE_S:
+            return 0
+        wraps = round((self.packets / self.seconds * dt - n_seq) / 256.0)
+        if wraps < 1 or dt < 1.5 * statistics.median(self.periods):
+            return 0
+        return wraps
+
+
 @dataclass
 class _Stream:
     """One sequence: a (link, system, component)."""
 
     last_seq: int
+    counted: bool = True
+    """Whether its gaps are losses (not a ground station's)."""
     index: int = 0
     """Packets sent up to the newest (received and lost)."""
+    gaps: int = 0
+    """Gaps counted so far (a loss of any length)."""
+    lost: int = 0
     newest_t: float = math.nan
-    t_first: float = math.nan
-    index_first: int = 0
     missing: dict[int, int] = field(default_factory=dict)
     """Sequence numbers counted lost -> the index they were counted at."""
     behind: int = 0
@@ -88,48 +148,31 @@ class _Stream:
     ahead: int = 0
     """Packets in a row with a time well ahead of the newest (a gap, or a bad time)."""
     ahead_t: float = math.nan
-    ahead_extra: int = 0
-    """Packets the time says were lost in the gap beyond what the sequence says."""
+    kinds: dict[str, _Kind] = field(default_factory=dict)
 
     def restart(self, seq: int, t: float) -> None:
         """The vehicle restarted: this stream begins again at this packet."""
-        self.last_seq, self.index, self.behind = seq, 0, 0
-        self.newest_t = self.t_first = math.nan
+        self.last_seq, self.index, self.behind, self.ahead = seq, 0, 0, 0
+        self.newest_t = t
         self.missing.clear()
-        self.timed(t)
-
-    def rate(self) -> float:
-        """Packets per second of vehicle time (NaN until a second has passed)."""
-        span = self.newest_t - self.t_first
-        return (self.index - self.index_first) / span if span >= 1.0 else math.nan
+        self.kinds.clear()
 
     def timed(self, t: float) -> None:
-        if math.isnan(self.t_first):
-            self.t_first, self.index_first = t, self.index
         self.newest_t = t if math.isnan(self.newest_t) else max(self.newest_t, t)
-
-
-def _gap(stream: _Stream, d: int, t: float | None) -> int:
-    """How many packets on from the newest this one is (d + 256 k); 0: not forward."""
-    if t is not None and not math.isnan(stream.newest_t):
-        dt = t - stream.newest_t
-        if dt > SAME_TIME_S:
-            rate = stream.rate()
-            k = 0 if math.isnan(rate) else max(0, round((rate * dt - d) / 256.0))
-            return d + 256 * k if d + 256 * k > 0 else 256
-        if dt < -SAME_TIME_S:
-            return 0
-    return d if 0 < d < 128 else 0
 
 
 @dataclass(slots=True)
 class _Copies:
     """One (system, component)'s recent packets, to recognise copies."""
 
-    seen: OrderedDict[bytes, int] = field(default_factory=OrderedDict)
-    """Recent packets -> their number among its packets."""
-    taken: int = 0
-    """Its packets taken so far."""
+    seen: OrderedDict[bytes, tuple[str, int, int]] = field(default_factory=OrderedDict)
+    """Recent packets -> the link they came by, the position they were taken at, and that
+    link's stream index then."""
+    position: int = 0
+    """Packets sent up to the newest, by its sequence numbers' forward steps of less than
+    half a wrap (others count none): packets 256 or more apart may repeat the same bytes
+    (a heartbeat, after its sequence number came round again)."""
+    last_seq: int = 0
     newest: float = -math.inf
     """The newest vehicle time among them [s]."""
 
@@ -142,12 +185,26 @@ class LinkHealth:
     _streams: dict[tuple[str, int, int], _Stream] = field(default_factory=dict)
     _copies: dict[tuple[int, int], _Copies] = field(default_factory=dict)
     """Per (system, component): what recognises copies of its packets."""
+    _ground: set[tuple[int, int]] = field(default_factory=set)
+    """(system, component)s that said they are ground stations."""
 
     def counts(self, link: str) -> LinkCounts:
         c = self.links.get(link)
         if c is None:
             c = self.links[link] = LinkCounts()
         return c
+
+    def ground_station(self, system_id: int, component_id: int) -> None:
+        """A (system, component) said it is a ground station: its gaps are no loss here
+        (any counted so far is taken back)."""
+        key = (system_id, component_id)
+        if key in self._ground:
+            return
+        self._ground.add(key)
+        for (link, sysid, compid), s in self._streams.items():
+            if (sysid, compid) == key and s.counted:
+                self.counts(link).lost -= s.lost
+                s.counted, s.lost = False, 0
 
     def on_packet(
         self,
@@ -157,105 +214,127 @@ class LinkHealth:
         seq: int,
         packet: bytes,
         t_vehicle_s: float | None = None,
+        kind: str = "",
     ) -> bool:
         """Count a packet; False if it is to be dropped (a copy, or stale).
 
-        t_vehicle_s: the vehicle time it carries, if its clock does not wrap within days."""
+        t_vehicle_s: the vehicle time it carries, if its clock does not wrap within days;
+        kind: its message type (whose own clock that time is)."""
         counts = self.counts(link)
-        if self._is_copy((system_id, component_id), packet, t_vehicle_s):
+        if self._is_copy((system_id, component_id), seq, packet, t_vehicle_s, link):
             counts.duplicates += 1
             return False
         key = (link, system_id, component_id)
         stream = self._streams.get(key)
         if stream is None:
-            self._streams[key] = stream = _Stream(seq)
+            stream = _Stream(seq, counted=(system_id, component_id) not in self._ground)
+            self._streams[key] = stream
             if t_vehicle_s is not None:
                 stream.timed(t_vehicle_s)
+                stream.kinds[kind] = _Kind(t_vehicle_s, 0, 0)
             counts.received += 1
             return True
-        verdict = self._judge(stream, seq, t_vehicle_s, counts)
+        verdict = self._judge(stream, seq, t_vehicle_s, kind, counts)
         if verdict == Verdict.STALE:
             counts.stale += 1
             return False
         counts.received += 1
         return True
 
-    def _is_copy(self, key: tuple[int, int], packet: bytes, t: float | None) -> bool:
+    def _is_copy(
+        self, key: tuple[int, int], seq: int, packet: bytes, t: float | None, link: str
+    ) -> bool:
+        """Whether the packet is a copy of one taken less than a wrap of its sequence
+        before (on its own link by that link's count of packets sent, losses and whole
+        wraps included; from another link by _Copies.position), or carries a vehicle
+        time not after the newest taken."""
         c = self._copies.get(key)
         if c is None:
             c = self._copies[key] = _Copies()
-        seen, n = c.seen, c.taken
+        seen = c.seen
+        step = (seq - c.last_seq) & 0xFF
+        position = c.position + (step if 0 < step < 128 else 0)
+        stream = self._streams.get((link, *key))
+        index = -1 if stream is None else stream.index
         at = seen.get(packet)
         if at is not None:
-            if n - at < 255 or (t is not None and t <= c.newest):
+            near = index - at[2] < 255 if at[0] == link else position - at[1] < 256
+            if near or (t is not None and t <= c.newest):
                 return True
             seen.move_to_end(packet)  # a new packet goes in at the end anyway
-        seen[packet] = n
+        c.position, c.last_seq = position, seq
+        seen[packet] = (link, position, index)
         if len(seen) > COPIES_KEPT:
             seen.popitem(last=False)
-        c.taken = n + 1
         if t is not None and t > c.newest:
             c.newest = t
         return False
 
-    def _judge(self, s: _Stream, seq: int, t: float | None, counts: LinkCounts) -> str:
+    def _judge(self, s: _Stream, seq: int, t: float | None, kind: str, counts: LinkCounts) -> str:
         if t is not None and not math.isnan(s.newest_t) and t < s.newest_t - STALE_S:
             s.behind += 1
             if s.behind < CONFIRM_PACKETS:
                 return Verdict.STALE
             s.restart(seq, t)  # the vehicle's clock restarted
+            s.kinds[kind] = _Kind(t, 0, 0)
             return Verdict.NEW
         s.behind = 0
-        ahead = t is not None and not math.isnan(s.newest_t) and t > s.newest_t + STALE_S
-        if ahead and t is not None:
-            t = self._ahead(s, seq, t, counts)
-        else:
-            s.ahead = 0
         at = s.missing.pop(seq, None)
-        newer = ahead or (t is not None and t > s.newest_t + SAME_TIME_S)
-        if at is not None and s.index - at < MISSING_KEPT and not newer:
+        if at is not None and s.index - at < MISSING_KEPT and not _forward(s, seq, t, kind, at):
+            self._lose(s, counts, -1)
             counts.out_of_order += 1
-            counts.lost -= 1
             return Verdict.LATE
+        t = _believed(s, t)
         d = (seq - s.last_seq) & 0xFF
-        n = (d or 256) if ahead else _gap(s, d, t)
-        if n == 0:
-            # Behind the newest by its sequence but no longer remembered as lost (delayed
-            # beyond MISSING_KEPT packets): processed, counted late.
+        if d >= MISSING_KEPT and (
+            s.index < 256 - d or (t is not None and t < s.newest_t - SAME_TIME_S)
+        ):
+            # Behind the stream's first packet (sent before it), or behind the newest by
+            # sequence and by time yet not counted lost (delayed beyond MISSING_KEPT
+            # packets): processed, counted late.
             counts.out_of_order += 1
-            counts.lost = max(0, counts.lost - 1)
             return Verdict.LATE
-        counts.lost += n - 1
-        for k in range(max(1, n - MISSING_KEPT), n):
-            s.missing[(s.last_seq + k) & 0xFF] = s.index + k
+        n = d or 256  # the same number with other bytes: a run of 255 lost
+        if n > 1:
+            s.gaps += 1
+            self._lose(s, counts, n - 1)
+            for k in range(max(1, n - MISSING_KEPT), n):
+                s.missing[(s.last_seq + k) & 0xFF] = s.index + k
         s.index += n
         s.last_seq = seq
         if t is not None:
+            self._clock(s, kind, t, counts)
             s.timed(t)
         if len(s.missing) > MISSING_KEPT:
             s.missing = {q: i for q, i in s.missing.items() if s.index - i < MISSING_KEPT}
         return Verdict.NEW
 
+    def _clock(self, s: _Stream, kind: str, t: float, counts: LinkCounts) -> None:
+        """The message type's time since its previous packet: whole wraps the sequence
+        could not show are added to the loss (_Kind.wraps_missed); a span with nothing
+        lost measures the stream's rate and the type's period."""
+        k = s.kinds.get(kind)
+        if k is None:
+            s.kinds[kind] = _Kind(t, s.index, s.gaps)
+            return
+        dt = t - k.t
+        if dt <= SAME_TIME_S:
+            return
+        n_seq = s.index - k.index
+        wraps = k.wraps_missed(n_seq, dt)
+        if wraps:
+            s.gaps += 1
+            s.index += 256 * wraps
+            self._lose(s, counts, 256 * wraps)
+        elif s.gaps == k.gaps:
+            k.clean(n_seq, dt)
+        k.t, k.index, k.gaps = t, s.index, s.gaps
+
     @staticmethod
-    def _ahead(s: _Stream, seq: int, t: float, counts: LinkCounts) -> float | None:
-        """A time well ahead of the stream's newest is believed once CONFIRM_PACKETS in a
-        row agree (a gap: the losses its time implies are then counted); until then the
-        packet is judged by its sequence number alone, and a single packet with an absurd
-        time moves nothing. The packet itself is the next in sequence (its time says it
-        is not behind). Returns the time to judge the packet by (None: none)."""
-        if s.ahead and abs(t - s.ahead_t) <= STALE_S:
-            s.ahead += 1
-        else:
-            d = (seq - s.last_seq) & 0xFF
-            s.ahead, s.ahead_extra = 1, _gap(s, d, t) - (d or 256)
-        s.ahead_t = t
-        if s.ahead < CONFIRM_PACKETS:
-            return None
-        counts.lost += max(0, s.ahead_extra)
-        s.index += max(0, s.ahead_extra)
-        s.ahead = 0
-        s.timed(t)
-        return None
+    def _lose(s: _Stream, counts: LinkCounts, n: int) -> None:
+        if s.counted:
+            s.lost += n
+            counts.lost += n
 
     def total(self) -> LinkCounts:
         out = LinkCounts()
@@ -268,3 +347,36 @@ class LinkHealth:
         if len(self.links) > 1:
             out["links"] = {k: c.as_dict() for k, c in self.links.items()}
         return out
+
+
+def _forward(s: _Stream, seq: int, t: float | None, kind: str, at: int) -> bool:
+    """Whether a packet whose sequence number was counted lost at index `at` is rather
+    one a whole wrap later (after a gap): its message type's own time, at the rate
+    measured between its packets, lies nearer the index it would have forward."""
+    k = s.kinds.get(kind)
+    if t is None or k is None or k.seconds < RATE_EVIDENCE_S:
+        return False
+    expected = (t - k.t) * k.packets / k.seconds
+    ahead = s.index + ((seq - s.last_seq) & 0xFF) - k.index
+    return abs(expected - ahead) < abs(expected - (at - k.index))
+
+
+def _believed(s: _Stream, t: float | None) -> float | None:
+    """The time to judge a packet by. One well ahead of the stream's newest is believed
+    once CONFIRM_PACKETS in a row agree (a gap in the data); until then the packet is
+    judged by its sequence number alone (None), so a single packet with an absurd time
+    moves nothing."""
+    if t is None:
+        return None  # untimed packets between neither confirm nor deny
+    if math.isnan(s.newest_t) or t <= s.newest_t + STALE_S:
+        s.ahead = 0
+        return t
+    if s.ahead and abs(t - s.ahead_t) <= STALE_S:
+        s.ahead += 1
+    else:
+        s.ahead = 1
+    s.ahead_t = t
+    if s.ahead < CONFIRM_PACKETS:
+        return None
+    s.ahead = 0
+    return t

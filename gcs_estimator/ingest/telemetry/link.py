@@ -234,14 +234,22 @@ class MavlinkLink:
                 msg, packet, t_recv_s, self.config, self.decode_stats, self.ranges
             )
         event = decoded.event
-        t_vehicle = None
-        if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
-            t_vehicle = event.t_vehicle_s
         sysid = decoded.system_id
-        if address is not None and not self.fleet.pinned(sysid, address, t_recv_s, name):
+        if isinstance(event, Unknown):
+            # Its CRC could not be checked: it may be junk that happens to frame, so no
+            # counter but its own moves (nor the pin, nor the sequence).
+            return self._event(sysid, decoded.component_id, event, address, name, t_recv_s)
+        t_vehicle, kind = None, ""
+        if isinstance(event, Sample) and (event.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
+            t_vehicle, kind = event.t_vehicle_s, event.message
+        if address is not None and not self.fleet.pinned(sysid, address, t_recv_s, name, event):
             return []
+        if sysid == mavlink.GCS_SYSTEM_ID or (
+            isinstance(event, Heartbeat) and event.ground_station
+        ):
+            self.health.ground_station(sysid, decoded.component_id)
         if not self.health.on_packet(
-            name, sysid, decoded.component_id, decoded.seq, packet, t_vehicle
+            name, sysid, decoded.component_id, decoded.seq, packet, t_vehicle, kind
         ):
             self.report_once(
                 "dup", "copies of packets, or packets long behind the vehicle's time: dropped"

@@ -612,6 +612,30 @@ def _checks_out(data: bytes, i: int, end: int, framed: bool, decoder: Decoder) -
     return msg is not None and (framed or not is_unknown(msg))
 
 
+def _taken_time(
+    data: bytes,
+    i: int,
+    end: int,
+    following: int,
+    last_t: int | None,
+    resyncing: bool,
+    decoder: Decoder,
+    st: TlogStats,
+) -> int | None:
+    """The time of a record at data[i] not plainly framed and in time (see read_tlog);
+    None if it is not taken."""
+    (t_us,) = _TIME_US(data, i)
+    framed = end == len(data) or following > 0
+    t_next = _TIME_US(data, end)[0] if following > 0 else None
+    in_time = last_t is None or _follows(last_t, t_us)
+    timely = in_time or not resyncing or (t_next is not None and _follows(t_us, t_next))
+    if (framed and not resyncing and in_time) or (
+        timely and _checks_out(data, i, end, framed and in_time, decoder)
+    ):
+        return _record_time(t_us, last_t, t_next, st)
+    return None
+
+
 def _junk_byte(path: str | Path, st: TlogStats, first: bool, position: int) -> None:
     """Count a byte that starts no record; a file with none in its first 4 KiB is no tlog."""
     if first and position >= 4096:
@@ -625,9 +649,44 @@ _TIME_US = struct.Struct(">Q").unpack_from
 
 READ_CHUNK = 1 << 20
 """A tlog is read in pieces this large [bytes]: memory does not grow with the file."""
-LOOKAHEAD = 8 + 280 + 8 + 3
-"""Bytes a record's checks may look at: the record (8-byte time, a packet of at most 280
-bytes) and the next record's header."""
+RECORD_JUNK = 255
+"""Junk bytes between a record's time and its packet that are skipped to the packet (as
+a live link's scan skips junk before one)."""
+LOOKAHEAD = 8 + RECORD_JUNK + 280 + 8 + 3
+"""Bytes a record's checks may look at: the record (8-byte time, junk, a packet of at
+most 280 bytes) and the next record's header."""
+
+
+def _junk_record(
+    data: bytes, i: int, last_t: int | None, decoder: Decoder, st: TlogStats
+) -> tuple[TlogRecord, int] | None:
+    """A record at data[i], after a good one at last_t, whose time follows that one's but
+    whose packet does not start right after its time: the packet after the junk
+    (_after_junk), and where the next record starts; None if there is none."""
+    if last_t is None or i + 8 > len(data) or not _follows(last_t, _TIME_US(data, i)[0]):
+        return None
+    j = _after_junk(data, i, decoder)
+    if j < 0:
+        return None
+    end = j + packet_length(data, j)
+    st.junk_bytes += j - i - 8
+    st.records += 1
+    return TlogRecord(_TIME_US(data, i)[0], data[j:end]), end
+
+
+def _after_junk(data: bytes, i: int, decoder: Decoder) -> int:
+    """Where the packet of a record at data[i] starts when junk sits between its time and
+    its packet: the first start marker within RECORD_JUNK bytes at which a known message
+    passes its CRC (-1: none)."""
+    j = next_marker(data, i + 9)
+    while j <= i + 8 + RECORD_JUNK:
+        size = packet_length(data, j)
+        if size and j + size <= len(data) and could_be_packet(data, j):
+            msg = decoder.decode(data[j : j + size])
+            if msg is not None and not is_unknown(msg):
+                return j
+        j = next_marker(data, j + 1)
+    return -1
 
 
 def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
@@ -675,39 +734,35 @@ def read_tlog(path: str | Path, stats: TlogStats | None = None) -> Iterator[Tlog
                 (t_us,) = _TIME_US(data, i)
                 following = packet_length(data, end + 8) if end < len(data) else 0
                 framed = end == len(data) or following > 0
-                if (
+                plain = (
                     framed
                     and not resyncing
                     and (last_t is None or last_t - back <= t_us <= last_t + back)
-                ):
-                    first = False
-                    last_t = t_us
-                else:
-                    t_next = _TIME_US(data, end)[0] if following > 0 else None
-                    in_time = last_t is None or _follows(last_t, t_us)
-                    timely = (
-                        in_time or not resyncing or (t_next is not None and _follows(t_us, t_next))
-                    )
-                    if not (
-                        (framed and not resyncing and in_time)
-                        or (timely and _checks_out(data, i, end, framed and in_time, decoder))
-                    ):
-                        _junk_byte(path, st, first, offset + i)
-                        resyncing = True
-                        i += 1
-                        continue
+                )
+                t_taken = (
+                    t_us
+                    if plain
+                    else _taken_time(data, i, end, following, last_t, resyncing, decoder, st)
+                )
+                if t_taken is not None:
                     first = resyncing = False
-                    last_t = _record_time(t_us, last_t, t_next, st)
-                st.records += 1
-                yield TlogRecord(last_t, data[i + 8 : end])
-                i, known = end, following if following > 0 else -1
-                continue
+                    last_t = t_taken
+                    st.records += 1
+                    yield TlogRecord(last_t, data[i + 8 : end])
+                    i, known = end, following if following > 0 else -1
+                    continue
             elif n:  # the record runs past the end of the file
                 st.truncated_tail = True
                 return
-            _junk_byte(path, st, first, offset + i)
-            resyncing = True
-            i += 1
+            # Junk between a record's time and its packet (after garbage: none known).
+            got = _junk_record(data, i, None if resyncing else last_t, decoder, st)
+            if got is not None:
+                last_t, i = got[0].t_recv_us, got[1]
+                yield got[0]
+            else:
+                _junk_byte(path, st, first, offset + i)
+                resyncing = True
+                i += 1
     if first and len(data) > 0:
         raise TlogError(f"{path}: not a tlog (no MAVLink record found)")
     if i < len(data):

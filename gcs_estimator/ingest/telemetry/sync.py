@@ -15,7 +15,9 @@ the ground station, or a replay at any speed, makes the same frames.
 
 The vehicle clock itself is checked:
 - 32-bit time fields (SERVO_OUTPUT_RAW.time_usec wraps after 71.6 minutes, every
-  time_boot_ms after 49.7 days) are unwrapped against the vehicle's other clocks;
+  time_boot_ms after 49.7 days) are unwrapped per message against the vehicle's other
+  clocks; one that wrapped before its first packet arrived (a vehicle up for more than
+  71.6 minutes) is aligned to them by whole wraps;
 - a sample more than JUMP_S ahead of the newest time, or more than CLOCK_RESET_S behind,
   is held until CONFIRM_SAMPLES samples agree on the new time base (a reboot, or a real
   gap in the data); a single packet with an absurd time never moves the frames. Samples
@@ -47,6 +49,12 @@ JUMP_S = 1.0
 """A vehicle time this far ahead of the newest is a gap in the data once confirmed."""
 CONFIRM_SAMPLES = 3
 """Timed samples that must agree on a new time base before it is taken."""
+ANCHOR_WRAP_S = 86_400.0
+"""Samples of a clock that wraps sooner than this wait for one of a clock that does not
+(time_boot_ms, a 64-bit time_usec) to align them by whole wraps (VehicleClock) ..."""
+ANCHOR_WAIT_SAMPLES = 200
+"""... unless this many arrive first: the vehicle has no other clock, and they are taken
+as they are."""
 WRAP_MATCH_S = 10.0
 """A 32-bit time that went back is a wrap when, unwrapped, it lies this close to the
 vehicle's newest time, or when it went from this close below the wrap to this close to 0."""
@@ -88,7 +96,13 @@ class SyncStats:
 
 @dataclass
 class VehicleClock:
-    """Unwraps the vehicle's 32-bit time fields, per message (each has its own field)."""
+    """Unwraps the vehicle's 32-bit time fields, per message (each has its own field).
+
+    A field that wraps within hours (SERVO_OUTPUT_RAW.time_usec, every 71.6 min) may have
+    wrapped before its first packet arrived: it is still the vehicle's time since boot,
+    so its first sample is aligned by whole wraps to the newest time of the vehicle's
+    other clocks (`newest`). Synchronizer.add holds such samples until a clock that does
+    not wrap within days has given that time (ANCHOR_WRAP_S)."""
 
     _last: dict[str, float] = field(default_factory=dict)
     _offset: dict[str, float] = field(default_factory=dict)
@@ -98,7 +112,14 @@ class VehicleClock:
         if wrap_s is None:
             return t
         last = self._last.get(message)
-        offset = self._offset.get(message, 0.0)
+        if last is None:
+            offset = 0.0
+            if math.isfinite(newest):
+                offset = max(0, round((newest - t) / wrap_s)) * wrap_s
+                self.wraps += round(offset / wrap_s)
+            self._offset[message] = offset
+        else:
+            offset = self._offset[message]
         if last is not None and t < last - wrap_s / 2:
             near_newest = math.isfinite(newest) and abs(t + offset + wrap_s - newest) < WRAP_MATCH_S
             at_edge = last > wrap_s - WRAP_MATCH_S and t < WRAP_MATCH_S
@@ -112,6 +133,33 @@ class VehicleClock:
     def reset(self) -> None:
         self._last.clear()
         self._offset.clear()
+
+
+@dataclass
+class ClockAnchor:
+    """Before the first sample of a clock that does not wrap within days, samples of one
+    that does wait for it (VehicleClock aligns them to it), unless ANCHOR_WAIT_SAMPLES
+    say the vehicle has no such clock."""
+
+    anchored: bool = False
+    """Whether a clock that does not wrap within days has given the vehicle's time."""
+    held: list[Sample] = field(default_factory=list)
+
+    def take(self, sample: Sample) -> list[Sample]:
+        """The timed samples to process now, in order."""
+        if self.anchored:
+            return [sample]
+        if (sample.wrap_s or math.inf) < ANCHOR_WRAP_S:
+            self.held.append(sample)
+            if len(self.held) < ANCHOR_WAIT_SAMPLES:
+                return []
+            return self.release()
+        return [sample, *self.release()]
+
+    def release(self) -> list[Sample]:
+        self.anchored = True
+        held, self.held = self.held, []
+        return held
 
 
 @dataclass
@@ -183,6 +231,7 @@ class Synchronizer:
     linear_inputs: bool = True
     stats: SyncStats = field(default_factory=SyncStats)
     clock: VehicleClock = field(default_factory=VehicleClock)
+    anchor: ClockAnchor = field(default_factory=ClockAnchor)
     _open: list[_Open] = field(default_factory=list)
     """Open frames in time order."""
     _newest: float = -math.inf
@@ -209,16 +258,16 @@ class Synchronizer:
                 self._pending.append((None, sample))
                 return []
             return self._add_untimed(sample)
-        t = self.clock.unwrap(sample.message, sample.t_vehicle_s, sample.wrap_s, self._newest)
-        self.stats.clock_wraps = self.clock.wraps
-        if self._on_base(t):
-            out = self._drop_pending()
-            return out + self._accept(t, sample)
-        return self._off_base(t, sample)
+        return [f for s in self.anchor.take(sample) for f in self._timed(s)]
 
-    def _on_base(self, t: float) -> bool:
+    def _timed(self, sample: Sample) -> list[Frame]:
+        t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor takes timed ones)
         newest = self._newest
-        return newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S
+        t = self.clock.unwrap(sample.message, t0, sample.wrap_s, newest)
+        self.stats.clock_wraps = self.clock.wraps
+        if newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S:  # on base
+            return self._drop_pending() + self._accept(t, sample)
+        return self._off_base(t, sample)
 
     def _drop_pending(self) -> list[Frame]:
         """The vehicle went on at its old time base: what waited was stale (behind) or
@@ -340,7 +389,7 @@ class Synchronizer:
 
     def finish(self) -> list[Frame]:
         """End of stream: what is open goes; samples still unconfirmed are dropped."""
-        out = self._drop_pending()
+        out = [f for s in self.anchor.release() for f in self._timed(s)] + self._drop_pending()
         return out + self.flush()
 
     def _emit(self, op: _Open) -> list[Frame]:

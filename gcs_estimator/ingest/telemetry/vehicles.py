@@ -1,6 +1,7 @@
 """The vehicles on a MAVLink link: one entry per system id heard (up to the cap), where
-each speaks from (pinned at first contact), which component each message is taken from,
-their acknowledgements of our rate requests, and what the ground station sends them."""
+each speaks from (pinned at first contact, following its telemetry), which component each
+message is taken from, their acknowledgements of our rate requests, and what the ground
+station sends them."""
 
 from __future__ import annotations
 
@@ -37,9 +38,12 @@ class VehicleLink:
     system_id: int
     sync: Synchronizer
     address: Address | None = None
-    """Where it speaks from: pinned at first contact (see Vehicles.pinned)."""
+    """Where it speaks from: pinned at first contact, following its telemetry (see
+    Vehicles.pinned)."""
     last_heard: float = -math.inf
     """Receive time of its newest packet from that address [s since epoch]."""
+    last_telemetry: float = -math.inf
+    """Receive time of its newest timed sample from that address [s since epoch]."""
     acked: set[int] = field(default_factory=set)
     """Results of its acknowledgements of our rate requests."""
     last_rate_request: float = -math.inf
@@ -105,33 +109,48 @@ class Vehicles:
         v = self.vehicles[system_id] = VehicleLink(system_id, sync)
         return v
 
-    def pinned(self, sysid: int, address: Address, t_recv_s: float, name: str) -> bool:
+    def pinned(
+        self, sysid: int, address: Address, t_recv_s: float, name: str, event: object = None
+    ) -> bool:
         """Whether a packet comes from where its system id speaks from. A vehicle's
-        address is pinned at first contact: packets under its id from anywhere else are
-        counted (`foreign`) and dropped, and nothing is sent there, unless its own
-        address has been silent for PIN_MOVE_S (a vehicle that moved, say after a
-        router's restart): then the pin moves, and says so."""
+        address is pinned at first contact, and follows its telemetry: a timed sample
+        (the vehicle's data stream) from another address moves the pin there when the
+        pinned address has sent no timed sample for PIN_MOVE_S (a lone heartbeat, or a
+        sender that went quiet, holds no pin against the data stream), and so does any
+        packet once the pinned address has been silent for PIN_MOVE_S (a vehicle that
+        moved, say after a router's restart). A move is said and counted (`moved`).
+        Other packets under its id from elsewhere are counted (`foreign`) and dropped,
+        and nothing is sent there."""
         v = self.vehicles.get(sysid)
         if v is None or v.address is None:
             return True  # first contact: _seen pins it
+        timed = isinstance(event, Sample) and event.t_vehicle_s is not None
         if v.address == address:
             v.last_heard = t_recv_s
+            if timed:
+                v.last_telemetry = t_recv_s
             return True
-        if t_recv_s - v.last_heard > PIN_MOVE_S:
-            print(
-                f"note: system id {sysid} now speaks from {name}; its address "
-                f"{link_name(v.address)} was silent {t_recv_s - v.last_heard:.1f} s",
-                file=self.log,
+        if timed and t_recv_s - v.last_telemetry > PIN_MOVE_S:
+            why = "the vehicle's telemetry comes from there"
+        elif t_recv_s - v.last_heard > PIN_MOVE_S:
+            why = f"its address was silent {t_recv_s - v.last_heard:.1f} s"
+        else:
+            self.health.counts(name).foreign += 1
+            self.report_once(
+                f"foreign-{sysid}-{name}",
+                f"packets as system id {sysid} from {name}, not from its address "
+                f"{link_name(v.address)}: dropped (a second sender with its id?)",
             )
-            v.address, v.last_heard = address, t_recv_s
-            return True
-        self.health.counts(name).foreign += 1
-        self.report_once(
-            f"foreign-{sysid}-{name}",
-            f"packets as system id {sysid} from {name}, not from its address "
-            f"{link_name(v.address)}: dropped (a second sender with its id?)",
+            return False
+        print(
+            f"note: system id {sysid} now speaks from {name}, not {link_name(v.address)}: {why}",
+            file=self.log,
         )
-        return False
+        self.health.counts(name).moved += 1
+        v.address, v.last_heard = address, t_recv_s
+        if timed:
+            v.last_telemetry = t_recv_s
+        return True
 
     def ack(self, sysid: int, compid: int, ack: CommandAck) -> None:
         """An acknowledgement counts only for a command we sent to that vehicle, only
@@ -202,6 +221,8 @@ class Vehicles:
                     "dropped",
                 )
                 return []
+        if sample.t_vehicle_s is not None:
+            v.last_telemetry = sample.t_recv_s  # from its pinned address (Vehicles.pinned)
         out = v.sync.add(sample)
         if v.sync.stats.late_samples:
             self.report_once("late", "sample(s) for a frame already processed: counted, dropped")
