@@ -784,6 +784,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
     _config_arg(p, DEFAULT_CONFIG)
     p.set_defaults(func=cmd_keys)
+
+    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
+
+    add_commands(sub, lambda p: _config_arg(p, DEFAULT_CONFIG))
     return ap
 
 
