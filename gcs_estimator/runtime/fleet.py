@@ -115,7 +115,7 @@ def rename_vehicles(rows: list[dict[str, Any]], mapping: Mapping[str, str]) -> N
     """Each row's vehicle as the map names it: by its identity, else by its log's path
     matching a pattern (the first that matches)."""
     for row in rows:
-        ident = row.get("vehicle")
+        ident = str(row.get("vehicle"))
         if ident in mapping:
             row["vehicle"] = mapping[ident]
             continue
@@ -243,18 +243,26 @@ def _duration(seconds: float) -> str:
     return f"{seconds // 3600:.0f} h {seconds % 3600 // 60:02.0f} min"
 
 
+def _distributed() -> Any:
+    """Dask's distributed package (imported when a batch starts: about a second)."""
+    import importlib
+
+    return importlib.import_module("distributed")
+
+
 def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
     """(client, the embedded cluster or None): the scheduler the command line names, or
     the environment's (DASK_SCHEDULER_ADDRESS), else a LocalCluster of --workers
     processes (default: one per core), one thread each."""
     import logging
 
-    from distributed import Client, LocalCluster
+    dist = _distributed()
+    Client, LocalCluster = dist.Client, dist.LocalCluster  # noqa: N806 (their names)
 
     address = args.scheduler or os.environ.get(SCHEDULER_VARIABLE) or None
     if args.scheduler_file:
         client = Client(scheduler_file=args.scheduler_file, timeout="30s")
-        where = f"scheduler {client.scheduler.address} (from {args.scheduler_file})"
+        where = f"the scheduler in {args.scheduler_file}"
         cluster = None
     elif address:
         client = Client(address, timeout="30s")
@@ -339,8 +347,7 @@ def _run_jobs(
 ) -> bool:
     """Run the jobs on the cluster, each outcome appended to DONE_FILE as it comes;
     True when a stop ended it early."""
-    from distributed import as_completed
-
+    as_completed = _distributed().as_completed
     client, cluster = connect(args, log)
     progress = Progress(len(todo), log)
     stopped = False

@@ -72,7 +72,7 @@ class Deadline(Stop):
         self._set = False
         super().__init__()
 
-    @property  # type: ignore[override]
+    @property
     def requested(self) -> bool:
         if self._set or (self._parent is not None and self._parent.requested):
             return True
