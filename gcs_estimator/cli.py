@@ -49,6 +49,7 @@ from gcs_estimator.outputs.sinks import (
     vehicle_heading,
 )
 from gcs_estimator.outputs.table import LiveEstimate, live_table
+from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
@@ -140,6 +141,12 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = DEFAULT_CON
         "outputs already is refused unless --force",
     )
     p.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
+    p.add_argument(
+        "--history",
+        choices=HISTORY_FORMATS,
+        default=HISTORY_FORMATS[0],
+        help="each vehicle's per-frame history file: parquet (default) or csv",
+    )
     p.add_argument(
         "--refine",
         choices=REFINE_METHODS,
@@ -356,6 +363,7 @@ def _results_sink(
         refine=_refiner(args),
         run=lambda: run_info(args, config, origin),
         estimators=lambda: session.estimators,
+        history_format=args.history,
     )
 
 
@@ -472,6 +480,7 @@ def _link_session(
             truths=truths,
             refine=_refiner(args),
             run_info=lambda: run_info(args, config, origin),
+            history_format=args.history,
         )
     else:
         warm_up(config, args.backend)

@@ -26,7 +26,7 @@ def write_results(
     stem: str = "results",
     refined: Refined | None = None,
     history: HistoryCsv | HistoryParquet | None = None,
-    history_format: str = "csv",
+    history_format: str = "parquet",
 ) -> dict[str, Path]:
     """Write <stem>.json, <stem>.md and <stem>_history.csv (or .parquet) into out_dir (the
     history: the rest of the one written as the run went, where given); return their

@@ -25,14 +25,15 @@ if TYPE_CHECKING:
 
 
 HISTORY_BLOCK_FRAMES = 1024
-"""Frames of a vehicle's history written to its CSV at a time during the run (20 s at
+"""Frames of a vehicle's history written to its file at a time during the run (20 s at
 the NOC UAV's 50 Hz): what a stop has left to write."""
 
 
 class ResultsSink:
-    """Each vehicle's history CSV as the run goes (given the session's estimators); at
-    the end, its Table I on stdout (table.terminal_text: within TERMINAL_WIDTH columns),
-    its JSON and Markdown (the full table), and the rest of the CSV."""
+    """Each vehicle's history (Parquet, or CSV where asked) as the run goes (given the
+    session's estimators); at the end, its Table I on stdout (table.terminal_text: within
+    TERMINAL_WIDTH columns), its JSON and Markdown (the full table), and the rest of the
+    history."""
 
     def __init__(
         self,
@@ -45,7 +46,7 @@ class ResultsSink:
         run: Callable[[], dict[str, Any]] | None = None,
         estimators: Callable[[], Mapping[int, Estimator]] | None = None,
         history_block_frames: int = HISTORY_BLOCK_FRAMES,
-        history_format: str = "csv",
+        history_format: str = "parquet",
     ) -> None:
         self.history_format = history_format
         """"csv" or "parquet" (tables.HISTORY_FORMATS)."""

@@ -75,7 +75,8 @@ SUMMARY_COLUMNS: dict[str, str] = {
 }
 """One row per log and vehicle: frames, the flight's length, both filters' mean NIS, the
 trust warnings, and where the time went (decode_s: reading and decoding; filter_s: the
-filters and their summaries; write_s: the result files and history)."""
+filters and their summaries, the structure check's replays included; write_s: the result
+files and history)."""
 
 
 def _arrow_type(name: str) -> Any:

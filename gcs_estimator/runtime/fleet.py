@@ -257,7 +257,7 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
     import logging
 
     dist = _distributed()
-    Client, LocalCluster = dist.Client, dist.LocalCluster  # noqa: N806 (their names)
+    Client, LocalCluster = dist.Client, dist.LocalCluster
 
     address = args.scheduler or os.environ.get(SCHEDULER_VARIABLE) or None
     if args.scheduler_file:
@@ -352,6 +352,7 @@ def _run_jobs(
     progress = Progress(len(todo), log)
     stopped = False
     try:
+        started = time.perf_counter()
         config_future = client.scatter(config, broadcast=True, hash=False)
         futures = {
             client.submit(
@@ -387,6 +388,8 @@ def _run_jobs(
                     outcomes[job.key] = entry
                     done_file.write(json.dumps(entry, default=_json_default) + "\n")
                     done_file.flush()
+        wall = time.perf_counter() - started
+        print(f"ran {progress.done} logs in {wall:.2f} s (first submitted to last done)", file=log)
     finally:
         client.close()
         if cluster is not None:

@@ -33,7 +33,7 @@ from tests.view.test_rerun import read_scalars
 
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["simulation.manoeuvre.duration_s=12"]
-QUICK = ["--set", "filter.structure_check=off", "--view", "off"]
+QUICK = ["--set", "filter.structure_check=off", "--view", "off", "--history", "csv"]
 
 
 def _results(folder: Path, sid: int) -> dict[str, Any]:
