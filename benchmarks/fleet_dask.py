@@ -137,7 +137,7 @@ def figures(label: str, workers: int, run: dict[str, Any]) -> float:
     """Print one run's figures; return its logs per minute."""
     flights = run["flights"]
     n = len(flights)
-    wall = run["wall"]
+    wall = float(run["wall"])
     task = sum(f["seconds"] for f in flights)
     hours = sum(f["flight_s"] for f in flights) / 3600
     per_min = 60 * n / wall
@@ -156,8 +156,9 @@ def figures(label: str, workers: int, run: dict[str, Any]) -> float:
 
 def external(args: argparse.Namespace, logs: Path, tmp: Path) -> dict[str, Any]:
     """The batch through a scheduler process and two worker processes."""
-    from distributed import Client
+    import importlib
 
+    client_class: Any = importlib.import_module("distributed").Client
     file = tmp / "scheduler.json"
     py = [sys.executable, "-m"]
     procs = [
@@ -180,7 +181,7 @@ def external(args: argparse.Namespace, logs: Path, tmp: Path) -> dict[str, Any]:
                     env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 )
             )  # fmt: skip
-        with Client(scheduler_file=str(file), timeout="60s") as client:
+        with client_class(scheduler_file=str(file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=300)
         return batch(args, logs, tmp / "external", ["--scheduler-file", str(file)])
     finally:
