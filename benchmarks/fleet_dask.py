@@ -1,11 +1,12 @@
 """A fleet's logs through `batch` on Dask: speed, scheduler overhead, history size, trend.
 
-    python benchmarks/fleet_dask.py [--flights 100] [--vehicles 4] [--seconds 30]
+    python benchmarks/fleet_dask.py [--flights 100] [--vehicles 3] [--seconds 60]
 
-Simulates --flights short flights (.tlog, the NOC UAV) of --vehicles vehicles in turn,
-each vehicle known by its own autopilot UID (an AUTOPILOT_VERSION record first in its
-logs); vehicle 1's true CD0 drifts by --drift (5 %) from its first flight to its last,
-the others' stay. Then `gcs-estimator batch` over them (both filters, no refine):
+Simulates --flights short flights (.tlog, the NOC UAV) of --vehicles vehicles, each
+known by its own autopilot UID (an AUTOPILOT_VERSION record first in its logs): vehicle
+1 flies every other flight (50 of 100) and its true CD0 drifts by --drift (5 %) from its
+first flight to its last; the others fly the rest in turn and their CD0 stays.
+Then `gcs-estimator batch` over them (both filters, no refine):
 
 - embedded, 1 worker and 2 workers: logs per minute, flight-hours per CPU-hour (CPU:
   workers x the wall-clock time from the first log submitted to the last done), the
@@ -48,13 +49,15 @@ from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
 ROOT = Path(__file__).resolve().parent.parent
+UID_BASE = 0x1000
+"""Vehicle k's autopilot UID is UID_BASE + k."""
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--flights", type=int, default=100)
-    ap.add_argument("--vehicles", type=int, default=4)
-    ap.add_argument("--seconds", type=float, default=30.0, help="each flight's length")
+    ap.add_argument("--vehicles", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=60.0, help="each flight's length")
     ap.add_argument("--drift", type=float, default=0.05, help="vehicle 1's CD0 change")
     ap.add_argument("--check", type=int, default=3, help="logs compared with their replay")
     ap.add_argument("--no-external", action="store_true", help="skip the separate scheduler's run")
@@ -85,10 +88,10 @@ def make_flights(args: argparse.Namespace, folder: Path) -> list[Path]:
     assert config.truth is not None
     names = config.coefficient_names
     paths = []
+    owner = [_vehicle_of(k, args.vehicles) for k in range(args.flights)]
     per_vehicle = [0] * args.vehicles
-    flights_of = [len(range(v, args.flights, args.vehicles)) for v in range(args.vehicles)]
-    for k in range(args.flights):
-        v = k % args.vehicles
+    flights_of = [owner.count(v) for v in range(args.vehicles)]
+    for k, v in enumerate(owner):
         truth = np.array(config.truth, float)
         if v == 0:
             share = per_vehicle[v] / max(flights_of[v] - 1, 1)
@@ -98,9 +101,16 @@ def make_flights(args: argparse.Namespace, folder: Path) -> list[Path]:
         rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
         path = folder / f"v{v + 1}_{per_vehicle[v]:03d}.tlog"
         SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
-        _with_uid(path, 0x1000 + v + 1)
+        _with_uid(path, UID_BASE + v + 1)
         paths.append(path)
     return paths
+
+
+def _vehicle_of(k: int, vehicles: int) -> int:
+    """Vehicle 1 (index 0) flies every other flight, the others the rest in turn."""
+    if vehicles == 1 or k % 2 == 0:
+        return 0
+    return 1 + (k // 2) % (vehicles - 1)
 
 
 def _with_uid(path: Path, uid: int) -> None:
@@ -248,11 +258,14 @@ def trend(run: dict[str, Any], vehicles: int) -> None:
             f"per flight, fitted change {100 * change:+.1f} %, drift z {c.drift_z:+.2f}: "
             f"{'FLAGGED' if c.flagged else 'not flagged'}"
         )
-    others = [c for c in charts(run["rows"]) if c.vehicle != found[0].vehicle] if found else []
+    drifting = f"uid:{UID_BASE + 1:016x}"  # vehicle 1
+    others = [c for c in charts(run["rows"]) if c.vehicle != drifting]
     print(
         f"trend       : other vehicles' charts flagged: {sum(c.flagged for c in others)} of "
         f"{len(others)} (target 0); vehicle 1's CD0 drifted, the rest did not"
     )
+    flagged = [f"{c.vehicle} {c.coefficient}" for c in charts(run["rows"]) if c.flagged]
+    print(f"trend       : every chart flagged: {', '.join(flagged) or 'none'}")
 
 
 def run(args: argparse.Namespace) -> int:
