@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the 2-worker batch: estimates, history size and the trend",
     )
+    ap.add_argument("--keep", default=None, help="copy the 2-worker batch's tables here")
     record.add_argument(ap, "fleet_dask")
     args = ap.parse_args(argv)
     with record.recorded("fleet_dask", args.record, "Fleet: a batch of logs on Dask"):
@@ -284,6 +285,12 @@ def run(args: argparse.Namespace) -> int:
         )
         two = batch(args, logs, tmp / "two", ["--workers", "2"])
         rate2 = figures("embedded, 2 workers", 2, two)
+        if args.keep:
+            import shutil
+
+            Path(args.keep).mkdir(parents=True, exist_ok=True)
+            for name in ("coefficients.parquet", "flights.parquet"):
+                shutil.copy(tmp / "two" / name, Path(args.keep) / name)
         if not args.trend_only:
             one = batch(args, logs, tmp / "one", ["--workers", "1"])
             rate1 = figures("embedded, 1 worker", 1, one)

@@ -13,12 +13,15 @@ least MIN_FLIGHTS flights:
   vehicle without a change is not flagged for sigmas that are too small);
 - limits: centre +- Z_LIMIT x scaled sigma (with the centre's own uncertainty); a flight
   after the baseline outside them is flagged "shift";
-- drift: the weighted least-squares slope over the flights' order, its standard error
-  scaled by the residuals' Birge ratio where above 1; |slope / error| >= Z_DRIFT flags
-  "drift".
+- drift: the weighted least-squares slope over the flights' order (the sigmas as
+  relative weights), its standard error from the residuals' own scatter (a weighted
+  regression with unknown scale: the sigma to trust holds a part for the model's
+  structure, the same on every flight of an airframe, which does not scatter from flight
+  to flight); flagged when the slope's t statistic is beyond the two-sided
+  DRIFT_FALSE_FLAG level of Student's t with flights - 2 degrees of freedom.
 
-Z_LIMIT and Z_DRIFT keep the chance of a false flag on a vehicle with ten coefficients
-and no change to about one in fifty. Written: trend.md (a table per vehicle, a figure
+The levels keep the chance of a false flag on a vehicle with ten coefficients and no
+change to about one in fifty. Written: trend.md (a table per vehicle, a figure
 per coefficient), trend_<vehicle>_<coefficient>.svg (hand-written SVG), and trend.rrd
 (a Rerun timeline of flights).
 """
@@ -40,8 +43,9 @@ import numpy as np
 MIN_FLIGHTS = 6
 MIN_BASELINE = 5
 BASELINE_SHARE = 1 / 3
-Z_DRIFT = 3.3
-"""The drift test's threshold: two-sided 0.1 % for normal errors."""
+DRIFT_FALSE_FLAG = 0.001
+"""The drift test's level (two-sided): the chance of a drift flag on a coefficient that
+did not change."""
 FALSE_FLAG_SHARE = 0.001
 """The chance per coefficient that one of its flights falls outside the limits when
 nothing changed (Z_LIMIT is the Bonferroni bound over the flights)."""
@@ -50,6 +54,13 @@ nothing changed (Z_LIMIT is the Bonferroni bound over the flights)."""
 def z_limit(flights: int) -> float:
     """The limits' width in scaled sigmas for this many flights checked: at least 3."""
     return max(3.0, NormalDist().inv_cdf(1 - FALSE_FLAG_SHARE / (2 * max(flights, 1))))
+
+
+def drift_limit(flights: int) -> float:
+    """The slope's t statistic a drift needs over this many flights."""
+    from scipy.stats import t as student
+
+    return float(student.ppf(1 - DRIFT_FALSE_FLAG / 2, max(flights - 2, 1)))
 
 
 @dataclass
@@ -72,13 +83,16 @@ class Chart:
     """Change per flight."""
     slope_sigma: float = math.nan
     drift_z: float = math.nan
+    """The slope's t statistic."""
+    drift_limit: float = math.inf
+    """The t statistic beyond which the slope is flagged (DRIFT_FALSE_FLAG)."""
     shifts: list[int] = field(default_factory=list)
     """Flights (indices) outside the limits."""
     note: str = ""
 
     @property
     def drift(self) -> bool:
-        return math.isfinite(self.drift_z) and abs(self.drift_z) >= Z_DRIFT
+        return math.isfinite(self.drift_z) and abs(self.drift_z) >= self.drift_limit
 
     @property
     def flagged(self) -> bool:
@@ -101,8 +115,8 @@ def _weighted_mean(x: np.ndarray, s: np.ndarray) -> tuple[float, float, float]:
 
 
 def _slope(x: np.ndarray, s: np.ndarray) -> tuple[float, float]:
-    """Weighted least-squares slope of x over its index, and its sigma (scaled by the
-    residuals' Birge ratio where above 1)."""
+    """Weighted least-squares slope of x over its index (weights 1/s^2), and its sigma
+    from the residuals' scatter (the weights' scale unknown)."""
     i = np.arange(len(x), dtype=float)
     w = 1.0 / s**2
     a = np.array([[np.sum(w), np.sum(w * i)], [np.sum(w * i), np.sum(w * i * i)]])
@@ -111,8 +125,8 @@ def _slope(x: np.ndarray, s: np.ndarray) -> tuple[float, float]:
     coef = cov @ b
     resid = x - coef[0] - coef[1] * i
     dof = len(x) - 2
-    birge = math.sqrt(float(np.sum(w * resid**2)) / dof) if dof > 0 else 1.0
-    return float(coef[1]), math.sqrt(float(cov[1, 1])) * max(birge, 1.0)
+    scale = math.sqrt(float(np.sum(w * resid**2)) / dof) if dof > 0 else math.inf
+    return float(coef[1]), math.sqrt(float(cov[1, 1])) * scale
 
 
 def analyse(chart: Chart) -> Chart:
@@ -132,6 +146,7 @@ def analyse(chart: Chart) -> Chart:
     chart.shifts = [i for i in range(chart.baseline, n) if not lo[i] <= x[i] <= hi[i]]
     chart.slope, chart.slope_sigma = _slope(x, s)
     chart.drift_z = chart.slope / chart.slope_sigma if chart.slope_sigma > 0 else math.nan
+    chart.drift_limit = drift_limit(n)
     return chart
 
 
@@ -177,7 +192,8 @@ def markdown(all_charts: Sequence[Chart]) -> str:
     lines += [
         "Each vehicle's flights in time order; centre: the baseline's weighted mean (its "
         "first third); limits: +- z x sigma (sigmas widened by the baseline's scatter where "
-        f"larger); drift: the weighted slope at |z| >= {Z_DRIFT} (decision 0042).",
+        "larger); drift: the weighted slope's t statistic beyond the two-sided "
+        f"{100 * DRIFT_FALSE_FLAG:g} % level (decision 0042).",
         "",
     ]
     flagged = [c for c in all_charts if c.flagged]
@@ -190,7 +206,7 @@ def markdown(all_charts: Sequence[Chart]) -> str:
         lines += ["", f"## {vehicle}", ""]
         lines.append(
             "| coefficient | flights | centre ± sigma | widened x | limit z | slope per 10 "
-            "flights | drift z | flag |"
+            "flights | drift t (limit) | flag |"
         )
         lines.append("|---|---|---|---|---|---|---|---|")
         for c in mine:
@@ -215,7 +231,8 @@ def _row(c: Chart) -> str:
     rel = 100 * 10 * c.slope / abs(c.centre) if c.centre else math.nan
     return (
         f"| {c.coefficient} | {n} | {c.centre:.4g} ± {c.centre_sigma:.2g} | {c.birge:.2f} | "
-        f"{c.limit_z:.2f} | {10 * c.slope:+.3g} ({rel:+.1f} %) | {c.drift_z:+.2f} | "
+        f"{c.limit_z:.2f} | {10 * c.slope:+.3g} ({rel:+.1f} %) | {c.drift_z:+.2f} "
+        f"({c.drift_limit:.2f}) | "
         f"{'; '.join(flags) or '-'} |"
     )
 
@@ -312,7 +329,7 @@ def recording(all_charts: Sequence[Chart], path: Path) -> None:
                 rec.log(f"{entity}/flags", rr.TextLog(f"shift: {c.logs[i]}", level="WARN"))
         if c.drift:
             rec.set_time("flight", sequence=len(c.estimate))
-            rec.log(f"{entity}/flags", rr.TextLog(f"drift: z {c.drift_z:+.2f}", level="WARN"))
+            rec.log(f"{entity}/flags", rr.TextLog(f"drift: t {c.drift_z:+.2f}", level="WARN"))
     rec.flush(timeout_sec=30)
     rec.disconnect()
 
