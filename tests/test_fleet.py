@@ -18,7 +18,7 @@ from typing import Any
 import pyarrow.parquet as pq
 import pytest
 
-from gcs_estimator.config import load_config
+from gcs_estimator.config import ConfigError, load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import Codec, tlog_record
 from gcs_estimator.runtime.logs import estimate_file, tlog_facts
@@ -256,3 +256,20 @@ def test_the_autopilots_uid_is_read_from_the_log(logs: list[Path]) -> None:
     assert facts.uids == {1: f"{UID:016x}"}
     assert facts.flight_time is not None
     assert tlog_facts(logs[1]).uids == {}
+
+
+def test_a_vehicle_map_names_vehicles_by_identity_or_log_path(tmp_path: Path) -> None:
+    from gcs_estimator.runtime.fleet import load_vehicle_map, rename_vehicles
+
+    path = tmp_path / "fleet.toml"
+    path.write_text('[vehicles]\n"sys3" = "plane B"\n"logs/a/*.tlog" = "plane A"\n')
+    rows = [
+        {"log": "logs/a/1.tlog", "vehicle": "sys1"},
+        {"log": "logs/b/2.tlog", "vehicle": "sys3"},
+        {"log": "logs/b/3.tlog", "vehicle": "uid:00ff"},
+    ]
+    rename_vehicles(rows, load_vehicle_map(str(path)))
+    assert [r["vehicle"] for r in rows] == ["plane A", "plane B", "uid:00ff"]
+    path.write_text('[vehicles]\n"sys3" = 3\n')
+    with pytest.raises(ConfigError, match="needs a \\[vehicles\\] table"):
+        load_vehicle_map(str(path))
