@@ -273,3 +273,22 @@ def test_a_vehicle_map_names_vehicles_by_identity_or_log_path(tmp_path: Path) ->
     path.write_text('[vehicles]\n"sys3" = 3\n')
     with pytest.raises(ConfigError, match="needs a \\[vehicles\\] table"):
         load_vehicle_map(str(path))
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--workers", "0"], "--workers 0: at least 1"),
+        (["--retries", "-1"], "--retries -1: 0 or more"),
+        (["--timeout", "0"], "--timeout 0: seconds, more than 0"),
+        (["--scheduler", "tcp://127.0.0.1:1", "--scheduler-file", "s.json"], "give one of them"),
+    ],
+)
+def test_options_a_batch_cannot_use_are_refused(
+    tmp_path: Path, options: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gcs_estimator.cli import main
+
+    assert main(["batch", str(tmp_path), "--out", str(tmp_path / "o"), *options]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # refused before anything was written

@@ -294,12 +294,23 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
     return client, cluster
 
 
+def check_options(args: argparse.Namespace) -> None:
+    """Refuse numbers a batch cannot use, naming the option."""
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}: at least 1")
+    if args.retries < 0:
+        raise ConfigError(f"--retries {args.retries}: 0 or more")
+    if args.timeout is not None and not args.timeout > 0:
+        raise ConfigError(f"--timeout {args.timeout:g}: seconds, more than 0")
+    if args.scheduler and args.scheduler_file:
+        raise ConfigError("--scheduler and --scheduler-file: give one of them")
+
+
 def run_batch(args: argparse.Namespace, stop: Stop, log: TextIO | None = None) -> int:
     """Every log of args.logs estimated on Dask; the tables and trend written. 0 when
     every log gave estimates, 1 when some failed, 2 when stopped before the end."""
     log = sys.stderr if log is None else log
-    if args.history not in HISTORY_FORMATS:
-        raise ConfigError(f"--history {args.history}: one of {', '.join(HISTORY_FORMATS)}")
+    check_options(args)
     out = Path(args.out)
     if (out / DONE_FILE).exists() and not (args.resume or args.force):
         raise ConfigError(
