@@ -77,6 +77,7 @@ PLAN = (
     Run("live", "live", ("--vehicles", "10", "--seconds", "30"), 0.6),
     Run("live_50", "live", ("--vehicles", "50", "--seconds", "60", "--repeat", "3"), 3.7),
     Run("fleet", "fleet", (), 0.3),
+    Run("fleet_dask", "fleet_dask", (), 15),
     Run("hour", "hour", (), 3.6),
     Run("stop", "stop", (), 1.7),
     Run("startup", "startup", (), 0.2),

@@ -65,6 +65,7 @@ from gcs_estimator.outputs.sinks import (
     vehicle_heading,
 )
 from gcs_estimator.outputs.table import LiveEstimate, live_table
+from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
@@ -281,6 +282,12 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
         "outputs already is refused unless --force",
     )
     p.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
+    p.add_argument(
+        "--history",
+        choices=HISTORY_FORMATS,
+        default=HISTORY_FORMATS[0],
+        help="each vehicle's per-frame history file: parquet (default) or csv",
+    )
     p.add_argument(
         "--refine",
         choices=REFINE_METHODS,
@@ -548,6 +555,7 @@ def _results_sink(
         refine=_refiner(args),
         run=lambda: run_info(args, config, origin),
         estimators=lambda: session.estimators,
+        history_format=args.history,
     )
 
 
@@ -686,6 +694,7 @@ def _link_session(
             truths=truths,
             refine=_refiner(args),
             run_info=lambda: run_info(args, config, origin),
+            history_format=args.history,
         )
     else:
         warm_up(config, args.backend)
@@ -1035,6 +1044,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
     _config_arg(p, DEFAULT_CONFIG)
     p.set_defaults(func=cmd_keys)
+
+    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
+
+    add_commands(sub, lambda p: _config_arg(p, DEFAULT_CONFIG))
     return ap
 
 

@@ -83,7 +83,7 @@ def test_each_file_is_replayed_on_its_own_and_the_results_merged(
         assert single.returncode == 0, single.stderr
         own = json.loads((alone / "results_sys1.json").read_text())
         assert _estimates(f["vehicles"][0]) == _estimates(own)
-        assert (Path(f["folder"]) / "results_sys1_history.csv").is_file()
+        assert (Path(f["folder"]) / "results_sys1_history.parquet").is_file()
     # The two flights differ (other noise seeds): the merge kept them apart.
     assert _estimates(files[0]["vehicles"][0]) != _estimates(files[1]["vehicles"][0])
     table = (out / "replays.md").read_text()

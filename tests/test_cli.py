@@ -51,8 +51,11 @@ def test_simulate_writes_table_json_and_csv(
             assert got["estimate"] == f.coefficients[i]
             assert got["sigma_parts"]["covariance"] == f.sigma[i]
     assert data["config"]["simulation"]["manoeuvre"]["duration_s"] == 20
-    history = (tmp_path / "results_sys1_history.csv").read_text().splitlines()
-    assert len(history) == 1 + 2 * len(flight.t_s)
+    import pyarrow.parquet as pq
+
+    history = pq.read_table(tmp_path / "results_sys1_history.parquet")  # the default format
+    assert history.num_rows == len(flight.t_s)  # a row per frame, both filters in it
+    assert history.column("IEKF_CLa")[-1].as_py() == np.float32(res.filters["IEKF"].coefficients[4])
     assert (tmp_path / "results_sys1.md").read_text().startswith("# NOC UAV")
 
 
@@ -65,7 +68,7 @@ def test_history_has_a_column_for_every_state_a_run_estimates(tmp_path: Path) ->
         'sensors.bias_states=["q"]',
         'filter.turbulence.model="states"',
     ]
-    args = ["simulate", "--out", str(tmp_path), "--seed", "2", "--view", "off"]
+    args = ["simulate", "--out", str(tmp_path), "--seed", "2", "--view", "off", "--history", "csv"]
     assert main(args + [a for o in over for a in ("--set", o)]) == 0
     lines = (tmp_path / "results_sys1_history.csv").read_text().splitlines()
     header = lines[0].split(",")

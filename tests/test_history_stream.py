@@ -58,6 +58,7 @@ def _run(config: AircraftConfig, out: Path) -> tuple[Session, LineCounter]:
         out=open(out / "stdout.txt", "w"),  # noqa: SIM115 (the test's folder)
         estimators=lambda: session.estimators,
         history_block_frames=BLOCK,
+        history_format="csv",
     )
     counter = LineCounter(out / "results_sys1_history.csv")
     session.add_sink(sink)

@@ -15,8 +15,9 @@ from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry.channel_sources import rates_line
 from gcs_estimator.outputs.history_csv import HistoryCsv
-from gcs_estimator.outputs.report import write_results
+from gcs_estimator.outputs.report import open_history, write_results
 from gcs_estimator.outputs.table import terminal_text
+from gcs_estimator.outputs.tables import HistoryParquet
 from gcs_estimator.outputs.text import TERMINAL_WIDTH, wrap
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -25,14 +26,15 @@ if TYPE_CHECKING:
 
 
 HISTORY_BLOCK_FRAMES = 1024
-"""Frames of a vehicle's history written to its CSV at a time during the run (20 s at
+"""Frames of a vehicle's history written to its file at a time during the run (20 s at
 the NOC UAV's 50 Hz): what a stop has left to write."""
 
 
 class ResultsSink:
-    """Each vehicle's history CSV as the run goes (given the session's estimators); at
-    the end, its Table I on stdout (table.terminal_text: within TERMINAL_WIDTH columns),
-    its JSON and Markdown (the full table), and the rest of the CSV."""
+    """Each vehicle's history (Parquet, or CSV where asked) as the run goes (given the
+    session's estimators); at the end, its Table I on stdout (table.terminal_text: within
+    TERMINAL_WIDTH columns), its JSON and Markdown (the full table), and the rest of the
+    history."""
 
     def __init__(
         self,
@@ -45,12 +47,15 @@ class ResultsSink:
         run: Callable[[], dict[str, Any]] | None = None,
         estimators: Callable[[], Mapping[int, Estimator]] | None = None,
         history_block_frames: int = HISTORY_BLOCK_FRAMES,
+        history_format: str = "parquet",
     ) -> None:
+        self.history_format = history_format
+        """"csv" or "parquet" (tables.HISTORY_FORMATS)."""
         self.estimators = estimators
         """The session's estimators by system id, whose histories go to the CSV as the
         run goes; None: the whole CSV at the end."""
         self.history_block_frames = history_block_frames
-        self.histories: dict[int, HistoryCsv] = {}
+        self.histories: dict[int, HistoryCsv | HistoryParquet] = {}
         self.refine = refine
         self.run = run
         """What the JSON says of the run (version, command line, source, times)."""
@@ -68,9 +73,10 @@ class ResultsSink:
             return
         csv = self.histories.get(frame.system_id)
         if csv is None:  # the vehicle's first frame: the file and its header
-            path = self.out_dir / f"{self.stem(frame.system_id)}_history.csv"
             power = est.config.propulsion.input_name
-            csv = HistoryCsv(path, est.model.layout.names, power)
+            names = list(est.model.layout.names)
+            stem = self.stem(frame.system_id)
+            csv = open_history(self.out_dir, stem, self.history_format, names, power)
             self.histories[frame.system_id] = csv
         # Every row but the newest is final (Estimator.tracks).
         final = est.history_rows - 1
@@ -104,7 +110,9 @@ class ResultsSink:
         if self.run is not None:
             extra["run"] = self.run()
         history = self.histories.pop(sid, None)
-        paths = write_results(self.out_dir, vehicle, extra, self.stem(sid), refined, history)
+        paths = write_results(
+            self.out_dir, vehicle, extra, self.stem(sid), refined, history, self.history_format
+        )
         written = "results: " + ", ".join(str(p) for p in paths.values())
         print(wrap(written), file=out)
 

@@ -102,7 +102,7 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
     ):
         if value is not None:
             cmd += [option, str(value)]
-    cmd += ["--view", args.view or "save"]
+    cmd += ["--view", args.view or "save", "--history", args.history]
     if args.hold_noise:
         cmd.append("--hold-noise")
     if args.force:

@@ -96,6 +96,8 @@ class ShardJob:
     out_dir: str | None
     """Where the vehicles' result files go (None: none written, no tables: a benchmark's)."""
     refine: RefineAsk | None
+    history_format: str = "parquet"
+    """The history's format: "parquet" or "csv" (outputs.tables.HISTORY_FORMATS)."""
 
 
 # ---- each frame's outputs as one row of floats ----------------------------------------
@@ -299,6 +301,7 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
             refine=job.refine,
             run=lambda: source.run or {},
             estimators=lambda: session.estimators,
+            history_format=job.history_format,
         )
     session.add_sink(OutputsSink(source, session, build_model(config).n, send))
     end = EndSink(writer, send)
@@ -481,6 +484,7 @@ class ShardedSession:
         refine: RefineAsk | None = None,
         run_info: Callable[[], dict[str, Any]] | None = None,
         log: TextIO | None = None,
+        history_format: str = "parquet",
     ) -> None:
         if workers < 1:
             raise ValueError(f"filter workers: {workers} (at least 1)")
@@ -492,7 +496,8 @@ class ShardedSession:
         self.log = sys.stderr if log is None else log
         own = None if truths is None else {sid: tuple(v) for sid, v in truths.items()}
         self.jobs = [
-            ShardJob(i, config, backend, keep_history, own, out_dir, refine) for i in range(workers)
+            ShardJob(i, config, backend, keep_history, own, out_dir, refine, history_format)
+            for i in range(workers)
         ]
         model = build_model(config)
         self._n = model.n

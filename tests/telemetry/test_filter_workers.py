@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from gcs_estimator import cli
@@ -66,7 +67,7 @@ def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_
     """Three vehicles -> UDP -> `listen --filter-workers 2` (its link in a worker too):
     every frame of every vehicle is estimated and in the view; the tables come in the
     order the vehicles were heard, each once; a replay of the recording with the same
-    workers ends with the same results and history, byte for byte, and a replay in one
+    workers ends with the same results and history, value for value, and a replay in one
     process with the same estimates. A whole-record fit that fails in a worker sets the
     run's exit status as in one process."""
     live = tmp_path / "live"
@@ -97,21 +98,16 @@ def test_a_station_with_its_filters_in_workers_gives_what_its_recording_replays_
         # The view has each vehicle's estimates from its first frame to its last (at
         # the view's estimate rate).
         t_flight, cma = read_scalars(live / "view.rrd", lay.coefficient_path(sid, "Cma", axis))
-        t_csv = np.loadtxt(
-            live / f"results_sys{sid}_history.csv",
-            delimiter=",",
-            skiprows=1,
-            usecols=1,
-            max_rows=601,
-        )
-        assert t_flight[0] == t_csv[0] and t_flight[-1] == t_csv[-1]
+        history = f"results_sys{sid}_history.parquet"
+        t_history = pq.read_table(live / history, columns=["t_s"]).column("t_s").to_numpy()
+        assert len(t_history) == 601
+        assert t_flight[0] == t_history[0] and t_flight[-1] == t_history[-1]
         assert len(t_flight) > 250 and np.all(np.isfinite(cma))
 
         want = _results(again, sid)
         assert got["filters"] == want["filters"]
         assert got["diagnostics"] == want["diagnostics"]
-        csv = f"results_sys{sid}_history.csv"
-        assert (live / csv).read_bytes() == (again / csv).read_bytes()
+        assert pq.read_table(live / history).equals(pq.read_table(again / history))
         # In one process the vehicles' restarts take turns among all three, not among
         # the vehicles of one worker: the swaps come at other frames, the estimates
         # the same.

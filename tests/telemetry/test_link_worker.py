@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from gcs_estimator.cli import main as gcs_main
@@ -88,9 +89,8 @@ def test_a_station_with_its_link_in_a_worker_gives_what_its_recording_replays_to
     want = _results(again)
     assert got["filters"] == want["filters"]
     assert got["diagnostics"] == want["diagnostics"]
-    assert (live / "results_sys1_history.csv").read_bytes() == (
-        again / "results_sys1_history.csv"
-    ).read_bytes()
+    history = "results_sys1_history.parquet"
+    assert pq.read_table(live / history).equals(pq.read_table(again / history))
 
 
 class _KillAfter:

@@ -283,7 +283,7 @@ def test_served_session_outlives_the_run_and_a_late_viewer_gets_it_all(tmp_path:
             sys.executable, "-m", "gcs_estimator", "replay", str(tlog),
             "--config", str(ROOT / "configs/noc_uav.toml"), "--set", SHORT[0],
             "--set", "view.serve_linger_s=8", "--out", str(tmp_path),
-            "--view", "serve", "--serve-port", str(port),
+            "--view", "serve", "--serve-port", str(port), "--history", "csv",
         ],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
