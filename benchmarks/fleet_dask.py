@@ -137,8 +137,8 @@ def _with_uid(path: Path, uid: int) -> None:
 
 def batch(args: argparse.Namespace, logs: Path, out: Path, where: list[str]) -> dict[str, Any]:
     """One `batch` run: its wall-clock time over the tasks and its tables."""
-    cmd = [sys.executable, "-m", "gcs_estimator", "batch", str(logs), "--out", str(out),
-           "--view", "off", "--no-trend", *where]  # fmt: skip
+    cmd = [sys.executable, "-m", "gcs_estimator", "batch", str(logs), "--config", "noc_uav",
+           "--out", str(out), "--view", "off", "--no-trend", *where]  # fmt: skip
     for item in _overrides(args.seconds):
         cmd += ["--set", item]
     t0 = time.perf_counter()
@@ -221,8 +221,8 @@ def same_as_replay(
     same = 0
     for path in logs[: args.check]:
         out = tmp / f"replay_{path.stem}"
-        cmd = [sys.executable, "-m", "gcs_estimator", "replay", str(path), "--out", str(out),
-               "--view", "off"]  # fmt: skip
+        cmd = [sys.executable, "-m", "gcs_estimator", "replay", str(path), "--config", "noc_uav",
+               "--out", str(out), "--view", "off"]  # fmt: skip
         for item in _overrides(args.seconds):
             cmd += ["--set", item]
         subprocess.run(cmd, env=_env(), capture_output=True, check=True)

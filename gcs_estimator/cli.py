@@ -1047,7 +1047,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
 
-    add_commands(sub, lambda p: _config_arg(p, DEFAULT_CONFIG))
+    add_commands(sub, lambda p: _config_arg(p, None))
     return ap
 
 

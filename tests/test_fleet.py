@@ -129,7 +129,8 @@ def _gcs(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def _batch(cluster: Cluster, out: Path, *logs: Path, extra: tuple[str, ...] = ()) -> list[str]:
-    return ["batch", *map(str, logs), "--scheduler-file", str(cluster.file), "--out", str(out),
+    return ["batch", *map(str, logs), "--config", "noc_uav", "--scheduler-file", str(cluster.file),
+            "--out", str(out),
             "--view", "off", *extra]  # fmt: skip
 
 
@@ -153,7 +154,9 @@ def test_each_log_as_its_replay_alone_and_a_corrupt_log_is_a_failed_row(
     assert failed["estimate"] is None
     for log in logs[:2]:
         alone = tmp_path / f"alone_{log.stem}"
-        single = _gcs("replay", str(log), "--out", str(alone), "--view", "off")
+        single = _gcs(
+            "replay", str(log), "--config", "noc_uav", "--out", str(alone), "--view", "off"
+        )
         assert single.returncode == 0, single.stderr
         own = json.loads((alone / "results_sys1.json").read_text())
         expected = {
@@ -282,6 +285,7 @@ def test_a_vehicle_map_names_vehicles_by_identity_or_log_path(tmp_path: Path) ->
         (["--retries", "-1"], "--retries -1: 0 or more"),
         (["--timeout", "0"], "--timeout 0: seconds, more than 0"),
         (["--scheduler", "tcp://127.0.0.1:1", "--scheduler-file", "s.json"], "give one of them"),
+        ([], "batch: no airframe file: give --config"),
     ],
 )
 def test_options_a_batch_cannot_use_are_refused(

@@ -304,6 +304,11 @@ def check_options(args: argparse.Namespace) -> None:
         raise ConfigError(f"--timeout {args.timeout:g}: seconds, more than 0")
     if args.scheduler and args.scheduler_file:
         raise ConfigError("--scheduler and --scheduler-file: give one of them")
+    if args.config is None:  # one airframe's logs; never the simulator's borrowed
+        raise ConfigError(
+            "batch: no airframe file: give --config (the airframe file of the aircraft "
+            "whose logs these are; `gcs-estimator airframe FILE` writes a starter)"
+        )
 
 
 def run_batch(args: argparse.Namespace, stop: Stop, log: TextIO | None = None) -> int:

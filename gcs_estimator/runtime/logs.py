@@ -3,9 +3,9 @@ batch runs per log (runtime/fleet.py), in this process.
 
     estimate_file(path, config, out_dir) -> LogOutcome
 
-The reader is chosen by the file's suffix (reader_of): a .tlog is decoded in this
-process (a batch's worker is one core already); a data file (.csv, the HFB-320 .asc) is
-read by ingest.flightdata. A reader added for another format goes into READERS. The
+The reader is chosen by the file's content (reader_of, ingest.logs.detect): a .tlog is
+decoded in this process (a batch's worker is one core already); an autopilot's log, a
+CSV or the HFB-320 record is read as `offline` reads it (ingest.logs.reader.load_flight). The
 result files are the replay's (results_sys<ID>.json, .md, the history), in out_dir.
 """
 
@@ -24,7 +24,9 @@ from typing import Any
 from gcs_estimator.config import AircraftConfig, ConfigError
 from gcs_estimator.estimation.estimator import FilterKind, StepOutput
 from gcs_estimator.frames import Frame
-from gcs_estimator.ingest.flightdata import FlightDataError, load_recording
+from gcs_estimator.ingest.flightdata import FlightDataError
+from gcs_estimator.ingest.logs import detect
+from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
@@ -220,7 +222,11 @@ def _tlog_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[
 
 
 def _data_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[Source, LogFacts]:
-    file, rec = load_recording(path, config.data)
+    """An autopilot's log (DataFlash, ULog), a CSV or the HFB-320 record, as `offline`
+    reads it (ingest.logs.reader.load_flight: by content)."""
+    file, rec, account = load_flight(path, config)
+    if account:
+        print(account, file=log)
     for note in rec.notes:
         print(f"note: {note}", file=log)
     want = config.propulsion.input_name
@@ -230,32 +236,31 @@ def _data_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[
             f"in the data, but {file} has {rec.power}"
         )
     mtime = datetime.fromtimestamp(file.stat().st_mtime, UTC)
-    return RecordingSource(rec.t_s, rec.inputs, rec.measurements), LogFacts(mtime)
+    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
+    return source, LogFacts(mtime)
 
 
 Reader = Callable[[Path, AircraftConfig, io.StringIO], tuple[Source, LogFacts]]
 
 READERS: dict[str, Reader] = {
-    ".tlog": _tlog_reader,
-    ".csv": _data_reader,
-    ".asc": _data_reader,
+    "tlog": _tlog_reader,
+    "dataflash": _data_reader,
+    "dataflash-text": _data_reader,
+    "ulog": _data_reader,
+    "csv": _data_reader,
+    "hfb320": _data_reader,
 }
-"""The reader of each log format, by file suffix (lower case)."""
+"""The reader of each log format (ingest.logs.detect.kind: the file's content says which)."""
 
 
 def reader_of(path: Path) -> Reader:
-    """The reader of a log, by its suffix; a suffix no reader knows is a LogError that
-    lists the known ones."""
-    reader = READERS.get(path.suffix.lower())
-    if reader is None:
-        known = ", ".join(sorted(READERS))
-        raise LogError(f"{path}: no reader for {path.suffix or 'a file without suffix'!r} "
-                        f"files (known: {known})")  # fmt: skip
-    return reader
+    """The reader of a log, by its content (detect.kind)."""
+    return READERS[detect.kind(path)]
 
 
-LOG_SUFFIXES = tuple(READERS)
-"""What a folder's files must end with to be taken as logs."""
+LOG_SUFFIXES = (".tlog", ".bin", ".log", ".ulg", ".csv", ".asc")
+"""What a folder's files must end with to be taken as logs (a file named on the
+command line is read whatever its name)."""
 
 
 def estimate_file(
