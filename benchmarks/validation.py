@@ -137,9 +137,9 @@ def run_job(job: Job) -> Outcome:
         oe, out.failed = None, f"refine failed: {exc}"
     if oe is not None:
         found["refine"] = (oe.coefficients, oe.sigma, oe.identifiability)
-    for k, (est, sigma, marks) in found.items():
-        out.z[k] = ((est - goal) / sigma).tolist()
-        out.marks[k] = marks
+    for estimator, (est, sigma, marks) in found.items():
+        out.z[estimator] = ((est - goal) / sigma).tolist()
+        out.marks[estimator] = marks
     out.table = _table(names, goal, found)
     out.seconds = time.perf_counter() - start
     return out

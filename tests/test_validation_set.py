@@ -15,6 +15,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))  # the benchmarks import each other top-level
 
+import jsbsim_flights  # noqa: E402  (benchmarks/jsbsim_flights.py)
 import validation  # noqa: E402  (benchmarks/validation.py)
 import validation_flights as vf  # noqa: E402  (benchmarks/validation_flights.py)
 
@@ -77,9 +78,9 @@ def test_sensors_read_what_the_estimators_observation_equations_expect() -> None
     k[eq.ACCEL_X], k[eq.ACCEL_Z] = where["accel_x_m"], where["accel_z_m"]
     for i in range(n):
         x = np.array([flight[c][i] for c in ("V", "alpha", "theta", "q")])
-        h = np.array([flight[c][i] for c in vf.CLEAN])
+        h = np.array([flight[c][i] for c in jsbsim_flights.CLEAN])
         eq.sensor_placement(x, k, h, np.zeros((7, 4)))
-        h[3] += vf.GYRO_BIAS
+        h[3] += jsbsim_flights.GYRO_BIAS
         np.testing.assert_allclose(read[i], h, rtol=1e-12, atol=1e-12)
 
 
@@ -101,7 +102,7 @@ def test_placement_reads_the_models_frame_into_body_axes() -> None:
 def test_the_glider_glides_steadily_without_a_throttle_to_trim() -> None:
     sgs = vf.member("SGS").aircraft
     assert not sgs.throttle
-    flight = vf.fly(sgs, False, 1, "fcs")
+    flight = jsbsim_flights.fly(sgs, False, 1, "fcs")
     assert float(np.max(flight["thrust"])) == 0.0
     quiet = flight["t"] < 1.9  # before the first multistep
     assert np.ptp(flight["V"][quiet]) < 0.01 * flight["V"][0]
