@@ -189,7 +189,13 @@ def _fly(
     for _ in range(STEPS_PER_SAMPLE * 25):
         fdm.run()
     per_norm = (fdm["fcs/elevator-pos-rad"] - de0) / 0.05
+    # Back to the trimmed command before trimming again: a model that trims with its
+    # pitch trim (the c172p) would otherwise trim against the calibration's offset.
+    fdm["fcs/elevator-cmd-norm"] = trim_cmd
     _trim(fdm, ac, glide)
+    # JSBSim's trim leaves the surfaces' output properties as the calibration left them:
+    # one step from the trim brings them to the trimmed commands before the first sample.
+    fdm.run()
     aileron0 = fdm["fcs/aileron-cmd-norm"]
     out: dict[str, list[float]] = {}
     n = int(DURATION_S * RATE_HZ) * STEPS_PER_SAMPLE + 1

@@ -61,7 +61,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording, write_csv
 
-VERSION = 1
+VERSION = 2
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "validation"
 
