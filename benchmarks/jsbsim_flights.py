@@ -44,6 +44,7 @@ from gcs_estimator.units import FOOT, POUND_FORCE, SLUG
 
 ROOT = Path(__file__).resolve().parent.parent
 INCH = 0.0254
+MODEL_OUTPUT = ROOT / "out" / "jsbsim_output"
 PLACES = {"cg": "inertia/cg", "eye": "metrics/eyepoint", "aerorp": "metrics/aero-rp"}
 RATE_HZ = 50.0
 STEPS_PER_SAMPLE = 4  # JSBSim at 200 Hz
@@ -132,6 +133,9 @@ def _trimmed(ac: Aircraft, turbulence: bool, seed: int) -> tuple[Any, FloatArray
 
     fdm = jsbsim.FGFDMExec(None)
     fdm.set_debug_level(0)
+    # Some models (the global5000) write a CSV of their own: into out/, not the cwd.
+    MODEL_OUTPUT.mkdir(parents=True, exist_ok=True)
+    fdm.set_output_path(str(MODEL_OUTPUT))
     fdm.load_model(ac.model)
     fdm.set_dt(1.0 / (RATE_HZ * STEPS_PER_SAMPLE))
     glide = _trim(fdm, ac)
