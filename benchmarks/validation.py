@@ -40,7 +40,7 @@ import re
 import sys
 import time
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -322,8 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--again",
         action="store_true",
-        help="report the outcomes of the last run kept in --out (out/validation/outcomes.pickle) "
-        "without running anything",
+        help="report the outcomes the last run kept in --out (out/validation/outcomes/), "
+        "as far as it got, without running anything",
     )
     record.add_argument(ap, "validation")
     args = ap.parse_args(argv)
@@ -333,15 +333,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    kept = Path(args.out) / "outcomes.pickle"
+    kept = Path(args.out) / "outcomes"
     if args.again:
-        outcomes, flown = pickle.loads(kept.read_bytes()), 0.0
+        outcomes, flown = [pickle.loads(p.read_bytes()) for p in kept.glob("*.pickle")], 0.0
     else:
-        todo = jobs(args)
+        todo = sorted(jobs(args), key=_priority)
         flown = time.perf_counter() - start
-        with ProcessPoolExecutor(args.jobs) as pool:
-            outcomes = list(pool.map(run_job, todo))
-        kept.write_bytes(pickle.dumps(outcomes))
+        outcomes = estimate(todo, args.jobs, kept)
+    outcomes.sort(key=lambda o: (ORDER.index(o.job.aircraft), o.job.name))
     tables = Path(args.out) / "tables"
     tables.mkdir(parents=True, exist_ok=True)
     for o in outcomes:
@@ -359,6 +358,31 @@ def run(args: argparse.Namespace) -> int:
         f"{args.jobs} processes; each record's table in out/validation/tables/)"
     )
     return 0
+
+
+ORDER = [m.aircraft.model for m in vf.SET] + list(OTHERS)
+"""The aircraft in the order the tables list them."""
+
+
+def _priority(job: Job) -> tuple[bool, str, int]:
+    """The noisy records first, a condition at a time over every aircraft: a run stopped
+    early (its outcomes are kept one by one) has covered the set evenly."""
+    return "clean" in job.condition, job.condition, ORDER.index(job.aircraft)
+
+
+def estimate(todo: list[Job], workers: int, kept: Path) -> list[Outcome]:
+    """Run the records in `workers` processes, each outcome kept in `kept` as it comes
+    (what an earlier run kept there is removed first: `--again` reports one run)."""
+    kept.mkdir(parents=True, exist_ok=True)
+    for old in kept.glob("*.pickle"):
+        old.unlink()
+    outcomes = []
+    with ProcessPoolExecutor(workers) as pool:
+        for done in as_completed([pool.submit(run_job, job) for job in todo]):
+            outcome = done.result()
+            (kept / f"{outcome.job.name}.pickle").write_bytes(pickle.dumps(outcome))
+            outcomes.append(outcome)
+    return outcomes
 
 
 if __name__ == "__main__":
