@@ -98,12 +98,14 @@ class Outcome:
     marks: dict[str, tuple[str, ...]] = field(default_factory=dict)
     table: str = ""
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
+    """The worker's CPU time on the record (all its threads)."""
     failed: str = ""
 
 
 def run_job(job: Job) -> Outcome:
     """Run the estimator and `refine` on one record and judge them."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     if job.aircraft == "hfb320":
         config = load_config("hfb320", list(job.overrides))
         t, u, y = (lambda r: (r.t_s, r.inputs, r.measurements))(
@@ -142,6 +144,7 @@ def run_job(job: Job) -> Outcome:
         out.marks[estimator] = marks
     out.table = _table(names, goal, found)
     out.seconds = time.perf_counter() - start
+    out.cpu_seconds = time.process_time() - cpu
     return out
 
 
@@ -355,7 +358,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"\n({time.perf_counter() - start:.0f} s wall, of which {flown:.0f} s flying or "
         f"reading the flights; {sum(o.seconds for o in outcomes):.0f} s of estimation over "
-        f"{args.jobs} processes; each record's table in out/validation/tables/)"
+        f"{args.jobs} processes, {sum(o.cpu_seconds for o in outcomes):.0f} s of CPU; each "
+        "record's table in out/validation/tables/)"
     )
     return 0
 
