@@ -43,6 +43,9 @@ from gcs_estimator.ingest.flightdata import Recording, write_csv
 from gcs_estimator.units import FOOT, POUND_FORCE, SLUG
 
 ROOT = Path(__file__).resolve().parent.parent
+INCH = 0.0254
+MODEL_OUTPUT = ROOT / "out" / "jsbsim_output"
+PLACES = {"cg": "inertia/cg", "eye": "metrics/eyepoint", "aerorp": "metrics/aero-rp"}
 RATE_HZ = 50.0
 STEPS_PER_SAMPLE = 4  # JSBSim at 200 Hz
 DURATION_S = 60.0
@@ -75,7 +78,13 @@ class Aircraft:
     amplitude_deg: float
     """Elevator multistep amplitude."""
     vane_x_m: float
-    """Angle-of-attack vane ahead of the CG."""
+    """Angle-of-attack vane ahead of the CG (the validation set's: the model's eyepoint)."""
+    kind: str = ""
+    """The aircraft's class (light single, trainer, twin, glider, jet, ...)."""
+    gamma_deg: float = 0.0
+    """Flight-path angle at trim: a glider glides."""
+    throttle: bool = True
+    """False: no engine (a glider), no thrust input."""
 
 
 AIRCRAFT = (
@@ -97,33 +106,86 @@ def elevator_offset_deg(t: float, amplitude: float) -> float:
     return 0.0
 
 
-def fly(ac: Aircraft, turbulence: bool, seed: int) -> dict[str, FloatArray]:
-    """One flight, sampled at RATE_HZ: noise-free signals and JSBSim's aerodynamics.
-    JSBSim's banner and its notes on the models' input sockets (printed when the model
-    loads and when its initial conditions run) go to stderr: the benchmark's output, and
-    its record, hold what the benchmark measured."""
+TIMINGS = ("fcs", "step")
+"""How the elevator moves: "fcs", the multisteps commanded at sample instants and the
+surface as the model's flight control system moves it; "step", the same commands at
+STEP_OFFSET_STEPS integration steps after a sample instant, so the surface steps between
+two logged samples (where the model's FCS has no actuator lag: see the flight's
+`lag` figure)."""
+STEP_OFFSET_STEPS = 3
+"""Integration steps (of STEPS_PER_SAMPLE) after a sample instant at which a "step"
+flight's elevator command changes: 15 ms into a 20 ms sample interval."""
+
+
+def fly(
+    ac: Aircraft, turbulence: bool, seed: int, timing: str = "fcs", fine: bool = False
+) -> dict[str, FloatArray]:
+    """One flight, sampled at RATE_HZ (at every integration step when `fine`): noise-free
+    signals and JSBSim's aerodynamics. JSBSim's banner and its notes on the models' input
+    sockets (printed when the model loads and when its initial conditions run) go to
+    stderr: the benchmark's output, and its record, hold what the benchmark measured."""
     with contextlib.redirect_stdout(sys.stderr):
-        return _fly(ac, turbulence, seed)
+        return _fly(ac, turbulence, seed, timing, fine)
 
 
-def _fly(ac: Aircraft, turbulence: bool, seed: int) -> dict[str, FloatArray]:
+def _trimmed(ac: Aircraft, turbulence: bool, seed: int) -> tuple[Any, FloatArray | None]:
     import jsbsim
 
     fdm = jsbsim.FGFDMExec(None)
     fdm.set_debug_level(0)
+    # Some models (the global5000) write a CSV of their own: into out/, not the cwd.
+    MODEL_OUTPUT.mkdir(parents=True, exist_ok=True)
+    fdm.set_output_path(str(MODEL_OUTPUT))
     fdm.load_model(ac.model)
     fdm.set_dt(1.0 / (RATE_HZ * STEPS_PER_SAMPLE))
-    fdm["ic/h-sl-ft"] = ac.altitude_ft
-    fdm["ic/vc-kts"] = ac.speed_kts
-    fdm["ic/gamma-deg"] = 0.0
-    fdm.run_ic()
-    fdm["propulsion/set-running"] = -1
-    fdm["simulation/do_simple_trim"] = 1
+    glide = _trim(fdm, ac)
     if turbulence:  # MIL-F-8785C Dryden, light (W20 = 15 kt)
         fdm["atmosphere/turb-type"] = 3
         fdm["atmosphere/turbulence/milspec/windspeed_at_20ft_ft_sec"] = 15 * 1.6878
         fdm["atmosphere/turbulence/milspec/severity"] = 1
         fdm["atmosphere/randomseed"] = seed
+    return fdm, glide
+
+
+def _trim(fdm: Any, ac: Aircraft, glide: FloatArray | None = None) -> FloatArray | None:
+    """Level flight by JSBSim's own trim (throttle, elevator, pitch); a glider, which has
+    no throttle to trim with, glides: alpha, elevator and flight-path angle solved for
+    zero accelerations in calm air (returned; `glide`: a solution found before, set
+    again)."""
+    fdm["ic/h-sl-ft"] = ac.altitude_ft
+    fdm["ic/vc-kts"] = ac.speed_kts
+    fdm["ic/gamma-deg"] = ac.gamma_deg
+    if ac.throttle:
+        fdm.run_ic()
+        fdm["propulsion/set-running"] = -1
+        fdm["simulation/do_simple_trim"] = 1
+        return None
+    from scipy.optimize import least_squares
+
+    def residual(z: FloatArray) -> list[float]:
+        fdm["ic/h-sl-ft"] = ac.altitude_ft
+        fdm["ic/vc-kts"] = ac.speed_kts
+        fdm["ic/alpha-deg"], fdm["ic/gamma-deg"] = z[0], z[2]
+        fdm["fcs/elevator-cmd-norm"] = z[1]
+        fdm.run_ic()
+        fdm.run()
+        return [fdm[f"accelerations/{a}"] for a in ("udot-ft_sec2", "wdot-ft_sec2")] + [
+            10.0 * fdm["accelerations/qdot-rad_sec2"]
+        ]
+
+    if glide is not None:
+        residual(glide)
+        return glide
+    sol = least_squares(residual, [3.0, 0.0, ac.gamma_deg], diff_step=1e-4)
+    if np.max(np.abs(residual(sol.x))) > 1e-3:
+        raise RuntimeError(f"{ac.model}: no steady glide at {ac.speed_kts} kt")
+    return np.asarray(sol.x, float)
+
+
+def _fly(
+    ac: Aircraft, turbulence: bool, seed: int, timing: str, fine: bool
+) -> dict[str, FloatArray]:
+    fdm, glide = _trimmed(ac, turbulence, seed)
     trim_cmd = fdm["fcs/elevator-cmd-norm"]
     # Normalised command per degree of elevator, from the surface's mapping at trim.
     de0 = fdm["fcs/elevator-pos-rad"]
@@ -131,22 +193,32 @@ def _fly(ac: Aircraft, turbulence: bool, seed: int) -> dict[str, FloatArray]:
     for _ in range(STEPS_PER_SAMPLE * 25):
         fdm.run()
     per_norm = (fdm["fcs/elevator-pos-rad"] - de0) / 0.05
-    fdm.run_ic()
-    fdm["propulsion/set-running"] = -1
-    fdm["simulation/do_simple_trim"] = 1
+    # Back to the trimmed command before trimming again: a model that trims with its
+    # pitch trim (the c172p) would otherwise trim against the calibration's offset.
+    fdm["fcs/elevator-cmd-norm"] = trim_cmd
+    _trim(fdm, ac, glide)
+    # JSBSim's trim leaves the surfaces' output properties as the calibration left them:
+    # one step from the trim brings them to the trimmed commands before the first sample.
+    fdm.run()
     aileron0 = fdm["fcs/aileron-cmd-norm"]
     out: dict[str, list[float]] = {}
-    n = int(DURATION_S * RATE_HZ) + 1
+    n = int(DURATION_S * RATE_HZ) * STEPS_PER_SAMPLE + 1
+    shift = STEP_OFFSET_STEPS if timing == "step" else 0
+    dt = 1.0 / (RATE_HZ * STEPS_PER_SAMPLE)
     for i in range(n):
-        t = i / RATE_HZ
-        cmd = math.radians(elevator_offset_deg(t, ac.amplitude_deg)) / per_norm
+        t = i * dt
+        # The command of the sample interval this step lies in ("step": shifted).
+        k = (i - shift) // STEPS_PER_SAMPLE
+        cmd = math.radians(elevator_offset_deg(k / RATE_HZ, ac.amplitude_deg)) / per_norm
         fdm["fcs/elevator-cmd-norm"] = trim_cmd + cmd
-        # Wings level: bank and roll rate fed back to the aileron.
-        fdm["fcs/aileron-cmd-norm"] = aileron0 - (
-            2.0 * fdm["attitude/phi-rad"] + 0.5 * fdm["velocities/p-rad_sec"]
-        )
-        _sample(fdm, t, out)
-        for _ in range(STEPS_PER_SAMPLE):
+        if i % STEPS_PER_SAMPLE == 0:
+            # Wings level: bank and roll rate fed back to the aileron.
+            fdm["fcs/aileron-cmd-norm"] = aileron0 - (
+                2.0 * fdm["attitude/phi-rad"] + 0.5 * fdm["velocities/p-rad_sec"]
+            )
+        if fine or i % STEPS_PER_SAMPLE == 0:
+            _sample(fdm, t, out)
+        if i + 1 < n:
             fdm.run()
     return {k: np.array(v) for k, v in out.items()}
 
@@ -154,9 +226,10 @@ def _fly(ac: Aircraft, turbulence: bool, seed: int) -> dict[str, FloatArray]:
 def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
     g: Callable[[str], float] = fdm.__getitem__
     mass = g("inertia/mass-slugs")
-    fx = g("forces/fbx-aero-lbs") + g("forces/fbx-prop-lbs")
-    fz = g("forces/fbz-aero-lbs") + g("forces/fbz-prop-lbs")
-    thrust = math.hypot(g("forces/fbx-prop-lbs"), g("forces/fbz-prop-lbs"))
+    px, pz = _term(g, "forces/fbx-prop-lbs"), _term(g, "forces/fbz-prop-lbs")  # 0: a glider
+    fx = g("forces/fbx-aero-lbs") + px
+    fz = g("forces/fbz-aero-lbs") + pz
+    thrust = math.hypot(px, pz)
     qs = g("aero/qbar-psf") * g("metrics/Sw-sqft")
     u, v, w = g("velocities/u-fps"), g("velocities/v-fps"), g("velocities/w-fps")
     ground_speed = math.sqrt(u * u + v * v + w * w)
@@ -179,14 +252,21 @@ def _sample(fdm: Any, t: float, out: dict[str, list[float]]) -> None:
         # The propeller's induced dynamic pressure where the model has one (0 where not).
         "qbar_induced": _term(g, "aero/function/qbar-induced-psf"),
         "rho": g("atmosphere/rho-slugs_ft3") * SLUG / FOOT**3,
-        "arm": g("moments/m-prop-lbsft") / thrust * FOOT if thrust > 0 else 0.0,
+        "arm": _term(g, "moments/m-prop-lbsft") / thrust * FOOT if thrust > 0 else 0.0,
         "phi": g("attitude/phi-rad"),
         "mass": mass * SLUG,
         "area": g("metrics/Sw-sqft") * FOOT**2,
         "chord": g("metrics/cbarw-ft") * FOOT,
         "span": g("metrics/bw-ft") * FOOT,
         "iyy": g("inertia/iyy-slugs_ft2") * SLUG * FOOT**2,
-        "incl": math.atan2(-g("forces/fbz-prop-lbs"), g("forces/fbx-prop-lbs")),
+        # Where the model places its CG, eyepoint and aerodynamic reference point
+        # (structural frame: x aft, z up [m]).
+        **{
+            f"{name}_{axis}": g(f"{prop}-{axis}-in") * INCH
+            for name, prop in PLACES.items()
+            for axis in "xz"
+        },
+        "incl": math.atan2(-pz, px) if thrust > 0 else 0.0,
         # The alpha-dot terms' contributions (coefficients), and alpha-dot c / (2 V).
         "CLadot": _term(g, "aero/coefficient/CLadot") / qs,
         "Cmadot": _term(g, "aero/coefficient/Cmadot") / (qs * g("metrics/cbarw-ft")),
