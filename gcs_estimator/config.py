@@ -453,6 +453,15 @@ class DataConfig:
         choices=("linear", "previous"),
         doc="inputs between samples: linear (first-order hold) or held at the earlier sample",
     )
+    input_delay_s: float = setting(
+        0.0,
+        ge=0.0,
+        le=0.5,
+        unit="s",
+        doc="the surfaces and engine respond this late after the logged inputs: the "
+        "filters take each input this much later (refine estimates what remains; "
+        "decision 0044)",
+    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
 

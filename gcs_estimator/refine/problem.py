@@ -47,10 +47,39 @@ def thread_pool(threads: int | None) -> ThreadPoolExecutor | None:
     return pool
 
 
+MAX_DELAY_S = 0.5
+"""The largest input delay (either sign) a fit considers [s]: beyond it the shifted
+input is held at the record's end, and no response in a record of manoeuvres is that
+late."""
+
+
+DELAY_STEP_S = 1e-5
+"""The finite-difference step of a delay [s]: well inside one sample interval, over
+which the shifted input is linear in the delay."""
+
+
+def delayed_inputs(
+    t: FloatArray, u: FloatArray, delayed: IntArray, delays: FloatArray
+) -> FloatArray:
+    """The inputs u [N x m] with column delayed[j] late by delays[j] [s] (clipped to
+    +-MAX_DELAY_S): its value at t_i is the record's, linearly interpolated, at t_i -
+    delay (held at the record's first or last sample beyond it). Under either input hold
+    the shifted samples carry each interval's mean of the shifted signal to first order,
+    and the result moves continuously with the delay (decision 0044)."""
+    out = u.copy()
+    for col, tau in zip(delayed, delays, strict=True):
+        tau = min(max(float(tau), -MAX_DELAY_S), MAX_DELAY_S)
+        if tau != 0.0:
+            out[:, col] = np.interp(t - tau, t, u[:, col])
+    return np.ascontiguousarray(out)
+
+
 class Problem:
     """One record (t [N], model inputs u [N x m], observations y [N x 7] with 0 where
     mask [N x 7] is 0) and how the model flies over it (Runge-Kutta steps of at most
-    max_step [s]; inputs linear between samples, or held)."""
+    max_step [s]; inputs linear between samples, or held). The parameters are the
+    model's augmented state (model.n entries), then a delay [s] of each input in
+    `delayed` (delayed_inputs; decision 0044)."""
 
     def __init__(
         self,
@@ -61,8 +90,10 @@ class Problem:
         mask: FloatArray,
         max_step: float,
         linear: bool,
+        delayed: IntArray | None = None,
     ) -> None:
         self.model = model
+        self.delayed = np.zeros(0, dtype=np.int64) if delayed is None else delayed
         self.t, self.u, self.y, self.mask = t, u, y, mask
         self.max_step = max_step
         self.linear = linear
@@ -70,6 +101,23 @@ class Problem:
         self._lock = threading.Lock()
         self.pool: ThreadPoolExecutor | None = None
         """Threads for the sensitivities' columns (None: the calling thread)."""
+
+    def state(self, x: FloatArray) -> FloatArray:
+        """The model's augmented state of the parameters x."""
+        return np.ascontiguousarray(x[: self.model.n])
+
+    def inputs(self, x: FloatArray) -> FloatArray:
+        """The model's inputs at the parameters x's delays."""
+        if self.delayed.size == 0:
+            return self.u
+        return delayed_inputs(self.t, self.u, self.delayed, x[self.model.n :])
+
+    def step(self, j: int, value: float) -> float:
+        """The finite-difference step of parameter j at `value`: a millionth of its size
+        (at least of 1e-3) for the model's state, DELAY_STEP_S for a delay."""
+        if j >= self.model.n:
+            return DELAY_STEP_S
+        return 1e-6 * max(abs(value), 1e-3)
 
     def count_run(self) -> None:
         with self._lock:
@@ -87,9 +135,9 @@ class Problem:
         """flights.innovations from x0 at process noise density q and noise variances r."""
         self.count_run()
         out: tuple[FloatArray, FloatArray, FloatArray, bool] = innovations(
-            x0,
+            self.state(x0),
             self.t,
-            self.u,
+            self.inputs(x0),
             self.y,
             self.mask,
             self.model.arrays,
@@ -113,7 +161,7 @@ class Problem:
 
         def column(col: int) -> FloatArray:
             j = free[col]
-            step = 1e-6 * max(abs(x0[j]), 1e-3)
+            step = self.step(int(j), float(x0[j]))
             xp = x0.copy()
             xp[j] += step
             e, _, _, ok = self.run(xp, q, r)

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
+
+import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.uncertainty.sigma import FitSigma
+
+INPUT_NAMES: tuple[str, ...] = ("elevator", "throttle")
+"""The model's inputs whose delay a fit can estimate, by their index in the model's
+inputs."""
 
 
 def fit_label(method: str) -> str:
@@ -56,6 +62,14 @@ class Refined:
     choice: str = ""
     """Why this method, when it was chosen from the data ("auto": choose_method); empty
     when it was asked for by name."""
+    delay_names: tuple[str, ...] = ()
+    """The inputs whose delay relative to the response was fitted (decision 0044)."""
+    delays_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Each one's delay [s]: positive where the response follows the logged input later
+    than the model, flown on the input as logged, would."""
+    delay_sigma_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Their sigma [s], from the fit's covariance (Morelli-Klein) and structure check as
+    the biases' (NaN: the input never moved, so no delay was seen)."""
 
     @property
     def label(self) -> str:

@@ -31,6 +31,22 @@ TURBULENT_SHARE = 0.5
 least this share of the final pass."""
 
 
+THROTTLE_EXCITED = 0.1
+"""The throttle's (or thrust's) delay is fitted where the input moves over more than this
+share of its largest magnitude in the record (decision 0044): a throttle held still has
+no timing the data can show."""
+
+
+def delayed_inputs(u: FloatArray) -> tuple[int, ...]:
+    """The model inputs (u [N x m], model order) whose delay a fit estimates: the elevator
+    always (a record that never moves it has no delay seen, and the fit leaves it at 0
+    without a sigma), the throttle where it moves (THROTTLE_EXCITED)."""
+    throttle = u[:, 1][np.isfinite(u[:, 1])]
+    top = float(np.max(np.abs(throttle))) if throttle.size else 0.0
+    moves = top > 0.0 and float(np.ptp(throttle)) > THROTTLE_EXCITED * top
+    return (0, 1) if moves else (0,)
+
+
 def _filter(result: EstimatorResult, kind: FilterKind) -> tuple[FilterResult, Track]:
     """Filter `kind`'s result and its history, which the fit needs."""
     fr = result.filters.get(kind)
@@ -99,6 +115,7 @@ def refine_run(
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
+    estimate_delays: bool = True,
 ) -> Refined:
     """Refine a finished run (an estimator's result, or a session's vehicle): fit the
     frames the estimator saw (optionally only those within window_s, seconds after the
@@ -110,7 +127,8 @@ def refine_run(
     took it), the process noise at the config's. threads: as refine's. The fit's sigma
     takes in how far it lands from filter `kind` (decision 0030), and a vehicle whose
     session made the structure check brings that filter's structure sigma, which the
-    fit's own does not fall below (decision 0031)."""
+    fit's own does not fall below (decision 0031). estimate_delays: the inputs' delays
+    (delayed_inputs) are fitted with the coefficients (decision 0044)."""
     if isinstance(run, EstimatorResult):
         result, filter_structure = run, None
     else:
@@ -141,6 +159,7 @@ def refine_run(
         hold_noise=hold_noise,
         threads=threads,
         compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+        delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
     )
     return replace(fit, choice=choice)
 
