@@ -18,6 +18,7 @@ from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.text import fmt
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, FilterSummary
 from gcs_estimator.uncertainty.result import VehicleResult
+from gcs_estimator.uncertainty.sigma import DELAY_WARNING_SIGMA
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -329,6 +330,20 @@ def _refined_warnings(refined: Refined) -> list[str]:
                 "aerodynamics, turbulence it models otherwise) each settles on its own "
                 f"compromise; {fit} σ includes the difference (docs/decisions/0030)"
             )
+    late = [
+        n
+        for n, d, sd in zip(
+            refined.delay_names, refined.delays_s, refined.delay_sigma_s, strict=True
+        )
+        if math.isfinite(sd) and abs(d - refined.configured_delay_s) > DELAY_WARNING_SIGMA * sd
+    ]
+    if late:
+        out.append(
+            f"{refined.label} finds the response later or earlier than the filters took the "
+            f"inputs ({refined.delay_text()}): the filters' estimates carry the timing error "
+            "and lie apart from the fit; run again with the delay set "
+            "(docs/decisions/0044)"
+        )
     if not refined.converged:
         out.append(f"{refined.label}: {refined.message}")
     return out

@@ -38,6 +38,7 @@ from gcs_estimator.uncertainty.metrics import (
     percent_error,
 )
 from gcs_estimator.uncertainty.result import VehicleResult
+from gcs_estimator.uncertainty.weighting import StructureCheck
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -291,6 +292,7 @@ def _refined_note(refined: Refined) -> str:
         + channel_text(refined.noise_sigma)
         + "; residual colour (1 = white) "
         + channel_text(refined.residual_colour)
+        + (f"; input delay {refined.delay_text()}" if refined.delay_names else "")
     )
 
 
@@ -327,9 +329,21 @@ def _run_notes(vehicle: VehicleResult) -> list[str]:
             if check.skipped
             else f"structure check: the final pass replayed with each of "
             f"{', '.join(check.channels)} trusted half as much; how far that moved the "
-            "estimates is in σ (the JSON's sigma_parts.structure)"
+            "estimates is in σ (the JSON's sigma_parts.structure)" + _undecided_text(check)
         )
     return notes
+
+
+def _undecided_text(check: StructureCheck) -> str:
+    """What the structure check took as undecided by the data (weighting.py)."""
+    if not check.tolerances:
+        return ""
+    floor = " and at the configured noise" if "noise_floor" in check.parts else ""
+    return (
+        f", as is how far they moved with the inputs {1e3 * check.tolerances['timing_s']:.0f}"
+        f" ms later, each sensor position {1e2 * check.tolerances['placement_m']:.0f} cm "
+        f"further{floor} (structure_check.sigma_parts)"
+    )
 
 
 def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:

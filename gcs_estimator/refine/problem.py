@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.refine.flights import innovations
 
@@ -47,31 +48,9 @@ def thread_pool(threads: int | None) -> ThreadPoolExecutor | None:
     return pool
 
 
-MAX_DELAY_S = 0.5
-"""The largest input delay (either sign) a fit considers [s]: beyond it the shifted
-input is held at the record's end, and no response in a record of manoeuvres is that
-late."""
-
-
 DELAY_STEP_S = 1e-5
 """The finite-difference step of a delay [s]: well inside one sample interval, over
 which the shifted input is linear in the delay."""
-
-
-def delayed_inputs(
-    t: FloatArray, u: FloatArray, delayed: IntArray, delays: FloatArray
-) -> FloatArray:
-    """The inputs u [N x m] with column delayed[j] late by delays[j] [s] (clipped to
-    +-MAX_DELAY_S): its value at t_i is the record's, linearly interpolated, at t_i -
-    delay (held at the record's first or last sample beyond it). Under either input hold
-    the shifted samples carry each interval's mean of the shifted signal to first order,
-    and the result moves continuously with the delay (decision 0044)."""
-    out = u.copy()
-    for col, tau in zip(delayed, delays, strict=True):
-        tau = min(max(float(tau), -MAX_DELAY_S), MAX_DELAY_S)
-        if tau != 0.0:
-            out[:, col] = np.interp(t - tau, t, u[:, col])
-    return np.ascontiguousarray(out)
 
 
 class Problem:

@@ -161,7 +161,10 @@ def refine_run(
         compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
     )
-    return replace(fit, choice=choice)
+    configured = config.data.input_delay_s
+    return replace(
+        fit, choice=choice, delays_s=fit.delays_s + configured, configured_delay_s=configured
+    )
 
 
 def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:

@@ -24,21 +24,48 @@ the structure sigma. The sigma to trust (sigma.trusted_sigma) adds it in quadrat
 the covariance's sigma widened by how the estimates moved over the run (0008): that
 correction sees drift and colour, this one a bias that the channels' disagreement sets
 and the estimates settle on.
+
+The same replays carry what the data cannot decide (docs/decisions/0045): the final pass
+again with the inputs TIMING_TOLERANCE_S later (the inputs' timing: the hold between
+samples, a servo's lag, a skewed log), with each sensor position moved by the placement
+tolerance (the vane's and the accelerometers' place, from an airframe file's measurement
+or guess), and, where the run read a channel's noise below the configured sigma
+(measurement_noise = "auto" on a record with almost no noise), at the configured noise.
+Each tolerance is taken as uniform, so a move d gives the variance d^2 / 3; the noise
+replay's covariance sigma is a floor under the run's (a record read as clean is trusted
+no further than one at the sensors' nominal noise: what the model misses stays as the
+noise goes). These parts are added to the structure sigma in quadrature (the floor as
+its excess over the run's covariance), and kept apart in `parts`.
 """
 
 from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.estimation.estimator import FILTER_KINDS, Estimator, FilterKind
 from gcs_estimator.model.channels import N_OBS, OBS_NAMES
 
+TIMING_TOLERANCE_S = 0.01
+"""How far the inputs' timing is taken as unknown either way, at least [s] (the data's
+half sample interval where that is longer: the linear and the held inputs differ by
+about that); a moved coefficient's variance is its move squared over 3."""
+PLACEMENT_SHARE = 0.05
+"""How far each sensor position is taken as unknown either way: this share of the mean
+chord, and at least PLACEMENT_MIN_M."""
+PLACEMENT_MIN_M = 0.03
+PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
+"""The [sensors] positions whose tolerance enters the sigma (the vane's height moves
+alpha by q times it over V only in its cosine: negligible)."""
+UNIFORM_SHARE = 1.0 / 3.0
+"""A quantity uniform within +-a has variance a^2 / 3."""
 VARIANCE_FACTOR = 2.0
 """A channel's measurement variance is multiplied by this in its run (its weight
 halved)."""
@@ -59,6 +86,14 @@ class StructureCheck(NamedTuple):
     """The channels re-weighted (those the data carry)."""
     skipped: str = ""
     """Why the check was not made ("" when it was)."""
+    parts: dict[str, dict[FilterKind, FloatArray]] = {}  # noqa: RUF012  (never mutated)
+    """The sigma's parts per filter and coefficient: "weights" (the channels' weights),
+    "timing" (the inputs TIMING_TOLERANCE_S later), "placement" (the sensor positions
+    within their tolerance), "noise_floor" (the excess of the covariance sigma at the
+    configured noise over the run's; absent where no channel was read below it);
+    `sigma` is their root sum of squares."""
+    tolerances: dict[str, float] = {}  # noqa: RUF012  (never mutated)
+    """The tolerances the check took: "timing_s", "placement_m"."""
 
 
 def skipped(reason: str) -> StructureCheck:
@@ -85,12 +120,23 @@ def why_not(config: AircraftConfig, frames: int, history: bool, checked: int = 0
     return ""
 
 
+class Replay(NamedTuple):
+    """One replay of the final pass: the measurement variances times scale (None: as they
+    were), over inputs u, with the airframe `config` (None: the run's)."""
+
+    scale: FloatArray | None
+    u: FloatArray
+    config: AircraftConfig | None = None
+
+
 def _final(
-    est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray, scale: FloatArray | None
+    est: Estimator, t: FloatArray, y: FloatArray, replay: Replay
 ) -> dict[FilterKind, tuple[FloatArray, FloatArray]]:
     """Each filter's final coefficients and their covariance sigma with the run's final
-    pass replayed over the record, the measurement variances times scale."""
-    again = Estimator(est.config, backend=est.backend, keep_history=False, noise_scale=scale)
+    pass replayed over the record as `replay` says."""
+    scale, u = replay.scale, replay.u
+    config = est.config if replay.config is None else replay.config
+    again = Estimator(config, backend=est.backend, keep_history=False, noise_scale=scale)
     again.replay_final_pass(est, t, u, y)
     coef = again.model.coefficients
     out: dict[FilterKind, tuple[FloatArray, FloatArray]] = {}
@@ -103,34 +149,97 @@ def _final(
 def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray) -> StructureCheck:
     """The check of a finished run (est) over its frames (t [N], u [N x 3] as the
     equations take them, y [N x 7]: its history): its final pass replayed as it ran, then
-    once per channel with data, that channel's weight halved."""
+    once per channel with data, that channel's weight halved, and once per quantity the
+    data cannot decide (module docstring)."""
     if np.any(np.diff(t) <= 0.0):
         return skipped("the vehicle clock restarted during the run (its frames are not one record)")
     channels = _with_data(y)
     if not channels:
         return skipped("no channel has data")
-    scales: list[FloatArray | None] = [None]
+    replays = [Replay(None, u)]
     for ch in channels:
         scale = np.ones(N_OBS)
         scale[ch] = VARIANCE_FACTOR
-        scales.append(scale)
+        replays.append(Replay(scale, u))
+    undecided, tolerances = _undecided(est, t, u)
     # The replays are independent and spend most of their time in compiled steps that
     # release the GIL: threads run them side by side on the machine's cores.
-    with ThreadPoolExecutor(max_workers=min(len(scales), os.cpu_count() or 1)) as pool:
-        base, *finals = pool.map(lambda sc: _final(est, t, u, y, sc), scales)
+    every = replays + [r for _, r in undecided]
+    with ThreadPoolExecutor(max_workers=min(len(every), os.cpu_count() or 1)) as pool:
+        base, *finals = pool.map(lambda r: _final(est, t, y, r), every)
     if set(base) != set(FILTER_KINDS):
         return skipped("no frame reached the filters")
     p = base[FILTER_KINDS[0]][0].shape[0]
     moves = {k: np.zeros((len(channels), p)) for k in FILTER_KINDS}
     excess = {k: np.zeros(p) for k in FILTER_KINDS}
-    for a, run in enumerate(finals):
+    for a, run in enumerate(finals[: len(channels)]):
         for kind in FILTER_KINDS:
             (b, s), (v, vs) = base[kind], run[kind]
             d = v - b
             moves[kind][a] = d
             excess[kind] += np.maximum(0.0, d * d - np.abs(vs * vs - s * s))
-    sigma = {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}
-    return StructureCheck(sigma, moves, tuple(OBS_NAMES[i] for i in channels))
+    parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
+    for (label, _), run in zip(undecided, finals[len(channels) :], strict=True):
+        part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
+        for kind in FILTER_KINDS:
+            part[kind] = np.hypot(part[kind], _undecided_sigma(label, base[kind], run[kind]))
+    sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
+    names = tuple(OBS_NAMES[i] for i in channels)
+    return StructureCheck(sigma, moves, names, "", parts, tolerances)
+
+
+def _undecided_sigma(
+    label: str, base: tuple[FloatArray, FloatArray], run: tuple[FloatArray, FloatArray]
+) -> FloatArray:
+    """A replay's part of the sigma: the noise floor's excess of the covariance at the
+    configured noise over the run's; otherwise the move over a uniform tolerance."""
+    (b, s), (v, vs) = base, run
+    if label == "noise_floor":
+        out: FloatArray = np.sqrt(np.maximum(0.0, vs * vs - s * s))
+    else:
+        out = np.sqrt(UNIFORM_SHARE) * np.abs(v - b)
+    return out
+
+
+def timing_tolerance(t: FloatArray) -> float:
+    """TIMING_TOLERANCE_S, or half the record's median sample interval where longer."""
+    half = 0.5 * float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    return max(TIMING_TOLERANCE_S, half)
+
+
+def placement_tolerance(config: AircraftConfig) -> float:
+    """PLACEMENT_SHARE of the mean chord, at least PLACEMENT_MIN_M [m]."""
+    return max(PLACEMENT_MIN_M, PLACEMENT_SHARE * config.airframe.mean_chord_m)
+
+
+def _undecided(
+    est: Estimator, t: FloatArray, u: FloatArray
+) -> tuple[list[tuple[str, Replay]], dict[str, float]]:
+    """The replays of what the data cannot decide, each with its part's name, and the
+    tolerances taken."""
+    config = est.config
+    late = timing_tolerance(t)
+    shifted = delayed_inputs(t, u, np.arange(2), np.full(2, late))
+    out = [("timing", Replay(None, shifted))]
+    moved = placement_tolerance(config)
+    for key in PLACEMENT_KEYS:
+        where = replace(config.sensors, **{key: getattr(config.sensors, key) + moved})
+        out.append(("placement", Replay(None, u, replace(config, sensors=where))))
+    floor = _configured_noise_scale(est)
+    if floor is not None:
+        out.append(("noise_floor", Replay(floor, u)))
+    return out, {"timing_s": late, "placement_m": moved}
+
+
+def _configured_noise_scale(est: Estimator) -> FloatArray | None:
+    """The variance scale from the final pass's measurement noise to the configured one,
+    where the run took a reading below it on some channel (None where not)."""
+    taken = np.diag(est.tunings[FILTER_KINDS[0]].R)
+    configured = np.square(np.asarray(est.config.filter.measurement_sigma, float))
+    if taken.shape != configured.shape or not np.any(taken < configured * (1.0 - 1e-9)):
+        return None
+    out: FloatArray = np.maximum(configured / taken, 1.0)
+    return out
 
 
 def _with_data(y: FloatArray) -> list[int]:
@@ -139,5 +248,5 @@ def _with_data(y: FloatArray) -> list[int]:
 
 
 def runs(y: FloatArray) -> int:
-    """How many replays of the final pass the check takes."""
-    return 1 + len(_with_data(y))
+    """How many replays of the final pass the check takes (but the noise floor's)."""
+    return 2 + len(PLACEMENT_KEYS) + len(_with_data(y))
