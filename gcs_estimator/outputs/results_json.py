@@ -137,6 +137,10 @@ def _structure_dict(vehicle: VehicleResult) -> dict[str, Any] | None:
             for kind, moves in check.moves.items()
         },
         "tolerances": dict(check.tolerances),
+        "found": {
+            key: {"offset": _num(where), "sigma": _num(sd)}
+            for key, (where, sd) in check.found.items()
+        },
         "sigma_parts": {
             part: {kind: dict(zip(names, map(float, v), strict=True)) for kind, v in by.items()}
             for part, by in check.parts.items()

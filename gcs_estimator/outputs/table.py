@@ -335,15 +335,24 @@ def _run_notes(vehicle: VehicleResult) -> list[str]:
 
 
 def _undecided_text(check: StructureCheck) -> str:
-    """What the structure check took as undecided by the data (weighting.py)."""
+    """What the structure check took as undecided by the data (weighting.py), and where
+    the first filter's likelihood put it."""
     if not check.tolerances:
         return ""
     floor = " and at the configured noise" if "noise_floor" in check.parts else ""
-    return (
-        f", as is how far they moved with the inputs {1e3 * check.tolerances['timing_s']:.0f}"
-        f" ms later, each sensor position {1e2 * check.tolerances['placement_m']:.0f} cm "
-        f"further{floor} (structure_check.sigma_parts)"
+    text = (
+        f", as is how far they moved with the inputs ±{1e3 * check.tolerances['timing']:.0f}"
+        f" ms in time, each sensor position ±{1e2 * check.tolerances['placement']:.0f} cm"
+        f"{floor}, times how far the likelihood leaves each from the configured "
+        "(structure_check.sigma_parts)"
     )
+    delay = check.found.get("input_delay_s")
+    if delay is not None and math.isfinite(delay[1]):
+        text += (
+            f"; the inputs' timing the likelihood prefers: {1e3 * delay[0]:+.1f} ± "
+            f"{1e3 * delay[1]:.1f} ms from [data] input_delay_s"
+        )
+    return text
 
 
 def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:

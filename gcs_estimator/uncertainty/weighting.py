@@ -40,6 +40,7 @@ its excess over the run's covariance), and kept apart in `parts`.
 
 from __future__ import annotations
 
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -64,6 +65,9 @@ PLACEMENT_MIN_M = 0.03
 PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
 """The [sensors] positions whose tolerance enters the sigma (the vane's height moves
 alpha by q times it over V only in its cosine: negligible)."""
+PROFILE_REACH = 10.0
+"""How many tolerances from the configured value a quantity's likelihood parabola may
+place its least (beyond, three replays cannot tell)."""
 UNIFORM_SHARE = 1.0 / 3.0
 """A quantity uniform within +-a has variance a^2 / 3."""
 VARIANCE_FACTOR = 2.0
@@ -93,7 +97,11 @@ class StructureCheck(NamedTuple):
     configured noise over the run's; absent where no channel was read below it);
     `sigma` is their root sum of squares."""
     tolerances: dict[str, float] = {}  # noqa: RUF012  (never mutated)
-    """The tolerances the check took: "timing_s", "placement_m"."""
+    """The tolerances the check took: "timing" [s], "placement" [m]."""
+    found: dict[str, tuple[float, float]] = {}  # noqa: RUF012  (never mutated)
+    """Per quantity ("input_delay_s", "vane_x_m", ...), where the first filter's
+    likelihood puts it from the configured value, and its sigma (NaN: not decided):
+    the inputs' delay beyond [data] input_delay_s, each position's offset [SI]."""
 
 
 def skipped(reason: str) -> StructureCheck:
@@ -127,36 +135,46 @@ class Replay(NamedTuple):
     scale: FloatArray | None
     u: FloatArray
     config: AircraftConfig | None = None
+    profile: bool = False
+    """Sum each filter's -2 log likelihood over the pass (frame by frame)."""
 
 
-def _final(
-    est: Estimator, t: FloatArray, y: FloatArray, replay: Replay
-) -> dict[FilterKind, tuple[FloatArray, FloatArray]]:
-    """Each filter's final coefficients and their covariance sigma with the run's final
-    pass replayed over the record as `replay` says."""
+Final = dict[FilterKind, tuple[FloatArray, FloatArray, float]]
+"""Per filter: final coefficients, their covariance sigma, -2 log likelihood (NaN where
+not summed)."""
+
+
+def _final(est: Estimator, t: FloatArray, y: FloatArray, replay: Replay) -> Final:
+    """Each filter's final coefficients, their covariance sigma and (replay.profile) the
+    pass's -2 log likelihood with the run's final pass replayed as `replay` says."""
     scale, u = replay.scale, replay.u
     config = est.config if replay.config is None else replay.config
     again = Estimator(config, backend=est.backend, keep_history=False, noise_scale=scale)
+    if replay.profile:
+        again.runner.blocks = False
+        again.runner.likelihood = {}
     again.replay_final_pass(est, t, u, y)
     coef = again.model.coefficients
-    out: dict[FilterKind, tuple[FloatArray, FloatArray]] = {}
+    sums = again.runner.likelihood or {}
+    out: Final = {}
     for kind, state in again.states.items():
         if state is not None:
-            out[kind] = (state.x[coef].copy(), np.sqrt(np.diag(state.P))[coef])
+            like = sums.get(kind, math.nan)
+            out[kind] = (state.x[coef].copy(), np.sqrt(np.diag(state.P))[coef], like)
     return out
 
 
 def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray) -> StructureCheck:
     """The check of a finished run (est) over its frames (t [N], u [N x 3] as the
     equations take them, y [N x 7]: its history): its final pass replayed as it ran, then
-    once per channel with data, that channel's weight halved, and once per quantity the
-    data cannot decide (module docstring)."""
+    once per channel with data, that channel's weight halved, and twice per quantity the
+    data cannot decide for sure (module docstring)."""
     if np.any(np.diff(t) <= 0.0):
         return skipped("the vehicle clock restarted during the run (its frames are not one record)")
     channels = _with_data(y)
     if not channels:
         return skipped("no channel has data")
-    replays = [Replay(None, u)]
+    replays = [Replay(None, u, profile=True)]
     for ch in channels:
         scale = np.ones(N_OBS)
         scale[ch] = VARIANCE_FACTOR
@@ -164,7 +182,7 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     undecided, tolerances = _undecided(est, t, u)
     # The replays are independent and spend most of their time in compiled steps that
     # release the GIL: threads run them side by side on the machine's cores.
-    every = replays + [r for _, r in undecided]
+    every = replays + [r for _, _, r in undecided]
     with ThreadPoolExecutor(max_workers=min(len(every), os.cpu_count() or 1)) as pool:
         base, *finals = pool.map(lambda r: _final(est, t, y, r), every)
     if set(base) != set(FILTER_KINDS):
@@ -174,31 +192,75 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     excess = {k: np.zeros(p) for k in FILTER_KINDS}
     for a, run in enumerate(finals[: len(channels)]):
         for kind in FILTER_KINDS:
-            (b, s), (v, vs) = base[kind], run[kind]
+            (b, s, _), (v, vs, _) = base[kind], run[kind]
             d = v - b
             moves[kind][a] = d
             excess[kind] += np.maximum(0.0, d * d - np.abs(vs * vs - s * s))
     parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
-    for (label, _), run in zip(undecided, finals[len(channels) :], strict=True):
-        part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
-        for kind in FILTER_KINDS:
-            part[kind] = np.hypot(part[kind], _undecided_sigma(label, base[kind], run[kind]))
+    found = _undecided_parts(parts, base, finals[len(channels) :], undecided, tolerances, p)
     sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
     names = tuple(OBS_NAMES[i] for i in channels)
-    return StructureCheck(sigma, moves, names, "", parts, tolerances)
+    return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
 
 
-def _undecided_sigma(
-    label: str, base: tuple[FloatArray, FloatArray], run: tuple[FloatArray, FloatArray]
-) -> FloatArray:
-    """A replay's part of the sigma: the noise floor's excess of the covariance at the
-    configured noise over the run's; otherwise the move over a uniform tolerance."""
-    (b, s), (v, vs) = base, run
-    if label == "noise_floor":
-        out: FloatArray = np.sqrt(np.maximum(0.0, vs * vs - s * s))
-    else:
-        out = np.sqrt(UNIFORM_SHARE) * np.abs(v - b)
-    return out
+def _undecided_parts(
+    parts: dict[str, dict[FilterKind, FloatArray]],
+    base: Final,
+    rest: list[Final],
+    undecided: list[tuple[str, str, Replay]],
+    tolerances: dict[str, float],
+    p: int,
+) -> dict[str, tuple[float, float]]:
+    """Add the undecided quantities' parts to `parts` (from their replays `rest`, in
+    _undecided's order: pairs at +tol and -tol, then the noise floor's); return where the
+    first filter's likelihood puts each quantity (_profile)."""
+    found: dict[str, tuple[float, float]] = {}
+    j = 0
+    while j < len(undecided):
+        label, key, replay = undecided[j]
+        part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
+        for kind in FILTER_KINDS:
+            if replay.profile:
+                extra, where = _profile(
+                    base[kind], rest[j][kind], rest[j + 1][kind], tolerances[label]
+                )
+                if kind == FILTER_KINDS[0]:
+                    found[key] = where
+            else:  # the noise floor: the covariance at the configured noise, beyond
+                s, vs = base[kind][1], rest[j][kind][1]
+                extra = np.sqrt(np.maximum(0.0, vs * vs - s * s))
+            part[kind] = np.hypot(part[kind], extra)
+        j += 2 if replay.profile else 1
+    return found
+
+
+def _profile(
+    base: tuple[FloatArray, FloatArray, float],
+    up: tuple[FloatArray, FloatArray, float],
+    down: tuple[FloatArray, FloatArray, float],
+    tol: float,
+) -> tuple[FloatArray, tuple[float, float]]:
+    """A quantity's part of the coefficients' sigma from the final pass replayed with it
+    at +tol and -tol: the coefficients' slope in it (central difference) times how far
+    it may lie from where the run took it, sqrt(s^2 + m^2). The tolerance is a prior of
+    sigma tol / sqrt(3) about the configured value (uniform within +-tol); where the
+    pass's likelihood over the three replays is a parabola (least at theta, curvature
+    2 / sigma_theta^2; |theta| at most PROFILE_REACH tolerances), the data sharpen it:
+    1 / s^2 = 1 / sigma_theta^2 + 3 / tol^2 and m = theta s^2 / sigma_theta^2; where it
+    has no curvature, s is the prior's and m = 0. Returns the part and (theta,
+    sigma_theta), NaN where the data do not decide it."""
+    (_, _, l0), (vp, _, lp), (vm, _, lm) = base, up, down
+    slope = (vp - vm) / (2.0 * tol)
+    prior = math.sqrt(UNIFORM_SHARE) * tol
+    curvature = (lp + lm - 2.0 * l0) / (tol * tol)
+    if not (math.isfinite(curvature) and curvature > 0.0):
+        return np.abs(slope) * prior, (math.nan, math.nan)
+    spread = math.sqrt(2.0 / curvature)
+    least = (lm - lp) / (2.0 * tol * curvature)
+    least = min(max(least, -PROFILE_REACH * tol), PROFILE_REACH * tol)
+    share = 1.0 / (1.0 + (spread / prior) ** 2)  # s^2 / sigma_theta^2
+    s2 = share * spread * spread
+    return np.abs(slope) * math.sqrt(s2 + (least * share) ** 2), (least, spread)
 
 
 def timing_tolerance(t: FloatArray) -> float:
@@ -214,21 +276,26 @@ def placement_tolerance(config: AircraftConfig) -> float:
 
 def _undecided(
     est: Estimator, t: FloatArray, u: FloatArray
-) -> tuple[list[tuple[str, Replay]], dict[str, float]]:
-    """The replays of what the data cannot decide, each with its part's name, and the
+) -> tuple[list[tuple[str, str, Replay]], dict[str, float]]:
+    """The replays of what the data cannot decide for sure, each with its part's name and
+    the quantity's: a pair (+tol, -tol) per quantity, then the noise floor's; and the
     tolerances taken."""
     config = est.config
     late = timing_tolerance(t)
-    shifted = delayed_inputs(t, u, np.arange(2), np.full(2, late))
-    out = [("timing", Replay(None, shifted))]
+    out = []
+    for sign in (1.0, -1.0):
+        shifted = delayed_inputs(t, u, np.arange(2), np.full(2, sign * late))
+        out.append(("timing", "input_delay_s", Replay(None, shifted, profile=True)))
     moved = placement_tolerance(config)
     for key in PLACEMENT_KEYS:
-        where = replace(config.sensors, **{key: getattr(config.sensors, key) + moved})
-        out.append(("placement", Replay(None, u, replace(config, sensors=where))))
+        for sign in (1.0, -1.0):
+            where = replace(config.sensors, **{key: getattr(config.sensors, key) + sign * moved})
+            again = replace(config, sensors=where)
+            out.append(("placement", key, Replay(None, u, again, profile=True)))
     floor = _configured_noise_scale(est)
     if floor is not None:
-        out.append(("noise_floor", Replay(floor, u)))
-    return out, {"timing_s": late, "placement_m": moved}
+        out.append(("noise_floor", "", Replay(floor, u)))
+    return out, {"timing": late, "placement": moved}
 
 
 def _configured_noise_scale(est: Estimator) -> FloatArray | None:
@@ -249,4 +316,4 @@ def _with_data(y: FloatArray) -> list[int]:
 
 def runs(y: FloatArray) -> int:
     """How many replays of the final pass the check takes (but the noise floor's)."""
-    return 2 + len(PLACEMENT_KEYS) + len(_with_data(y))
+    return 3 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y))
