@@ -24,6 +24,7 @@ from gcs_estimator.uncertainty.sigma import FilterEstimate
 
 if TYPE_CHECKING:
     from gcs_estimator.uncertainty.result import VehicleResult
+    from gcs_estimator.uncertainty.weighting import StructureCheck
 
 TURBULENT_SHARE = 0.5
 """method "auto", where the filters measured no level over the pass (a fixed level:
@@ -128,12 +129,15 @@ def refine_run(
     takes in how far it lands from filter `kind` (decision 0030), and a vehicle whose
     session made the structure check brings that filter's structure sigma, which the
     fit's own does not fall below (decision 0031). estimate_delays: the inputs' delays
-    (delayed_inputs) are fitted with the coefficients (decision 0044)."""
+    (delayed_inputs) are fitted with the coefficients (decision 0044), and the floor
+    then leaves out the filter's timing part (the fit decides the timing itself)."""
     if isinstance(run, EstimatorResult):
         result, filter_structure = run, None
     else:
         result, check = run.result, run.structure
-        filter_structure = None if check is None or check.skipped else check.sigma.get(kind)
+        filter_structure = None
+        if check is not None and not check.skipped:
+            filter_structure = _filter_structure(check, kind, estimate_delays)
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -165,6 +169,18 @@ def refine_run(
     return replace(
         fit, choice=choice, delays_s=fit.delays_s + configured, configured_delay_s=configured
     )
+
+
+def _filter_structure(
+    check: StructureCheck, kind: FilterKind, estimate_delays: bool
+) -> FloatArray | None:
+    """Filter `kind`'s structure sigma, the floor of the fit's (decision 0031): without its
+    timing part where the fit estimates the inputs' delay itself (decision 0044)."""
+    if not estimate_delays or "timing" not in check.parts:
+        return check.sigma.get(kind)
+    kept = [part[kind] for name, part in check.parts.items() if name != "timing"]
+    out: FloatArray = np.sqrt(sum(v * v for v in kept))
+    return out
 
 
 def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:
