@@ -120,7 +120,7 @@ def test_where_the_model_holds_the_structure_sigma_is_small() -> None:
     """On the simulator's flight (the model exact, the inputs on time, the sensors where
     the airframe file says): the channels' weights move the estimates no further than
     their covariance allows, and the likelihood puts the inputs' timing and the sensor
-    positions within 3 of their sigmas of the configured (decision 0045)."""
+    positions near the configured (decision 0045)."""
     config = load_config("noc_uav")
     fl = simulate(config, seed=3)
     vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
@@ -136,6 +136,11 @@ def test_where_the_model_holds_the_structure_sigma_is_small() -> None:
         parts = np.sqrt(sum(p[kind] ** 2 for p in check.parts.values()))
         np.testing.assert_allclose(total, parts)
     assert set(check.found) == {"input_delay_s", "vane_x_m", "accel_x_m", "accel_z_m"}
+    # The timing within a twentieth of its tolerance (the likelihood is pinned far more
+    # tightly than the +-tolerance replays resolve its least); the positions within 3 of
+    # their sigmas.
+    delay, _ = check.found.pop("input_delay_s")
+    assert abs(delay) < 0.05 * check.tolerances["timing"]
     for key, (offset, sigma) in check.found.items():
         assert abs(offset) < 3.0 * sigma, key
 

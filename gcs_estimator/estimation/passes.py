@@ -39,14 +39,21 @@ class Start(NamedTuple):
     gust_var: float | None = None
 
 
+NO_UPDATE_PENALTY = 1e3
+"""What a step without an update adds to a pass's -2 log likelihood: a frame without
+data adds it to every replay alike, a filter that failed or diverged on replayed inputs
+many times (far beyond a chi-square's spread), so it is not the likelier for having
+skipped its data."""
+
+
 def _log_likelihood(row: FloatArray, n: int) -> float:
     """-2 log likelihood of one step's innovations (its NIS plus the log of each used
-    channel's innovation variance; the innovations' correlation left out), 0 where the
-    step made no update."""
+    channel's innovation variance; the innovations' correlation left out);
+    NO_UPDATE_PENALTY where the step made no update."""
     info = core.info_of_row(row, n)
     used = np.isfinite(info.innovation_sigma) & (info.innovation_sigma > 0.0)
     if not math.isfinite(info.nis) or not used.any():
-        return 0.0
+        return NO_UPDATE_PENALTY
     return info.nis + 2.0 * float(np.sum(np.log(info.innovation_sigma[used])))
 
 

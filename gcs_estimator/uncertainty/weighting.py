@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from typing import NamedTuple
@@ -65,6 +66,12 @@ PLACEMENT_MIN_M = 0.03
 PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
 """The [sensors] positions whose tolerance enters the sigma (the vane's height moves
 alpha by q times it over V only in its cosine: negligible)."""
+PROFILE_WIDE = 4.0
+"""Where the likelihood over +-tolerance has no least between (the quantity lies beyond),
+the pair is replayed again this many tolerances out."""
+LIKELIHOOD_TIE = 4.0
+"""Two replays whose -2 log likelihoods differ by less than this (two standard
+deviations of one parameter's chi-square) do not say which side is likelier."""
 PROFILE_REACH = 10.0
 """How many tolerances from the configured value a quantity's likelihood parabola may
 place its least (beyond, three replays cannot tell)."""
@@ -180,11 +187,17 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
         scale[ch] = VARIANCE_FACTOR
         replays.append(Replay(scale, u))
     undecided, tolerances = _undecided(est, t, u)
-    # The replays are independent and spend most of their time in compiled steps that
-    # release the GIL: threads run them side by side on the machine's cores.
-    every = replays + [r for _, _, r in undecided]
-    with ThreadPoolExecutor(max_workers=min(len(every), os.cpu_count() or 1)) as pool:
-        base, *finals = pool.map(lambda r: _final(est, t, y, r), every)
+    for label, _, make in undecided:
+        tol = tolerances.get(label, 0.0)
+        replays += [make(tol), make(-tol)] if tol > 0.0 else [make(0.0)]
+
+    def again(batch: list[Replay]) -> list[Final]:
+        # The replays are independent and spend most of their time in compiled steps
+        # that release the GIL: threads run them side by side on the machine's cores.
+        with ThreadPoolExecutor(max_workers=min(len(batch), os.cpu_count() or 1)) as pool:
+            return list(pool.map(lambda r: _final(est, t, y, r), batch))
+
+    base, *finals = again(replays)
     if set(base) != set(FILTER_KINDS):
         return skipped("no frame reached the filters")
     p = base[FILTER_KINDS[0]][0].shape[0]
@@ -197,70 +210,97 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
             moves[kind][a] = d
             excess[kind] += np.maximum(0.0, d * d - np.abs(vs * vs - s * s))
     parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
-    found = _undecided_parts(parts, base, finals[len(channels) :], undecided, tolerances, p)
+    rest = finals[len(channels) :]
+    found = _undecided_parts(parts, base, rest, undecided, tolerances, again)
     sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
     names = tuple(OBS_NAMES[i] for i in channels)
     return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
+
+
+Maker = Callable[[float], Replay]
+"""The replay of the final pass with a quantity moved by an offset from the configured."""
 
 
 def _undecided_parts(
     parts: dict[str, dict[FilterKind, FloatArray]],
     base: Final,
     rest: list[Final],
-    undecided: list[tuple[str, str, Replay]],
+    undecided: list[tuple[str, str, Maker]],
     tolerances: dict[str, float],
-    p: int,
+    again: Callable[[list[Replay]], list[Final]],
 ) -> dict[str, tuple[float, float]]:
-    """Add the undecided quantities' parts to `parts` (from their replays `rest`, in
-    _undecided's order: pairs at +tol and -tol, then the noise floor's); return where the
-    first filter's likelihood puts each quantity (_profile)."""
+    """Add the undecided quantities' parts to `parts` from their replays `rest` (in
+    _undecided's order: a pair at +tol and -tol per quantity, one for the noise floor);
+    where the likelihood has no curvature over a pair, the pair again at PROFILE_WIDE
+    tolerances (`again` replays them). Returns where the first filter's likelihood puts
+    each quantity (_profile)."""
     found: dict[str, tuple[float, float]] = {}
+    p = base[FILTER_KINDS[0]][0].shape[0]
     j = 0
-    while j < len(undecided):
-        label, key, replay = undecided[j]
+    for label, key, make in undecided:
         part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
-        for kind in FILTER_KINDS:
-            if replay.profile:
-                extra, where = _profile(
-                    base[kind], rest[j][kind], rest[j + 1][kind], tolerances[label]
-                )
-                if kind == FILTER_KINDS[0]:
-                    found[key] = where
-            else:  # the noise floor: the covariance at the configured noise, beyond
+        tol = tolerances.get(label, 0.0)
+        if tol <= 0.0:  # the noise floor: the covariance at the configured noise, beyond
+            for kind in FILTER_KINDS:
                 s, vs = base[kind][1], rest[j][kind][1]
-                extra = np.sqrt(np.maximum(0.0, vs * vs - s * s))
+                part[kind] = np.hypot(part[kind], np.sqrt(np.maximum(0.0, vs * vs - s * s)))
+            j += 1
+            continue
+        up, down, step = rest[j], rest[j + 1], tol
+        j += 2
+        if not all(_curved(base[k], up[k], down[k]) for k in FILTER_KINDS):
+            step = PROFILE_WIDE * tol
+            up, down = again([make(step), make(-step)])
+        for kind in FILTER_KINDS:
+            extra, where = _profile(base[kind], up[kind], down[kind], step, tol)
             part[kind] = np.hypot(part[kind], extra)
-        j += 2 if replay.profile else 1
+            if kind == FILTER_KINDS[0]:
+                found[key] = where
     return found
+
+
+def _curved(
+    base: tuple[FloatArray, FloatArray, float],
+    up: tuple[FloatArray, FloatArray, float],
+    down: tuple[FloatArray, FloatArray, float],
+) -> bool:
+    """Whether the likelihood over three replays has a least between their ends."""
+    c = up[2] + down[2] - 2.0 * base[2]
+    return math.isfinite(c) and c > 0.0
 
 
 def _profile(
     base: tuple[FloatArray, FloatArray, float],
     up: tuple[FloatArray, FloatArray, float],
     down: tuple[FloatArray, FloatArray, float],
+    step: float,
     tol: float,
 ) -> tuple[FloatArray, tuple[float, float]]:
     """A quantity's part of the coefficients' sigma from the final pass replayed with it
-    at +tol and -tol: the coefficients' slope in it (central difference) times how far
+    at +step and -step: the coefficients' slope in it (central difference) times how far
     it may lie from where the run took it, sqrt(s^2 + m^2). The tolerance is a prior of
     sigma tol / sqrt(3) about the configured value (uniform within +-tol); where the
     pass's likelihood over the three replays is a parabola (least at theta, curvature
     2 / sigma_theta^2; |theta| at most PROFILE_REACH tolerances), the data sharpen it:
-    1 / s^2 = 1 / sigma_theta^2 + 3 / tol^2 and m = theta s^2 / sigma_theta^2; where it
-    has no curvature, s is the prior's and m = 0. Returns the part and (theta,
-    sigma_theta), NaN where the data do not decide it."""
+    1 / s^2 = 1 / sigma_theta^2 + 3 / tol^2 and m = theta s^2 / sigma_theta^2. Where it
+    has no curvature: s is the prior's, and m = 0 where the ends' likelihoods agree
+    within LIKELIHOOD_TIE, else PROFILE_REACH tolerances towards the likelier end (the
+    data put the quantity beyond both, and cannot say how far). Returns the part and
+    (theta, sigma_theta), NaN where the likelihood has no least."""
     (_, _, l0), (vp, _, lp), (vm, _, lm) = base, up, down
-    slope = (vp - vm) / (2.0 * tol)
+    slope = np.abs(vp - vm) / (2.0 * step)
     prior = math.sqrt(UNIFORM_SHARE) * tol
-    curvature = (lp + lm - 2.0 * l0) / (tol * tol)
-    if not (math.isfinite(curvature) and curvature > 0.0):
-        return np.abs(slope) * prior, (math.nan, math.nan)
+    if not _curved(base, up, down):
+        far = abs(lp - lm) > LIKELIHOOD_TIE
+        least = math.copysign(PROFILE_REACH * tol, lm - lp) if far else 0.0
+        return slope * math.hypot(prior, least), (math.nan, math.nan)
+    curvature = (lp + lm - 2.0 * l0) / (step * step)
     spread = math.sqrt(2.0 / curvature)
-    least = (lm - lp) / (2.0 * tol * curvature)
+    least = (lm - lp) / (2.0 * step * curvature)
     least = min(max(least, -PROFILE_REACH * tol), PROFILE_REACH * tol)
     share = 1.0 / (1.0 + (spread / prior) ** 2)  # s^2 / sigma_theta^2
     s2 = share * spread * spread
-    return np.abs(slope) * math.sqrt(s2 + (least * share) ** 2), (least, spread)
+    return slope * math.sqrt(s2 + (least * share) ** 2), (least, spread)
 
 
 def timing_tolerance(t: FloatArray) -> float:
@@ -276,26 +316,29 @@ def placement_tolerance(config: AircraftConfig) -> float:
 
 def _undecided(
     est: Estimator, t: FloatArray, u: FloatArray
-) -> tuple[list[tuple[str, str, Replay]], dict[str, float]]:
-    """The replays of what the data cannot decide for sure, each with its part's name and
-    the quantity's: a pair (+tol, -tol) per quantity, then the noise floor's; and the
-    tolerances taken."""
+) -> tuple[list[tuple[str, str, Maker]], dict[str, float]]:
+    """What the data cannot decide for sure: each quantity with its part's name, its
+    key and the replay with it moved by an offset; then the noise floor's (an offset of
+    0: the replay at the configured noise); and the tolerances taken."""
     config = est.config
-    late = timing_tolerance(t)
-    out = []
-    for sign in (1.0, -1.0):
-        shifted = delayed_inputs(t, u, np.arange(2), np.full(2, sign * late))
-        out.append(("timing", "input_delay_s", Replay(None, shifted, profile=True)))
-    moved = placement_tolerance(config)
-    for key in PLACEMENT_KEYS:
-        for sign in (1.0, -1.0):
-            where = replace(config.sensors, **{key: getattr(config.sensors, key) + sign * moved})
-            again = replace(config, sensors=where)
-            out.append(("placement", key, Replay(None, u, again, profile=True)))
+
+    def timing(offset: float) -> Replay:
+        shifted = delayed_inputs(t, u, np.arange(2), np.full(2, offset))
+        return Replay(None, shifted, profile=True)
+
+    def placement(key: str) -> Maker:
+        def make(offset: float) -> Replay:
+            where = replace(config.sensors, **{key: getattr(config.sensors, key) + offset})
+            return Replay(None, u, replace(config, sensors=where), profile=True)
+
+        return make
+
+    out: list[tuple[str, str, Maker]] = [("timing", "input_delay_s", timing)]
+    out += [("placement", key, placement(key)) for key in PLACEMENT_KEYS]
     floor = _configured_noise_scale(est)
     if floor is not None:
-        out.append(("noise_floor", "", Replay(floor, u)))
-    return out, {"timing": late, "placement": moved}
+        out.append(("noise_floor", "", lambda _: Replay(floor, u)))
+    return out, {"timing": timing_tolerance(t), "placement": placement_tolerance(config)}
 
 
 def _configured_noise_scale(est: Estimator) -> FloatArray | None:
