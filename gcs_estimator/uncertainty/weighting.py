@@ -62,7 +62,7 @@ about that); a moved coefficient's variance is its move squared over 3."""
 PLACEMENT_SHARE = 0.05
 """How far each sensor position is taken as unknown either way: this share of the mean
 chord, and at least PLACEMENT_MIN_M."""
-PLACEMENT_MIN_M = 0.03
+PLACEMENT_MIN_M = 0.01
 PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
 """The [sensors] positions whose tolerance enters the sigma (the vane's height moves
 alpha by q times it over V only in its cosine: negligible)."""
