@@ -462,6 +462,11 @@ class DataConfig:
         "filters take each input this much later (refine estimates what remains; "
         "decision 0044)",
     )
+    estimate_input_delay: bool = setting(
+        True,
+        doc="refine fits the inputs' delay with the coefficients (false: the timing as "
+        "logged plus input_delay_s, as a textbook fit assumes)",
+    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
 

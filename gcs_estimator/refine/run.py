@@ -116,7 +116,7 @@ def refine_run(
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
-    estimate_delays: bool = True,
+    estimate_delays: bool | None = None,
 ) -> Refined:
     """Refine a finished run (an estimator's result, or a session's vehicle): fit the
     frames the estimator saw (optionally only those within window_s, seconds after the
@@ -128,16 +128,17 @@ def refine_run(
     took it), the process noise at the config's. threads: as refine's. The fit's sigma
     takes in how far it lands from filter `kind` (decision 0030), and a vehicle whose
     session made the structure check brings that filter's structure sigma, which the
-    fit's own does not fall below (decision 0031). estimate_delays: the inputs' delays
-    (delayed_inputs) are fitted with the coefficients (decision 0044), and the floor
+    fit's own does not fall below (decision 0031). estimate_delays (default: [data]
+    estimate_input_delay): the inputs' delays (delayed_inputs) are fitted with the
+    coefficients (decision 0044), and the floor
     then leaves out the filter's timing part (the fit decides the timing itself)."""
-    if isinstance(run, EstimatorResult):
-        result, filter_structure = run, None
-    else:
-        result, check = run.result, run.structure
-        filter_structure = None
-        if check is not None and not check.skipped:
-            filter_structure = _filter_structure(check, kind, estimate_delays)
+    result = run if isinstance(run, EstimatorResult) else run.result
+    if estimate_delays is None:
+        estimate_delays = result.config.data.estimate_input_delay
+    filter_structure = None
+    check = None if isinstance(run, EstimatorResult) else run.structure
+    if check is not None and not check.skipped:
+        filter_structure = _filter_structure(check, kind, estimate_delays)
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
