@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gcs_estimator.estimation.filters.core import FILTER_KINDS
+from gcs_estimator.estimation.filters.core import FILTER_KINDS, FilterKind
 from gcs_estimator.estimation.noise import CLEARLY, reading_z
 from gcs_estimator.estimation.results import EstimatorResult
 from gcs_estimator.model.channels import OBS_NAMES
@@ -85,11 +85,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                 "informative seconds); if the air was calm, compare a run with "
                 "[filter.turbulence] adaptive = false"
             )
-        moved = [
-            f"{c.name} ×{c.sigma_parts.inflation:.1f}"
-            for c in s.coefficients
-            if c.sigma_parts.inflation > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED
-        ]
+        moved = _moved(vehicle, kind, s)
         if moved:
             out.append(
                 f"{kind}: estimates moved more than the covariance allows, over the run or "
@@ -287,6 +283,27 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
                 f"the equation-error warm start fitted CD, CL, Cm on only {cd}, {cl}, {cm} of "
                 f"{result.warm_start_frames} frames (gaps or missing channels)"
             )
+    return out
+
+
+def _moved(vehicle: VehicleResult, kind: FilterKind, s: FilterSummary) -> list[str]:
+    """The coefficients (but those not identified) whose sigma the corrections for what
+    the model misses widen beyond INFLATION_LIMIT: the movement and the channels'
+    weights; the parts for what the data cannot decide (timing, sensor placement, the
+    noise floor: decision 0045) are priors, not a sign of a model error."""
+    check = vehicle.structure
+    weights = None
+    if check is not None and "weights" in check.parts:
+        weights = check.parts["weights"].get(kind)
+    out = []
+    for i, c in enumerate(s.coefficients):
+        parts = c.sigma_parts
+        factor = parts.inflation
+        if weights is not None and parts.covariance > 0.0:
+            m = parts.movement_factor if math.isfinite(parts.movement_factor) else 1.0
+            factor = math.hypot(m * parts.covariance, float(weights[i])) / parts.covariance
+        if factor > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED:
+            out.append(f"{c.name} ×{factor:.1f}")
     return out
 
 
