@@ -68,6 +68,7 @@ PLAN = (
     # held-out half reported apart from the half defaults are chosen on (decision 0043).
     Run("validation", "validation", (), 15),
     Run("refine_hfb", "refine_hfb", (), 1),
+    Run("input_delay", "input_delay", (), 5),
     Run("structure_gap", "structure_gap", (), 0.1),
     Run("pitch_gust_share", "pitch_gust_share", ("--seeds", "3"), 0.1),
     Run("turbulence_models", "turbulence_models", ("--seeds", "5", "--noc-seeds", "20"), 2.6),

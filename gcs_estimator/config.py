@@ -500,6 +500,20 @@ class DataConfig:
         doc="inputs between samples: linear (first-order hold) or held at the earlier "
         "sample; a CSV's empty input cells are filled the same way",
     )
+    input_delay_s: float = setting(
+        0.0,
+        ge=0.0,
+        le=0.5,
+        unit="s",
+        doc="the surfaces and engine respond this late after the logged inputs: the "
+        "filters take each input this much later (refine estimates what remains; "
+        "decision 0044)",
+    )
+    estimate_input_delay: bool = setting(
+        True,
+        doc="refine fits the inputs' delay with the coefficients (false: the timing as "
+        "logged plus input_delay_s, as a textbook fit assumes)",
+    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
     scale: Scale = table(Scale)

@@ -140,12 +140,19 @@ def test_where_the_model_is_right_the_correction_stays_near_one() -> None:
     config = load_config("noc_uav")
     flight = simulate(config, seed=2)
     vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    check = vehicle.structure
+    assert check is not None and not check.skipped
     for kind, s in vehicle.summaries.items():
-        factors = np.array(
-            [c.sigma_parts.inflation for c in s.coefficients if c.name in WELL_EXCITED]
-        )
+        well = [i for i, c in enumerate(s.coefficients) if c.name in WELL_EXCITED]
+        factors = np.array([s.coefficients[i].sigma_parts.inflation for i in well])
         assert np.all(np.isfinite(factors)) and np.all(factors >= 1.0)
-        assert float(np.median(factors)) < 1.3, (kind, factors.round(2))
+        # The corrections for what the model misses (the movement, the channels'
+        # weights) stay near one; the parts for what the data cannot decide (timing,
+        # sensor placement: decision 0047) are priors, not model errors.
+        cov = np.array([s.coefficients[i].sigma_parts.covariance for i in well])
+        moved = np.array([s.coefficients[i].sigma_parts.movement_factor for i in well])
+        own = np.hypot(moved * cov, check.parts["weights"][kind][well]) / cov
+        assert float(np.median(own)) < 1.3, (kind, own.round(2))
         assert not any("moved more" in w for w in trust_warnings(vehicle)), kind
 
 

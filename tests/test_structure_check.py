@@ -117,20 +117,32 @@ def test_an_error_the_channels_disagree_on_is_covered_by_the_structure_sigma(
 
 
 def test_where_the_model_holds_the_structure_sigma_is_small() -> None:
+    """On the simulator's flight (the model exact, the inputs on time, the sensors where
+    the airframe file says): the channels' weights move the estimates no further than
+    their covariance allows, and the likelihood puts the inputs' timing and the sensor
+    positions near the configured (decision 0047)."""
     config = load_config("noc_uav")
     fl = simulate(config, seed=3)
     vehicle = run_recording(config, fl.t_s, fl.inputs, fl.measurements)
-    assert vehicle.structure is not None and not vehicle.structure.skipped
+    check = vehicle.structure
+    assert check is not None and not check.skipped
+    well = [i for i, n in enumerate(vehicle.result.names) if n in WELL_EXCITED]
     for kind, s in vehicle.summaries.items():
-        ratio = np.array(
-            [
-                c.sigma_parts.structure / c.sigma_parts.covariance
-                for c in s.coefficients
-                if c.name in WELL_EXCITED
-            ]
-        )
+        cov = np.array([c.sigma_parts.covariance for c in s.coefficients])
+        ratio = check.parts["weights"][kind][well] / cov[well]
         assert np.all(np.isfinite(ratio)), kind
         assert float(np.median(ratio)) < 0.5, (kind, ratio.round(2))
+        total = np.array([c.sigma_parts.structure for c in s.coefficients])
+        parts = np.sqrt(sum(p[kind] ** 2 for p in check.parts.values()))
+        np.testing.assert_allclose(total, parts)
+    assert set(check.found) == {"input_delay_s", "vane_x_m", "accel_x_m", "accel_z_m"}
+    # The timing within a twentieth of its tolerance (the likelihood is pinned far more
+    # tightly than the +-tolerance replays resolve its least); the positions within 3 of
+    # their sigmas.
+    delay, _ = check.found.pop("input_delay_s")
+    assert abs(delay) < 0.05 * check.tolerances["timing"]
+    for key, (offset, sigma) in check.found.items():
+        assert abs(offset) < 3.0 * sigma, key
 
 
 def test_the_check_is_in_the_results_and_says_why_when_it_was_not_made() -> None:

@@ -18,6 +18,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimation.delay import InputDelay
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, Backend, FilterKind
 from gcs_estimator.estimation.history import Histories, StepOutput, Track
@@ -73,6 +74,8 @@ class Estimator:
         self.restarts = Restarts(
             config.filter, self.runner, self.tunings, self.noise_scale, peers_restarting
         )
+        self.delay = InputDelay(config.data.input_delay_s)
+        """The inputs taken [data] input_delay_s later (decision 0044)."""
         self.history = Histories(self.model.n, keep_history)
         self.frame_history = self.history.frames
         self.frames = 0
@@ -137,7 +140,7 @@ class Estimator:
         if self.frames == 0:
             self._t0 = t
         self._t_last = t
-        u = self.model.inputs(u)
+        u = self.delay.at(t, self.model.inputs(u))
         y = np.array(y, float)
         self.restarts.keep((t, u, y, inputs_known))
         outs = self.runner.frame(self.states, t, u, y, inputs_known, self.tunings)
@@ -171,6 +174,7 @@ class Estimator:
             if lane is not None:
                 lane.load(core.rebase(lane.state, self.model, self.tunings[kind], t, y))
         self.restarts.drop()
+        self.delay.restart()
 
     def snapshot(self) -> dict[FilterKind, Snapshot]:
         """Current coefficient estimates and sigmas per filter (empty before data)."""

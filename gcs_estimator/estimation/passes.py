@@ -8,6 +8,7 @@ observations [7], whether the inputs are known)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -38,6 +39,24 @@ class Start(NamedTuple):
     gust_var: float | None = None
 
 
+NO_UPDATE_PENALTY = 1e3
+"""What a step without an update adds to a pass's -2 log likelihood: a frame without
+data adds it to every replay alike, a filter that failed or diverged on replayed inputs
+many times (far beyond a chi-square's spread), so it is not the likelier for having
+skipped its data."""
+
+
+def _log_likelihood(row: FloatArray, n: int) -> float:
+    """-2 log likelihood of one step's innovations (its NIS plus the log of each used
+    channel's innovation variance; the innovations' correlation left out);
+    NO_UPDATE_PENALTY where the step made no update."""
+    info = core.info_of_row(row, n)
+    used = np.isfinite(info.innovation_sigma) & (info.innovation_sigma > 0.0)
+    if not math.isfinite(info.nis) or not used.any():
+        return NO_UPDATE_PENALTY
+    return info.nis + 2.0 * float(np.sum(np.log(info.innovation_sigma[used])))
+
+
 class Runner:
     """Steps the lanes of a pass; counts what the steps report (health) and keeps where
     the newest pass starts (starts)."""
@@ -46,6 +65,10 @@ class Runner:
         self.model = model
         self.backend: Backend = backend
         self.blocks = backend == "fast"
+        self.likelihood: dict[FilterKind, float] | None = None
+        """Where a dict (the structure check's profile replays): each filter's -2 log
+        likelihood of its innovations summed over the frames stepped one at a time (NIS
+        plus the log of the innovations' variances; blocks then are not used)."""
         """Many frames of a re-run in one compiled call (Lane.block); else one at a
         time (the reference backend has no compiled calls)."""
         self.health = {k: Health() for k in FILTER_KINDS}
@@ -86,6 +109,8 @@ class Runner:
             lane.load(core.rebase(lane.state, self.model, tuning, t, y))
         y_used = y if inputs_known else np.full_like(y, np.nan)
         row, status = lane.step(t, u, y_used, tuning, self.model)
+        if self.likelihood is not None:
+            self.likelihood[kind] = self.likelihood.get(kind, 0.0) + _log_likelihood(row, lane.n)
         if status:
             self.health[kind].add(*core.flags_of_row(row, lane.n).tolist())
         return StepOutput(row, lane.n)

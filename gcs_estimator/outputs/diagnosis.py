@@ -11,13 +11,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gcs_estimator.estimation.filters.core import FILTER_KINDS
+from gcs_estimator.estimation.filters.core import FILTER_KINDS, FilterKind
 from gcs_estimator.estimation.noise import CLEARLY, reading_z
 from gcs_estimator.estimation.results import EstimatorResult
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.text import fmt
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, FilterSummary
 from gcs_estimator.uncertainty.result import VehicleResult
+from gcs_estimator.uncertainty.sigma import DELAY_WARNING_SIGMA
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -84,11 +85,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
                 "informative seconds); if the air was calm, compare a run with "
                 "[filter.turbulence] adaptive = false"
             )
-        moved = [
-            f"{c.name} ×{c.sigma_parts.inflation:.1f}"
-            for c in s.coefficients
-            if c.sigma_parts.inflation > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED
-        ]
+        moved = _moved(vehicle, kind, s)
         if moved:
             out.append(
                 f"{kind}: estimates moved more than the covariance allows, over the run or "
@@ -295,6 +292,27 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
     return out
 
 
+def _moved(vehicle: VehicleResult, kind: FilterKind, s: FilterSummary) -> list[str]:
+    """The coefficients (but those not identified) whose sigma the corrections for what
+    the model misses widen beyond INFLATION_LIMIT: the movement and the channels'
+    weights; the parts for what the data cannot decide (timing, sensor placement, the
+    noise floor: decision 0047) are priors, not a sign of a model error."""
+    check = vehicle.structure
+    weights = None
+    if check is not None and "weights" in check.parts:
+        weights = check.parts["weights"].get(kind)
+    out = []
+    for i, c in enumerate(s.coefficients):
+        parts = c.sigma_parts
+        factor = parts.inflation
+        if weights is not None and parts.covariance > 0.0:
+            m = parts.movement_factor if math.isfinite(parts.movement_factor) else 1.0
+            factor = math.hypot(m * parts.covariance, float(weights[i])) / parts.covariance
+        if factor > INFLATION_LIMIT and c.identifiability != NOT_IDENTIFIED:
+            out.append(f"{c.name} ×{factor:.1f}")
+    return out
+
+
 def _refined_warnings(refined: Refined) -> list[str]:
     out = []
     coloured = [
@@ -335,6 +353,20 @@ def _refined_warnings(refined: Refined) -> list[str]:
                 "aerodynamics, turbulence it models otherwise) each settles on its own "
                 f"compromise; {fit} σ includes the difference (docs/decisions/0030)"
             )
+    late = [
+        n
+        for n, d, sd in zip(
+            refined.delay_names, refined.delays_s, refined.delay_sigma_s, strict=True
+        )
+        if math.isfinite(sd) and abs(d - refined.configured_delay_s) > DELAY_WARNING_SIGMA * sd
+    ]
+    if late:
+        out.append(
+            f"{refined.label} finds the response later or earlier than the filters took the "
+            f"inputs ({refined.delay_text()}): the filters' estimates carry the timing error "
+            "and lie apart from the fit; run again with the delay set "
+            "(docs/decisions/0044)"
+        )
     if not refined.converged:
         out.append(f"{refined.label}: {refined.message}")
     return out

@@ -136,6 +136,15 @@ def _structure_dict(vehicle: VehicleResult) -> dict[str, Any] | None:
             }
             for kind, moves in check.moves.items()
         },
+        "tolerances": dict(check.tolerances),
+        "found": {
+            key: {"offset": _num(where), "sigma": _num(sd)}
+            for key, (where, sd) in check.found.items()
+        },
+        "sigma_parts": {
+            part: {kind: dict(zip(names, map(float, v), strict=True)) for kind, v in by.items()}
+            for part, by in check.parts.items()
+        },
     }
 
 
@@ -175,6 +184,13 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
             n: {"estimate": float(b), "sigma": _num(float(s))}
             for n, b, s in zip(refined.bias_names, refined.biases, refined.bias_sigma, strict=True)
         },
+        "input_delays_s": {
+            n: {"estimate": float(d), "sigma": _num(float(s))}
+            for n, d, s in zip(
+                refined.delay_names, refined.delays_s, refined.delay_sigma_s, strict=True
+            )
+        },
+        "configured_input_delay_s": refined.configured_delay_s,
     }
 
 

@@ -38,6 +38,7 @@ from gcs_estimator.uncertainty.metrics import (
     percent_error,
 )
 from gcs_estimator.uncertainty.result import VehicleResult
+from gcs_estimator.uncertainty.weighting import StructureCheck
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -291,6 +292,7 @@ def _refined_note(refined: Refined) -> str:
         + channel_text(refined.noise_sigma)
         + "; residual colour (1 = white) "
         + channel_text(refined.residual_colour)
+        + (f"; input delay {refined.delay_text()}" if refined.delay_names else "")
     )
 
 
@@ -327,9 +329,30 @@ def _run_notes(vehicle: VehicleResult) -> list[str]:
             if check.skipped
             else f"structure check: the final pass replayed with each of "
             f"{', '.join(check.channels)} trusted half as much; how far that moved the "
-            "estimates is in σ (the JSON's sigma_parts.structure)"
+            "estimates is in σ (the JSON's sigma_parts.structure)" + _undecided_text(check)
         )
     return notes
+
+
+def _undecided_text(check: StructureCheck) -> str:
+    """What the structure check took as undecided by the data (weighting.py), and where
+    the first filter's likelihood put it."""
+    if not check.tolerances:
+        return ""
+    floor = " and at the configured noise" if "noise_floor" in check.parts else ""
+    text = (
+        f", as is how far they moved with the inputs ±{1e3 * check.tolerances['timing']:.0f}"
+        f" ms in time, each sensor position ±{1e2 * check.tolerances['placement']:.0f} cm"
+        f"{floor}, times how far the likelihood leaves each from the configured "
+        "(structure_check.sigma_parts)"
+    )
+    delay = check.found.get("input_delay_s")
+    if delay is not None and math.isfinite(delay[1]):
+        text += (
+            f"; the inputs' timing the likelihood prefers: {1e3 * delay[0]:+.1f} ± "
+            f"{1e3 * delay[1]:.1f} ms from [data] input_delay_s"
+        )
+    return text
 
 
 def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:

@@ -77,8 +77,9 @@ class SteadyFilter:
         x, f = self.unpack(theta)
         m = self.prob.model.arrays
         u0 = self.prob.u[0]
-        _, A = eq.dynamics(x, u0, m)
-        _, H = eq.observe(x, u0, m)
+        xs = self.prob.state(x)
+        _, A = eq.dynamics(xs, u0, m)
+        _, H = eq.observe(xs, u0, m)
         nd, o = self.nd, self.obs
         C = H[o][:, :nd]
         try:
@@ -101,7 +102,7 @@ class SteadyFilter:
         p = self.prob
         p.count_run()
         raw, ok = steady_innovations(
-            x, p.t, p.u, p.y, p.mask, p.model.arrays, g[0], p.max_step, p.linear
+            p.state(x), p.t, p.inputs(x), p.y, p.mask, p.model.arrays, g[0], p.max_step, p.linear
         )
         return raw if ok else None
 
@@ -166,7 +167,9 @@ class SteadyFilter:
 
     def delta(self, theta: FloatArray, j: int) -> float:
         """The finite-difference step of theta[j] (log F's in absolute terms)."""
-        return 1e-6 * max(abs(float(theta[j])), 1e-3) if j < len(self.free) else 1e-5
+        if j < len(self.free):
+            return self.prob.step(int(self.free[j]), float(theta[j]))
+        return 1e-5
 
 
 def jacobian(sf: SteadyFilter, theta: FloatArray, r: FloatArray, e0: FloatArray) -> FloatArray:

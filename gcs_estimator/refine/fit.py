@@ -11,7 +11,7 @@ The fit's sigma to trust and its parts come from sigma.fit_sigma.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -24,7 +24,7 @@ from gcs_estimator.refine import filter_error
 from gcs_estimator.refine.covariance import sandwich
 from gcs_estimator.refine.output_error import Report, gauss_newton
 from gcs_estimator.refine.problem import Problem, thread_pool
-from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
+from gcs_estimator.refine.result import INPUT_NAMES, Refined, RefineError, RefineProgress
 from gcs_estimator.refine.structure import STRUCTURE_ITERATIONS, structure_sigma
 from gcs_estimator.uncertainty.metrics import correlation_of, identifiability
 from gcs_estimator.uncertainty.sigma import FilterEstimate, FitSigma, difference_sigma, fit_sigma
@@ -144,7 +144,7 @@ def _sigmas(
 ) -> tuple[FitSigma, FloatArray, FloatArray, FloatArray]:
     """The coefficients' sigma to trust with its parts, the biases' sigma, the
     coefficients' correlation and each channel's residual colour."""
-    n, k = model.n, len(free)
+    n, k = end.x.shape[0], len(free)
     J3 = end.J.reshape(end.e.shape[0], N_OBS, end.J.shape[1])
     Minv, cov_mk, colour = sandwich(J3, end.e, mask, observed)
     # The state's free entries lead the parameters (filter error's log F follow them).
@@ -162,7 +162,9 @@ def _sigmas(
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     bias_sigma = fit_sigma(crb[bs], mk_var[bs], own[bs]).sigma
-    return parts, bias_sigma, correlation_of(full[cs, cs]), colour
+    ds = np.arange(model.n, n)
+    delay_sigma = fit_sigma(crb[ds], mk_var[ds], own[ds]).sigma
+    return parts, np.concatenate([bias_sigma, delay_sigma]), correlation_of(full[cs, cs]), colour
 
 
 def _record(
@@ -199,6 +201,7 @@ def refine(
     hold_noise: bool = False,
     threads: int | None = None,
     compared: FilterEstimate | None = None,
+    delayed: Sequence[int] = (),
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -211,11 +214,15 @@ def refine(
     fit stands. The sensitivities' columns run in `threads` threads (default: the cores
     this process may use); the fit is the same whatever their number. compared: the
     filter's estimate the fit started from (refine_run), whose difference and structure
-    sigma the fit's sigma takes in (sigma.fit_sigma)."""
+    sigma the fit's sigma takes in (sigma.fit_sigma). delayed: the model inputs (0 the
+    elevator, 1 the throttle or thrust) whose delay relative to the response is fitted
+    with the other parameters (from 0; decision 0044): the coefficients' sigma then
+    includes what the data leave undecided about the inputs' timing."""
     t, u, y, mask, observed = _record(model, t_s, inputs, observations)
-    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs)
+    lags = np.asarray(delayed, dtype=np.int64)
+    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags)
     prob.pool = thread_pool(threads)
-    x = np.asarray(start, float).copy()
+    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size)])
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
@@ -231,7 +238,8 @@ def refine(
         end = _steady_fit(begin, iterations, counter.report)
     else:
         end = _gauss_newton_fit(begin, iterations, hold_noise, counter.report)
-    parts, bias_sigma, corr, colour = _sigmas(model, end, free, observed, mask, compared)
+    parts, extra_sigma, corr, colour = _sigmas(model, end, free, observed, mask, compared)
+    n_bias = len(model.bias_names)
     coefficients = end.x[model.coefficients].copy()
     method = "filter error" if estimate_process_noise else "output error"
     if hold_noise:
@@ -248,7 +256,7 @@ def refine(
         identifiability=identifiability(coefficients, parts.sigma, corr),
         bias_names=model.bias_names,
         biases=end.x[model.biases].copy(),
-        bias_sigma=bias_sigma,
+        bias_sigma=extra_sigma[:n_bias],
         state0=end.x[:N_FLIGHT].copy(),
         noise_sigma=end.noise_sigma,
         process_noise=end.process_noise.copy(),
@@ -257,4 +265,7 @@ def refine(
         iterations=counter.iterations,
         converged=end.converged,
         message=f"{done} ({prob.runs} filter runs)",
+        delay_names=tuple(INPUT_NAMES[i] for i in lags),
+        delays_s=end.x[model.n :].copy(),
+        delay_sigma_s=extra_sigma[n_bias:],
     )

@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
+from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.model.aircraft import Model
 from gcs_estimator.refine.flights import innovations
 
@@ -47,10 +48,17 @@ def thread_pool(threads: int | None) -> ThreadPoolExecutor | None:
     return pool
 
 
+DELAY_STEP_S = 1e-5
+"""The finite-difference step of a delay [s]: well inside one sample interval, over
+which the shifted input is linear in the delay."""
+
+
 class Problem:
     """One record (t [N], model inputs u [N x m], observations y [N x 7] with 0 where
     mask [N x 7] is 0) and how the model flies over it (Runge-Kutta steps of at most
-    max_step [s]; inputs linear between samples, or held)."""
+    max_step [s]; inputs linear between samples, or held). The parameters are the
+    model's augmented state (model.n entries), then a delay [s] of each input in
+    `delayed` (delayed_inputs; decision 0044)."""
 
     def __init__(
         self,
@@ -61,8 +69,10 @@ class Problem:
         mask: FloatArray,
         max_step: float,
         linear: bool,
+        delayed: IntArray | None = None,
     ) -> None:
         self.model = model
+        self.delayed = np.zeros(0, dtype=np.int64) if delayed is None else delayed
         self.t, self.u, self.y, self.mask = t, u, y, mask
         self.max_step = max_step
         self.linear = linear
@@ -70,6 +80,23 @@ class Problem:
         self._lock = threading.Lock()
         self.pool: ThreadPoolExecutor | None = None
         """Threads for the sensitivities' columns (None: the calling thread)."""
+
+    def state(self, x: FloatArray) -> FloatArray:
+        """The model's augmented state of the parameters x."""
+        return np.ascontiguousarray(x[: self.model.n])
+
+    def inputs(self, x: FloatArray) -> FloatArray:
+        """The model's inputs at the parameters x's delays."""
+        if self.delayed.size == 0:
+            return self.u
+        return delayed_inputs(self.t, self.u, self.delayed, x[self.model.n :])
+
+    def step(self, j: int, value: float) -> float:
+        """The finite-difference step of parameter j at `value`: a millionth of its size
+        (at least of 1e-3) for the model's state, DELAY_STEP_S for a delay."""
+        if j >= self.model.n:
+            return DELAY_STEP_S
+        return 1e-6 * max(abs(value), 1e-3)
 
     def count_run(self) -> None:
         with self._lock:
@@ -87,9 +114,9 @@ class Problem:
         """flights.innovations from x0 at process noise density q and noise variances r."""
         self.count_run()
         out: tuple[FloatArray, FloatArray, FloatArray, bool] = innovations(
-            x0,
+            self.state(x0),
             self.t,
-            self.u,
+            self.inputs(x0),
             self.y,
             self.mask,
             self.model.arrays,
@@ -113,7 +140,7 @@ class Problem:
 
         def column(col: int) -> FloatArray:
             j = free[col]
-            step = 1e-6 * max(abs(x0[j]), 1e-3)
+            step = self.step(int(j), float(x0[j]))
             xp = x0.copy()
             xp[j] += step
             e, _, _, ok = self.run(xp, q, r)

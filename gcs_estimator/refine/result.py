@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import numpy as np
+
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.uncertainty.sigma import FitSigma
+from gcs_estimator.uncertainty.sigma import DELAY_WARNING_SIGMA, FitSigma
+
+INPUT_NAMES: tuple[str, ...] = ("elevator", "throttle")
+"""The model's inputs whose delay a fit can estimate, by their index in the model's
+inputs."""
 
 
 def fit_label(method: str) -> str:
@@ -56,6 +62,18 @@ class Refined:
     choice: str = ""
     """Why this method, when it was chosen from the data ("auto": choose_method); empty
     when it was asked for by name."""
+    delay_names: tuple[str, ...] = ()
+    """The inputs whose delay relative to the response was fitted (decision 0044)."""
+    delays_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Each one's delay behind the logged input [s], configured_delay_s included: positive
+    where the response follows the logged input later than the model, flown on the input
+    as logged, would."""
+    configured_delay_s: float = 0.0
+    """The delay the filters took the inputs with ([data] input_delay_s), from which the
+    fit started."""
+    delay_sigma_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Their sigma [s], from the fit's covariance (Morelli-Klein) and structure check as
+    the biases' (NaN: the input never moved, so no delay was seen)."""
 
     @property
     def label(self) -> str:
@@ -101,6 +119,23 @@ class Refined:
         """The sigma from the fit alone: Morelli-Klein's with the structure sigma, without
         difference_sigma."""
         return self.sigma_parts.within_fit
+
+    def delay_text(self) -> str:
+        """The delays found, in words, and whether the filters' configured one is beyond
+        3 sigma of them ("" where none was fitted)."""
+        parts = []
+        for name, d, s in zip(self.delay_names, self.delays_s, self.delay_sigma_s, strict=True):
+            if not np.isfinite(s):
+                parts.append(f"{name} not seen (it never moved)")
+                continue
+            text = f"{name} {1e3 * d:.1f} ± {1e3 * s:.1f} ms"
+            if abs(d - self.configured_delay_s) > DELAY_WARNING_SIGMA * s:
+                text += (
+                    f" (the filters took {1e3 * self.configured_delay_s:.0f} ms: "
+                    f"[data] input_delay_s = {max(d, 0.0):.3f} would fly them at it)"
+                )
+            parts.append(text)
+        return ", ".join(parts)
 
 
 class RefineProgress(NamedTuple):

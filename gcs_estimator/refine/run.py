@@ -24,11 +24,28 @@ from gcs_estimator.uncertainty.sigma import FilterEstimate
 
 if TYPE_CHECKING:
     from gcs_estimator.uncertainty.result import VehicleResult
+    from gcs_estimator.uncertainty.weighting import StructureCheck
 
 TURBULENT_SHARE = 0.5
 """method "auto", where the filters measured no level over the pass (a fixed level:
 [filter.turbulence] adaptive = false): filter error when the level was applied in at
 least this share of the final pass."""
+
+
+THROTTLE_EXCITED = 0.1
+"""The throttle's (or thrust's) delay is fitted where the input moves over more than this
+share of its largest magnitude in the record (decision 0044): a throttle held still has
+no timing the data can show."""
+
+
+def delayed_inputs(u: FloatArray) -> tuple[int, ...]:
+    """The model inputs (u [N x m], model order) whose delay a fit estimates: the elevator
+    always (a record that never moves it has no delay seen, and the fit leaves it at 0
+    without a sigma), the throttle where it moves (THROTTLE_EXCITED)."""
+    throttle = u[:, 1][np.isfinite(u[:, 1])]
+    top = float(np.max(np.abs(throttle))) if throttle.size else 0.0
+    moves = top > 0.0 and float(np.ptp(throttle)) > THROTTLE_EXCITED * top
+    return (0, 1) if moves else (0,)
 
 
 def _filter(result: EstimatorResult, kind: FilterKind) -> tuple[FilterResult, Track]:
@@ -99,6 +116,7 @@ def refine_run(
     progress: Callable[[RefineProgress], None] | None = None,
     hold_noise: bool = False,
     threads: int | None = None,
+    estimate_delays: bool | None = None,
 ) -> Refined:
     """Refine a finished run (an estimator's result, or a session's vehicle): fit the
     frames the estimator saw (optionally only those within window_s, seconds after the
@@ -110,12 +128,17 @@ def refine_run(
     took it), the process noise at the config's. threads: as refine's. The fit's sigma
     takes in how far it lands from filter `kind` (decision 0030), and a vehicle whose
     session made the structure check brings that filter's structure sigma, which the
-    fit's own does not fall below (decision 0031)."""
-    if isinstance(run, EstimatorResult):
-        result, filter_structure = run, None
-    else:
-        result, check = run.result, run.structure
-        filter_structure = None if check is None or check.skipped else check.sigma.get(kind)
+    fit's own does not fall below (decision 0031). estimate_delays (default: [data]
+    estimate_input_delay): the inputs' delays (delayed_inputs) are fitted with the
+    coefficients (decision 0044), and the floor
+    then leaves out the filter's timing part (the fit decides the timing itself)."""
+    result = run if isinstance(run, EstimatorResult) else run.result
+    if estimate_delays is None:
+        estimate_delays = result.config.data.estimate_input_delay
+    filter_structure = None
+    check = None if isinstance(run, EstimatorResult) else run.structure
+    if check is not None and not check.skipped:
+        filter_structure = _filter_structure(check, kind, estimate_delays)
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -141,8 +164,24 @@ def refine_run(
         hold_noise=hold_noise,
         threads=threads,
         compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+        delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
     )
-    return replace(fit, choice=choice)
+    configured = config.data.input_delay_s
+    return replace(
+        fit, choice=choice, delays_s=fit.delays_s + configured, configured_delay_s=configured
+    )
+
+
+def _filter_structure(
+    check: StructureCheck, kind: FilterKind, estimate_delays: bool
+) -> FloatArray | None:
+    """Filter `kind`'s structure sigma, the floor of the fit's (decision 0031): without its
+    timing part where the fit estimates the inputs' delay itself (decision 0044)."""
+    if not estimate_delays or "timing" not in check.parts:
+        return check.sigma.get(kind)
+    kept = [part[kind] for name, part in check.parts.items() if name != "timing"]
+    out: FloatArray = np.sqrt(sum(v * v for v in kept))
+    return out
 
 
 def _bias_on_flight(model: Model, biases: FloatArray) -> FloatArray:

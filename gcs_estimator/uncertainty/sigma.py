@@ -27,6 +27,11 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 
+DELAY_WARNING_SIGMA = 3.0
+"""A delay the whole-record fit finds this many of its sigmas from the one the filters
+took the inputs with ([data] input_delay_s) is pointed out: the filters flew the inputs
+at the wrong time, and their estimates carry it (decision 0044)."""
+
 MOVEMENT_WINDOW_MIN_FRAMES = 50
 """Frames the movement check needs after the last restart (fewer: no correction)."""
 MOVEMENT_BANDWIDTH = 0.25

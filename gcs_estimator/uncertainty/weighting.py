@@ -24,21 +24,59 @@ the structure sigma. The sigma to trust (sigma.trusted_sigma) adds it in quadrat
 the covariance's sigma widened by how the estimates moved over the run (0008): that
 correction sees drift and colour, this one a bias that the channels' disagreement sets
 and the estimates settle on.
+
+The same replays carry what the data cannot decide (docs/decisions/0047): the final pass
+again with the inputs TIMING_TOLERANCE_S later (the inputs' timing: the hold between
+samples, a servo's lag, a skewed log), with each sensor position moved by the placement
+tolerance (the vane's and the accelerometers' place, from an airframe file's measurement
+or guess), and, where the run read a channel's noise below the configured sigma
+(measurement_noise = "auto" on a record with almost no noise), at the configured noise.
+Each tolerance is taken as uniform, so a move d gives the variance d^2 / 3; the noise
+replay's covariance sigma is a floor under the run's (a record read as clean is trusted
+no further than one at the sensors' nominal noise: what the model misses stays as the
+noise goes). These parts are added to the structure sigma in quadrature (the floor as
+its excess over the run's covariance), and kept apart in `parts`.
 """
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.estimation.estimator import FILTER_KINDS, Estimator, FilterKind
 from gcs_estimator.model.channels import N_OBS, OBS_NAMES
 
+TIMING_TOLERANCE_S = 0.01
+"""How far the inputs' timing is taken as unknown either way, at least [s] (the data's
+half sample interval where that is longer: the linear and the held inputs differ by
+about that); a moved coefficient's variance is its move squared over 3."""
+PLACEMENT_SHARE = 0.05
+"""How far each sensor position is taken as unknown either way: this share of the mean
+chord, and at least PLACEMENT_MIN_M."""
+PLACEMENT_MIN_M = 0.01
+PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
+"""The [sensors] positions whose tolerance enters the sigma (the vane's height moves
+alpha by q times it over V only in its cosine: negligible)."""
+PROFILE_WIDE = 4.0
+"""Where the likelihood over +-tolerance has no least between (the quantity lies beyond),
+the pair is replayed again this many tolerances out."""
+LIKELIHOOD_TIE = 4.0
+"""Two replays whose -2 log likelihoods differ by less than this (two standard
+deviations of one parameter's chi-square) do not say which side is likelier."""
+PROFILE_REACH = 10.0
+"""How many tolerances from the configured value a quantity's likelihood parabola may
+place its least (beyond, three replays cannot tell)."""
+UNIFORM_SHARE = 1.0 / 3.0
+"""A quantity uniform within +-a has variance a^2 / 3."""
 VARIANCE_FACTOR = 2.0
 """A channel's measurement variance is multiplied by this in its run (its weight
 halved)."""
@@ -59,6 +97,18 @@ class StructureCheck(NamedTuple):
     """The channels re-weighted (those the data carry)."""
     skipped: str = ""
     """Why the check was not made ("" when it was)."""
+    parts: dict[str, dict[FilterKind, FloatArray]] = {}  # noqa: RUF012  (never mutated)
+    """The sigma's parts per filter and coefficient: "weights" (the channels' weights),
+    "timing" (the inputs TIMING_TOLERANCE_S later), "placement" (the sensor positions
+    within their tolerance), "noise_floor" (the excess of the covariance sigma at the
+    configured noise over the run's; absent where no channel was read below it);
+    `sigma` is their root sum of squares."""
+    tolerances: dict[str, float] = {}  # noqa: RUF012  (never mutated)
+    """The tolerances the check took: "timing" [s], "placement" [m]."""
+    found: dict[str, tuple[float, float]] = {}  # noqa: RUF012  (never mutated)
+    """Per quantity ("input_delay_s", "vane_x_m", ...), where the first filter's
+    likelihood puts it from the configured value, and its sigma (NaN: not decided):
+    the inputs' delay beyond [data] input_delay_s, each position's offset [SI]."""
 
 
 def skipped(reason: str) -> StructureCheck:
@@ -85,52 +135,221 @@ def why_not(config: AircraftConfig, frames: int, history: bool, checked: int = 0
     return ""
 
 
-def _final(
-    est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray, scale: FloatArray | None
-) -> dict[FilterKind, tuple[FloatArray, FloatArray]]:
-    """Each filter's final coefficients and their covariance sigma with the run's final
-    pass replayed over the record, the measurement variances times scale."""
-    again = Estimator(est.config, backend=est.backend, keep_history=False, noise_scale=scale)
+class Replay(NamedTuple):
+    """One replay of the final pass: the measurement variances times scale (None: as they
+    were), over inputs u, with the airframe `config` (None: the run's)."""
+
+    scale: FloatArray | None
+    u: FloatArray
+    config: AircraftConfig | None = None
+    profile: bool = False
+    """Sum each filter's -2 log likelihood over the pass (frame by frame)."""
+
+
+Final = dict[FilterKind, tuple[FloatArray, FloatArray, float]]
+"""Per filter: final coefficients, their covariance sigma, -2 log likelihood (NaN where
+not summed)."""
+
+
+def _final(est: Estimator, t: FloatArray, y: FloatArray, replay: Replay) -> Final:
+    """Each filter's final coefficients, their covariance sigma and (replay.profile) the
+    pass's -2 log likelihood with the run's final pass replayed as `replay` says."""
+    scale, u = replay.scale, replay.u
+    config = est.config if replay.config is None else replay.config
+    again = Estimator(config, backend=est.backend, keep_history=False, noise_scale=scale)
+    if replay.profile:
+        again.runner.blocks = False
+        again.runner.likelihood = {}
     again.replay_final_pass(est, t, u, y)
     coef = again.model.coefficients
-    out: dict[FilterKind, tuple[FloatArray, FloatArray]] = {}
+    sums = again.runner.likelihood or {}
+    out: Final = {}
     for kind, state in again.states.items():
         if state is not None:
-            out[kind] = (state.x[coef].copy(), np.sqrt(np.diag(state.P))[coef])
+            like = sums.get(kind, math.nan)
+            out[kind] = (state.x[coef].copy(), np.sqrt(np.diag(state.P))[coef], like)
     return out
 
 
 def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray) -> StructureCheck:
     """The check of a finished run (est) over its frames (t [N], u [N x 3] as the
     equations take them, y [N x 7]: its history): its final pass replayed as it ran, then
-    once per channel with data, that channel's weight halved."""
+    once per channel with data, that channel's weight halved, and twice per quantity the
+    data cannot decide for sure (module docstring)."""
     if np.any(np.diff(t) <= 0.0):
         return skipped("the vehicle clock restarted during the run (its frames are not one record)")
     channels = _with_data(y)
     if not channels:
         return skipped("no channel has data")
-    scales: list[FloatArray | None] = [None]
+    replays = [Replay(None, u, profile=True)]
     for ch in channels:
         scale = np.ones(N_OBS)
         scale[ch] = VARIANCE_FACTOR
-        scales.append(scale)
-    # The replays are independent and spend most of their time in compiled steps that
-    # release the GIL: threads run them side by side on the machine's cores.
-    with ThreadPoolExecutor(max_workers=min(len(scales), os.cpu_count() or 1)) as pool:
-        base, *finals = pool.map(lambda sc: _final(est, t, u, y, sc), scales)
+        replays.append(Replay(scale, u))
+    undecided, tolerances = _undecided(est, t, u)
+    for label, _, make in undecided:
+        tol = tolerances.get(label, 0.0)
+        replays += [make(tol), make(-tol)] if tol > 0.0 else [make(0.0)]
+
+    def again(batch: list[Replay]) -> list[Final]:
+        # The replays are independent and spend most of their time in compiled steps
+        # that release the GIL: threads run them side by side on the machine's cores.
+        with ThreadPoolExecutor(max_workers=min(len(batch), os.cpu_count() or 1)) as pool:
+            return list(pool.map(lambda r: _final(est, t, y, r), batch))
+
+    base, *finals = again(replays)
     if set(base) != set(FILTER_KINDS):
         return skipped("no frame reached the filters")
     p = base[FILTER_KINDS[0]][0].shape[0]
     moves = {k: np.zeros((len(channels), p)) for k in FILTER_KINDS}
     excess = {k: np.zeros(p) for k in FILTER_KINDS}
-    for a, run in enumerate(finals):
+    for a, run in enumerate(finals[: len(channels)]):
         for kind in FILTER_KINDS:
-            (b, s), (v, vs) = base[kind], run[kind]
+            (b, s, _), (v, vs, _) = base[kind], run[kind]
             d = v - b
             moves[kind][a] = d
             excess[kind] += np.maximum(0.0, d * d - np.abs(vs * vs - s * s))
-    sigma = {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}
-    return StructureCheck(sigma, moves, tuple(OBS_NAMES[i] for i in channels))
+    parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
+    rest = finals[len(channels) :]
+    found = _undecided_parts(parts, base, rest, undecided, tolerances, again)
+    sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
+    names = tuple(OBS_NAMES[i] for i in channels)
+    return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
+
+
+Maker = Callable[[float], Replay]
+"""The replay of the final pass with a quantity moved by an offset from the configured."""
+
+
+def _undecided_parts(
+    parts: dict[str, dict[FilterKind, FloatArray]],
+    base: Final,
+    rest: list[Final],
+    undecided: list[tuple[str, str, Maker]],
+    tolerances: dict[str, float],
+    again: Callable[[list[Replay]], list[Final]],
+) -> dict[str, tuple[float, float]]:
+    """Add the undecided quantities' parts to `parts` from their replays `rest` (in
+    _undecided's order: a pair at +tol and -tol per quantity, one for the noise floor);
+    where the likelihood has no curvature over a pair, the pair again at PROFILE_WIDE
+    tolerances (`again` replays them). Returns where the first filter's likelihood puts
+    each quantity (_profile)."""
+    found: dict[str, tuple[float, float]] = {}
+    p = base[FILTER_KINDS[0]][0].shape[0]
+    j = 0
+    for label, key, make in undecided:
+        part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
+        tol = tolerances.get(label, 0.0)
+        if tol <= 0.0:  # the noise floor: the covariance at the configured noise, beyond
+            for kind in FILTER_KINDS:
+                s, vs = base[kind][1], rest[j][kind][1]
+                part[kind] = np.hypot(part[kind], np.sqrt(np.maximum(0.0, vs * vs - s * s)))
+            j += 1
+            continue
+        up, down, step = rest[j], rest[j + 1], tol
+        j += 2
+        if not all(_curved(base[k], up[k], down[k]) for k in FILTER_KINDS):
+            step = PROFILE_WIDE * tol
+            up, down = again([make(step), make(-step)])
+        for kind in FILTER_KINDS:
+            extra, where = _profile(base[kind], up[kind], down[kind], step, tol)
+            part[kind] = np.hypot(part[kind], extra)
+            if kind == FILTER_KINDS[0]:
+                found[key] = where
+    return found
+
+
+def _curved(
+    base: tuple[FloatArray, FloatArray, float],
+    up: tuple[FloatArray, FloatArray, float],
+    down: tuple[FloatArray, FloatArray, float],
+) -> bool:
+    """Whether the likelihood over three replays has a least between their ends."""
+    c = up[2] + down[2] - 2.0 * base[2]
+    return math.isfinite(c) and c > 0.0
+
+
+def _profile(
+    base: tuple[FloatArray, FloatArray, float],
+    up: tuple[FloatArray, FloatArray, float],
+    down: tuple[FloatArray, FloatArray, float],
+    step: float,
+    tol: float,
+) -> tuple[FloatArray, tuple[float, float]]:
+    """A quantity's part of the coefficients' sigma from the final pass replayed with it
+    at +step and -step: the coefficients' slope in it (central difference) times how far
+    it may lie from where the run took it, sqrt(s^2 + m^2). The tolerance is a prior of
+    sigma tol / sqrt(3) about the configured value (uniform within +-tol); where the
+    pass's likelihood over the three replays is a parabola (least at theta, curvature
+    2 / sigma_theta^2; |theta| at most PROFILE_REACH tolerances), the data sharpen it:
+    1 / s^2 = 1 / sigma_theta^2 + 3 / tol^2 and m = theta s^2 / sigma_theta^2. Where it
+    has no curvature: s is the prior's, and m = 0 where the ends' likelihoods agree
+    within LIKELIHOOD_TIE, else PROFILE_REACH tolerances towards the likelier end (the
+    data put the quantity beyond both, and cannot say how far). Returns the part and
+    (theta, sigma_theta), NaN where the likelihood has no least."""
+    (_, _, l0), (vp, _, lp), (vm, _, lm) = base, up, down
+    slope = np.abs(vp - vm) / (2.0 * step)
+    prior = math.sqrt(UNIFORM_SHARE) * tol
+    if not _curved(base, up, down):
+        far = abs(lp - lm) > LIKELIHOOD_TIE
+        least = math.copysign(PROFILE_REACH * tol, lm - lp) if far else 0.0
+        return slope * math.hypot(prior, least), (math.nan, math.nan)
+    curvature = (lp + lm - 2.0 * l0) / (step * step)
+    spread = math.sqrt(2.0 / curvature)
+    least = (lm - lp) / (2.0 * step * curvature)
+    least = min(max(least, -PROFILE_REACH * tol), PROFILE_REACH * tol)
+    share = 1.0 / (1.0 + (spread / prior) ** 2)  # s^2 / sigma_theta^2
+    s2 = share * spread * spread
+    return slope * math.sqrt(s2 + (least * share) ** 2), (least, spread)
+
+
+def timing_tolerance(t: FloatArray) -> float:
+    """TIMING_TOLERANCE_S, or half the record's median sample interval where longer."""
+    half = 0.5 * float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    return max(TIMING_TOLERANCE_S, half)
+
+
+def placement_tolerance(config: AircraftConfig) -> float:
+    """PLACEMENT_SHARE of the mean chord, at least PLACEMENT_MIN_M [m]."""
+    return max(PLACEMENT_MIN_M, PLACEMENT_SHARE * config.airframe.mean_chord_m)
+
+
+def _undecided(
+    est: Estimator, t: FloatArray, u: FloatArray
+) -> tuple[list[tuple[str, str, Maker]], dict[str, float]]:
+    """What the data cannot decide for sure: each quantity with its part's name, its
+    key and the replay with it moved by an offset; then the noise floor's (an offset of
+    0: the replay at the configured noise); and the tolerances taken."""
+    config = est.config
+
+    def timing(offset: float) -> Replay:
+        shifted = delayed_inputs(t, u, np.arange(2), np.full(2, offset))
+        return Replay(None, shifted, profile=True)
+
+    def placement(key: str) -> Maker:
+        def make(offset: float) -> Replay:
+            where = replace(config.sensors, **{key: getattr(config.sensors, key) + offset})
+            return Replay(None, u, replace(config, sensors=where), profile=True)
+
+        return make
+
+    out: list[tuple[str, str, Maker]] = [("timing", "input_delay_s", timing)]
+    out += [("placement", key, placement(key)) for key in PLACEMENT_KEYS]
+    floor = _configured_noise_scale(est)
+    if floor is not None:
+        out.append(("noise_floor", "", lambda _: Replay(floor, u)))
+    return out, {"timing": timing_tolerance(t), "placement": placement_tolerance(config)}
+
+
+def _configured_noise_scale(est: Estimator) -> FloatArray | None:
+    """The variance scale from the final pass's measurement noise to the configured one,
+    where the run took a reading below it on some channel (None where not)."""
+    taken = np.diag(est.tunings[FILTER_KINDS[0]].R)
+    configured = np.square(np.asarray(est.config.filter.measurement_sigma, float))
+    if taken.shape != configured.shape or not np.any(taken < configured * (1.0 - 1e-9)):
+        return None
+    out: FloatArray = np.maximum(configured / taken, 1.0)
+    return out
 
 
 def _with_data(y: FloatArray) -> list[int]:
@@ -139,5 +358,5 @@ def _with_data(y: FloatArray) -> list[int]:
 
 
 def runs(y: FloatArray) -> int:
-    """How many replays of the final pass the check takes."""
-    return 1 + len(_with_data(y))
+    """How many replays of the final pass the check takes (but the noise floor's)."""
+    return 3 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y))
