@@ -292,6 +292,30 @@ def test_the_arduplane_tlog_carries_the_native_stream_within_mavlinks_resolution
     assert not np.isfinite(y[:, CHANNELS.index("qdot")]).any()
 
 
+def test_the_arduplane_tlog_estimates_as_the_native_stream_in_mavlinks_units(
+    config: AircraftConfig, native: Flight, tlog: Path
+) -> None:
+    """Reading the tlog adds nothing: its estimates are the native stream's without the
+    pitch acceleration, with q and the accelerations truncated to whole mrad/s and
+    milli-g as ArduPilot's send_raw_imu does, to a hundredth of a sigma. What differs
+    from the whole native stream is what MAVLink's integers leave out."""
+    frames = _tlog_frames(config, tlog)
+    t = np.array([f.t_vehicle_s for f in frames])
+    y = np.array([f.y for f in frames])
+    u = np.array([f.inputs for f in frames])
+    idx = np.asarray(np.searchsorted(native.t_s, t - t[0] + native.t_s[0] - 1e-6), dtype=int)
+    theirs_y = np.where(np.isfinite(y), native.measurements[idx], np.nan)
+    for c, unit in (("q", 1e-3), ("a_x", MILLI_G), ("a_z", MILLI_G)):
+        j = CHANNELS.index(c)
+        theirs_y[:, j] = np.trunc(theirs_y[:, j] / unit) * unit
+    ours = _final(config, t, u, y)
+    theirs = _final(config, native.t_s[idx], native.inputs[idx], theirs_y)
+    for kind, coefficients in ours.items():
+        for name, (est, sigma) in coefficients.items():
+            assert abs(est - theirs[kind][name][0]) <= 0.01 * sigma, (kind, name)
+            assert sigma == pytest.approx(theirs[kind][name][1], rel=0.01), (kind, name)
+
+
 @pytest.fixture(scope="module")
 def tlog_run(tmp_path_factory: pytest.TempPathFactory, tlog: Path) -> dict[str, Any]:
     """`replay` of the tlog with no --config: the truth file beside it names the airframe."""
@@ -309,7 +333,10 @@ def test_the_arduplane_tlog_replays_as_the_native_stream(
     """lost 0; each channel from the message that carries it at the asked rate, the
     elevator by the vehicle's own parameters; every coefficient within 1 sigma of the
     native stream's estimate (the tlog carries everything at 50 Hz but the pitch
-    acceleration) and within 3 sigma of truth."""
+    acceleration) and within 3 sigma of truth; the drag coefficients within 3 sigma of
+    truth only: RAW_IMU's whole milli-g widen their sigma 1.6 times and move them 1.2 to
+    1.3 of it from the native stream's on this seed (the test above: the tlog's estimates
+    are exactly the native stream's with its accelerations truncated to milli-g)."""
     link = tlog_run["link"]
     assert link["lost"] == 0 and link["corrupt"] == 0, link
     sources = link["sources"]["1"]
@@ -333,7 +360,8 @@ def test_the_arduplane_tlog_replays_as_the_native_stream(
         theirs = runs["native"]["filters"][kind]["estimates"]
         for i, name in enumerate(names):
             est, sigma = ours[name]["estimate"], ours[name]["sigma"]
-            assert abs(est - theirs[name]["estimate"]) <= sigma, (kind, name, est, theirs[name])
+            if not name.startswith("CD"):  # drag: RAW_IMU's milli-g (the test above)
+                assert abs(est - theirs[name]["estimate"]) <= sigma, (kind, name, est)
             assert abs(est - truth[i]) <= 3 * sigma, (kind, name, est, truth[i], sigma)
 
 
