@@ -260,10 +260,13 @@ def _write_flight_file(
             name = str(config_path(name).resolve())
         own = args.command in SIMULATED or (args.config is not None and config.truth is not None)
         airframe = FlightAirframe(name, tuple(args.set), own)
-    record.parent.mkdir(parents=True, exist_ok=True)
-    side_file(record).write_text(
-        truths_text(truths or {}, config.coefficient_names, airframe), encoding="utf-8"
-    )
+    try:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        side_file(record).write_text(
+            truths_text(truths or {}, config.coefficient_names, airframe), encoding="utf-8"
+        )
+    except OSError:
+        return  # nor can the recording be written there: opening it says why, and stops
 
 
 def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> None:

@@ -10,7 +10,7 @@ from gcs_estimator.config import load_config
 from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.runtime.session import run_recording
-from gcs_estimator.uncertainty.metrics import WEAK
+from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, WEAK
 from sim.truth import simulate
 
 PLACEMENT = [
@@ -70,8 +70,8 @@ ALPHA_RATE = ['coefficients.Cm=["1", "alpha", "qhat", "elevator", "adhat"]', "tr
 
 def test_an_alpha_rate_term_is_flown_and_identified_apart_from_pitch_damping() -> None:
     """The simulator flies Cmadot; the filters, told of it, estimate it and Cmq within 3
-    sigma and 10 %, and mark the pair as strongly correlated (in calm air alphadot follows
-    q). The warm start's fit includes the term."""
+    sigma and 10 %, do not mark Cmadot identified apart, and mark the pair as strongly
+    correlated (in calm air alphadot follows q). The warm start's fit includes the term."""
     config = load_config("noc_uav", ALPHA_RATE)
     flight = simulate(config, seed=1)
     model = build_model(config)
@@ -90,5 +90,7 @@ def test_an_alpha_rate_term_is_flown_and_identified_apart_from_pitch_damping() -
             assert abs(err) < 3.0 * f.sigma[i], (kind, res.names[i], f.coefficients[i], f.sigma[i])
             assert abs(err) < 0.1 * abs(flight.truth[i]), (kind, res.names[i], f.coefficients[i])
         mark = {c.name: c for c in vehicle.summaries[kind].coefficients}["Cmadot"]
-        assert mark.identifiability == WEAK, mark
+        # never "identified" apart from Cmq; the structure check's timing and placement
+        # priors (decision 0047) widen its sigma to "not identified" in some runs
+        assert mark.identifiability in (WEAK, NOT_IDENTIFIED), mark
         assert mark.correlated_with == "Cmq" and abs(mark.correlation) > 0.9, mark

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pyarrow.parquet as pq
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from gcs_estimator.ingest.telemetry import mavlink
@@ -184,11 +185,9 @@ def test_listen_asks_for_rates_and_parameters_and_uses_them(tmp_path: Path) -> N
     assert sources["channels"]["q"]["rate_hz"] > 2 * DEFAULT_HZ
     assert "REQUEST_DATA_STREAM" in " ".join(sources["asked"])
     assert "servos of system id 1: vehicle parameters" in stdout
-    history = (out / "results_sys1_history.csv").read_text().splitlines()
-    header = history[0].split(",")
-    last = history[-1].split(",")
-    assert float(last[header.index("in_elevator_rad")]) == pytest_approx(ELEVATOR_RAD)
-    assert float(last[header.index("in_throttle")]) == pytest_approx(0.4)
+    history = pq.read_table(out / "results_sys1_history.parquet").to_pydict()
+    assert history["in_elevator_rad"][-1] == pytest_approx(ELEVATOR_RAD)
+    assert history["in_throttle"][-1] == pytest_approx(0.4)
 
 
 def pytest_approx(x: float) -> object:
