@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -296,3 +297,24 @@ def test_options_a_batch_cannot_use_are_refused(
     assert main(["batch", str(tmp_path), "--out", str(tmp_path / "o"), *options]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()  # refused before anything was written
+
+
+def test_damaged_logs_are_failed_rows_that_name_them(tmp_path: Path) -> None:
+    """Whatever a damaged log's bytes make its reader say (a tlog whose stamps are no time,
+    random bytes a CSV or tlog reader takes up), estimate_file gives a failed row naming
+    the log, never an exception."""
+    config = load_config("noc_uav")
+    codec = Codec(1, 1)
+    heartbeat = codec.pack(codec.mav.heartbeat_encode(1, 3, 0, 0, 4))
+    no_time = tmp_path / "no_time.tlog"  # a stamp some 290,000 years from now
+    no_time.write_bytes(tlog_record(2**63 - 1, heartbeat) * 3)
+    assert tlog_facts(no_time).flight_time is None
+    damaged = [no_time]
+    for seed in range(12):
+        path = tmp_path / f"junk{seed}.tlog"
+        path.write_bytes(random.Random(seed).randbytes(4000))
+        damaged.append(path)
+    for path in damaged:
+        outcome = estimate_file(path, config, tmp_path / path.stem)
+        assert outcome.error is not None and str(path) in outcome.error, outcome.error
+        assert [r["status"] for r in outcome.coefficients] == ["failed"]

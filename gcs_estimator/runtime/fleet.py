@@ -43,6 +43,7 @@ from gcs_estimator.outputs.tables import (
     write_table,
 )
 from gcs_estimator.outputs.trend import write_trend
+from gcs_estimator.runtime.batch import folders
 from gcs_estimator.runtime.logs import (
     LOG_SUFFIXES,
     LogOutcome,
@@ -155,25 +156,12 @@ class Job:
     base: dict[str, Any]
 
 
-def _folders(paths: Sequence[Path], out: Path) -> list[Path]:
-    taken: set[str] = set()
-    result = []
-    for p in paths:
-        name, k = p.stem, 1
-        while name in taken:
-            k += 1
-            name = f"{p.stem}_{k}"
-        taken.add(name)
-        result.append(out / LOGS_FOLDER / name)
-    return result
-
-
 def plan(paths: Sequence[Path], config: AircraftConfig, out: Path) -> list[Job]:
     """Every log's job: its hash (read once here), its folder, its rows' base columns."""
     c_hash = config_sha256(config)
     ver = version()
     jobs = []
-    for p, folder in zip(paths, _folders(paths, out), strict=True):
+    for p, folder in zip(paths, folders(paths, out / LOGS_FOLDER), strict=True):
         try:
             l_hash = sha256_of(p)
         except OSError as exc:

@@ -125,6 +125,14 @@ class LogFacts:
     uids: dict[int, str] = field(default_factory=dict)
 
 
+def _time_of(t_us: int) -> datetime | None:
+    """A tlog record's receive time, or None where its stamp is no time (a damaged log)."""
+    try:
+        return datetime.fromtimestamp(t_us / 1e6, UTC)
+    except (ValueError, OverflowError, OSError):
+        return None
+
+
 def tlog_facts(path: Path) -> LogFacts:
     """A .tlog's first receive time and every AUTOPILOT_VERSION uid among its first
     UID_SCAN_RECORDS records (the header bytes are read; only that message is decoded)."""
@@ -133,7 +141,7 @@ def tlog_facts(path: Path) -> LogFacts:
     try:
         for k, rec in enumerate(read_tlog(path)):
             if facts.flight_time is None:
-                facts.flight_time = datetime.fromtimestamp(rec.t_recv_us / 1e6, UTC)
+                facts.flight_time = _time_of(rec.t_recv_us)
             if k >= UID_SCAN_RECORDS:
                 break
             if _message_id(rec.packet) == AUTOPILOT_VERSION_ID:
@@ -289,7 +297,8 @@ def estimate_file(
                 p, config, out_dir, timeout_s, history_format, stop, log
             )
     except (LogError, SourceError, FlightDataError, ConfigError, TlogError) as exc:
-        outcome.error = str(exc)
+        text = str(exc)  # a row's error names its log, whichever reader failed
+        outcome.error = text if str(p) in text else f"{p}: {text}"
         outcome.coefficients = [failed_row(base, outcome.error)]
         outcome.summaries = [failed_row(base, outcome.error)]
         outcome.seconds = time.perf_counter() - started
