@@ -331,6 +331,32 @@ def measurements(f: dict[str, FloatArray], ac: Aircraft, rng: np.random.Generato
     return clean + np.array(NOISE) * rng.standard_normal(clean.shape)
 
 
+def airframe_lines(
+    label: str, f: dict[str, FloatArray], regressors: dict[str, list[str]]
+) -> list[str]:
+    """An airframe file's [airframe], [propulsion] and [coefficients] tables from what the
+    model flew (geometry, mass, inertia, thrust line): what a user would write."""
+    return [
+        "[airframe]",
+        f'name = "{label}"',
+        f"mass_kg = {float(np.mean(f['mass'])):.6g}",
+        f"wing_area_m2 = {float(f['area'][0]):.6g}",
+        f"mean_chord_m = {float(f['chord'][0]):.6g}",
+        f"wing_span_m = {float(f['span'][0]):.6g}",
+        f"inertia_yy_kgm2 = {float(np.mean(f['iyy'])):.6g}",
+        f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}  # the CSV has it per sample",
+        f"trim_airspeed_mps = {float(f['V'][0]):.6g}",
+        f"thrust_inclination_rad = {float(np.median(f['incl'])):.6g}",
+        f"thrust_moment_arm_m = {float(np.median(f['arm'])):.6g}",
+        "",
+        "[propulsion]",
+        'model = "measured"',
+        "",
+        "[coefficients]",
+        *(f"{axis} = {regs}".replace("'", '"') for axis, regs in regressors.items()),
+    ]
+
+
 def airframe_toml(
     ac: Aircraft,
     f: dict[str, FloatArray],
@@ -351,23 +377,7 @@ def airframe_toml(
     lines = [
         f"# {ac.label}: JSBSim '{ac.model}', written by benchmarks/jsbsim_flights.py.",
         "",
-        "[airframe]",
-        f'name = "{ac.label}"',
-        f"mass_kg = {float(np.mean(f['mass'])):.6g}",
-        f"wing_area_m2 = {float(f['area'][0]):.6g}",
-        f"mean_chord_m = {float(f['chord'][0]):.6g}",
-        f"wing_span_m = {float(f['span'][0]):.6g}",
-        f"inertia_yy_kgm2 = {float(np.mean(f['iyy'])):.6g}",
-        f"air_density_kgpm3 = {float(np.mean(f['rho'])):.6g}  # the CSV has it per sample",
-        f"trim_airspeed_mps = {float(f['V'][0]):.6g}",
-        f"thrust_inclination_rad = {float(np.median(f['incl'])):.6g}",
-        f"thrust_moment_arm_m = {float(np.median(f['arm'])):.6g}",
-        "",
-        "[propulsion]",
-        'model = "measured"',
-        "",
-        "[coefficients]",
-        *(f"{axis} = {regs}".replace("'", '"') for axis, regs in structure(alpha_dot).items()),
+        *airframe_lines(ac.label, f, structure(alpha_dot)),
         "",
         "[sensors]",
         f"vane_x_m = {ac.vane_x_m}",
