@@ -97,6 +97,8 @@ NOT_IN_PLAN = {
     "it fly it themselves",
     "validation_flights": "writes the wide validation set's flights, not a record; "
     "`validation` flies them itself (once per seed, then reuses them)",
+    "jsbsim_missions": "writes the validation set flown as a mission (turns, wind, no vane) "
+    "in the autopilots' formats, not a record (docs/decisions/0053)",
 }
 """Benchmark scripts `all` does not run, and why."""
 

@@ -45,11 +45,15 @@ SURFACE_HALF_RANGE_US = 500.0
 class FlightRecord:
     """One vehicle's flight at the sample rate, in SI units, everything a format writes.
 
-    Body axes forward-right-down; the flight is wings level heading north (roll and yaw
-    0), so the pitch plane is the north-down plane. Position and velocity come from the
-    measured V, alpha and theta (gamma = theta - alpha, integrated); the air is still
-    apart from the simulator's gusts (not reported: wind 0) and of constant density, so
-    pressure falls with height as rho g h and the temperature follows p / (rho R).
+    Body axes forward-right-down. flight_record's flight is wings level heading north
+    (roll and yaw 0), so the pitch plane is the north-down plane: position and velocity
+    come from the measured V, alpha and theta (gamma = theta - alpha, integrated); the
+    air is still apart from the simulator's gusts (not reported: wind 0) and of constant
+    density, so pressure falls with height as rho g h and the temperature follows
+    p / (rho R). A flight that turns (benchmarks/jsbsim_missions.py) gives the lateral
+    fields after `boot_s` as well: bank, heading, roll and yaw rate, lateral
+    acceleration, east position and velocity, the autopilot's wind estimate; None
+    reads as 0 (the lateral properties below).
     """
 
     t_s: FloatArray
@@ -76,13 +80,30 @@ class FlightRecord:
     v_down: FloatArray
     pressure_pa: FloatArray
     temperature_c: FloatArray
-    density: float
+    density: float | FloatArray
+    """The air's density [kg/m^3]: one value, or one per sample."""
     link: LinkConfig
     throttle_model: bool
     """power is a throttle setting (else a measured thrust)."""
     system_id: int = 1
     boot_s: float = 5.0
     """Vehicle uptime at the first sample [s]: every format's clock starts here."""
+    phi: FloatArray | None = None
+    """Bank angle [rad] (None: wings level)."""
+    psi: FloatArray | None = None
+    """Heading [rad] (None: north)."""
+    p: FloatArray | None = None
+    r: FloatArray | None = None
+    """Roll and yaw rate [rad/s]."""
+    a_y: FloatArray | None = None
+    """Lateral specific force [m/s^2]."""
+    east_m: FloatArray | None = None
+    v_east: FloatArray | None = None
+    wind_north: FloatArray | None = None
+    wind_east: FloatArray | None = None
+    """The wind the autopilot's EKF reports, the air's velocity over the ground [m/s]."""
+    name: str = "the NOC UAV"
+    """What flew, for the logs' text messages."""
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -109,22 +130,82 @@ class FlightRecord:
             return np.zeros_like(self.power)
         return np.clip(self.power, 0.0, 1.0)
 
+    def _or_zero(self, values: FloatArray | None) -> FloatArray:
+        return np.zeros_like(self.t_s) if values is None else values
+
+    @property
+    def roll(self) -> FloatArray:
+        return self._or_zero(self.phi)
+
+    @property
+    def yaw(self) -> FloatArray:
+        return self._or_zero(self.psi)
+
+    @property
+    def roll_rate(self) -> FloatArray:
+        return self._or_zero(self.p)
+
+    @property
+    def yaw_rate(self) -> FloatArray:
+        return self._or_zero(self.r)
+
+    @property
+    def accel_y(self) -> FloatArray:
+        return self._or_zero(self.a_y)
+
+    @property
+    def east(self) -> FloatArray:
+        return self._or_zero(self.east_m)
+
+    @property
+    def vel_east(self) -> FloatArray:
+        return self._or_zero(self.v_east)
+
+    @property
+    def wind_n(self) -> FloatArray:
+        return self._or_zero(self.wind_north)
+
+    @property
+    def wind_e(self) -> FloatArray:
+        return self._or_zero(self.wind_east)
+
+    @property
+    def ground_speed(self) -> FloatArray:
+        """Horizontal speed over the ground [m/s]."""
+        return np.hypot(self.v_north, self.vel_east)
+
+    @property
+    def course_deg(self) -> FloatArray:
+        """Course over the ground [deg, 0..360)."""
+        return np.degrees(np.arctan2(self.vel_east, self.v_north)) % 360.0
+
+    @property
+    def heading_deg(self) -> FloatArray:
+        """Heading [deg, 0..360)."""
+        return np.degrees(self.yaw) % 360.0
+
     @property
     def lat_deg(self) -> FloatArray:
         return HOME_LAT_DEG + np.degrees(self.north_m / EARTH_RADIUS_M)
 
     @property
     def lon_deg(self) -> FloatArray:
-        return np.full_like(self.north_m, HOME_LON_DEG)
+        scale = EARTH_RADIUS_M * math.cos(math.radians(HOME_LAT_DEG))
+        return HOME_LON_DEG + np.degrees(self.east / scale)
 
     @property
     def alt_msl_m(self) -> FloatArray:
         return HOME_ALT_M + self.height_m
 
     @property
+    def rho(self) -> FloatArray:
+        """The air's density at each sample [kg/m^3]."""
+        return np.broadcast_to(np.asarray(self.density, float), self.t_s.shape)
+
+    @property
     def eas(self) -> FloatArray:
         """Equivalent airspeed [m/s] (= true at sea-level density)."""
-        return self.V * math.sqrt(self.density / SEA_LEVEL_DENSITY)
+        return np.asarray(self.V * np.sqrt(self.rho / SEA_LEVEL_DENSITY))
 
 
 def flight_record(
@@ -220,12 +301,39 @@ def every(t_s: FloatArray, interval_s: float) -> np.ndarray:
     return np.array(kept, dtype=int)
 
 
-def quaternion(theta: FloatArray) -> FloatArray:
-    """[N x 4] Hamilton quaternion (w, x, y, z) body to NED of pitch theta, roll and
-    yaw 0."""
-    half = 0.5 * np.asarray(theta, float)
-    z = np.zeros_like(half)
-    return np.column_stack([np.cos(half), z, np.sin(half), z])
+def quaternion(
+    theta: FloatArray, phi: FloatArray | None = None, psi: FloatArray | None = None
+) -> FloatArray:
+    """[N x 4] Hamilton quaternion (w, x, y, z) body to NED of the Euler angles (yaw psi,
+    pitch theta, roll phi; None: 0)."""
+    th = 0.5 * np.asarray(theta, float)
+    ph = np.zeros_like(th) if phi is None else 0.5 * np.asarray(phi, float)
+    ps = np.zeros_like(th) if psi is None else 0.5 * np.asarray(psi, float)
+    cr, sr, cp, sp, cy, sy = np.cos(ph), np.sin(ph), np.cos(th), np.sin(th), np.cos(ps), np.sin(ps)
+    return np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def body_vector(
+    fr: FlightRecord, ned: tuple[float, float, float]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A fixed NED vector (Earth's field) in body axes at each sample: (x, y, z)."""
+    phi, theta, psi = fr.roll, fr.theta, fr.yaw
+    n, e, d = ned
+    # Rotate by yaw, then pitch, then roll (NED to body).
+    x1 = np.cos(psi) * n + np.sin(psi) * e
+    y1 = -np.sin(psi) * n + np.cos(psi) * e
+    x = np.cos(theta) * x1 - np.sin(theta) * d
+    z2 = np.sin(theta) * x1 + np.cos(theta) * d
+    y = np.cos(phi) * y1 + np.sin(phi) * z2
+    z = -np.sin(phi) * y1 + np.cos(phi) * z2
+    return x, y, z
 
 
 def truth_path(path: str | Path) -> Path:

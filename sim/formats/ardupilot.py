@@ -26,7 +26,13 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from gcs_estimator.ingest.telemetry import mavlink
-from sim.formats import GRAVITY_MSS, SURFACE_HALF_RANGE_US, FlightRecord, flight_record
+from sim.formats import (
+    GRAVITY_MSS,
+    SURFACE_HALF_RANGE_US,
+    FlightRecord,
+    body_vector,
+    flight_record,
+)
 from sim.vehicle import SimulatedVehicle
 
 DEFAULT_STREAM_HZ = 4.0
@@ -152,14 +158,29 @@ class _Tables:
     def __init__(self, fr: FlightRecord) -> None:
         scale = 1000.0 / GRAVITY_MSS
         self.xacc = _cut(fr.a_x * scale)
+        self.yacc = _cut(fr.accel_y * scale)
         self.zacc = _cut(fr.a_z * scale)
+        self.xgyro = _cut(fr.roll_rate * 1000.0)
         self.ygyro = _cut(fr.q * 1000.0)
-        c, s = np.cos(fr.theta), np.sin(fr.theta)
-        n, _, d = MAG_NED_MGAUSS
-        self.xmag = _cut(c * n - s * d)
-        self.zmag = _cut(s * n + c * d)
+        self.zgyro = _cut(fr.yaw_rate * 1000.0)
+        self.xmag, self.ymag, self.zmag = (_cut(m) for m in body_vector(fr, MAG_NED_MGAUSS))
+        self.roll = fr.roll.tolist()
+        self.yaw = np.where(fr.yaw > math.pi, fr.yaw - 2 * math.pi, fr.yaw).tolist()
+        self.p = fr.roll_rate.tolist()
+        self.r = fr.yaw_rate.tolist()
+        self.ve_cm = _cut(np.round(fr.vel_east * 100.0))
+        self.east = fr.east.tolist()
+        self.ve = fr.vel_east.tolist()
+        self.ground_speed = fr.ground_speed.tolist()
+        self.gs_cm = [int(v) for v in np.round(fr.ground_speed * 100.0)]
+        self.cog_cdeg = [int(v) % 36000 for v in np.round(fr.course_deg * 100.0)]
+        self.hdg_cdeg = [int(v) % 36000 for v in np.round(fr.heading_deg * 100.0)]
+        self.hdg_deg = [int(v) % 360 for v in np.round(fr.heading_deg)]
+        # WIND: the direction the wind comes from [deg], its speed [m/s].
+        self.wind_from = (np.degrees(np.arctan2(-fr.wind_e, -fr.wind_n)) % 360.0).tolist()
+        self.wind_speed = np.hypot(fr.wind_n, fr.wind_e).tolist()
         self.press_hpa = (fr.pressure_pa * 0.01).tolist()
-        self.diff_hpa = (0.5 * fr.density * fr.V**2 * 0.01).tolist()
+        self.diff_hpa = (0.5 * fr.rho * fr.V**2 * 0.01).tolist()
         self.temp_cdeg = _cut(fr.temperature_c * 100.0)
         self.lat = [int(v) for v in np.round(fr.lat_deg * 1e7)]
         self.lon = [int(v) for v in np.round(fr.lon_deg * 1e7)]
@@ -190,7 +211,18 @@ def _raw_imu(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
     return [
         v.mav.raw_imu_encode(
-            us, t.xacc[i], 0, t.zacc[i], 0, t.ygyro[i], 0, t.xmag[i], 0, t.zmag[i], 0, 4500
+            us,
+            t.xacc[i],
+            t.yacc[i],
+            t.zacc[i],
+            t.xgyro[i],
+            t.ygyro[i],
+            t.zgyro[i],
+            t.xmag[i],
+            t.ymag[i],
+            t.zmag[i],
+            0,
+            4500,
         )
     ]
 
@@ -199,7 +231,17 @@ def _scaled_imu2(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
     return [
         v.mav.scaled_imu2_encode(
-            ms, t.xacc[i], 0, t.zacc[i], 0, t.ygyro[i], 0, t.xmag[i], 0, t.zmag[i], 4500
+            ms,
+            t.xacc[i],
+            t.yacc[i],
+            t.zacc[i],
+            t.xgyro[i],
+            t.ygyro[i],
+            t.zgyro[i],
+            t.xmag[i],
+            t.ymag[i],
+            t.zmag[i],
+            4500,
         )
     ]
 
@@ -217,10 +259,10 @@ def _sys_status(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
 
 def _gps_raw_int(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
-    speed = int(round(abs(t.vn[i]) * 100.0))
-    cog = 0 if t.vn[i] >= 0 else 18000
     return [
-        v.mav.gps_raw_int_encode(us, 3, t.lat[i], t.lon[i], t.alt_mm[i], 121, 200, speed, cog, 12)
+        v.mav.gps_raw_int_encode(
+            us, 3, t.lat[i], t.lon[i], t.alt_mm[i], 121, 200, t.gs_cm[i], t.cog_cdeg[i], 12
+        )
     ]
 
 
@@ -228,7 +270,15 @@ def _global_position_int(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[
     t = v.tables
     return [
         v.mav.global_position_int_encode(
-            ms, t.lat[i], t.lon[i], t.alt_mm[i], t.rel_mm[i], t.vn_cm[i], 0, t.vd_cm[i], 0
+            ms,
+            t.lat[i],
+            t.lon[i],
+            t.alt_mm[i],
+            t.rel_mm[i],
+            t.vn_cm[i],
+            t.ve_cm[i],
+            t.vd_cm[i],
+            t.hdg_cdeg[i],
         )
     ]
 
@@ -236,7 +286,9 @@ def _global_position_int(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[
 def _local_position_ned(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
     return [
-        v.mav.local_position_ned_encode(ms, t.north[i], 0.0, -t.height[i], t.vn[i], 0.0, t.vd[i])
+        v.mav.local_position_ned_encode(
+            ms, t.north[i], t.east[i], -t.height[i], t.vn[i], t.ve[i], t.vd[i]
+        )
     ]
 
 
@@ -251,7 +303,7 @@ def _servo_output_raw(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any
 
 def _attitude(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
-    return [v.mav.attitude_encode(ms, 0.0, t.theta[i], 0.0, 0.0, t.q[i], 0.0)]
+    return [v.mav.attitude_encode(ms, t.roll[i], t.theta[i], t.yaw[i], t.p[i], t.q[i], t.r[i])]
 
 
 def _aoa_ssa(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
@@ -260,14 +312,16 @@ def _aoa_ssa(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
 
 def _vfr_hud(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
     t = v.tables
-    heading = 0 if t.vn[i] >= 0 else 180
     return [
-        v.mav.vfr_hud_encode(t.eas[i], abs(t.vn[i]), heading, t.thr_pct[i], t.alt_msl[i], -t.vd[i])
+        v.mav.vfr_hud_encode(
+            t.eas[i], t.ground_speed[i], t.hdg_deg[i], t.thr_pct[i], t.alt_msl[i], -t.vd[i]
+        )
     ]
 
 
 def _wind(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
-    return [v.mav.wind_encode(0.0, 0.0, 0.0)]
+    t = v.tables
+    return [v.mav.wind_encode(t.wind_from[i], t.wind_speed[i], 0.0)]
 
 
 def _system_time(v: ArduPlaneVehicle, i: int, us: int, ms: int) -> list[Any]:
@@ -345,10 +399,13 @@ class ArduPlaneVehicle(SimulatedVehicle):
     asked_rates: Mapping[str, float] = field(default_factory=dict)
     """Per-message or per-stream rates set before the flight (--msg-rate, --asked)."""
     loop_hz: float = 50.0
+    flight: FlightRecord | None = None
+    """The flight as the formats take it, where the caller built it (a flight that
+    turns: benchmarks/jsbsim_missions.py); None: from the recording (wings level)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        self.record = flight_record(
+        self.record = self.flight or flight_record(
             self.recording, self.link, self.density, self.system_id, self.boot_s
         )
         self.tables = _Tables(self.record)

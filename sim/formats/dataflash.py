@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.formats import GAS_CONSTANT_AIR, GRAVITY_MSS, FlightRecord, every
+from sim.formats import GAS_CONSTANT_AIR, GRAVITY_MSS, FlightRecord, body_vector, every
 from sim.formats.ardupilot import MAG_NED_MGAUSS, Param, servo_params
 from sim.formats.records import Block, filled, interleave
 
@@ -186,7 +186,7 @@ def _definitions(fr: FlightRecord, bitmask: int) -> bytes:
         rec = FORMATS["PARM"].records(1, t0, Name=p.name.encode(), Value=p.value, Default=p.value)
         parts.append(rec.tobytes())
     for text in (
-        "ArduPlane (simulated by gcs-sim: the NOC UAV as ArduPlane logs its flight)",
+        f"ArduPlane (simulated by gcs-sim: {fr.name} as ArduPlane logs its flight)",
         f"Frame: PLANE, system id {fr.system_id}",
     ):
         parts.append(FORMATS["MSG"].records(1, t0, Message=text.encode()[:64]).tobytes())
@@ -227,31 +227,37 @@ def _data_blocks(fr: FlightRecord, fullrate: bool) -> list[Block]:
 def _imu(fr: FlightRecord) -> np.ndarray:
     n, hz = len(fr), round(fr.sample_rate_hz)
     return FORMATS["IMU"].records(
-        n, fr.time_us, GyrY=fr.q, AccX=fr.a_x, AccZ=fr.a_z, T=45.0, GH=1, AH=1, GHz=hz, AHz=hz
-    )
+        n, fr.time_us, GyrX=fr.roll_rate, GyrY=fr.q, GyrZ=fr.yaw_rate, AccX=fr.a_x,
+        AccY=fr.accel_y, AccZ=fr.a_z, T=45.0, GH=1, AH=1, GHz=hz, AHz=hz,
+    )  # fmt: skip
 
 
 def _att(fr: FlightRecord, i: np.ndarray) -> np.ndarray:
-    pitch = np.degrees(fr.theta[i])
-    return FORMATS["ATT"].records(len(i), fr.time_us[i], DesPitch=pitch, Pitch=pitch, AEKF=3)
+    pitch, roll = np.degrees(fr.theta[i]), np.degrees(fr.roll[i])
+    return FORMATS["ATT"].records(
+        len(i), fr.time_us[i], DesRoll=roll, Roll=roll, DesPitch=pitch, Pitch=pitch,
+        DesYaw=fr.heading_deg[i], Yaw=fr.heading_deg[i], AEKF=3,
+    )  # fmt: skip
 
 
 def _xkf2(fr: FlightRecord, i: np.ndarray) -> np.ndarray:
-    """Wind 0 (the simulator's air is still apart from its gusts); the field in NED and
-    body axes [milligauss]."""
-    n, d = MAG_NED_MGAUSS[0], MAG_NED_MGAUSS[2]
-    c, s = np.cos(fr.theta[i]), np.sin(fr.theta[i])
+    """The EKF's wind (0 where the flight gives none: the NOC simulator's air is still
+    apart from its gusts); the field in NED and body axes [milligauss]."""
+    n, e, d = MAG_NED_MGAUSS
+    x, y, z = (m[i] for m in body_vector(fr, MAG_NED_MGAUSS))
     return FORMATS["XKF2"].records(
-        len(i), fr.time_us[i], MN=n, MD=d, MX=c * n - s * d, MZ=s * n + c * d
-    )
+        len(i), fr.time_us[i], VWN=fr.wind_n[i], VWE=fr.wind_e[i], MN=n, ME=e, MD=d, MX=x,
+        MY=y, MZ=z,
+    )  # fmt: skip
 
 
 def _ctun(fr: FlightRecord, i: np.ndarray) -> np.ndarray:
-    pitch = np.degrees(fr.theta[i])
+    pitch, roll = np.degrees(fr.theta[i]), np.degrees(fr.roll[i])
     throttle = 100.0 * fr.throttle_fraction[i]
-    e2t = np.sqrt(1.225 / fr.density)
+    e2t = np.sqrt(1.225 / fr.rho[i])
     return FORMATS["CTUN"].records(
-        len(i), fr.time_us[i], NavPitch=pitch, Pitch=pitch, ThO=throttle, ThD=throttle,
+        len(i), fr.time_us[i], NavRoll=roll, Roll=roll, NavPitch=pitch, Pitch=pitch,
+        ThO=throttle, ThD=throttle,
         As=fr.eas[i], SAs=np.nan, E2T=e2t,
     )  # fmt: skip
 
@@ -306,9 +312,8 @@ def _baro(fr: FlightRecord, i: np.ndarray) -> np.ndarray:
 
 def _gps(fr: FlightRecord, i: np.ndarray) -> np.ndarray:
     week_ms = GPS_WEEK_MS0 + (fr.time_us[i] - fr.time_us[0]) // 1000
-    course = np.where(fr.v_north[i] >= 0, 0.0, 180.0)
     return FORMATS["GPS"].records(
         len(i), fr.time_us[i], Status=3, GMS=week_ms, GWk=GPS_WEEK, NSats=12, HDop=1.21,
-        Lat=fr.lat_deg[i], Lng=fr.lon_deg[i], Alt=fr.alt_msl_m[i], Spd=np.abs(fr.v_north[i]),
-        GCrs=course, VZ=fr.v_down[i], U=1,
+        Lat=fr.lat_deg[i], Lng=fr.lon_deg[i], Alt=fr.alt_msl_m[i], Spd=fr.ground_speed[i],
+        GCrs=fr.course_deg[i], VZ=fr.v_down[i], U=1,
     )  # fmt: skip

@@ -233,7 +233,7 @@ def write_ulg(fr: FlightRecord, path: str | Path, fast: bool = False) -> Path:
         _message("A", struct.pack("<BH", 0, msg_id) + t.name.encode())
         for msg_id, t in enumerate(TOPICS)
     ]
-    text = b"gcs-sim: the simulated NOC UAV as PX4 logs its flight"
+    text = f"gcs-sim: {fr.name} as PX4 logs its flight".encode()
     parts.append(_message("L", struct.pack("<BQ", ord("6"), t0) + text))
     blocks = [_block(fr, msg_id, t, fast) for msg_id, t in enumerate(TOPICS)]
     out.write_bytes(b"".join(parts) + interleave(blocks))
@@ -259,21 +259,19 @@ Values = dict[str, object]
 
 
 def _attitude(fr: FlightRecord, i: np.ndarray) -> Values:
-    return {"q": quaternion(fr.theta[i])}
-
-
-def _vec(y: np.ndarray) -> np.ndarray:
-    """[N] -> [N x 3] on the body y axis."""
-    z = np.zeros_like(y)
-    return np.column_stack([z, y, z])
+    return {"q": quaternion(fr.theta[i], fr.roll[i], fr.yaw[i])}
 
 
 def _angular_velocity(fr: FlightRecord, i: np.ndarray) -> Values:
-    return {"xyz": _vec(fr.q[i]), "xyz_derivative": _vec(fr.qdot[i])}
+    z = np.zeros(len(i))
+    return {
+        "xyz": np.column_stack([fr.roll_rate[i], fr.q[i], fr.yaw_rate[i]]),
+        "xyz_derivative": np.column_stack([z, fr.qdot[i], z]),
+    }
 
 
 def _acceleration(fr: FlightRecord, i: np.ndarray) -> Values:
-    return {"xyz": np.column_stack([fr.a_x[i], np.zeros(len(i)), fr.a_z[i]])}
+    return {"xyz": np.column_stack([fr.a_x[i], fr.accel_y[i], fr.a_z[i]])}
 
 
 def _airspeed(fr: FlightRecord, i: np.ndarray) -> Values:
@@ -308,7 +306,7 @@ def _air_data(fr: FlightRecord, i: np.ndarray) -> Values:
         "baro_alt_meter": fr.alt_msl_m[i],
         "baro_temp_celcius": fr.temperature_c[i],
         "baro_pressure_pa": fr.pressure_pa[i],
-        "rho": fr.density,
+        "rho": fr.rho[i],
     }
 
 
@@ -322,9 +320,12 @@ def _local_position(fr: FlightRecord, i: np.ndarray) -> Values:
         "ref_lon": HOME_LON_DEG,
         "ref_alt": HOME_ALT_M,
         "x": fr.north_m[i],
+        "y": fr.east[i],
         "z": -fr.height_m[i],
         "vx": fr.v_north[i],
+        "vy": fr.vel_east[i],
         "vz": fr.v_down[i],
+        "heading": np.where(fr.yaw[i] > np.pi, fr.yaw[i] - 2 * np.pi, fr.yaw[i]),
         "z_deriv": fr.v_down[i],
         "eph": 1.0,
         "epv": 1.5,
@@ -345,7 +346,12 @@ def _motors(fr: FlightRecord, i: np.ndarray) -> Values:
 
 
 def _wind(fr: FlightRecord, i: np.ndarray) -> Values:
-    return {"variance_north": 0.1, "variance_east": 0.1}
+    return {
+        "windspeed_north": fr.wind_n[i],
+        "windspeed_east": fr.wind_e[i],
+        "variance_north": 0.1,
+        "variance_east": 0.1,
+    }
 
 
 def _status(fr: FlightRecord, i: np.ndarray) -> Values:
