@@ -36,10 +36,10 @@ acceleration as the others), 0.1 m/s on the GPS velocity.
 
 Reference coefficients: as the validation set's (jsbsim_flights.reference), JSBSim's own
 aerodynamic coefficients at every logged sample fitted by least squares on the
-structure's regressors (1, alpha, q c / (2 V), elevator): the structure's best linear
-account of JSBSim's aerodynamics over what this mission flew (turns load the wing to
-higher alpha than the wings-level set). The aircraft are the set's, not pa28, c172x and
-J3Cub (held for independent checks).
+structure's regressors (1, alpha, q c / (2 V), elevator), with the air-relative alpha,
+airspeed and pitch rate JSBSim's aerodynamics see (aerodynamic()): the structure's best
+linear account of JSBSim's aerodynamics over what this mission flew. The aircraft are
+the set's, not pa28, c172x and J3Cub (held for independent checks).
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 1
+VERSION = 2
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665
@@ -651,6 +651,14 @@ def airframe_toml(flight: Flight, lk: LinkConfig, ref: dict[str, tuple[float, fl
     )
 
 
+def aerodynamic(v: dict[str, FloatArray]) -> dict[str, FloatArray]:
+    """The flight's values with the pitch rate the aerodynamics see (JSBSim's
+    q-aero: the body's less turbulence's pitch gust), as the references take it: with the
+    body rate, a turbulent flight's fit takes the gust as noise on the q regressor (the
+    T-37's Cmq comes out -10 windy against -50 calm; with the aerodynamic rate -50 both)."""
+    return {**v, "q": v["q"] - v["gust_q"]}
+
+
 def record_name(model: str, air: str, seed: int) -> str:
     return f"{model}_{air}_s{seed}"
 
@@ -693,7 +701,7 @@ def write_flight(flight: Flight, out: Path) -> dict[str, Any]:
     name = record_name(flight.aircraft.model, flight.air, flight.seed)
     lk = link(flight)
     v = flight.values
-    ref = reference(v, float(v["chord"][0]))
+    ref = reference(aerodynamic(v), float(v["chord"][0]))
     airframe = out / f"{name}.toml"
     airframe.write_text(airframe_toml(flight, lk, ref), encoding="utf-8")
     config = load_config(airframe)
@@ -734,6 +742,9 @@ def flown_summary(flight: Flight) -> dict[str, float]:
         "largest_bank_deg": float(np.degrees(np.abs(v["phi"]).max())),
         "sideslip_rms_deg": float(np.degrees(np.sqrt(np.mean(v["beta"] ** 2)))),
         "sideslip_max_deg": float(np.degrees(np.abs(v["beta"]).max())),
+        "turn_seconds": float(turning.sum() / RATE_HZ),
+        "turn_sideslip_rms_deg": float(np.degrees(np.sqrt(np.mean(v["beta"][turning] ** 2)))),
+        "turn_sideslip_max_deg": float(np.degrees(np.abs(v["beta"][turning]).max())),
         "alpha_min_deg": float(np.degrees(v["alpha"].min())),
         "alpha_max_deg": float(np.degrees(v["alpha"].max())),
         "altitude_range_m": float(v["h"].max() - v["h"].min()),
@@ -798,8 +809,10 @@ def main(argv: list[str] | None = None) -> int:
         f = s["flown"]
         print(
             f"{s['name']}: {f['duration_s']:.0f} s, {f['turns']:.0f} turns, bank up to "
-            f"{f['largest_bank_deg']:.1f} deg, sideslip rms {f['sideslip_rms_deg']:.2f} deg, "
-            f"climbs over {f['altitude_range_m']:.0f} m; flown in {s['seconds_to_fly']:.1f} s"
+            f"{f['largest_bank_deg']:.1f} deg, sideslip in turns rms "
+            f"{f['turn_sideslip_rms_deg']:.2f} deg (at most {f['turn_sideslip_max_deg']:.1f}), "
+            f"altitudes over {f['altitude_range_m']:.0f} m; flown in {s['seconds_to_fly']:.1f} s, "
+            f"written in {s['seconds_to_write']:.1f} s"
         )
     print(f"{len(done)} flights in {time.perf_counter() - start:.1f} s ({args.jobs} jobs)")
     return 0

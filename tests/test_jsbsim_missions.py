@@ -23,6 +23,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))  # the benchmarks import each other top-level
 
 import jsbsim_missions as jm  # noqa: E402  (benchmarks/jsbsim_missions.py)
+from jsbsim_flights import NOISE, RATE_HZ  # noqa: E402
+from validation_flights import member  # noqa: E402
 
 from gcs_estimator.config import load_config, load_truths  # noqa: E402
 from gcs_estimator.ingest.logs.reader import load_content  # noqa: E402
@@ -46,7 +48,7 @@ def written(flight: jm.Flight, tmp_path_factory: pytest.TempPathFactory) -> Path
 
 
 def _turning(flight: jm.Flight) -> np.ndarray:
-    return flight.values["phase"] == FIRST_TURN
+    return np.asarray(flight.values["phase"] == FIRST_TURN, dtype=bool)
 
 
 def _noise_bound(sigma: float) -> float:
@@ -62,7 +64,7 @@ def test_the_turn_reaches_the_commanded_bank(flight: jm.Flight) -> None:
     bank = np.degrees(np.abs(flight.values["phi"][turning]))
     # Held at the commanded bank (within 3 deg) for a stretch of the turn, never far beyond.
     held = np.abs(bank - turn.bank_deg) < 3.0
-    assert held.sum() / jm.RATE_HZ >= 3.0
+    assert held.sum() / RATE_HZ >= 3.0
     assert bank.max() < turn.bank_deg + 5.0
     heading = flight.values["psi"]
     start, end = np.flatnonzero(turning)[[0, -1]]
@@ -82,7 +84,7 @@ def test_the_first_leg_carries_the_elevator_inputs_on_top_of_the_autopilot(
     v = flight.values
     leg = v["phase"] == 0
     exc = v["excitation"][leg]
-    amplitude = math.radians(jm.member(MODEL).aircraft.amplitude_deg)
+    amplitude = math.radians(member(MODEL).aircraft.amplitude_deg)
     assert np.isclose(np.abs(exc).max(), amplitude)
     assert not v["excitation"][_turning(flight)].any()
 
@@ -97,9 +99,9 @@ def test_dataflash_log_carries_the_turn_wind_and_throttle(flight: jm.Flight, wri
     att = rows["ATT"]
     roll = np.radians([m.Roll for m in att])
     flown = np.interp([m.TimeUS for m in att], _time_us(flight), v["phi"])
-    assert np.abs(roll - flown).max() < _noise_bound(jm.NOISE[2]) + math.radians(0.01)
+    assert np.abs(roll - flown).max() < _noise_bound(NOISE[2]) + math.radians(0.01)
     imu = rows["IMU"]
-    assert np.abs(np.array([m.GyrZ for m in imu]) - v["r"]).max() < _noise_bound(jm.NOISE[3])
+    assert np.abs(np.array([m.GyrZ for m in imu]) - v["r"]).max() < _noise_bound(NOISE[3])
     wn, we = jm.wind("windy", 1)
     xkf2 = rows["XKF2"]
     assert {round(m.VWN, 2) for m in xkf2} == {round(wn, 2)}
@@ -114,7 +116,8 @@ def test_dataflash_log_carries_the_turn_wind_and_throttle(flight: jm.Flight, wri
 
 def _time_us(flight: jm.Flight) -> np.ndarray:
     """The logs' clock (microseconds since boot) at each flown sample."""
-    return (flight.values["t"] - flight.values["t"][0] + 5.0) * 1e6
+    t = flight.values["t"]
+    return np.asarray((t - t[0] + 5.0) * 1e6, dtype=float)
 
 
 def test_mavlogdump_reads_the_dataflash_log(written: Path) -> None:
@@ -158,7 +161,8 @@ def test_tlogs_carry_attitude_rates_climb_and_wind(
     config = load_config(written / f"{jm.record_name(MODEL, 'windy', 1)}.toml")
     # The airframe file's [truth] has 6 digits, the truth file's every digit.
     truth = load_truths(truth_path(path), config.coefficient_names)[1]
-    np.testing.assert_allclose(truth, config.truth, rtol=1e-5)
+    assert config.truth is not None
+    np.testing.assert_allclose(np.array(truth), np.array(config.truth), rtol=1e-5)
 
 
 def test_ulog_carries_the_turn_and_wind(flight: jm.Flight, written: Path) -> None:
