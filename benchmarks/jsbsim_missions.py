@@ -83,7 +83,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 2
+VERSION = 3
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665

@@ -181,7 +181,7 @@ def test_the_estimators_log_reader_finds_bank_rates_climb_and_wind(
     written: Path, suffix: str
 ) -> None:
     content = load_content(written / f"{jm.record_name(MODEL, 'windy', 1)}{suffix}")
-    assert content.fixed_wing
+    assert content.fixed_wing and "unknown" not in content.vehicle
     for channel in ("phi", "p", "r", "vz", "wind_n", "wind_e", "throttle", "elevator"):
         assert channel in content.signals, channel
     assert np.degrees(np.abs(content.signals["phi"].values)).max() > 20.0

@@ -208,6 +208,7 @@ def px4_params(fr: FlightRecord, fast: bool) -> dict[str, float | int]:
         "PWM_MAIN_REV": (1 << (e - 1)) if link.elevator_us_per_rad > 0 else 0,
         "SDLOG_PROFILE": SDLOG_DEFAULT | (SDLOG_SYSID | SDLOG_HIGH_RATE if fast else 0),
         "MAV_SYS_ID": fr.system_id,
+        "MAV_TYPE": MAV_TYPE_FIXED_WING,
     }
     return params
 
