@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import hashlib
 import json
 import math
@@ -74,7 +75,7 @@ from jsbsim_flights import (  # benchmarks/: the script's dir is on sys.path
 from validation_flights import member
 
 from gcs_estimator.arrays import FloatArray
-from gcs_estimator.config import FlightAirframe, LinkConfig, load_config
+from gcs_estimator.config import Airframe, FlightAirframe, LinkConfig, Propulsion, load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.model import atmosphere
 from gcs_estimator.units import FOOT
@@ -83,7 +84,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 3
+VERSION = 4
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665
@@ -567,29 +568,51 @@ def flight_record(flight: Flight, lk: LinkConfig) -> FlightRecord:
     )
 
 
+def known(table: type, key: str) -> bool:
+    """Whether the airframe file's table (a config dataclass) has this key: the lateral
+    inertia and the spec sheet's propulsion are other work of issue 53, written as keys
+    where the configuration reads them and as comments where it does not yet."""
+    return key in {f.name for f in dataclasses.fields(table)}
+
+
+def keyed(table: type, key: str, value: float) -> str:
+    """`key = value`, commented out where the table has no such key yet."""
+    return ("" if known(table, key) else "# ") + f"{key} = {value:.6g}"
+
+
 def propulsion_lines(spec: Spec) -> list[str]:
-    """[propulsion] from the spec sheet alone: the propeller model's keys by the starter
-    airframe file's rules (disc area from the diameter, prop_coefficient 1.0, the motor
-    constant twice the top speed; a jet's disc the one whose full-throttle static thrust
-    is the rated one), and the spec sheet's figures as comments."""
+    """[propulsion] from the spec sheet alone. A propeller: its diameter and the engine's
+    power (several engines as one propeller of their discs' area with their power), as
+    the spec-sheet keys where the configuration has them; else (and for a jet, which has
+    no propeller) the exact propeller model's keys by the starter airframe file's rules:
+    disc area from the diameter, prop_coefficient 1.0 (not fitted), the motor constant
+    twice the top speed; a jet's disc the one whose full-throttle static thrust at sea
+    level is the rated one."""
     k = 2.0 * spec.top_speed_mps
+    head = [
+        f"# The spec sheet: {spec.engines} x {spec.note}; top speed {spec.top_speed_mps:.4g} m/s.",
+    ]
     if spec.diameter_m > 0:
-        area = spec.engines * math.pi * (spec.diameter_m / 2) ** 2
-        figures = [
-            f"# propeller_diameter_m = {spec.diameter_m:.4g}",
-            f"# engine_power_w = {spec.power_w:.6g}",
+        diameter = spec.diameter_m * math.sqrt(spec.engines)
+        power = spec.power_w * spec.engines
+        if spec.engines > 1:
+            head.append("# As one propeller of the discs' area with the engines' power:")
+        lines = [
+            *head,
+            "[propulsion]",
+            'model = "propeller"',
+            keyed(Propulsion, "prop_diameter_m", diameter),
+            keyed(Propulsion, "max_power_w", power),
         ]
+        if known(Propulsion, "prop_diameter_m"):
+            return lines
+        area = math.pi * (diameter / 2) ** 2
     else:
         area = 2.0 * spec.engines * spec.static_thrust_n / (1.225 * k * k)
-        figures = [f"# engine_static_thrust_n = {spec.static_thrust_n:.6g}"]
+        head.append(f"# Rated static thrust {spec.static_thrust_n:.6g} N per engine.")
+        lines = [*head, "[propulsion]", 'model = "propeller"']
     return [
-        "# The spec sheet's propulsion, not yet keys of the airframe file (the thrust work",
-        f"# adds them): {spec.note}.",
-        f"# engine_count = {spec.engines}",
-        *figures,
-        f"# top_speed_mps = {spec.top_speed_mps:.4g}",
-        "[propulsion]",
-        'model = "propeller"',
+        *lines,
         f"prop_area_m2 = {area:.6g}",
         "prop_coefficient = 1.0  # the starter file's value: not fitted",
         f"motor_constant_mps = {k:.6g}  # twice the top speed",
@@ -610,12 +633,10 @@ def airframe_toml(flight: Flight, lk: LinkConfig, ref: dict[str, tuple[float, fl
             f"# {ac.label} ({ac.kind}): JSBSim '{ac.model}' flown as a mission by "
             "benchmarks/jsbsim_missions.py.",
             "",
-            "# The lateral inertia, not yet keys of the airframe file (the turns work adds",
-            "# them), as JSBSim's inertia/ixx, izz, ixz properties give them [kg m^2]:",
-            f"# inertia_xx_kgm2 = {mean('ixx'):.6g}",
-            f"# inertia_zz_kgm2 = {mean('izz'):.6g}",
-            f"# inertia_xz_kgm2 = {mean('ixz'):.6g}",
+            "# The lateral inertia as JSBSim's inertia/ixx, izz, ixz give it (commented out",
+            "# where the airframe file has no such keys yet).",
             "[airframe]",
+            *(keyed(Airframe, f"inertia_{a}_kgm2", mean(f"i{a}")) for a in ("xx", "zz", "xz")),
             f'name = "{ac.label}"',
             f"mass_kg = {mean('mass'):.6g}",
             f"wing_area_m2 = {float(v['area'][0]):.6g}",

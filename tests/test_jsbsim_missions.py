@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -185,3 +186,26 @@ def test_the_estimators_log_reader_finds_bank_rates_climb_and_wind(
     for channel in ("phi", "p", "r", "vz", "wind_n", "wind_e", "throttle", "elevator"):
         assert channel in content.signals, channel
     assert np.degrees(np.abs(content.signals["phi"].values)).max() > 20.0
+
+
+def test_the_airframe_file_has_the_lateral_inertia_and_the_spec_sheet_only(
+    flight: jm.Flight, written: Path
+) -> None:
+    path = written / f"{jm.record_name(MODEL, 'windy', 1)}.toml"
+    text = path.read_text(encoding="utf-8")
+    spec = jm.SPECS[MODEL]
+    # Keys where the configuration has them, commented out where not yet.
+    for key, value in (
+        ("inertia_xx_kgm2", np.mean(flight.values["ixx"])),
+        ("inertia_xz_kgm2", np.mean(flight.values["ixz"])),
+        ("prop_diameter_m", spec.diameter_m),
+        ("max_power_w", spec.power_w),
+    ):
+        found = re.search(rf"^(?:# )?{key} = (\S+)$", text, re.MULTILINE)
+        assert found is not None, key
+        assert math.isclose(float(found.group(1)), value, rel_tol=1e-5, abs_tol=1e-9), key
+    config = load_config(path)
+    assert config.propulsion.model == "propeller" and config.propulsion.input_name == "throttle"
+    assert "prop_coefficient" not in text or "prop_coefficient = 1.0 " in text
+    assert "[filter]" not in text and "vane" not in text
+    assert config.airframe.elevator_travel_deg > 0
