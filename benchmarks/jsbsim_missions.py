@@ -756,6 +756,7 @@ def flown_summary(flight: Flight) -> dict[str, float]:
     v = flight.values
     kinds = np.array([PLAN[int(k)].kind for k in v["phase"]])
     turning = kinds == "turn"
+    turn_beta = v["beta"][turning]
     wn, we = wind(flight.air, flight.seed)
     return {
         "duration_s": float(v["t"][-1]),
@@ -764,8 +765,11 @@ def flown_summary(flight: Flight) -> dict[str, float]:
         "sideslip_rms_deg": float(np.degrees(np.sqrt(np.mean(v["beta"] ** 2)))),
         "sideslip_max_deg": float(np.degrees(np.abs(v["beta"]).max())),
         "turn_seconds": float(turning.sum() / RATE_HZ),
-        "turn_sideslip_rms_deg": float(np.degrees(np.sqrt(np.mean(v["beta"][turning] ** 2)))),
-        "turn_sideslip_max_deg": float(np.degrees(np.abs(v["beta"][turning]).max())),
+        # 0 where the flight is too short to reach a turn.
+        "turn_sideslip_rms_deg": float(
+            np.degrees(np.sqrt(np.sum(turn_beta**2) / max(len(turn_beta), 1)))
+        ),
+        "turn_sideslip_max_deg": float(np.degrees(np.max(np.abs(turn_beta), initial=0.0))),
         "alpha_min_deg": float(np.degrees(v["alpha"].min())),
         "alpha_max_deg": float(np.degrees(v["alpha"].max())),
         "altitude_range_m": float(v["h"].max() - v["h"].min()),
