@@ -34,12 +34,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
-from gcs_estimator.config import SensorPlacement
+from gcs_estimator.config import AircraftConfig, SensorPlacement
 from gcs_estimator.ingest.flightdata import Recording
 
 G = 9.80665
@@ -132,13 +132,16 @@ class Compatibility:
 
     def lines(self) -> list[str]:
         """The text report: one line a finding, warnings first."""
-        head = "data compatibility (flight path reconstruction, decision 0056)"
         did = "corrected" if self.corrected else "reported only"
         order = sorted(self.findings, key=lambda f: (not f.significant, f.channel))
         warn = sum(f.significant for f in self.findings)
-        out = [f"{head}: {len(self.findings)} finding(s), {warn} beyond {SIGNIFICANT:g} sigma"]
-        out += [f"  {f.line()}" + (f" [{did}]" if f.significant else "") for f in order]
-        out += [f"  {n}" for n in self.notes]
+        out = [
+            f"data compatibility (flight path reconstruction): {len(self.findings)} "
+            f"finding(s), {warn} beyond {SIGNIFICANT:g} sigma and the noise"
+            + (f" ({did})" if warn else "")
+        ]
+        out += [f"data compatibility: {f.line()}" for f in order]
+        out += [f"data compatibility: {n}" for n in self.notes]
         return out
 
     def as_dict(self) -> dict[str, Any]:
@@ -179,10 +182,18 @@ class _Output:
     shift: int | None
 
 
-Model = Callable[[FloatArray, FloatArray], list[_Output]]
+class Model(Protocol):
+    """A stage's outputs at the global and local parameters; derivatives=False: their
+    values only (the derivative arrays left unset), for the line search and replicas."""
+
+    def __call__(
+        self, g: FloatArray, loc: FloatArray, derivatives: bool = True
+    ) -> list[_Output]: ...
+
+
 Replicas = Callable[[np.random.Generator], Model]
 """The model with its integrated inputs' noise drawn anew."""
-REPLICAS = 40
+REPLICAS = 20
 """Draws of the inputs' noise for its share of each finding's sigma."""
 
 
@@ -323,7 +334,7 @@ def _replicated(
     rng = np.random.default_rng(0)
     changes = []
     for _ in range(REPLICAS):
-        outs = {o.name: o for o in replicas(rng)(g, loc)}
+        outs = {o.name: o for o in replicas(rng)(g, loc, False)}
         changes.append([rows[i][0] - _rows(outs[n], t, g, keep)[0] for i, n in enumerate(names)])
     return _input_noise(cov, reduced, rows, changes)
 
@@ -337,7 +348,7 @@ def _cost(
     """The weighted squared residuals and the priors' terms at the parameters x."""
     sigma, pg, pl = weights
     total = float(np.sum(np.where(pg > 1e20, 0.0, pg * x[0] ** 2)) + np.sum(pl * x[1] ** 2))
-    for out in model(*x):
+    for out in model(x[0], x[1], False):
         r, use = _residual(out, where[0], x[0], where[1])
         if use.sum() >= MIN_SAMPLES:
             total += float(np.sum(r * r)) / sigma[out.name] ** 2
@@ -561,14 +572,15 @@ def _attitude_theta(s: _Signals, phi_hat: FloatArray | None) -> tuple[_Params, M
     b_sin = _cumint(s.t, sphi, s.segs)
     ones = np.ones((len(s.t), 1))
 
-    def model(g: FloatArray, loc: FloatArray) -> list[_Output]:
+    def model(g: FloatArray, loc: FloatArray, derivatives: bool = True) -> list[_Output]:
         q = (s.q - g[ib]) / (1.0 + g[ik])
         rr = r - (g[ir] if ir is not None else 0.0)
-        kq = _cumint(s.t, q * cphi, s.segs)
         value = loc[s.segs, 0] + _cumint(s.t, q * cphi - rr * sphi, s.segs)
         dg = np.zeros((len(s.t), len(par.names)))
+        if not derivatives:
+            return [_Output("theta", s.measured["theta"], value, ones, dg, it)]
         dg[:, ib] = -b_cos / (1.0 + g[ik])
-        dg[:, ik] = -kq / (1.0 + g[ik])
+        dg[:, ik] = -_cumint(s.t, q * cphi, s.segs) / (1.0 + g[ik])
         if ir is not None:
             dg[:, ir] = b_sin
         return [_Output("theta", s.measured["theta"], value, ones, dg, it)]
@@ -589,10 +601,12 @@ def _attitude_phi(s: _Signals, q: FloatArray, r: FloatArray) -> tuple[_Params, M
     ones = np.ones((len(s.t), 1))
     p_m = s.p
 
-    def model(g: FloatArray, loc: FloatArray) -> list[_Output]:
+    def model(g: FloatArray, loc: FloatArray, derivatives: bool = True) -> list[_Output]:
         p = (p_m - g[ib]) / (1.0 + g[ik])
         value = loc[s.segs, 0] + _cumint(s.t, p + coupling, s.segs)
         dg = np.zeros((len(s.t), len(par.names)))
+        if not derivatives:
+            return [_Output("phi", s.measured["phi"], value, ones, dg, it)]
         dg[:, ib] = -b_one / (1.0 + g[ik])
         dg[:, ik] = -_cumint(s.t, p, s.segs) / (1.0 + g[ik])
         return [_Output("phi", s.measured["phi"], value, ones, dg, it)]
@@ -689,13 +703,20 @@ def _velocity_model(s: _Signals, v: _Velocity) -> tuple[_Params, Model, int]:
     c0, c2 = _cumint(s.t, v.col0, s.segs), _cumint(s.t, v.col2, s.segs)
     n, ng = len(s.t), len(par.names)
 
+    wanted = [True]
+
     def output(name: str, value: FloatArray, d: FloatArray, shift: str) -> _Output:
+        if not wanted[0]:
+            return _Output(
+                name, s.measured[name], value, np.empty((n, n_local)), np.empty((n, ng)), ix[shift]
+            )
         dl, dbx, dbz = _chain(d, v, c0, c2, n_local)
         dg = np.zeros((n, ng))
         dg[:, ix["bax"]], dg[:, ix["baz"]] = dbx, dbz
         return _Output(name, s.measured[name], value, dl, dg, ix[shift])
 
-    def model(g: FloatArray, loc: FloatArray) -> list[_Output]:
+    def model(g: FloatArray, loc: FloatArray, derivatives: bool = True) -> list[_Output]:
+        wanted[0] = derivatives
         va = _air_velocity(s, v, g, loc, ix)
         outs: list[_Output] = []
         if "kv" in ix:
@@ -998,6 +1019,20 @@ def check(
     if found.aux:
         out = replace(out, aux={**out.aux, **found.aux})
     return Compatibility(tuple(found.findings), out, correct, found.rms, tuple(found.notes))
+
+
+def checked(rec: Recording, config: AircraftConfig) -> Recording:
+    """The record as [data] compatibility_check says: corrected ("correct"), as it is
+    ("report"), each with the report in its notes and the findings on it; "off": as it is."""
+    mode = config.data.compatibility_check
+    if mode == "off":
+        return rec
+    found = check(rec, config.sensors, correct=mode == "correct")
+    return replace(
+        found.recording,
+        notes=(*rec.notes, *found.lines()),
+        compatibility={"mode": mode, **found.as_dict()},
+    )
 
 
 # ------------------------------------------------------------------- the correction
