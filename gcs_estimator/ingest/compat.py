@@ -624,7 +624,10 @@ class _Velocity:
     ax: FloatArray
     az: FloatArray
     q: FloatArray
-    axes: list[int]
+    basis: FloatArray
+    """[pieces x 3 x 2] the body x and z axes (NED) at each piece's start: its initial air
+    velocity is u0 along the one and w0 along the other (no sideslip: coordinated flight,
+    which the missing lateral accelerometer assumes anyway)."""
     gps: bool
     vane: tuple[float, float]
     attitude: tuple[FloatArray, FloatArray, FloatArray]
@@ -660,13 +663,14 @@ def _body_axes(
 
 
 def _chain(
-    d: FloatArray, v: _Velocity, c0: FloatArray, c2: FloatArray, n_local: int
+    d: FloatArray, base: FloatArray, c0: FloatArray, c2: FloatArray, n_local: int
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Derivatives of an output by the initial velocity's components and the two
-    accelerometer biases, from its derivative d [N x 3] by the air velocity."""
+    """Derivatives of an output by the initial velocity's components (base: each
+    sample's piece's basis) and the two accelerometer biases, from its derivative d
+    [N x 3] by the air velocity."""
     dl = np.zeros((len(d), n_local))
-    for j, axis in enumerate(v.axes):
-        dl[:, j] = d[:, axis]
+    for j in range(2):
+        dl[:, j] = (d * base[:, :, j]).sum(axis=1)
     return dl, -(d * c0).sum(axis=1), -(d * c2).sum(axis=1)
 
 
@@ -691,7 +695,7 @@ def _air_velocity(
     f = v.col0 * (v.ax - g[ix["bax"]])[:, None] + v.col2 * (v.az - g[ix["baz"]])[:, None]
     f[:, 2] += G
     va = _cumint(s.t, f, s.segs)
-    va[:, v.axes] += loc[s.segs][:, : len(v.axes)]
+    va += np.einsum("nij,nj->ni", v.basis[s.segs], loc[s.segs, :2])
     return va
 
 
@@ -699,8 +703,9 @@ def _velocity_model(s: _Signals, v: _Velocity) -> tuple[_Params, Model, int]:
     """Airspeed, angle of attack, climb rate and GPS velocity from the integrated
     specific forces (module docstring)."""
     par, ix = _velocity_params(s, v)
-    n_local = len(v.axes) + (2 if v.gps else 0)
+    n_local = 2 + (2 if v.gps else 0)
     c0, c2 = _cumint(s.t, v.col0, s.segs), _cumint(s.t, v.col2, s.segs)
+    base = v.basis[s.segs]
     n, ng = len(s.t), len(par.names)
 
     wanted = [True]
@@ -710,7 +715,7 @@ def _velocity_model(s: _Signals, v: _Velocity) -> tuple[_Params, Model, int]:
             return _Output(
                 name, s.measured[name], value, np.empty((n, n_local)), np.empty((n, ng)), ix[shift]
             )
-        dl, dbx, dbz = _chain(d, v, c0, c2, n_local)
+        dl, dbx, dbz = _chain(d, base, c0, c2, n_local)
         dg = np.zeros((n, ng))
         dg[:, ix["bax"]], dg[:, ix["baz"]] = dbx, dbz
         return _Output(name, s.measured[name], value, dl, dg, ix[shift])
@@ -738,7 +743,7 @@ def _velocity_model(s: _Signals, v: _Velocity) -> tuple[_Params, Model, int]:
         if "tz" in ix:
             outs.append(output("vz", va[:, 2], np.tile([0.0, 0.0, 1.0], (n, 1)), "tz"))
         if v.gps:
-            outs += _gps_outputs(va, loc, s, output, len(v.axes))
+            outs += _gps_outputs(va, loc, s, output, 2)
         return outs
 
     return par, model, n_local
@@ -956,14 +961,14 @@ def _velocity_stage(
     ax_cg = ax - (qdot * za - q * q * xa)
     az_cg = az + qdot * xa + q * q * za
     col0, col2 = _body_axes(phi, theta, psi)
-    three_d = bool(np.any(phi)) or s.psi is not None
+    starts = np.array([np.nonzero(s.segs == k)[0][0] for k in range(int(s.segs.max()) + 1)])
     v = _Velocity(
         col0,
         col2,
         ax_cg,
         az_cg,
         q,
-        [0, 1, 2] if three_d else [0, 2],
+        np.stack([col0[starts], col2[starts]], axis=2),
         gps,
         (sensors.vane_x_m, sensors.vane_z_m),
         (phi, theta, psi),
@@ -977,11 +982,9 @@ def _velocity_stage(
         speed = s.measured["vz"]
     first = _first_values(s, speed)
     start = np.zeros((len(first), n_local))
-    starts = np.array([np.nonzero(s.segs == k)[0][0] for k in range(len(first))])
     aoa = s.measured.get("alpha")
     first_alpha = _first_values(s, aoa) if aoa is not None else np.zeros(len(first))
-    body = np.cos(first_alpha)[:, None] * col0[starts] + np.sin(first_alpha)[:, None] * col2[starts]
-    start[:, : len(v.axes)] = first[:, None] * body[:, v.axes]
+    start[:, 0], start[:, 1] = first * np.cos(first_alpha), first * np.sin(first_alpha)
     sigma0 = {"airspeed": 0.3, "alpha": 0.005, "vz": 0.3, "vn": 0.3, "ve": 0.3, "vd": 0.3}
     fit = _stage(
         par,
@@ -999,8 +1002,8 @@ def _velocity_stage(
         _, ix = _velocity_params(s, v)
         va = _air_velocity(s, v, fit.globals_, fit.locals_, ix)
         found.aux["alpha_fpr"] = np.arctan2((col2 * va).sum(axis=1), (col0 * va).sum(axis=1))
-        found.aux["wind_n_fpr"] = fit.locals_[s.segs, len(v.axes)]
-        found.aux["wind_e_fpr"] = fit.locals_[s.segs, len(v.axes) + 1]
+        found.aux["wind_n_fpr"] = fit.locals_[s.segs, 2]
+        found.aux["wind_e_fpr"] = fit.locals_[s.segs, 3]
 
 
 def check(
