@@ -193,7 +193,7 @@ def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
     np.testing.assert_allclose(rho, truth(fl.rho), rtol=1e-4)
     np.testing.assert_allclose(rec.aux["phi"], truth(fl.phi), atol=1e-6)
     assert rec.aux["wind_e"][::2] == pytest.approx(-1.5)  # at 25 Hz too
-    np.testing.assert_allclose(rec.aux["psi"], 0.0, atol=1e-6)  # flown north
+    np.testing.assert_allclose(rec.aux["psi"], 0.3, atol=1e-6)  # the fixture's heading
     np.testing.assert_allclose(rec.aux["vd"][::2], 0.5)  # no GPS topic: the estimator's vz
     assert (
         account.startswith("log f.ulg: PX4 v1.14.0, fixed-wing, ") and "airborne 20.0 s" in account
