@@ -294,7 +294,8 @@ def _reduced(
 ) -> FloatArray:
     """Derivatives by the globals with each piece's own parameters projected out."""
     proj = np.linalg.solve(all_, alg)  # A_ll^-1 A_lg per piece
-    return dg - np.einsum("nl,nlg->ng", dl, proj[segs])
+    out: FloatArray = dg - np.einsum("nl,nlg->ng", dl, proj[segs])
+    return out
 
 
 def _input_noise(
@@ -437,7 +438,8 @@ def _cumint(t: FloatArray, x: FloatArray, segs: IntArray) -> FloatArray:
     )
     c = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(step, axis=0)])
     first = np.concatenate([[0], np.nonzero(segs[1:] != segs[:-1])[0] + 1])
-    return c - c[first][segs]
+    out: FloatArray = c - c[first][segs]
+    return out
 
 
 def _filled(t: FloatArray, x: FloatArray | None) -> FloatArray | None:
@@ -472,7 +474,8 @@ def segments(t: FloatArray, length_s: float = SEGMENT_S) -> IntArray:
 def _keep(t: FloatArray, segs: IntArray) -> np.ndarray:
     first = np.concatenate([[0], np.nonzero(segs[1:] != segs[:-1])[0] + 1])
     start = t[first][segs]
-    return t - start >= EDGE_S
+    out: np.ndarray = t - start >= EDGE_S
+    return out
 
 
 class _Params:
@@ -593,9 +596,8 @@ def _attitude_phi(s: _Signals, q: FloatArray, r: FloatArray) -> tuple[_Params, M
     assert s.p is not None and s.phi is not None
     par = _Params()
     ib, ik, it = par.add("p", "bias", 0.1), par.add("p", "scale", 0.5), par.add("phi", "shift", 0.5)
-    theta = (
-        np.nan_to_num(_filled(s.t, s.measured["theta"]), nan=0.0) if "theta" in s.measured else 0.0
-    )
+    filled = _filled(s.t, s.measured["theta"])
+    theta = np.zeros_like(s.t) if filled is None else filled
     coupling = (q * np.sin(s.phi) + r * np.cos(s.phi)) * np.tan(theta)
     b_one = _cumint(s.t, np.ones_like(s.t), s.segs)
     ones = np.ones((len(s.t), 1))
@@ -1050,13 +1052,8 @@ def _unshift(t: FloatArray, x: FloatArray, tau: float) -> FloatArray:
     return out
 
 
-SHIFTED = {
-    "theta": ("m", THETA),
-    "airspeed": ("m", V),
-    "alpha": ("m", ALPHA),
-    "phi": ("a", "phi"),
-    "vz": ("a", "vz"),
-}
+MEASURED_COLUMNS = {"theta": THETA, "airspeed": V, "alpha": ALPHA}
+"""Shifted channels in the measurement columns; the others are in aux by their name."""
 
 
 def _corrected(rec: Recording, findings: list[Finding]) -> Recording:
@@ -1070,9 +1067,9 @@ def _corrected(rec: Recording, findings: list[Finding]) -> Recording:
         if kind != "shift":
             continue
         for name in ("vn", "ve", "vd") if ch == "gps" else (ch,):
-            where, key = SHIFTED.get(name, ("a", name))
-            if where == "m":
-                m[:, key] = _unshift(t, m[:, key], value)
+            if name in MEASURED_COLUMNS:
+                col = MEASURED_COLUMNS[name]
+                m[:, col] = _unshift(t, m[:, col], value)
             elif name in aux:
                 aux[name] = _unshift(t, aux[name], value)
     _rescale(m, aux, on)
