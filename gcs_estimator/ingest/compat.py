@@ -50,6 +50,8 @@ EDGE_S = 0.5
 SIGNIFICANT = 3.0
 """A finding this many sigma from zero is beyond the noise: a warning, and corrected."""
 ITERATIONS = 8
+CONVERGED = 1e-6
+"""A full step that lowers the cost by less than this share of it ends the iterations."""
 LOCAL_FIRST = 2
 """Gauss-Newton iterations that move each piece's own parameters only: from a start far
 from them, the first full step took the scale factors to -76 % and -114 % on a long
@@ -362,17 +364,19 @@ def _line_search(
     x: tuple[FloatArray, FloatArray],
     step: tuple[FloatArray, FloatArray],
     weights: tuple[dict[str, float], FloatArray, FloatArray],
-) -> tuple[FloatArray, FloatArray]:
+) -> tuple[tuple[FloatArray, FloatArray], bool]:
     """The Gauss-Newton step, halved until it lowers the cost (a long, quiet record
-    starts far enough from its fit for the full step to overshoot)."""
+    starts far enough from its fit for the full step to overshoot); and whether the fit
+    has converged (the full step lowered the cost by less than CONVERGED of it)."""
     now = _cost(model, where, x, weights)
     scale = 1.0
     for _ in range(12):
         trial = (x[0] + scale * step[0], x[1] + scale * step[1])
-        if _cost(model, where, trial, weights) <= now:
-            return trial
+        cost = _cost(model, where, trial, weights)
+        if cost <= now:
+            return trial, scale == 1.0 and now - cost < CONVERGED * max(now, 1e-300)
         scale *= 0.5
-    return x
+    return x, True
 
 
 def _fit(
@@ -397,6 +401,7 @@ def _fit(
     sigma = dict(sigma0)
     cov = np.zeros((len(g), len(g)))
     outs: list[_Output] = []
+    done = False
     for it in range(ITERATIONS + 1):
         outs = model(g, loc)
         rows, names = [], []
@@ -416,12 +421,13 @@ def _fit(
         bl -= loc * pl
         held = pinned | (it < LOCAL_FIRST)
         dg, dl, cov = _solve(all_, alg, bl, rows, segs, (pg, g, held))
-        if it == ITERATIONS:
+        if it == ITERATIONS or done:
             if replicas is not None:
                 where = (t, segs, keep, g, loc)
                 cov = cov + _replicated(replicas, cov, (all_, alg), rows, names, where)
             break
-        g, loc = _line_search(model, (t, keep), (g, loc), (dg, dl), (sigma, pg, pl))
+        (g, loc), done = _line_search(model, (t, keep), (g, loc), (dg, dl), (sigma, pg, pl))
+        done = done and it >= LOCAL_FIRST
     return _Fit(g, loc, cov, {k: sigma[k] for k in sigma if k in {o.name for o in outs}}, outs)
 
 
