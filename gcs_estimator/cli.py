@@ -123,6 +123,8 @@ def run_info(
         "ended_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     info["source"] = source
+    if getattr(args, "compatibility", None) is not None:  # ingest/compat.py's findings
+        info["compatibility"] = args.compatibility
     if source is not None and Path(source).is_file():
         digest = hashlib.sha256()
         with open(source, "rb") as fh:
@@ -618,6 +620,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
         args.tlogs, args.speed, args.progress = [args.data], 0.0, False
         return cmd_replay(args)
     path, rec = _flight(args.data, config, getattr(args, "progress", False))
+    args.compatibility = rec.compatibility
     for note in rec.notes:
         print(f"note: {note}", file=sys.stderr)
     want = config.propulsion.input_name

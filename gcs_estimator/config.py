@@ -514,6 +514,13 @@ class DataConfig:
         doc="refine fits the inputs' delay with the coefficients (false: the timing as "
         "logged plus input_delay_s, as a textbook fit assumes)",
     )
+    compatibility_check: str = setting(
+        "report",
+        choices=("correct", "report", "off"),
+        doc="a log's or data file's channels checked against the kinematics before "
+        "estimation (each one's bias, scale factor and time shift; decision 0056): "
+        "correct those beyond the noise, report them only, or skip the check",
+    )
     columns: Columns = table(Columns)
     units: Units = table(Units)
     scale: Scale = table(Scale)

@@ -156,6 +156,10 @@ def test_the_json_says_which_run_made_it(tmp_path: Path) -> None:
     assert run["source_sha256"] == hashlib.sha256(data_file.read_bytes()).hexdigest()
     assert len(run["config_sha256"]) == 64 and run["config"].endswith("hfb320.toml")
     assert run["started_utc"] <= run["ended_utc"]
+    check = run["compatibility"]  # the data compatibility check's findings (decision 0056)
+    assert check["mode"] == "report" and not check["corrected"]
+    found = {(f["channel"], f["kind"]) for f in check["findings"]}
+    assert found >= {("q", "bias"), ("a_x", "bias")}
 
 
 def test_observations_that_never_match_the_config_exit_1_with_the_reason(

@@ -20,6 +20,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -62,6 +63,9 @@ class Recording:
     aux: dict[str, FloatArray] = field(default_factory=dict)
     """Further signals at the sample times, by name (an autopilot's log: roll, roll and
     yaw rates, vertical speed, wind; ingest/logs/content.py AUX), unused by the filters."""
+    compatibility: dict[str, Any] | None = None
+    """What the data compatibility check found (ingest/compat.py), for the results JSON;
+    None: not checked."""
 
     def __len__(self) -> int:
         return len(self.t_s)

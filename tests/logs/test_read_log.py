@@ -68,6 +68,9 @@ def test_every_channel_comes_back_within_the_logs_resolution(
     np.testing.assert_allclose(rec.aux["phi"], truth(fl.phi), atol=math.radians(0.006))
     assert rec.aux["vz"][::2] == pytest.approx(0.5)  # GPS and XKF2 at 25 Hz too
     assert rec.aux["wind_n"][::2] == pytest.approx(3.0)
+    # GPS velocity from GPS.Spd 20 m/s along GCrs 90 deg, VZ; the heading from ATT.Yaw 90
+    for name, value in (("vn", 0.0), ("ve", 20.0), ("vd", 0.5), ("psi", math.pi / 2)):
+        np.testing.assert_allclose(rec.aux[name][::2], value, atol=1e-4, err_msg=name)
     assert rec.power == "throttle"
     assert "ArduPlane V4.5.0" in account and "airborne 20.0 s" in account
     assert "not a vane" in account and "q 50 Hz (IMU.GyrY)" in account
@@ -190,6 +193,8 @@ def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
     np.testing.assert_allclose(rho, truth(fl.rho), rtol=1e-4)
     np.testing.assert_allclose(rec.aux["phi"], truth(fl.phi), atol=1e-6)
     assert rec.aux["wind_e"][::2] == pytest.approx(-1.5)  # at 25 Hz too
+    np.testing.assert_allclose(rec.aux["psi"], 0.3, atol=1e-6)  # the fixture's heading
+    np.testing.assert_allclose(rec.aux["vd"][::2], 0.5)  # no GPS topic: the estimator's vz
     assert (
         account.startswith("log f.ulg: PX4 v1.14.0, fixed-wing, ") and "airborne 20.0 s" in account
     )

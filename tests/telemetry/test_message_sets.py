@@ -88,11 +88,12 @@ def test_highres_imu_is_si_already(vehicle: Codec) -> None:
 
 def test_vertical_speed_and_wind_in_si(vehicle: Codec) -> None:
     """Vertical speed down positive from all three messages: GLOBAL_POSITION_INT.vz in
-    cm/s, LOCAL_POSITION_NED.vz in m/s, VFR_HUD.climb up positive; WIND's direction in
-    degrees (where it blows from)."""
+    cm/s (with its north and east velocity), LOCAL_POSITION_NED.vz in m/s, VFR_HUD.climb up
+    positive; WIND's direction in degrees (where it blows from)."""
     mav = vehicle.mav
     gpi = _sample(vehicle.pack(mav.global_position_int_encode(1500, 0, 0, 0, 0, 100, 0, -150, 0)))
-    assert gpi.values == () and dict(gpi.aux) == pytest.approx({"vz": -1.5})
+    assert gpi.values == ()
+    assert dict(gpi.aux) == pytest.approx({"vz": -1.5, "vn": 1.0, "ve": 0.0, "vd": -1.5})
     assert gpi.t_vehicle_s == pytest.approx(1.5)
     lpn = _sample(vehicle.pack(mav.local_position_ned_encode(1500, 0, 0, 0, 20.0, 0, 0.75)))
     assert dict(lpn.aux) == pytest.approx({"vz": 0.75})

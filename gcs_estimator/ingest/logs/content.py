@@ -16,9 +16,11 @@ Span = tuple[float, float]
 MEASURED = ("airspeed", "alpha", "theta", "q", "qdot", "a_x", "a_z")
 """The observation channels, in the Recording's column order."""
 INPUTS = ("elevator", "throttle", "rho")
-AUX = ("phi", "p", "r", "vz", "wind_n", "wind_e")
+AUX = ("phi", "p", "r", "vz", "wind_n", "wind_e", "psi", "vn", "ve", "vd")
 """Signals carried on the Recording for later use (roll, roll and yaw rates, vertical speed
-positive down, the wind's north and east components), unused by the filters for now."""
+positive down, the wind's north and east components, the heading (unwrapped: no jump at
+north), the GPS velocity north, east, down), unused by the filters; the data
+compatibility check (ingest/compat.py) reads them."""
 
 
 @dataclass(frozen=True)

@@ -85,6 +85,7 @@ MULTIPLIERS = {
 
 UNITS = {
     "d": "deg",
+    "h": "degheading",
     "k": "deg/s",
     "e": "deg/s/s",
     "E": "rad/s",
@@ -103,6 +104,7 @@ UNITS = {
 
 TO_SI: dict[str, tuple[float, float]] = {
     "deg": (math.pi / 180.0, 0.0),
+    "degheading": (math.pi / 180.0, 0.0),
     "deg/s": (math.pi / 180.0, 0.0),
     "deg/s/s": (math.pi / 180.0, 0.0),
     "degC": (1.0, 273.15),

@@ -5,7 +5,7 @@ vehicles' Log.cpp define them, read from the log's own FMT/FMTU/UNIT/MULT record
 
     q, p, r, a_x, a_z  IMU (first instance) GyrY, GyrX, GyrZ [rad/s], AccX, AccZ [m/s^2,
                        body FRD: level flight reads AccZ = -g]; RATE.P [deg/s] without IMU
-    theta, phi         ATT.Pitch, ATT.Roll [deg]
+    theta, phi, psi    ATT.Pitch, ATT.Roll, ATT.Yaw [deg] (psi unwrapped)
     airspeed           ARSP.Airspeed (first sensor), else CTUN.As: both equivalent airspeed;
                        true = EAS * E2T where CTUN logs the ratio, else EAS * sqrt(rho0/rho)
     alpha              AOA.AOA [deg]: the AHRS's estimate from airspeed, wind and the
@@ -17,12 +17,15 @@ vehicles' Log.cpp define them, read from the log's own FMT/FMTU/UNIT/MULT record
     rho                BARO.Press with ARSP.Temp (the probe in the airflow), else the
                        standard temperature at that pressure (BARO.Temp is the board's)
     vz                 GPS.VZ [m/s, down]
+    vn, ve, vd         GPS velocity: GPS.Spd [m/s] along GPS.GCrs [deg], GPS.VZ; else the
+                       EKF's XKF1.VN, VE, VD (EKF3 core 0; fused with the IMU, so less
+                       independent of it)
     wind_n, wind_e     XKF2.VWN, VWE (EKF3 core 0), else NKF2
     airborne           STAT.isFlying; hover: a QuadPlane's Q modes (MODE.ModeNum 17..25)
 
 PX4 (ULog; msg/*.msg):
 
-    theta, phi         vehicle_attitude.q (Hamilton, body FRD to NED)
+    theta, phi, psi    vehicle_attitude.q (Hamilton, body FRD to NED; psi unwrapped)
     q, p, r, qdot      vehicle_angular_velocity.xyz[1], [0], [2], xyz_derivative[1]
                        (older logs: vehicle_angular_acceleration.xyz[1])
     a_x, a_z           vehicle_acceleration.xyz[0], [2], else sensor_combined
@@ -36,6 +39,8 @@ PX4 (ULog; msg/*.msg):
                        control[0] (PX4 1.14 on: the first motor, 0..1), else
                        vehicle_thrust_setpoint.xyz[0]
     vz                 vehicle_local_position.vz; wind: wind or wind_estimate
+    vn, ve, vd         vehicle_gps_position (or sensor_gps) vel_n_m_s, vel_e_m_s, vel_d_m_s;
+                       else the estimator's vehicle_local_position.vx, vy, vz
     airborne           vehicle_land_detected.landed; hover: vehicle_status (rotary wing)
 """
 
@@ -236,15 +241,33 @@ def _ardu_motion(log: DataFlashLog, s: dict[str, Signal]) -> None:
     if log.has("ATT", "Pitch"):
         s["theta"] = _signal(log, "ATT", "Pitch", "deg")
         s["phi"] = _signal(log, "ATT", "Roll", "deg")
+        yaw = _signal(log, "ATT", "Yaw", "deg")
+        s["psi"] = Signal(yaw.t_s, np.unwrap(yaw.values), "ATT.Yaw (unwrapped)")
     if log.has("AOA", "AOA"):
         a = _signal(log, "AOA", "AOA", "deg")
         s["alpha"] = Signal(a.t_s, a.values, "AOA.AOA (the AHRS's estimate, not a vane)")
 
 
+def _ardu_gps_velocity(log: DataFlashLog, s: dict[str, Signal]) -> None:
+    """GPS velocity north, east, down (GPS.Spd along GCrs, VZ), else the EKF's (XKF1)."""
+    if log.has("GPS", "Spd") and log.has("GPS", "GCrs") and log.has("GPS", "VZ"):
+        spd = _signal(log, "GPS", "Spd", "m/s")
+        crs = _signal(log, "GPS", "GCrs", "deg")
+        if len(spd.t_s) == len(crs.t_s):
+            s["vn"] = Signal(spd.t_s, spd.values * np.cos(crs.values), "GPS.Spd*cos(GCrs)")
+            s["ve"] = Signal(spd.t_s, spd.values * np.sin(crs.values), "GPS.Spd*sin(GCrs)")
+            s["vd"] = _signal(log, "GPS", "VZ", "m/s")
+            return
+    if log.has("XKF1", "VN"):
+        for ch, col in (("vn", "VN"), ("ve", "VE"), ("vd", "VD")):
+            s[ch] = _signal(log, "XKF1", col, "m/s")
+
+
 def _ardu_aux(log: DataFlashLog, s: dict[str, Signal]) -> None:
-    """Vertical speed (GPS) and the EKF's wind (XKF2, or EKF2's NKF2)."""
+    """Vertical speed and velocity (GPS) and the EKF's wind (XKF2, or EKF2's NKF2)."""
     if log.has("GPS", "VZ"):
         s["vz"] = _signal(log, "GPS", "VZ", "m/s")
+    _ardu_gps_velocity(log, s)
     for ekf in ("XKF2", "NKF2"):
         if log.has(ekf, "VWN"):
             s["wind_n"] = _signal(log, ekf, "VWN", "m/s")
@@ -302,6 +325,8 @@ PX4_TOPICS = (
     "airspeed",
     "vehicle_air_data",
     "vehicle_local_position",
+    "vehicle_gps_position",
+    "sensor_gps",
     "actuator_servos",
     "actuator_motors",
     "actuator_controls_0",
@@ -342,15 +367,20 @@ def _px4_signal(
     return Signal(_px4_time(t), np.asarray(t[column], float) * scale, label or f"{name}.{column}")
 
 
-def _px4_attitude(u: ULogData) -> tuple[Signal, Signal] | None:
+def _px4_attitude(u: ULogData) -> tuple[Signal, Signal, Signal] | None:
     t = u.topic("vehicle_attitude")
     if t is None or "q[0]" not in t:
         return None
     q0, q1, q2, q3 = (np.asarray(t[f"q[{i}]"], float) for i in range(4))
     theta = np.arcsin(np.clip(2.0 * (q0 * q2 - q3 * q1), -1.0, 1.0))
     phi = np.arctan2(2.0 * (q0 * q1 + q2 * q3), 1.0 - 2.0 * (q1 * q1 + q2 * q2))
+    psi = np.unwrap(np.arctan2(2.0 * (q0 * q3 + q1 * q2), 1.0 - 2.0 * (q2 * q2 + q3 * q3)))
     time = _px4_time(t)
-    return Signal(time, theta, "vehicle_attitude.q"), Signal(time, phi, "vehicle_attitude.q")
+    return (
+        Signal(time, theta, "vehicle_attitude.q"),
+        Signal(time, phi, "vehicle_attitude.q"),
+        Signal(time, psi, "vehicle_attitude.q (unwrapped)"),
+    )
 
 
 def _px4_elevator(u: ULogData) -> Signal | None:
@@ -436,7 +466,7 @@ def _px4_motion(u: ULogData, s: dict[str, Signal]) -> None:
     """Attitude, body rates, pitch acceleration and the accelerometers."""
     att = _px4_attitude(u)
     if att is not None:
-        s["theta"], s["phi"] = att
+        s["theta"], s["phi"], s["psi"] = att
     for ch, i in (("p", 0), ("q", 1), ("r", 2)):
         sig = _px4_signal(u, "vehicle_angular_velocity", f"xyz[{i}]")
         if sig is not None:
@@ -452,6 +482,18 @@ def _px4_motion(u: ULogData, s: dict[str, Signal]) -> None:
         )
         if sig is not None:
             s[ch] = sig
+
+
+def _px4_gps_velocity(u: ULogData) -> list[tuple[str, Signal | None]]:
+    """GPS velocity north, east, down: the receiver's, else the estimator's."""
+    for name in ("vehicle_gps_position", "sensor_gps"):
+        sigs = [_px4_signal(u, name, f"vel_{a}_m_s") for a in "ned"]
+        if all(sig is not None for sig in sigs):
+            return list(zip(("vn", "ve", "vd"), sigs, strict=True))
+    return [
+        (ch, _px4_signal(u, "vehicle_local_position", col))
+        for ch, col in (("vn", "vx"), ("ve", "vy"), ("vd", "vz"))
+    ]
 
 
 def px4(u: ULogData) -> LogContent:
@@ -476,6 +518,7 @@ def px4(u: ULogData) -> LogContent:
         ("elevator", _px4_elevator(u)),
         ("throttle", _px4_throttle(u)),
         ("vz", _px4_signal(u, "vehicle_local_position", "vz")),
+        *_px4_gps_velocity(u),
         ("wind_n", _px4_first(u, ("wind", "wind_estimate"), "windspeed_north")),
         ("wind_e", _px4_first(u, ("wind", "wind_estimate"), "windspeed_east")),
     ):

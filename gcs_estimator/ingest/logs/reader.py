@@ -21,6 +21,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.ingest import compat
 from gcs_estimator.ingest.flightdata import (
     FlightDataError,
     Recording,
@@ -320,12 +321,13 @@ def load_flight(
 ) -> tuple[Path, Recording, str | None]:
     """Any flight file but a tlog, by its content (detect.kind): (the file, its
     Recording, the log's account or None for a CSV or the HFB-320 record). A folder or a
-    bundled record's name stands for its file (flightdata.data_file)."""
+    bundled record's name stands for its file (flightdata.data_file). The Recording has
+    been through the data compatibility check ([data] compatibility_check, compat.py)."""
     file = data_file(path)
     kind = detect.kind(file)
     if kind in detect.LOGS:
         rec, text = read_log(file, config, progress)
-        return file, rec, text
+        return file, compat.checked(rec, config), text
     if kind == "tlog":
         raise FlightDataError(f"{file}: a MAVLink .tlog: estimate from it with `replay`")
     rec = (
@@ -333,4 +335,4 @@ def load_flight(
         if kind == "csv"
         else load_hfb320(file)
     )
-    return file, rec, None
+    return file, compat.checked(rec, config), None

@@ -250,12 +250,25 @@ G_MSS = 9.80665
 MILLI_G = G_MSS * 1e-3
 """One milli-g [m/s^2] (SCALED_IMU* and ArduPilot's RAW_IMU accelerations)."""
 
-AUX_NAMES: tuple[str, ...] = ("phi", "p", "r", "vz", "wind_dir", "wind_speed", "wind_vz")
+AUX_NAMES: tuple[str, ...] = (
+    "phi",
+    "p",
+    "r",
+    "vz",
+    "wind_dir",
+    "wind_speed",
+    "wind_vz",
+    "vn",
+    "ve",
+    "vd",
+)
 """Auxiliary signals decoded beside the channels (not used by the filters yet):
 bank angle phi [rad], roll and yaw rates p, r [rad/s] (ATTITUDE), vertical speed vz
 [m/s, down positive] (LOCAL_POSITION_NED, GLOBAL_POSITION_INT, VFR_HUD.climb), the wind
 the vehicle estimates: the direction it blows from [rad], its speed and its vertical
-speed [m/s] (WIND)."""
+speed [m/s] (WIND); the velocity over the ground north, east, down [m/s]
+(GLOBAL_POSITION_INT: the autopilot's GPS-aided estimate; the data compatibility check's
+GPS velocity, decision 0056)."""
 
 Aux = tuple[tuple[str, float], ...]
 
@@ -384,8 +397,17 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value),
         plan(
             "GLOBAL_POSITION_INT",
-            ("time_boot_ms", "vz"),
-            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1] * 1e-2),)),
+            ("time_boot_ms", "vx", "vy", "vz"),
+            lambda f: Found(
+                f[0] * 1e-3,
+                [],
+                (
+                    ("vz", f[3] * 1e-2),
+                    ("vn", f[1] * 1e-2),
+                    ("ve", f[2] * 1e-2),
+                    ("vd", f[3] * 1e-2),
+                ),
+            ),
         ),
         plan(
             "LOCAL_POSITION_NED",
