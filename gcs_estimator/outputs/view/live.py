@@ -26,7 +26,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS
+from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS, OBS_NAMES
 from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.outputs.view.outlets import (
     Columns,
@@ -79,6 +79,9 @@ sent (the history file has every frame)."""
 FLUSH_INTERVAL_S = 1.0
 """Wall clock between batches to the view [s]."""
 RESULTS_INTERVAL_S = 5.0
+ADVICE_INTERVAL_S = 30.0
+"""What to fly next is worked out again this often [s], for one vehicle at a time in
+turn: about a second of flying candidate manoeuvres through the model each time."""
 """Wall clock between refreshes of the live results table [s]."""
 SHUTDOWN_TIMEOUT_S = 3.0
 """A viewer connection's time to drain at exit [s]."""
@@ -327,8 +330,14 @@ class RerunView:
         table_source: TableSource | None = None,
         clock: Callable[[], float] = time.monotonic,
         truth_of: Callable[[int], FloatArray | None] | None = None,
+        advice_source: Callable[[int, float], str] | None = None,
     ) -> None:
         self.outlets = list(outlets)
+        self.advice_source = advice_source
+        """A vehicle's advice (Markdown) at its latest airspeed; None: no live advice."""
+        self._last_advice = clock()
+        self._advice_turn = 0
+        self._airspeed: dict[int, float] = {}
         self.config = config
         self.names = config.coefficient_names
         self.axes = config.structure.axes
@@ -380,6 +389,8 @@ class RerunView:
         if rows is None:
             rows = self.rows[system_id] = _Rows()
             self._announce(system_id)
+        if math.isfinite(float(y[0])):
+            self._airspeed[system_id] = float(y[0])
         rows.t.append(t_session)
         rows.tv.append(t_vehicle)
         rows.u.append(u)
@@ -440,6 +451,22 @@ class RerunView:
             self._last_table = self._last_flush
             for sid, rows in self.rows.items():
                 self._send(Text(lay.results_path(sid), rows.last_times, self.table_source(sid)))
+        self._send_advice()
+
+    def _send_advice(self) -> None:
+        """Every ADVICE_INTERVAL_S, the next vehicle's advice in turn."""
+        if self.advice_source is None or not self.rows:
+            return
+        if self._last_flush - self._last_advice < ADVICE_INTERVAL_S:
+            return
+        self._last_advice = self._last_flush
+        ids = sorted(self.rows)
+        sid = ids[self._advice_turn % len(ids)]
+        self._advice_turn += 1
+        rows = self.rows[sid]
+        if rows.last_times:
+            text = self.advice_source(sid, self._airspeed.get(sid, math.nan))
+            self._send(Text(lay.advice_path(sid), rows.last_times, text))
 
     def _send_rows(self, sid: int, rows: _Rows) -> None:
         n = len(rows.t)
@@ -499,10 +526,12 @@ class RerunView:
         final_tables: Mapping[int, str] | None = None,
         marks: Mapping[int, Sequence[str]] | None = None,
         warnings: Sequence[str] = (),
+        checked: Mapping[int, VehicleResult] | None = None,
     ) -> None:
         """Send what is left, the final layout (ranges of the whole run, identifiability
-        in the panel titles), the legend with the run's warnings, and the final results
-        tables; close every outlet."""
+        in the panel titles), the legend with the run's warnings, the final results
+        tables, and each checked vehicle's advice and held-out overlay; close every
+        outlet."""
         self.flush()
         if self.rows:
             self._send_layout(marks)
@@ -512,15 +541,51 @@ class RerunView:
             rows = self.rows.get(sid)
             if rows is not None and rows.last_times:
                 self._send(Text(lay.results_path(sid), rows.last_times, text))
+        for sid, vehicle in (checked or {}).items():
+            rows = self.rows.get(sid)
+            if rows is not None and rows.last_times:
+                for op in check_ops(sid, vehicle, rows.last_times):
+                    self._send(op)
         for outlet in self.outlets:
             outlet.close()
 
 
+def check_ops(sid: int, vehicle: VehicleResult, at: Mapping[str, float]) -> list[Op]:
+    """A finished vehicle's advice (at the times `at`) and the held-out overlay
+    (measured and predicted per channel, on the segment's own clock; the check's figures
+    are in the final results table)."""
+    ops: list[Op] = []
+    if vehicle.advice is not None:
+        ops.append(Text(lay.advice_path(sid), dict(at), advice_markdown(vehicle.advice.lines())))
+    h = vehicle.holdout
+    if h is not None:
+        for c, name in enumerate(OBS_NAMES):
+            if not np.isfinite(h.predicted[:, c]).any():
+                continue
+            path = lay.validation_path(sid, name)
+            ops.append(Style(path, lay.VALIDATION_STYLE))
+            values = np.column_stack([h.measured[:, c], h.predicted[:, c]])
+            ops.append(Columns(path, {lay.TIMELINE: np.asarray(h.t, float)}, values))
+    return ops
+
+
+def advice_markdown(lines: Sequence[str]) -> str:
+    """Lines as a Markdown code block (kept as they are laid out)."""
+    return "```\n" + "\n".join(lines) + "\n```\n"
+
+
 class ViewSink:
     """The view as a session sink: every frame's outputs, refreshed when idle, final
-    tables at the end."""
+    tables at the end (with the checks outputs.checks made of each vehicle, where
+    `checked` has them: that sink must finish before this one)."""
 
-    def __init__(self, view: RerunView, t_zero: Callable[[], float] | None = None) -> None:
+    def __init__(
+        self,
+        view: RerunView,
+        t_zero: Callable[[], float] | None = None,
+        checked: Callable[[], Mapping[int, VehicleResult]] | None = None,
+    ) -> None:
+        self.checked = checked
         self.view = view
         self.t_zero = t_zero
         """Zero of the receive timeline (the session's first packet); default: the first
@@ -547,7 +612,9 @@ class ViewSink:
         from gcs_estimator.outputs.table import final_table
 
         marks = {}
+        done = {} if self.checked is None else self.checked()
         for sid, v in results.items():
+            v = done.get(sid, v)
             s = v.summaries.get("IEKF") or next(iter(v.summaries.values()), None)
             if s is not None:
                 marks[sid] = [c.identifiability for c in s.coefficients]
@@ -556,7 +623,13 @@ class ViewSink:
             for sid, v in results.items()
             for w in trust_warnings(v)
         ]
-        self.view.close({sid: final_table(v) for sid, v in results.items()}, marks, warnings)
+        checked = {} if self.checked is None else dict(self.checked())
+        self.view.close(
+            {sid: final_table(checked.get(sid, v)) for sid, v in results.items()},
+            marks,
+            warnings,
+            checked,
+        )
 
 
 # ------------------------------------------------------------------ opening
