@@ -421,7 +421,7 @@ def advice_of(
     if fr is None or fr.track is None or len(fr.track.t) < 2 or summary is None:
         return None
     t, y = np.asarray(fr.track.t), np.asarray(fr.track.y)
-    observed = np.isfinite(y).any(axis=0)
+    observed: BoolArray = np.asarray(np.isfinite(y).any(axis=0), dtype=bool)
     recent = y[t >= t[-1] - AIRSPEED_TAIL_S, 0]
     recent = recent[np.isfinite(recent)]
     airspeed = float(np.median(recent)) if recent.size else None

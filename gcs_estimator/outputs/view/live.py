@@ -319,6 +319,48 @@ def link_columns(t: float, counts: Mapping[str, int], last: tuple[float, int]) -
     return ops
 
 
+class LiveAdvice:
+    """What to fly next while flying: every ADVICE_INTERVAL_S, the next vehicle's in
+    turn, at its latest measured airspeed."""
+
+    def __init__(self, source: Callable[[int, float], str], now: float) -> None:
+        self.source = source
+        """A vehicle's advice (Markdown) at an airspeed [m/s] (NaN: not measured)."""
+        self.last = now
+        self.turn = 0
+        self.airspeed: dict[int, float] = {}
+
+    def saw(self, sid: int, airspeed: float) -> None:
+        if math.isfinite(airspeed):
+            self.airspeed[sid] = airspeed
+
+    def due(self, now: float, rows: Mapping[int, _Rows]) -> list[Op]:
+        """The next vehicle's advice where the interval has passed."""
+        if not rows or now - self.last < ADVICE_INTERVAL_S:
+            return []
+        self.last = now
+        ids = sorted(rows)
+        sid = ids[self.turn % len(ids)]
+        self.turn += 1
+        at = rows[sid].last_times
+        if not at:
+            return []
+        text = self.source(sid, self.airspeed.get(sid, math.nan))
+        return [Text(lay.advice_path(sid), at, text)]
+
+
+def final_check_ops(checked: Mapping[int, VehicleResult], rows: Mapping[int, _Rows]) -> list[Op]:
+    """Each checked vehicle's advice and held-out overlay (check_ops), at its last times."""
+    ops: list[Op] = []
+    for sid, vehicle in checked.items():
+        own = rows.get(sid)
+        if own is not None and own.last_times:
+            ops += check_ops(sid, vehicle, own.last_times)
+    return ops
+
+
+# Over 200 lines: the view's one sender; per-frame buffering, flushing, layout, the live
+# advice's turn and the final panels share its rows and outlets.
 class RerunView:
     """Sends estimates, states, inputs and diagnostics of every vehicle to the outlets."""
 
@@ -333,11 +375,7 @@ class RerunView:
         advice_source: Callable[[int, float], str] | None = None,
     ) -> None:
         self.outlets = list(outlets)
-        self.advice_source = advice_source
-        """A vehicle's advice (Markdown) at its latest airspeed; None: no live advice."""
-        self._last_advice = clock()
-        self._advice_turn = 0
-        self._airspeed: dict[int, float] = {}
+        self.advice = None if advice_source is None else LiveAdvice(advice_source, clock())
         self.config = config
         self.names = config.coefficient_names
         self.axes = config.structure.axes
@@ -389,8 +427,8 @@ class RerunView:
         if rows is None:
             rows = self.rows[system_id] = _Rows()
             self._announce(system_id)
-        if math.isfinite(float(y[0])):
-            self._airspeed[system_id] = float(y[0])
+        if self.advice is not None:
+            self.advice.saw(system_id, float(y[0]))
         rows.t.append(t_session)
         rows.tv.append(t_vehicle)
         rows.u.append(u)
@@ -451,22 +489,9 @@ class RerunView:
             self._last_table = self._last_flush
             for sid, rows in self.rows.items():
                 self._send(Text(lay.results_path(sid), rows.last_times, self.table_source(sid)))
-        self._send_advice()
-
-    def _send_advice(self) -> None:
-        """Every ADVICE_INTERVAL_S, the next vehicle's advice in turn."""
-        if self.advice_source is None or not self.rows:
-            return
-        if self._last_flush - self._last_advice < ADVICE_INTERVAL_S:
-            return
-        self._last_advice = self._last_flush
-        ids = sorted(self.rows)
-        sid = ids[self._advice_turn % len(ids)]
-        self._advice_turn += 1
-        rows = self.rows[sid]
-        if rows.last_times:
-            text = self.advice_source(sid, self._airspeed.get(sid, math.nan))
-            self._send(Text(lay.advice_path(sid), rows.last_times, text))
+        if self.advice is not None:
+            for op in self.advice.due(self._last_flush, self.rows):
+                self._send(op)
 
     def _send_rows(self, sid: int, rows: _Rows) -> None:
         n = len(rows.t)
@@ -541,11 +566,8 @@ class RerunView:
             rows = self.rows.get(sid)
             if rows is not None and rows.last_times:
                 self._send(Text(lay.results_path(sid), rows.last_times, text))
-        for sid, vehicle in (checked or {}).items():
-            rows = self.rows.get(sid)
-            if rows is not None and rows.last_times:
-                for op in check_ops(sid, vehicle, rows.last_times):
-                    self._send(op)
+        for op in final_check_ops(checked or {}, self.rows):
+            self._send(op)
         for outlet in self.outlets:
             outlet.close()
 
