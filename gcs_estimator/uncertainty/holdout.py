@@ -137,9 +137,8 @@ class Holdout:
             for name, axis in zip(names, axes, strict=True):
                 if axis in CHANNEL_AXES[fit.name] and name not in out:
                     out[name] = (
-                        f"the held-out {self.segment} misses {fit.name} "
-                        f"(Theil U {fit.theil:.2f}, its model share {fit.theil_model:.2f} "
-                        f"> {THEIL_LIMIT:g})"
+                        f"the model misses {fit.name} on {self.segment} (held out; Theil U "
+                        f"{fit.theil:.2f}, its model share {fit.theil_model:.2f} > {THEIL_LIMIT:g})"
                     )
         return out
 
