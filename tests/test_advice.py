@@ -170,25 +170,23 @@ def test_checks_on_a_window_of_the_run(flown: Flown) -> None:
 
 
 def test_validate_on_the_command_line(tmp_path: Path) -> None:
-    """`simulate --validate FROM:TO`: the table, and the JSON's holdout and advice."""
+    """`simulate --refine output-error --window 20:60 --validate 1:16`: the fit's
+    estimates checked on the multisteps it was not fitted to (independent), in the
+    table, the .md and the JSON's holdout, with the advice."""
     out = tmp_path / "run"
     argv = [
-        "simulate",
-        "--out",
-        str(out),
-        "--view",
-        "off",
-        "--validate",
-        "1:16",
-        "--set",
-        "filter.structure_check=off",
-    ]
+        "simulate", "--out", str(out), "--view", "off", "--set", "filter.structure_check=off",
+        "--refine", "output-error", "--window", "20:60", "--validate", "1:16",
+    ]  # fmt: skip
     assert cli.main(argv) == 0
     data = json.loads((out / "results_sys1.json").read_text())
-    channels = data["holdout"]["channels"]
+    holdout = data["holdout"]
+    assert holdout["in_sample"] is False
+    assert "output error" in holdout["coefficients_from"]
+    channels = holdout["channels"]
     assert set(channels) == {"V", "alpha", "theta", "q", "qdot", "a_x", "a_z"}
     assert channels["q"]["judged"] and not channels["q"]["misses"]
-    assert data["holdout"]["dropped"] == {}
+    assert holdout["dropped"] == {}
     names = {a["name"] for a in data["advice"]["not_identified"]}
     marks = data["filters"]["IEKF"]["estimates"]
     assert names == {n for n, c in marks.items() if c["identifiability"] != IDENTIFIED}
