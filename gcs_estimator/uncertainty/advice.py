@@ -38,12 +38,14 @@ from gcs_estimator.model.aircraft import Model, build_model, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays, observe
 from gcs_estimator.uncertainty.metrics import (
+    ALPHA,
     IDENTIFIED,
     NOT_IDENTIFIED,
     WEAK,
     FilterSummary,
     correlation_of,
     identifiability,
+    without_alpha,
 )
 
 AMPLITUDES_DEG = (1.0, 2.0, 4.0)
@@ -389,7 +391,9 @@ def advise(
             continue
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
         predicted[c.label()] = sd
-        marks_after[c.label()] = identifiability(beta, sd * widen, correlation_of(cov))
+        after = identifiability(beta, sd * widen, correlation_of(cov))
+        # No alpha at all: no manoeuvre fixes what only alpha tells (metrics.without_alpha).
+        marks_after[c.label()] = after if ok[ALPHA] else without_alpha(names, after)
         by[c.label()] = c
     if not predicted:
         return Advice(names, V, omega, (), note="every candidate left the model's range")
@@ -407,7 +411,9 @@ def advise(
 
 
 AIRSPEED_TAIL_S = 10.0
-"""The current airspeed: the median measured over the record's last this many seconds."""
+"""The current airspeed: the median measured over the last this many seconds of flight."""
+FLYING_SHARE = 0.5
+"""Flight: an airspeed of at least this share of the trim airspeed (not the landing roll)."""
 
 
 def advice_of(
@@ -422,8 +428,10 @@ def advice_of(
         return None
     t, y = np.asarray(fr.track.t), np.asarray(fr.track.y)
     observed: BoolArray = np.asarray(np.isfinite(y).any(axis=0), dtype=bool)
-    recent = y[t >= t[-1] - AIRSPEED_TAIL_S, 0]
-    recent = recent[np.isfinite(recent)]
+    flying = np.isfinite(y[:, 0]) & (
+        y[:, 0] >= FLYING_SHARE * result.config.airframe.trim_airspeed_mps
+    )
+    recent = y[flying & (t >= t[flying][-1] - AIRSPEED_TAIL_S), 0] if flying.any() else y[:0, 0]
     airspeed = float(np.median(recent)) if recent.size else None
     steps = np.diff(t)
     steps = steps[steps > 0]
