@@ -410,8 +410,6 @@ def advise(
     return Advice(names, V, omega, tuple(advised), predicted)
 
 
-AIRSPEED_TAIL_S = 10.0
-"""The current airspeed: the median measured over the last this many seconds of flight."""
 FLYING_SHARE = 0.5
 """Flight: an airspeed of at least this share of the trim airspeed (not the landing roll)."""
 
@@ -421,8 +419,10 @@ def advice_of(
 ) -> Advice | None:
     """What to fly next after a finished run, from filter `kind`'s final estimate and
     covariance, its marks and sigma to trust (summary), the channels the record observed
-    at the run's measurement noise, its sample rate and its latest airspeed (None: the
-    run kept no history or has no such filter)."""
+    at the run's measurement noise, its sample rate and the median airspeed of its flight
+    (FLYING_SHARE: not the take-off or landing; the airspeed the next flight will fly;
+    the live view takes the latest instead). None: the run kept no history or has no
+    such filter."""
     fr = result.filters.get(kind)
     if fr is None or fr.track is None or len(fr.track.t) < 2 or summary is None:
         return None
@@ -431,8 +431,8 @@ def advice_of(
     flying = np.isfinite(y[:, 0]) & (
         y[:, 0] >= FLYING_SHARE * result.config.airframe.trim_airspeed_mps
     )
-    recent = y[flying & (t >= t[flying][-1] - AIRSPEED_TAIL_S), 0] if flying.any() else y[:0, 0]
-    airspeed = float(np.median(recent)) if recent.size else None
+    recent = y[flying, 0]
+    airspeed = float(np.median(recent)) if recent.size else None  # the flight's usual airspeed
     steps = np.diff(t)
     steps = steps[steps > 0]
     rate = 1.0 / float(np.median(steps)) if steps.size else SAMPLE_RATE_HZ
