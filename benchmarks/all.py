@@ -70,6 +70,7 @@ PLAN = (
     Run("refine_hfb", "refine_hfb", (), 1),
     Run("input_delay", "input_delay", (), 5),
     Run("structure_gap", "structure_gap", (), 0.1),
+    Run("advice", "advice", ("--seeds", "3"), 1),
     Run("pitch_gust_share", "pitch_gust_share", ("--seeds", "3"), 0.1),
     Run("turbulence_models", "turbulence_models", ("--seeds", "5", "--noc-seeds", "20"), 2.6),
     # Speed and the live link: one core's filter steps, a long replay, a station's

@@ -56,6 +56,7 @@ from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
+from gcs_estimator.outputs.checks import Checks, live_advice_text
 from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
@@ -321,6 +322,7 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
         help="reference coefficient values to show and compare against (a [truth] table, "
         "e.g. a textbook's); replaces the config's [truth]",
     )
+    _checks_options(p)
     v = p.add_argument_group("live view (Rerun)")
     v.add_argument(
         "--view",
@@ -341,6 +343,68 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
         help="stream to the viewer at this URL (implies connect), e.g. "
         "rerun+http://127.0.0.1:9876/proxy",
     )
+
+
+def _checks_options(p: argparse.ArgumentParser) -> None:
+    """The held-out check and the advice (decisions 0051, 0052)."""
+    c = p.add_argument_group("the model checked, and what to fly next")
+    c.add_argument(
+        "--validate",
+        default=None,
+        metavar="FROM:TO|LOG",
+        help="at the end, fly the identified model (refine's where asked, else the IEKF's) "
+        "over a held-out segment, a window of this record (seconds after its first frame) "
+        "or another log of the same aircraft (.bin, .ulg, .csv), and give each channel's "
+        "Theil U and RMS error; coefficients whose channels it misses are weak at best",
+    )
+    c.add_argument(
+        "--no-advice",
+        action="store_true",
+        help="at the end, do not work out what to fly next (the manoeuvre that would "
+        "identify what the flight has not)",
+    )
+
+
+def _live_advice(
+    args: argparse.Namespace, session: Session | ShardedSession
+) -> Callable[[int, float], str] | None:
+    """The live view's advice of a vehicle at an airspeed (None: --no-advice)."""
+    if getattr(args, "no_advice", False):
+        return None
+    return lambda sid, airspeed: live_advice_text(session.estimator(sid), airspeed)
+
+
+def _checks(args: argparse.Namespace) -> Checks:
+    """The checks the command line asked for (outputs.checks), one object per run: the
+    view's final panels read what the results sink checked."""
+    made = getattr(args, "checks_made", None)
+    if isinstance(made, Checks):
+        return made
+    checks = _new_checks(args)
+    args.checks_made = checks
+    return checks
+
+
+def _new_checks(args: argparse.Namespace) -> Checks:
+    text = getattr(args, "validate", None)
+    advise = not getattr(args, "no_advice", False)
+    refine_window = _window(getattr(args, "window", None))
+    if not text:
+        return Checks(advise=advise, refine_window=refine_window)
+    if Path(text).exists():
+        if Path(text).is_file() and detect.kind(text) == "tlog":
+            raise ConfigError(
+                f"--validate {text}: a .tlog is not read as a held-out log; give a window "
+                "of this record (FROM:TO), or the flight as a .bin, .ulg or .csv"
+            )
+        return Checks(log=text, advise=advise, refine_window=refine_window)
+    try:
+        window = _window(text)
+    except ConfigError:
+        raise ConfigError(
+            f"--validate {text!r}: neither a file nor a window FROM:TO in seconds (e.g. 60:90)"
+        ) from None
+    return Checks(window=window, advise=advise, refine_window=refine_window)
 
 
 def _truth_option(p: argparse.ArgumentParser) -> None:
@@ -419,8 +483,14 @@ def _view_sink(
         link_source=None if link is None else lambda: (link.session_time(), link.health.as_dict()),
         table_source=lambda sid: live_table(session.estimator(sid), session.truth_of(sid)),
         truth_of=session.truth_of,
+        advice_source=_live_advice(args, session),
     )
-    return ViewSink(view, None if link is None else (lambda: link.t_first_recv))
+    checks = _checks(args)
+    return ViewSink(
+        view,
+        None if link is None else (lambda: link.t_first_recv),
+        checked=lambda: checks.done,
+    )
 
 
 def _window(text: str | None) -> tuple[float | None, float | None]:
@@ -561,6 +631,7 @@ def _results_sink(
         run=lambda: run_info(args, config, origin),
         estimators=lambda: session.estimators,
         history_format=args.history,
+        checks=_checks(args),
     )
 
 
@@ -574,8 +645,6 @@ def _recording_session(
     stop = PROCESS_STOP.install()
     session = Session(config, backend=args.backend)
     view = _view_sink(config, args, session)
-    if view is not None:
-        session.add_sink(view)
     if sys.stderr.isatty():
         session.add_sink(ProgressSink(source.progress, label, unit="frames"))
 
@@ -587,6 +656,8 @@ def _recording_session(
         )
 
     session.add_sink(_results_sink(args, config, session, heading, origin))
+    if view is not None:  # after the results: its final panels show their checks
+        session.add_sink(view)
     return _run(session, source, stop)
 
 
@@ -714,14 +785,14 @@ def _link_session(
         elevator_travel_deg=config.airframe.elevator_travel_deg,
     )
     view = _view_sink(config, args, session, link)
-    if view is not None:
-        session.add_sink(view)
     if status:
         session.add_sink(StatusSink(lambda elapsed: _status_lines(link, session, elapsed)))
     if isinstance(session, ShardedSession):
         session.add_sink(TablesSink(session))
     else:
         session.add_sink(_results_sink(args, config, session, vehicle_heading, origin))
+    if view is not None:  # after the results: its final panels show their checks
+        session.add_sink(view)
     return session, link
 
 

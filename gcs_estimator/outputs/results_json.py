@@ -59,6 +59,10 @@ def results_dict(
         },
         "warnings": trust_warnings(vehicle, refined),
         "refined": None if refined is None else refined_dict(refined, vehicle.truth),
+        "holdout": None
+        if vehicle.holdout is None
+        else {**vehicle.holdout.as_dict(), "dropped": dict(vehicle.holdout_drops or {})},
+        "advice": None if vehicle.advice is None else vehicle.advice.as_dict(),
         "config": _jsonable(config.raw),
     }
     for kind, s in vehicle.summaries.items():

@@ -48,7 +48,11 @@ class ResultsSink:
         estimators: Callable[[], Mapping[int, Estimator]] | None = None,
         history_block_frames: int = HISTORY_BLOCK_FRAMES,
         history_format: str = "parquet",
+        checks: Callable[[VehicleResult, Refined | None], tuple[VehicleResult, Refined | None]]
+        | None = None,
     ) -> None:
+        self.checks = checks
+        """The held-out check and the advice (outputs.checks.Checks); None: neither."""
         self.history_format = history_format
         """"csv" or "parquet" (tables.HISTORY_FORMATS)."""
         self.estimators = estimators
@@ -102,6 +106,8 @@ class ResultsSink:
         sid = vehicle.system_id
         heading = self.heading(vehicle, self.elapsed())
         refined = None if self.refine is None else self.refine(vehicle)
+        if self.checks is not None:
+            vehicle, refined = self.checks(vehicle, refined)
         print(f"\n{heading}\n", file=out)
         print(terminal_text(vehicle, refined), file=out)
         extra: dict[str, Any] = {"system_id": sid}

@@ -361,10 +361,26 @@ def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
     and the warnings."""
     table = markdown_table(vehicle.summaries, vehicle.result.config.truth_label, refined)
     text = table + bullets(_run_notes(vehicle))
+    checks = check_lines(vehicle)
+    if checks:
+        text += "\n```\n" + "\n".join(checks) + "\n```\n"
     warnings = trust_warnings(vehicle, refined)
     if warnings:
         text += f"\n{WARNINGS_HEAD}\n\n" + bullets(warnings)
     return text
+
+
+def check_lines(vehicle: VehicleResult) -> list[str]:
+    """The held-out check (each channel's Theil U and RMS error, and the marks it
+    dropped) and what to fly next, as lines (none where neither was made)."""
+    out: list[str] = []
+    if vehicle.holdout is not None:
+        out += vehicle.holdout.lines()
+        for name, why in (vehicle.holdout_drops or {}).items():
+            out.append(f"  {name}: weak at best, {why}")
+    if vehicle.advice is not None:
+        out += vehicle.advice.lines()
+    return out
 
 
 def terminal_legend(refined: Refined | None) -> str:
@@ -388,6 +404,9 @@ def terminal_text(vehicle: VehicleResult, refined: Refined | None = None) -> str
     table = terminal_table(vehicle.summaries, vehicle.result.config.truth_label, refined)
     notes = _bias_notes(vehicle.result) + ([] if refined is None else [_refined_note(refined)])
     text = table + "\n" + bullets([terminal_legend(refined), *notes], TERMINAL_WIDTH)
+    checks = check_lines(vehicle)
+    if checks:
+        text += "\n" + "\n".join(wrap(line) for line in checks) + "\n"
     warnings = trust_warnings(vehicle, refined)
     if warnings:
         text += f"\n{WARNINGS_HEAD}\n\n" + bullets(warnings, TERMINAL_WIDTH)

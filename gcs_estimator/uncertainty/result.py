@@ -9,6 +9,8 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.estimation.estimator import EstimatorResult, FilterKind
+from gcs_estimator.uncertainty.advice import Advice
+from gcs_estimator.uncertainty.holdout import Holdout
 from gcs_estimator.uncertainty.metrics import FilterSummary
 from gcs_estimator.uncertainty.weighting import StructureCheck
 
@@ -28,6 +30,12 @@ class VehicleResult:
     """Whether any frame updated a filter with a channel, where the result's tracks were
     left where they were made (a filter worker's, without_tracks); None: read the
     tracks."""
+    advice: Advice | None = None
+    """What to fly next (advice.advice_of); None: not computed."""
+    holdout: Holdout | None = None
+    """The held-out check (--validate; decision 0051); None: not asked for."""
+    holdout_drops: dict[str, str] | None = None
+    """The coefficients whose marks the held-out check dropped to weak, each with why."""
 
     def without_tracks(self) -> VehicleResult:
         """This result without its time histories (what a filter worker sends back: they

@@ -21,6 +21,10 @@ Entity paths (documented in the README; tests read them back):
         Scalars, one per observation channel: innovation / its predicted sigma
         (NaN where the channel was missing), with ±2 guide lines
     /vehicle/{id}/results                  TextDocument (Markdown): the current table
+    /vehicle/{id}/advice                   TextDocument (Markdown): what to fly next,
+        refreshed every live.ADVICE_INTERVAL_S while flying, the run's at the end
+    /vehicle/{id}/validation/{channel}     Scalars [measured, predicted]: the held-out
+        check's overlay (--validate), at the end; channels of OBS_NAMES, SI units
     /legend                                TextDocument (Markdown, static): how to read the
         plots; at the end, the run's warnings too
     /link/rate                             Scalars [packets/s]
@@ -106,6 +110,15 @@ def results_path(system_id: int) -> str:
     return f"{vehicle_root(system_id)}/results"
 
 
+def advice_path(system_id: int) -> str:
+    return f"{vehicle_root(system_id)}/advice"
+
+
+def validation_path(system_id: int, channel: str | None = None) -> str:
+    root = f"{vehicle_root(system_id)}/validation"
+    return root if channel is None else f"{root}/{channel}"
+
+
 LINK_RATE = "/link/rate"
 LINK_COUNTS = "/link/counts"
 
@@ -155,6 +168,11 @@ NIS_STYLE = _style(
     ("IEKF", IEKF_COLOR, 1.0),
     ("95 % low", GUIDE_COLOR, 1.0),
     ("95 % high", GUIDE_COLOR, 1.0),
+)
+
+VALIDATION_STYLE = _style(
+    ("measured", MEASURED_COLOR, 1.0),
+    ("predicted", IEKF_COLOR, 2.0),
 )
 
 TURBULENCE_STYLE = _style(
@@ -272,11 +290,19 @@ def build_blueprint(
             name="diagnostics",
         )
         results = rrb.TextDocumentView(origin=results_path(sid), name="results")
+        advice = rrb.TextDocumentView(origin=advice_path(sid), name="what to fly next")
+        held_out = rrb.Grid(
+            *[
+                rrb.TimeSeriesView(origin=validation_path(sid, c), name=f"held out: {c}")
+                for c in OBS_NAMES
+            ],
+            name="held-out check",
+        )
         per_vehicle.append(
             rrb.Vertical(
                 rrb.Horizontal(*columns, name="coefficients"),
                 rrb.TextDocumentView(origin=LEGEND, name="how to read"),
-                rrb.Tabs(states, inputs, diagnostics, results, name="flight"),
+                rrb.Tabs(states, inputs, diagnostics, results, advice, held_out, name="flight"),
                 row_shares=[3.0, 0.6, 2.0],
                 name=f"vehicle {sid}",
             )

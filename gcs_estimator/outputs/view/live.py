@@ -26,7 +26,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.estimator import FILTER_KINDS, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS
+from gcs_estimator.model.channels import FLIGHT_STATES, N_OBS, OBS_NAMES
 from gcs_estimator.outputs.view import layout as lay
 from gcs_estimator.outputs.view.outlets import (
     Columns,
@@ -79,6 +79,9 @@ sent (the history file has every frame)."""
 FLUSH_INTERVAL_S = 1.0
 """Wall clock between batches to the view [s]."""
 RESULTS_INTERVAL_S = 5.0
+ADVICE_INTERVAL_S = 30.0
+"""What to fly next is worked out again this often [s], for one vehicle at a time in
+turn: about a second of flying candidate manoeuvres through the model each time."""
 """Wall clock between refreshes of the live results table [s]."""
 SHUTDOWN_TIMEOUT_S = 3.0
 """A viewer connection's time to drain at exit [s]."""
@@ -316,6 +319,48 @@ def link_columns(t: float, counts: Mapping[str, int], last: tuple[float, int]) -
     return ops
 
 
+class LiveAdvice:
+    """What to fly next while flying: every ADVICE_INTERVAL_S, the next vehicle's in
+    turn, at its latest measured airspeed."""
+
+    def __init__(self, source: Callable[[int, float], str], now: float) -> None:
+        self.source = source
+        """A vehicle's advice (Markdown) at an airspeed [m/s] (NaN: not measured)."""
+        self.last = now
+        self.turn = 0
+        self.airspeed: dict[int, float] = {}
+
+    def saw(self, sid: int, airspeed: float) -> None:
+        if math.isfinite(airspeed):
+            self.airspeed[sid] = airspeed
+
+    def due(self, now: float, rows: Mapping[int, _Rows]) -> list[Op]:
+        """The next vehicle's advice where the interval has passed."""
+        if not rows or now - self.last < ADVICE_INTERVAL_S:
+            return []
+        self.last = now
+        ids = sorted(rows)
+        sid = ids[self.turn % len(ids)]
+        self.turn += 1
+        at = rows[sid].last_times
+        if not at:
+            return []
+        text = self.source(sid, self.airspeed.get(sid, math.nan))
+        return [Text(lay.advice_path(sid), at, text)]
+
+
+def final_check_ops(checked: Mapping[int, VehicleResult], rows: Mapping[int, _Rows]) -> list[Op]:
+    """Each checked vehicle's advice and held-out overlay (check_ops), at its last times."""
+    ops: list[Op] = []
+    for sid, vehicle in checked.items():
+        own = rows.get(sid)
+        if own is not None and own.last_times:
+            ops += check_ops(sid, vehicle, own.last_times)
+    return ops
+
+
+# Over 200 lines: the view's one sender; per-frame buffering, flushing, layout, the live
+# advice's turn and the final panels share its rows and outlets.
 class RerunView:
     """Sends estimates, states, inputs and diagnostics of every vehicle to the outlets."""
 
@@ -327,8 +372,10 @@ class RerunView:
         table_source: TableSource | None = None,
         clock: Callable[[], float] = time.monotonic,
         truth_of: Callable[[int], FloatArray | None] | None = None,
+        advice_source: Callable[[int, float], str] | None = None,
     ) -> None:
         self.outlets = list(outlets)
+        self.advice = None if advice_source is None else LiveAdvice(advice_source, clock())
         self.config = config
         self.names = config.coefficient_names
         self.axes = config.structure.axes
@@ -380,6 +427,8 @@ class RerunView:
         if rows is None:
             rows = self.rows[system_id] = _Rows()
             self._announce(system_id)
+        if self.advice is not None:
+            self.advice.saw(system_id, float(y[0]))
         rows.t.append(t_session)
         rows.tv.append(t_vehicle)
         rows.u.append(u)
@@ -440,6 +489,9 @@ class RerunView:
             self._last_table = self._last_flush
             for sid, rows in self.rows.items():
                 self._send(Text(lay.results_path(sid), rows.last_times, self.table_source(sid)))
+        if self.advice is not None:
+            for op in self.advice.due(self._last_flush, self.rows):
+                self._send(op)
 
     def _send_rows(self, sid: int, rows: _Rows) -> None:
         n = len(rows.t)
@@ -499,10 +551,12 @@ class RerunView:
         final_tables: Mapping[int, str] | None = None,
         marks: Mapping[int, Sequence[str]] | None = None,
         warnings: Sequence[str] = (),
+        checked: Mapping[int, VehicleResult] | None = None,
     ) -> None:
         """Send what is left, the final layout (ranges of the whole run, identifiability
-        in the panel titles), the legend with the run's warnings, and the final results
-        tables; close every outlet."""
+        in the panel titles), the legend with the run's warnings, the final results
+        tables, and each checked vehicle's advice and held-out overlay; close every
+        outlet."""
         self.flush()
         if self.rows:
             self._send_layout(marks)
@@ -512,15 +566,48 @@ class RerunView:
             rows = self.rows.get(sid)
             if rows is not None and rows.last_times:
                 self._send(Text(lay.results_path(sid), rows.last_times, text))
+        for op in final_check_ops(checked or {}, self.rows):
+            self._send(op)
         for outlet in self.outlets:
             outlet.close()
 
 
+def check_ops(sid: int, vehicle: VehicleResult, at: Mapping[str, float]) -> list[Op]:
+    """A finished vehicle's advice (at the times `at`) and the held-out overlay
+    (measured and predicted per channel, on the segment's own clock; the check's figures
+    are in the final results table)."""
+    ops: list[Op] = []
+    if vehicle.advice is not None:
+        ops.append(Text(lay.advice_path(sid), dict(at), advice_markdown(vehicle.advice.lines())))
+    h = vehicle.holdout
+    if h is not None:
+        for c, name in enumerate(OBS_NAMES):
+            if not np.isfinite(h.predicted[:, c]).any():
+                continue
+            path = lay.validation_path(sid, name)
+            ops.append(Style(path, lay.VALIDATION_STYLE))
+            values = np.column_stack([h.measured[:, c], h.predicted[:, c]])
+            ops.append(Columns(path, {lay.TIMELINE: np.asarray(h.t, float)}, values))
+    return ops
+
+
+def advice_markdown(lines: Sequence[str]) -> str:
+    """Lines as a Markdown code block (kept as they are laid out)."""
+    return "```\n" + "\n".join(lines) + "\n```\n"
+
+
 class ViewSink:
     """The view as a session sink: every frame's outputs, refreshed when idle, final
-    tables at the end."""
+    tables at the end (with the checks outputs.checks made of each vehicle, where
+    `checked` has them: that sink must finish before this one)."""
 
-    def __init__(self, view: RerunView, t_zero: Callable[[], float] | None = None) -> None:
+    def __init__(
+        self,
+        view: RerunView,
+        t_zero: Callable[[], float] | None = None,
+        checked: Callable[[], Mapping[int, VehicleResult]] | None = None,
+    ) -> None:
+        self.checked = checked
         self.view = view
         self.t_zero = t_zero
         """Zero of the receive timeline (the session's first packet); default: the first
@@ -547,7 +634,9 @@ class ViewSink:
         from gcs_estimator.outputs.table import final_table
 
         marks = {}
+        done = {} if self.checked is None else self.checked()
         for sid, v in results.items():
+            v = done.get(sid, v)
             s = v.summaries.get("IEKF") or next(iter(v.summaries.values()), None)
             if s is not None:
                 marks[sid] = [c.identifiability for c in s.coefficients]
@@ -556,7 +645,13 @@ class ViewSink:
             for sid, v in results.items()
             for w in trust_warnings(v)
         ]
-        self.view.close({sid: final_table(v) for sid, v in results.items()}, marks, warnings)
+        checked = {} if self.checked is None else dict(self.checked())
+        self.view.close(
+            {sid: final_table(checked.get(sid, v)) for sid, v in results.items()},
+            marks,
+            warnings,
+            checked,
+        )
 
 
 # ------------------------------------------------------------------ opening
