@@ -18,6 +18,7 @@ MavlinkLink.packet (pymavlink's path for what the kernel does not read), as befo
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -36,6 +37,7 @@ from gcs_estimator.ingest.telemetry.mavlink import (
     READ_CHUNK,
     Decoder,
     TlogError,
+    TlogRecord,
     TlogStats,
     _junk_byte,
     _junk_record,
@@ -72,6 +74,10 @@ class Run(NamedTuple):
 
 def _one(data: bytes, t: int, start: int, end: int) -> Run:
     return Run(data, [start], [end], [t], [OTHER], [0], [0], [0], [], 0)
+
+
+FRAMING_ONLY = tlog_kernel.field_table(())
+"""A table of no message: the kernel frames records and reads none."""
 
 
 @functools.lru_cache(maxsize=16)
@@ -200,6 +206,27 @@ def read_runs(path: str | Path, stats: TlogStats, table: FieldTable) -> Iterator
         raise TlogError(f"{path}: not a tlog (no MAVLink record found)")
     if r.i < len(r.data):
         stats.truncated_tail = True
+
+
+def read_records(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
+    """read_tlog's records (and stats), the plain ones framed by the kernel (no message
+    read: a scan for one message type, as runtime/logs.py's for the autopilot's UID)."""
+    for run in read_runs(path, TlogStats() if stats is None else stats, FRAMING_ONLY):
+        data = run.data
+        for start, end, t in zip(run.starts, run.ends, run.times, strict=True):
+            yield TlogRecord(t, data[start:end])
+
+
+READER_VARIABLE = "GCS_ESTIMATOR_TLOG_READER"
+"""`python`: replay and batch read tlogs with TlogSource (read_tlog and SampleReader,
+record by record), not the compiled reader: to compare the two, or to rule one out."""
+
+
+def tlog_source_class() -> type[TlogSource]:
+    """The source a replay or a batch reads a tlog with (READER_VARIABLE)."""
+    if os.environ.get(READER_VARIABLE, "").strip().lower() == "python":
+        return TlogSource
+    return CompiledTlogSource
 
 
 class CompiledTlogSource(TlogSource):
