@@ -58,7 +58,7 @@ DONE_FILE = "done.jsonl"
 COEFFICIENTS_FILE = "coefficients.parquet"
 FLIGHTS_FILE = "flights.parquet"
 LOGS_FOLDER = "logs"
-POLL_S = 0.1
+POLL_S = 0.02
 """How often the batch looks for finished logs and a stop request [s]."""
 SCHEDULER_VARIABLE = "DASK_SCHEDULER_ADDRESS"
 
@@ -257,11 +257,11 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
         where = f"scheduler {address}"
         cluster = None
     else:
-        from gcs_estimator.runtime.session import warm_up
+        from gcs_estimator.runtime.fleet_worker import prepare
 
         # Compiled (or loaded) once here: the workers then load the kernels from the
-        # cache instead of each compiling them at once.
-        warm_up(load_config(args.config, args.set))
+        # cache instead of each compiling them at once (fleet_worker.PrepareWorker).
+        prepare(load_config(args.config, args.set))
         workers = args.workers or os.cpu_count() or 1
         cluster = LocalCluster(
             n_workers=workers,
@@ -272,6 +272,9 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
         )
         client = Client(cluster)
         where = f"a local cluster of {workers} worker processes"
+    from gcs_estimator.runtime.fleet_worker import PrepareWorker
+
+    client.register_plugin(PrepareWorker(load_config(args.config, args.set)))
     n = len(client.scheduler_info().get("workers", {}))
     print(f"batch on {where}, {n} workers now", file=log, flush=True)
     services = client.scheduler_info().get("services", {})

@@ -217,6 +217,12 @@ def read_records(path: str | Path, stats: TlogStats | None = None) -> Iterator[T
             yield TlogRecord(t, data[start:end])
 
 
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel now, for the types every read
+    calls it with: a worker's first log then waits for nothing."""
+    tlog_kernel.run(np.zeros(0, np.uint8), 0, True, False, 0, FRAMING_ONLY, Output(1))
+
+
 READER_VARIABLE = "GCS_ESTIMATOR_TLOG_READER"
 """`python`: replay and batch read tlogs with TlogSource (read_tlog and SampleReader,
 record by record), not the compiled reader: to compare the two, or to rule one out."""
