@@ -145,13 +145,15 @@ def decode_rates(args: argparse.Namespace, paths: list[Path]) -> None:
     warm_up()
     rates: dict[str, list[float]] = {}
     for _ in range(args.decode_rounds):
-        for name, run in (
-            ("python, to frames", lambda p: _replayed(TlogSource, p, config)),
-            ("compiled, to frames", lambda p: _replayed(CompiledTlogSource, p, config)),
-            ("python, reading", lambda p: _read(p, config, False)),
-            ("compiled, reading", lambda p: _read(p, config, True)),
+        for name, source, compiled in (
+            ("python, to frames", TlogSource, False),
+            ("compiled, to frames", CompiledTlogSource, True),
+            ("python, reading", None, False),
+            ("compiled, reading", None, True),
         ):
-            got = [run(p) for p in logs]
+            got = [
+                _replayed(source, p, config) if source else _read(p, config, compiled) for p in logs
+            ]
             rates.setdefault(name, []).append(sum(n for n, _ in got) / sum(t for _, t in got))
     med = {k: float(np.median(v)) for k, v in rates.items()}
     for what in ("to frames", "reading"):

@@ -21,7 +21,7 @@ from gcs_estimator import blas
 from gcs_estimator.config import AircraftConfig
 
 
-class PrepareWorker(WorkerPlugin):  # type: ignore[misc]
+class PrepareWorker(WorkerPlugin):
     """Imports and compiled kernels loaded, the collector's objects frozen."""
 
     name = "gcs-estimator-prepare"

@@ -129,12 +129,16 @@ class _Reader:
             return
         self.first = False
         self.st.records += taken
-        head = out.header[:taken].T.tolist()
+        t, status, seq, sysid, compid = out.header[:taken].T.tolist()
         yield Run(
             self.data,
             out.bounds[:taken, 0].tolist(),
             out.bounds[:taken, 1].tolist(),
-            *head,
+            t,
+            status,
+            seq,
+            sysid,
+            compid,
             out.values[:taken, : self.width].ravel().tolist(),
             self.width,
         )
