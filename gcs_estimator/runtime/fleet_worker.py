@@ -8,11 +8,14 @@ process whose objects were never frozen, the garbage collector's full collection
 all of that in the middle of every log. The plugin does it as the worker joins the
 batch (registering it waits for the workers there; one that joins later, or replaces a
 killed one, runs it before it takes a task): session.warm_up (kernels, then gc.freeze)
-and tlog_fast.warm_up.
+and tlog_fast.warm_up. The batch's client prepares itself first (fleet.connect): on a
+cache miss it compiles the kernels once, and workers that share its file system then
+load them instead of each compiling them at once.
 """
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from distributed.diagnostics.plugin import WorkerPlugin
@@ -29,8 +32,10 @@ class PrepareWorker(WorkerPlugin):
     def __init__(self, config: AircraftConfig) -> None:
         self.config = config
 
-    def setup(self, worker: Any) -> None:
-        prepare(self.config)
+    async def setup(self, worker: Any) -> None:
+        """In a thread: a compile on a cache miss takes minutes on a busy machine, and the
+        worker's event loop must go on answering the scheduler meanwhile."""
+        await asyncio.to_thread(prepare, self.config)
 
 
 def prepare(config: AircraftConfig) -> None:
