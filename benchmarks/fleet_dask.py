@@ -20,6 +20,10 @@ Then `gcs-estimator batch` over them (both filters, no refine):
   their rows of the table;
 - history size per vehicle-hour, Parquet (the batch's) against the CSV of the same log
   (target: at most a fifth);
+- decoding alone (decision 0055), the compiled tlog reader against the record-by-record
+  one, runs interleaved on the same logs (the machine's state the same for both):
+  packets per second through the link to frames, and of reading alone (framing, CRC,
+  the channel messages' fields); --reader python runs the batches with the latter;
 - the trend: vehicle 1's CD0 flagged (drift), the others' not. CD0's sigma is about 4 %
   after a 60 s flight: a 5 % drift over 50 such flights is within the scatter (t = 3.0
   measured, 3.5 needed); the default 3 minutes (sigma about 2.3 %) is where the sigmas
@@ -29,6 +33,7 @@ Then `gcs-estimator batch` over them (both filters, no refine):
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import re
@@ -46,9 +51,20 @@ from flights import repeated_manoeuvre
 
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
-from gcs_estimator.ingest.telemetry.mavlink import Codec, tlog_record
+from gcs_estimator.ingest.sources import TlogSource
+from gcs_estimator.ingest.telemetry.decode import DecodeStats, SampleReader, ranges_of
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogStats, read_tlog, tlog_record
+from gcs_estimator.ingest.telemetry.tlog_fast import (
+    READER_VARIABLE,
+    CompiledTlogSource,
+    read_runs,
+    table_of,
+    warm_up,
+)
 from gcs_estimator.outputs.trend import charts
 from gcs_estimator.runtime.logs import estimate_file
+from gcs_estimator.stop import Stop
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 
@@ -76,8 +92,16 @@ def main(argv: list[str] | None = None) -> int:
         help="only the 2-worker batch: estimates, history size and the trend",
     )
     ap.add_argument("--keep", default=None, help="copy the 2-worker batch's tables here")
+    ap.add_argument(
+        "--reader",
+        choices=("compiled", "python"),
+        default="compiled",
+        help="the batches' tlog reader (GCS_ESTIMATOR_TLOG_READER)",
+    )
+    ap.add_argument("--decode-rounds", type=int, default=3, help="interleaved runs of each reader")
     record.add_argument(ap, "fleet_dask")
     args = ap.parse_args(argv)
+    os.environ[READER_VARIABLE] = args.reader  # the batches' and estimate_file's
     with record.recorded("fleet_dask", args.record, "Fleet: a batch of logs on Dask"):
         return run(args)
 
@@ -86,6 +110,59 @@ def _env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     return env
+
+
+def _replayed(source_class: Any, path: Path, config: Any) -> tuple[int, float]:
+    """(records, seconds) of one log through a tlog source and a link to frames."""
+    link = MavlinkLink(config.link, log=io.StringIO(), ranges=ranges_of(config.data))
+    source = source_class([path], link, log=io.StringIO())
+    t0 = time.perf_counter()
+    for _ in source.frames(Stop()):
+        pass
+    return source.done, time.perf_counter() - t0
+
+
+def _read(path: Path, config: Any, compiled: bool) -> tuple[int, float]:
+    """(records, seconds) of reading alone: records framed, channel messages' fields."""
+    t0 = time.perf_counter()
+    n = 0
+    if compiled:
+        for run in read_runs(path, TlogStats(), table_of(config.link)):
+            n += len(run.status)
+    else:
+        reader = SampleReader(config.link, DecodeStats())
+        for rec in read_tlog(path):
+            reader(rec.packet, rec.t_recv_us * 1e-6)
+            n += 1
+    return n, time.perf_counter() - t0
+
+
+def decode_rates(args: argparse.Namespace, paths: list[Path]) -> None:
+    """Packets per second of decoding alone, each reader's runs interleaved with the
+    other's on the same logs; the median of --decode-rounds."""
+    config = load_config("noc_uav", _overrides(args.seconds))
+    logs = paths[:2]
+    warm_up()
+    rates: dict[str, list[float]] = {}
+    for _ in range(args.decode_rounds):
+        for name, source, compiled in (
+            ("python, to frames", TlogSource, False),
+            ("compiled, to frames", CompiledTlogSource, True),
+            ("python, reading", None, False),
+            ("compiled, reading", None, True),
+        ):
+            got = [
+                _replayed(source, p, config) if source else _read(p, config, compiled) for p in logs
+            ]
+            rates.setdefault(name, []).append(sum(n for n, _ in got) / sum(t for _, t in got))
+    med = {k: float(np.median(v)) for k, v in rates.items()}
+    for what in ("to frames", "reading"):
+        py, comp = med[f"python, {what}"], med[f"compiled, {what}"]
+        print(
+            f"decode alone: {what:<9}: python {py:,.0f} packets/s, compiled {comp:,.0f} "
+            f"packets/s: {comp / py:.2f}x (median of {args.decode_rounds} interleaved runs "
+            f"over {len(logs)} logs)"
+        )
 
 
 def _overrides(seconds: float) -> list[str]:
@@ -295,6 +372,8 @@ def run(args: argparse.Namespace) -> int:
             f"{time.perf_counter() - t0:.0f} s; load average {load[0]:.1f} at the start, "
             f"{os.cpu_count()} cores"
         )
+        decode_rates(args, paths)
+        print(f"batches     : the {args.reader} tlog reader")
         two = batch(args, logs, tmp / "two", ["--workers", "2"])
         rate2 = figures("embedded, 2 workers", 2, two)
         if args.keep:

@@ -11,9 +11,9 @@ import select
 import socket
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO, TypeVar
 
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest import endpoints
@@ -22,7 +22,6 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import (
     Codec,
     TlogError,
-    TlogRecord,
     TlogStats,
     read_tlog,
 )
@@ -30,6 +29,8 @@ from gcs_estimator.stop import Stop
 
 if TYPE_CHECKING:
     import serial
+
+T = TypeVar("T")
 
 RCVBUF_BYTES = 8 * 1024 * 1024
 """Listener socket buffer: the ~212 KB default drops packets at high rates."""
@@ -331,13 +332,16 @@ class TlogSource:
         self.errors: list[str] = []
         """Files that could not be replayed (the others' frames are processed)."""
 
-    def _records(self, path: Path, stats: TlogStats) -> Iterator[TlogRecord]:
-        """The file's records as they are read (a piece at a time)."""
+    def _records(
+        self, path: Path, stats: TlogStats, read: Callable[[Path, TlogStats], Iterator[T]]
+    ) -> Iterator[T]:
+        """The file's records as `read` reads them (a piece at a time; read_tlog, or
+        tlog_fast's runs of records), with its notes."""
         try:
             self.total = path.stat().st_size
             if self.total == 0:
                 raise SourceError(f"{path}: an empty file (no MAVLink record)")
-            yield from read_tlog(path, stats)
+            yield from read(path, stats)
         except TlogError as exc:
             raise SourceError(str(exc)) from exc
         except OSError as exc:
@@ -369,7 +373,7 @@ class TlogSource:
             self._stats = stats = TlogStats()
             try:
                 jumps = 0
-                for rec in self._records(path, stats):
+                for rec in self._records(path, stats, read_tlog):
                     if stop.requested:
                         break
                     t = rec.t_recv_us * 1e-6

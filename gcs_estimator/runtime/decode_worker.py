@@ -1,11 +1,12 @@
 """Replay on two cores: a worker process reads, decodes and synchronises a tlog while
 this process runs the filters.
 
-Decoding is per-packet Python and the filters are compiled; in one process they take
-turns, and threads would too (they share the GIL). The worker runs exactly the code a
-replay in one process runs (TlogSource over a MavlinkLink) and sends its frames over a
-pipe in batches, with the link's counters and the read position, so the frames, and so
-the estimates, are the same; the link's notes are printed by this process.
+Decoding is per-packet Python (framing and field reading compiled: tlog_fast) and the
+filters are compiled; in one process they take turns, and threads would too (they share
+the GIL). The worker runs exactly the code a replay in one process runs (the tlog source
+over a MavlinkLink) and sends its frames over a pipe in batches, with the link's counters
+and the read position, so the frames, and so the estimates, are the same; the link's
+notes are printed by this process.
 
 The worker is `python -m gcs_estimator.runtime.decode_worker`, not a multiprocessing child: a
 spawned child would import the caller's main module again, so every script that
@@ -39,6 +40,7 @@ from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry.counters import LinkCounts
 from gcs_estimator.ingest.telemetry.decode import Ranges
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.tlog_fast import tlog_source_class
 from gcs_estimator.stop import Stop
 
 BATCH_FRAMES = 512
@@ -208,7 +210,7 @@ def _work(paths: list[str], args: LinkArgs, send: Any) -> None:
         ranges=args.ranges,
         elevator_travel_deg=args.elevator_travel_deg,
     )
-    source = TlogSource(paths, link, log=log)
+    source = tlog_source_class()(paths, link, log=log)
 
     def progress() -> Progress:
         position, total = source.progress()
@@ -523,7 +525,7 @@ def tlog_source(
     else in this one."""
     if use_decode_worker(speed, link):
         return WorkerTlogSource(paths, link, log)
-    return TlogSource(paths, link, speed=speed, log=log)
+    return tlog_source_class()(paths, link, speed=speed, log=log)
 
 
 if __name__ == "__main__":

@@ -58,7 +58,7 @@ DONE_FILE = "done.jsonl"
 COEFFICIENTS_FILE = "coefficients.parquet"
 FLIGHTS_FILE = "flights.parquet"
 LOGS_FOLDER = "logs"
-POLL_S = 0.1
+POLL_S = 0.02
 """How often the batch looks for finished logs and a stop request [s]."""
 SCHEDULER_VARIABLE = "DASK_SCHEDULER_ADDRESS"
 
@@ -244,8 +244,14 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
     processes (default: one per core), one thread each."""
     import logging
 
+    from gcs_estimator.runtime.fleet_worker import PrepareWorker, prepare
+
     dist = _distributed()
     Client, LocalCluster = dist.Client, dist.LocalCluster
+    config = load_config(args.config, args.set)
+    # Compiled (or loaded) once here: the workers then load the kernels from the cache
+    # instead of each compiling them at once (fleet_worker.PrepareWorker).
+    prepare(config)
 
     address = args.scheduler or os.environ.get(SCHEDULER_VARIABLE) or None
     if args.scheduler_file:
@@ -257,11 +263,6 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
         where = f"scheduler {address}"
         cluster = None
     else:
-        from gcs_estimator.runtime.session import warm_up
-
-        # Compiled (or loaded) once here: the workers then load the kernels from the
-        # cache instead of each compiling them at once.
-        warm_up(load_config(args.config, args.set))
         workers = args.workers or os.cpu_count() or 1
         cluster = LocalCluster(
             n_workers=workers,
@@ -272,6 +273,7 @@ def connect(args: argparse.Namespace, log: TextIO) -> tuple[Any, Any]:
         )
         client = Client(cluster)
         where = f"a local cluster of {workers} worker processes"
+    client.register_plugin(PrepareWorker(config))
     n = len(client.scheduler_info().get("workers", {}))
     print(f"batch on {where}, {n} workers now", file=log, flush=True)
     services = client.scheduler_info().get("services", {})

@@ -4,7 +4,8 @@ batch runs per log (runtime/fleet.py), in this process.
     estimate_file(path, config, out_dir) -> LogOutcome
 
 The reader is chosen by the file's content (reader_of, ingest.logs.detect): a .tlog is
-decoded in this process (a batch's worker is one core already); an autopilot's log, a
+decoded in this process (a batch's worker is one core already), by the compiled reader
+(ingest.telemetry.tlog_fast); an autopilot's log, a
 CSV or the HFB-320 record is read as `offline` reads it (ingest.logs.reader.load_flight). The
 result files are the replay's (results_sys<ID>.json, .md, the history), in out_dir.
 """
@@ -27,10 +28,11 @@ from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.flightdata import FlightDataError
 from gcs_estimator.ingest.logs import detect
 from gcs_estimator.ingest.logs.reader import load_flight
-from gcs_estimator.ingest.sources import SourceError, TlogSource
+from gcs_estimator.ingest.sources import SourceError
 from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
-from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogError, read_tlog
+from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogError
+from gcs_estimator.ingest.telemetry.tlog_fast import read_records, tlog_source_class
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.sinks import ResultsSink, results_stem
 from gcs_estimator.outputs.tables import coefficient_rows, failed_row, summary_row
@@ -139,7 +141,7 @@ def tlog_facts(path: Path) -> LogFacts:
     facts = LogFacts()
     codec = Codec(255, 190)
     try:
-        for k, rec in enumerate(read_tlog(path)):
+        for k, rec in enumerate(read_records(path)):
             if facts.flight_time is None:
                 facts.flight_time = _time_of(rec.t_recv_us)
             if k >= UID_SCAN_RECORDS:
@@ -226,7 +228,7 @@ def _tlog_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[
     link = MavlinkLink(
         config.link, linear_inputs=config.data.input_hold == "linear", ranges=ranges_of(config.data)
     )
-    return TlogSource([path], link, log=log), tlog_facts(path)
+    return tlog_source_class()([path], link, log=log), tlog_facts(path)
 
 
 def _data_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[Source, LogFacts]:

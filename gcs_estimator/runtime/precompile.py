@@ -19,6 +19,7 @@ import numpy as np
 
 def main() -> int:
     from gcs_estimator.config import load_config
+    from gcs_estimator.ingest.telemetry import tlog_fast
     from gcs_estimator.refine import RefineError, refine_run
     from gcs_estimator.runtime.session import run_recording, warm_up
     from sim.truth import simulate
@@ -26,6 +27,7 @@ def main() -> int:
     start = time.perf_counter()
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=2"])
     warm_up(config)
+    tlog_fast.warm_up()  # the tlog reader's kernel
     flight = simulate(config, seed=1)
     # Its results (the structure check's replays compile the block kernel too) say what
     # they do on stderr: not news while the install compiles.

@@ -219,9 +219,21 @@ class SampleReader:
         if not isinstance(got, tuple):
             return got
         reader, seq, sysid, compid, fields = got
-        kind = reader.msgname
-        found = self._plans[reader.msgid].make(fields)
-        sample = _sample(sysid, kind, found, t_recv_s, self._stats, self._ranges)
+        return self.of_fields(reader.msgid, seq, sysid, compid, fields, t_recv_s)
+
+    @property
+    def readers(self) -> dict[int, FieldReader]:
+        """The messages read here, by id, with the fields each is read for."""
+        return self._readers
+
+    def of_fields(
+        self, msgid: int, seq: int, sysid: int, compid: int, fields: Any, t_recv_s: float
+    ) -> Decoded:
+        """The meaning of a packet of one of these messages that passed its CRC, from its
+        fields as its FieldReader reads them (or tlog_kernel, which reads them alike)."""
+        plan = self._plans[msgid]
+        found = plan.make(fields)
+        sample = _sample(sysid, plan.reader.msgname, found, t_recv_s, self._stats, self._ranges)
         return Decoded(sysid, compid, seq, Ignored() if sample is None else sample)
 
 

@@ -202,6 +202,13 @@ class MavlinkLink:
             return []
         return self._decoded(packet, msg, t_recv_s, address)
 
+    def decoded_packet(self, packet: bytes, t_recv_s: float, decoded: Decoded) -> list[Frame]:
+        """As packet(), for a packet whose meaning SampleReader.of_fields has given
+        already (a tlog record read by tlog_fast): the same counters, notes and frames."""
+        if self.signing is not None:
+            return self.packet(packet, t_recv_s)
+        return self._decoded(packet, None, t_recv_s, None, decoded)
+
     def _fast(self, packet: bytes, t_recv_s: float) -> Decoded | None:
         """The packet's meaning by decode.SampleReader where it can tell (a channel
         message that passes its CRC), else None. Not with signing on: there a packet's

@@ -1,0 +1,301 @@
+"""A tlog read with its common case compiled (tlog_kernel), and replayed through the link
+with the channel messages' fields already read (decision 0055).
+
+    read_records(path, stats, table) -> the records of mavlink.read_tlog, the same ones
+                                        with the same TlogStats, each with what the
+                                        kernel read of its packet
+    CompiledTlogSource                  TlogSource over them: the same frames, counters
+                                        and notes
+
+mavlink.read_tlog stays the reference (and reads live recordings); read_records is its
+loop with the plain records taken by the kernel, many at a time: where the kernel stops,
+the loop's own step (the same helpers) takes the next record, and the kernel goes on
+after it. A record of a channel message that passed its CRC goes to the link decoded
+(MavlinkLink.decoded_packet, SampleReader.of_fields); every other record goes to
+MavlinkLink.packet (pymavlink's path for what the kernel does not read), as before.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from gcs_estimator.config import LinkConfig
+from gcs_estimator.frames import Frame
+from gcs_estimator.ingest.sources import SourceError, TlogSource
+from gcs_estimator.ingest.telemetry import tlog_kernel
+from gcs_estimator.ingest.telemetry.decode import DecodeStats, SampleReader
+from gcs_estimator.ingest.telemetry.mavlink import (
+    _TIME_US,
+    BACK_US,
+    LOOKAHEAD,
+    READ_CHUNK,
+    Decoder,
+    TlogError,
+    TlogRecord,
+    TlogStats,
+    _junk_byte,
+    _junk_record,
+    _taken_time,
+    packet_length,
+)
+from gcs_estimator.ingest.telemetry.tlog_kernel import OTHER, FieldTable, Output
+from gcs_estimator.stop import Stop
+
+KERNEL_MAX_T_US = 1 << 62
+"""Receive times beyond this are left to read_tlog's own step (the kernel's int64)."""
+
+
+class Run(NamedTuple):
+    """Records one after the other in a piece of the file: the kernel's columns, as flat
+    lists (numbers only: a list per record would wake the garbage collector over the
+    whole process), or one record read_tlog's own step took (status OTHER)."""
+
+    data: bytes
+    starts: list[int]
+    ends: list[int]
+    """Each record's packet: data[start:end]."""
+    times: list[int]
+    """Receive times [us]."""
+    status: list[int]
+    """The table message's slot, tlog_kernel.OTHER or BAD_CRC."""
+    seq: list[int]
+    system_id: list[int]
+    component_id: list[int]
+    values: list[float]
+    """The fields of the table messages (tlog_kernel.Output.values), `width` a record."""
+    width: int
+
+
+def _one(data: bytes, t: int, start: int, end: int) -> Run:
+    return Run(data, [start], [end], [t], [OTHER], [0], [0], [0], [], 0)
+
+
+FRAMING_ONLY = tlog_kernel.field_table(())
+"""A table of no message: the kernel frames records and reads none."""
+
+
+@functools.lru_cache(maxsize=16)
+def table_of(link: LinkConfig) -> FieldTable:
+    """The kernel's table of the messages SampleReader reads for this link."""
+    readers = SampleReader(link, DecodeStats()).readers
+    return tlog_kernel.field_table(
+        tuple(tlog_kernel.message(r.msgname, r.fields) for r in readers.values())
+    )
+
+
+class _Reader:
+    """read_tlog's state over one file (see read_tlog for the rules)."""
+
+    def __init__(self, path: str | Path, stats: TlogStats, table: FieldTable) -> None:
+        self.path = path
+        self.st = stats
+        self.table = table
+        self.out = Output()
+        self.decoder = Decoder()
+        self.first = True
+        self.resyncing = False
+        self.last_t: int | None = None
+        self.data = b""
+        self.array = np.frombuffer(self.data, np.uint8)
+        self.offset = 0
+        self.i = 0
+        self.eof = False
+        self.width = int(table.count.max(initial=0))
+
+    def refill(self, fh: Any) -> None:
+        chunk = fh.read(READ_CHUNK)
+        self.eof = not chunk
+        self.offset += self.i
+        self.data = self.data[self.i :] + chunk
+        self.array = np.frombuffer(self.data, np.uint8)
+        self.i = 0
+
+    def compiled(self) -> Iterator[Run]:
+        """The plain records from i on, taken by the kernel (none while resyncing)."""
+        last = self.last_t
+        if self.resyncing or (last is not None and last > KERNEL_MAX_T_US):
+            return
+        out = self.out
+        taken, end = tlog_kernel.run(
+            self.array, self.i, self.eof, last is not None, last or 0, self.table, out
+        )
+        if not taken:
+            return
+        self.first = False
+        self.st.records += taken
+        t, status, seq, sysid, compid = out.header[:taken].T.tolist()
+        yield Run(
+            self.data,
+            out.bounds[:taken, 0].tolist(),
+            out.bounds[:taken, 1].tolist(),
+            t,
+            status,
+            seq,
+            sysid,
+            compid,
+            out.values[:taken, : self.width].ravel().tolist(),
+            self.width,
+        )
+        self.last_t = int(out.header[taken - 1, 0])
+        self.i = end
+
+    def step(self) -> Iterator[Run]:
+        """One turn of read_tlog's loop at i (a record not plainly framed, or junk)."""
+        data, i, st = self.data, self.i, self.st
+        n = packet_length(data, i + 8)
+        end = i + 8 + n
+        if n and end <= len(data):
+            (t_us,) = _TIME_US(data, i)
+            following = packet_length(data, end + 8) if end < len(data) else 0
+            framed = end == len(data) or following > 0
+            last_t = self.last_t
+            plain = (
+                framed
+                and not self.resyncing
+                and (last_t is None or last_t - BACK_US <= t_us <= last_t + BACK_US)
+            )
+            t_taken = (
+                t_us
+                if plain
+                else _taken_time(data, i, end, following, last_t, self.resyncing, self.decoder, st)
+            )
+            if t_taken is not None:
+                self.first = self.resyncing = False
+                self.last_t = t_taken
+                st.records += 1
+                self.i = end
+                yield _one(data, t_taken, i + 8, end)
+                return
+        elif n:  # the record runs past the end of the file
+            st.truncated_tail = True
+            self.i = -1
+            return
+        got = _junk_record(data, i, None if self.resyncing else self.last_t, self.decoder, st)
+        if got is not None:
+            self.last_t, self.i = got[0].t_recv_us, got[1]
+            yield _one(got[0].packet, self.last_t, 0, len(got[0].packet))
+        else:
+            _junk_byte(self.path, st, self.first, self.offset + i)
+            self.resyncing = True
+            self.i = i + 1
+
+
+def read_runs(path: str | Path, stats: TlogStats, table: FieldTable) -> Iterator[Run]:
+    """mavlink.read_tlog's records and stats, in runs: the plain ones read by the kernel
+    (stats.position is where the run ends: read_tlog's, record by record, is where each
+    starts)."""
+    r = _Reader(path, stats, table)
+    with open(path, "rb") as fh:
+        while True:
+            stats.position = r.offset + r.i
+            if not r.eof and len(r.data) - r.i < LOOKAHEAD:
+                r.refill(fh)
+                continue
+            if r.i + 8 >= len(r.data):
+                break
+            start = r.i
+            yield from r.compiled()
+            if r.i != start:
+                continue
+            yield from r.step()
+            if r.i < 0:
+                return  # a truncated tail
+    if r.first and len(r.data) > 0:
+        raise TlogError(f"{path}: not a tlog (no MAVLink record found)")
+    if r.i < len(r.data):
+        stats.truncated_tail = True
+
+
+def read_records(path: str | Path, stats: TlogStats | None = None) -> Iterator[TlogRecord]:
+    """read_tlog's records (and stats), the plain ones framed by the kernel (no message
+    read: a scan for one message type, as runtime/logs.py's for the autopilot's UID)."""
+    for run in read_runs(path, TlogStats() if stats is None else stats, FRAMING_ONLY):
+        data = run.data
+        for start, end, t in zip(run.starts, run.ends, run.times, strict=True):
+            yield TlogRecord(t, data[start:end])
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel now, for the types every read
+    calls it with: a worker's first log then waits for nothing."""
+    tlog_kernel.run(np.zeros(0, np.uint8), 0, True, False, 0, FRAMING_ONLY, Output(1))
+
+
+READER_VARIABLE = "GCS_ESTIMATOR_TLOG_READER"
+"""`python`: replay and batch read tlogs with TlogSource (read_tlog and SampleReader,
+record by record), not the compiled reader: to compare the two, or to rule one out."""
+
+
+def tlog_source_class() -> type[TlogSource]:
+    """The source a replay or a batch reads a tlog with (READER_VARIABLE)."""
+    if os.environ.get(READER_VARIABLE, "").strip().lower() == "python":
+        return TlogSource
+    return CompiledTlogSource
+
+
+class CompiledTlogSource(TlogSource):
+    """TlogSource with its files read by read_runs: the same frames, counters and
+    notes, the channel messages decoded by the kernel. Paced (speed > 0): TlogSource."""
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        if self.speed > 0:
+            yield from super().frames(stop)
+            return
+        table = table_of(self.link.config)
+        for path in self.paths:
+            self._stats = stats = TlogStats()
+            try:
+                for run in self._records(path, stats, functools.partial(read_runs, table=table)):
+                    if stop.requested:
+                        break
+                    yield from self._run_frames(run, table)
+            except SourceError as exc:
+                self.errors.append(str(exc))
+                print(f"error: {exc}; skipped", file=self.log)
+        yield from self.link.flush()
+
+    def _run_frames(self, run: Run, table: FieldTable) -> Iterator[Frame]:
+        """The frames a run's records let go, record by record as MavlinkLink.packet
+        would (a channel message read by the kernel: MavlinkLink.decoded_packet)."""
+        link = self.link
+        packet_frames = link.packet
+        decoded_frames = link.decoded_packet
+        of_fields = link.samples.of_fields
+        messages = table.messages
+        data, values, width = run.data, run.values, run.width
+        signed = link.signing is not None
+        for j, status in enumerate(run.status):
+            t = run.times[j] * 1e-6
+            packet = data[run.starts[j] : run.ends[j]]
+            if status < 0 or signed:
+                out = packet_frames(packet, t)
+            else:
+                msg = messages[status]
+                at = j * width
+                fields = values[at : at + msg.count]
+                if msg.texts:
+                    fields = _with_text(packet, msg, fields)
+                sample = of_fields(
+                    msg.msgid, run.seq[j], run.system_id[j], run.component_id[j], fields, t
+                )
+                out = decoded_frames(packet, t, sample)
+            if out:
+                yield from out
+
+
+def _with_text(packet: bytes, msg: tlog_kernel.Message, values: list[Any]) -> list[Any]:
+    """The fields with each char[] one as struct reads it from the (zero-padded) payload."""
+    head = 10 if packet[0] == 0xFD else 6
+    payload = packet[head:-2]
+    out = list(values)
+    for k in msg.texts:
+        o, size = msg.offsets[k], msg.sizes[k]
+        raw = payload[o : o + size]
+        out[k] = raw + bytes(size - len(raw))
+    return out
