@@ -337,7 +337,7 @@ def thrust_warnings(vehicle: VehicleResult) -> list[str]:
             if abs(found[0]) <= DELAY_WARNING_SIGMA * found[1]:
                 return []
             return [
-                f"this flight puts the thrust at ×{1.0 + found[0]:.2f} ± {found[1]:.2f} of the "
+                f"this flight puts the thrust at ×{1.0 + found[0]:.3f} ± {found[1]:.3f} of the "
                 "airframe file's: the filters fly the file's, so their drag (and what moves "
                 "with it) is off by the difference, which their σ includes; `refine` fits "
                 "the thrust with the coefficients"

@@ -293,6 +293,7 @@ def _refined_note(refined: Refined) -> str:
         + "; residual colour (1 = white) "
         + channel_text(refined.residual_colour)
         + (f"; input delay {refined.delay_text()}" if refined.delay_names else "")
+        + (f"; propeller {refined.factor_text()}" if refined.factor_names else "")
     )
 
 
