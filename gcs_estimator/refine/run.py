@@ -139,9 +139,11 @@ def refine_run(
         estimate_delays = result.config.data.estimate_input_delay
     factors = thrust_factors(result.config)
     filter_structure = None
+    propeller = None
     check = None if isinstance(run, EstimatorResult) else run.structure
     if check is not None and not check.skipped:
         filter_structure = _filter_structure(check, kind, estimate_delays, bool(factors))
+        propeller = _propeller_part(check, kind) if factors else None
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -166,7 +168,11 @@ def refine_run(
         progress=progress,
         hold_noise=hold_noise,
         threads=threads,
-        compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+        compared=FilterEstimate(
+            fr.coefficients,
+            fr.sigma if propeller is None else np.hypot(fr.sigma, propeller),
+            filter_structure,
+        ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
         factors=factors,
     )
@@ -199,6 +205,18 @@ def _filter_structure(
         return check.sigma.get(kind)
     kept = [part[kind] for name, part in check.parts.items() if name not in left]
     out: FloatArray = np.sqrt(sum(v * v for v in kept))
+    return out
+
+
+def _propeller_part(check: StructureCheck, kind: FilterKind) -> FloatArray | None:
+    """Filter `kind`'s propeller parts of its structure sigma (decision 0054), None where
+    the check has none: the filter flew the airframe file's thrust, so its estimates may
+    lie that far from a fit that fits the thrust without either being wrong (the
+    difference sigma, decision 0030, allows it)."""
+    parts = [check.parts[p][kind] for p in THRUST_PARTS if p in check.parts]
+    if not parts:
+        return None
+    out: FloatArray = np.sqrt(sum(v * v for v in parts))
     return out
 
 
