@@ -164,9 +164,15 @@ class Propulsion:
         "structure check moves); not set: the spec sheet derivation's (0.15), exact with "
         "the three exact keys",
     )
-    prop_area_m2: float = setting(0.0, ge=0, unit="m^2", doc="exact propeller model only")
-    prop_coefficient: float = setting(0.0, ge=0, doc="exact propeller model only")
-    motor_constant_mps: float = setting(0.0, ge=0, unit="m/s", doc="exact propeller model only")
+    prop_area_m2: float = setting(
+        0.0, ge=0, unit="m^2", doc="exact (a static thrust test): all three or none; they win"
+    )
+    prop_coefficient: float = setting(
+        0.0, ge=0, doc="exact (a static thrust test): all three or none; they win"
+    )
+    motor_constant_mps: float = setting(
+        0.0, ge=0, unit="m/s", doc="exact (a static thrust test): all three or none; they win"
+    )
     thrust_scale: float = setting(1.0, internal=True)
     """A factor on the thrust (the structure check's replays move it)."""
     speed_scale: float = setting(1.0, internal=True)
