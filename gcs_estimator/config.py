@@ -20,8 +20,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from gcs_estimator import units
+from gcs_estimator.model import propeller
 from gcs_estimator.model import turbulence as gusts
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
+from gcs_estimator.model.propeller import PropellerConstants
 from gcs_estimator.schema import (
     ConfigError,
     Invalid,
@@ -132,23 +134,99 @@ class SensorPlacement:
 
 @dataclass(frozen=True)
 class Propulsion:
-    """Thrust: Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2), or measured Fe."""
+    """Thrust: Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2), or measured Fe.
+
+    The propeller model's constants come exactly from prop_area_m2, prop_coefficient and
+    motor_constant_mps where all three are set (a static thrust test), else from the spec
+    sheet's keys (model.propeller: the derivation and its tolerances; decision 0054)."""
 
     model: str = setting(choices=("propeller", "measured"))
-    prop_area_m2: float = setting(0.0, ge=0, unit="m^2", doc="propeller model only")
-    prop_coefficient: float = setting(0.0, ge=0, doc="propeller model only")
-    motor_constant_mps: float = setting(0.0, ge=0, unit="m/s", doc="propeller model only")
+    prop_diameter_m: float = setting(
+        0.0, ge=0, unit="m", doc="the propeller's diameter (spec sheet: 14 in = 0.3556 m)"
+    )
+    prop_pitch_m: float = setting(
+        0.0, ge=0, unit="m", doc="its pitch (14x7: 7 in = 0.1778 m); 0: not given"
+    )
+    max_power_w: float = setting(
+        0.0, ge=0, unit="W", doc="the engine's or motor's maximum (shaft) power at full throttle"
+    )
+    max_rpm: float = setting(
+        0.0,
+        ge=0,
+        unit="rpm",
+        doc="the propeller's rpm at full throttle (electric: about 0.8 x kv x battery volts); "
+        "0: not given",
+    )
+    thrust_tolerance: float | None = setting(
+        None,
+        gt=0,
+        doc="relative 1-sigma of the thrust (a factor on it that refine fits and the "
+        "structure check moves); not set: the spec sheet derivation's (0.15), exact with "
+        "the three exact keys",
+    )
+    prop_area_m2: float = setting(
+        0.0, ge=0, unit="m^2", doc="exact (a static thrust test): all three or none; they win"
+    )
+    prop_coefficient: float = setting(
+        0.0, ge=0, doc="exact (a static thrust test): all three or none; they win"
+    )
+    motor_constant_mps: float = setting(
+        0.0, ge=0, unit="m/s", doc="exact (a static thrust test): all three or none; they win"
+    )
+    thrust_scale: float = setting(1.0, internal=True)
+    """A factor on the thrust (the structure check's replays move it)."""
+    speed_scale: float = setting(1.0, internal=True)
+    """A factor on the zero-thrust airspeed (the structure check's replays move it)."""
 
     def check(self) -> None:
-        if self.model == "propeller":
-            for key in ("prop_area_m2", "prop_coefficient", "motor_constant_mps"):
-                if getattr(self, key) <= 0:
-                    raise Invalid(key, 'a number > 0 is needed with model = "propeller"')
+        if self.model != "propeller" or self.exact:
+            return
+        exact = [k for k in EXACT_PROPELLER_KEYS if getattr(self, k) > 0]
+        if exact:
+            missing = [k for k in EXACT_PROPELLER_KEYS if k not in exact]
+            raise Invalid(
+                missing[0],
+                f"set all of {', '.join(EXACT_PROPELLER_KEYS)} (a static thrust test's "
+                f"values), or none and the spec sheet's {', '.join(SPEC_SHEET_KEYS)}",
+            )
+        for key in SPEC_SHEET_KEYS:
+            if getattr(self, key) <= 0:
+                raise Invalid(
+                    key,
+                    'a number > 0 is needed with model = "propeller": the propeller\'s '
+                    "diameter [m] and the engine's maximum power [W] from their spec "
+                    "sheets (with prop_pitch_m and max_rpm where known)",
+                )
+
+    @property
+    def exact(self) -> bool:
+        """Whether the three exact keys are all set (they win over the spec sheet's)."""
+        return all(getattr(self, k) > 0 for k in EXACT_PROPELLER_KEYS)
+
+    def constants(self, rho: float) -> PropellerConstants:
+        """The propeller model's constants at air density rho and their priors: exact
+        (no prior but thrust_tolerance) or from the spec sheet (model.propeller)."""
+        if self.exact:
+            c = PropellerConstants(
+                self.prop_area_m2, self.prop_coefficient, self.motor_constant_mps, 0.0, 0.0
+            )
+        else:
+            c = propeller.from_spec_sheet(
+                self.prop_diameter_m, self.max_power_w, rho, self.prop_pitch_m, self.max_rpm
+            )
+        if self.thrust_tolerance is not None:
+            c = c._replace(scale_sigma=self.thrust_tolerance)
+        return c
 
     @property
     def input_name(self) -> PowerInput:
         """What the second input is: the throttle (propeller model) or measured thrust."""
         return "thrust" if self.model == "measured" else "throttle"
+
+
+EXACT_PROPELLER_KEYS = ("prop_area_m2", "prop_coefficient", "motor_constant_mps")
+SPEC_SHEET_KEYS = ("prop_diameter_m", "max_power_w")
+"""The spec sheet keys the propeller model needs where the exact ones are not set."""
 
 
 def _regressors() -> Any:
@@ -928,14 +1006,20 @@ thrust_moment_arm_m = 0.0
 # "propeller" when the data carry the throttle (0..1), "measured" when they carry thrust
 # in newtons (or none: a glide).
 model = "propeller"
-# Propeller disc area [m^2]: pi * (diameter / 2)^2 (a 14 in propeller: 0.0993).
-prop_area_m2 = 0.0            # FILL IN
-# Thrust = 0.5 rho prop_area prop_coefficient ((motor_constant throttle)^2 - V^2): 1.0
-# unless a static thrust test says otherwise.
-prop_coefficient = 1.0
-# The airspeed at which thrust vanishes at full throttle [m/s]: about the propeller's
-# pitch speed (pitch [m] x rpm at full throttle / 60), or 1.5 to 2 times the top speed.
-motor_constant_mps = 0.0      # FILL IN
+# From the spec sheets, in SI units; the thrust model's constants are derived from
+# them (docs/model.md, "Thrust from the spec sheet"), and `refine` fits the thrust with
+# the coefficients where the flight tells it from drag (throttle steps, a glide).
+# The propeller's diameter [m] (inches x 0.0254: a 14x7 propeller is 0.3556 m).
+prop_diameter_m = 0.0         # FILL IN
+# Its pitch [m] (the second number: 14x7 is 7 in, 0.1778 m); 0: not known.
+prop_pitch_m = 0.0
+# The engine's or motor's maximum power [W] (hp x 745.7).
+max_power_w = 0.0             # FILL IN
+# The propeller's rpm at full throttle (an electric motor: about 0.8 x kv x battery
+# volts); 0: not known. With the pitch it gives the airspeed where thrust vanishes.
+max_rpm = 0.0
+# A static thrust test instead: set all three of prop_area_m2, prop_coefficient and
+# motor_constant_mps (`gcs-estimator keys`); they win over the keys above.
 
 # Which regressors CD, CL and Cm have, from "1", "alpha", "qhat", "elevator", "V/V0",
 # "adhat": each pair is one coefficient (CL with "alpha" is CLa). This is the usual set.

@@ -193,14 +193,15 @@ def test_airframe_writes_a_starter_that_names_what_to_fill_in(
         "mean_chord_m": 0.22,
         "inertia_yy_kgm2": 0.35,
         "trim_airspeed_mps": 18.0,
-        "prop_area_m2": 0.05,
-        "motor_constant_mps": 45.0,
+        "prop_diameter_m": 0.3556,
+        "max_power_w": 600.0,
     }
     for key, value in filled.items():
         text = re.sub(rf"^{key} = 0\.0 ", f"{key} = {value} ", text, flags=re.MULTILINE)
     path.write_text(text)
     config = load_config(path)
-    assert config.airframe.mass_kg == 4.2 and config.propulsion.motor_constant_mps == 45.0
+    assert config.airframe.mass_kg == 4.2 and config.propulsion.max_power_w == 600.0
+    assert config.propulsion.constants(1.225).scale_sigma > 0.0  # a spec sheet's guess
     assert config.truth is None
     assert main(["airframe", str(path)]) == 2
     assert "the file exists" in capsys.readouterr().err

@@ -198,7 +198,7 @@ def test_every_key_refuses_a_bad_value_and_names_itself(
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("propulsion.prop_area_m2=0", r"\[propulsion\] prop_area_m2: a number > 0 is needed"),
+        ("propulsion.prop_area_m2=0", r"\[propulsion\] prop_area_m2: set all of prop_area_m2"),
         ("simulation.manoeuvre.pulse_durations_s=[1.0]", r"pulse_durations_s: must have 2 values"),
         ("link.elevator_us_per_rad=0", r"\[link\] elevator_us_per_rad: must not be 0"),
         ("link.throttle_pwm_max_us=900", r"\[link\] throttle_pwm_max_us: must be greater"),

@@ -134,9 +134,10 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     k[eq.SPAN] = a.wing_span_m
     if p.model == "propeller":
         k[eq.PROP_KIND] = eq.PROP_PROPELLER
-        k[eq.PROP_AREA] = p.prop_area_m2
-        k[eq.PROP_COEF] = p.prop_coefficient
-        k[eq.MOTOR_K] = p.motor_constant_mps
+        c = p.constants(a.air_density_kgpm3)
+        k[eq.PROP_AREA] = c.area_m2
+        k[eq.PROP_COEF] = c.coefficient * p.thrust_scale
+        k[eq.MOTOR_K] = c.zero_thrust_mps * p.speed_scale
     else:
         k[eq.PROP_KIND] = eq.PROP_MEASURED
     pairs = config.structure.pairs

@@ -16,9 +16,11 @@ from gcs_estimator.estimation.noise import CLEARLY, reading_z
 from gcs_estimator.estimation.results import EstimatorResult
 from gcs_estimator.model.channels import OBS_NAMES
 from gcs_estimator.outputs.text import fmt
-from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, FilterSummary
+from gcs_estimator.refine.result import FACTOR_TOLD
+from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, FilterSummary
 from gcs_estimator.uncertainty.result import VehicleResult
 from gcs_estimator.uncertainty.sigma import DELAY_WARNING_SIGMA
+from gcs_estimator.uncertainty.weighting import THRUST_PARTS
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
@@ -100,6 +102,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
             out.append(f"{kind}: not identified by these data: {', '.join(weak)}")
         out += _sign_warnings(kind, s)
     out += _disagreement_warning(vehicle)
+    out += thrust_warnings(vehicle)
     out += _noise_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
@@ -313,8 +316,69 @@ def _moved(vehicle: VehicleResult, kind: FilterKind, s: FilterSummary) -> list[s
     return out
 
 
+THRUST_SHARE = 0.5
+"""A coefficient whose propeller part (the structure check's thrust and zero-thrust
+airspeed parts) is at least this share of its sigma to trust is held back by the thrust,
+not by the data (decision 0054)."""
+
+
+def thrust_warnings(vehicle: VehicleResult) -> list[str]:
+    """Where the flight cannot tell the drag from the thrust the airframe file guesses
+    (the structure check's propeller parts dominate a coefficient's sigma and it is not
+    identified), in plain words; and where the flight puts the thrust apart from the
+    guess, where (decision 0054)."""
+    check = vehicle.structure
+    if check is None or check.skipped:
+        return []
+    found = check.found.get("thrust_scale")
+    if found is not None and math.isfinite(found[1]):
+        prior = check.tolerances.get("thrust", 0.0) / math.sqrt(3.0)
+        if found[1] < THRUST_SHARE * prior:  # the flight tells the thrust from the drag
+            if abs(found[0]) <= DELAY_WARNING_SIGMA * found[1]:
+                return []
+            return [
+                f"this flight puts the thrust at ×{1.0 + found[0]:.3f} ± {found[1]:.3f} of the "
+                "airframe file's: the filters fly the file's, so their drag (and what moves "
+                "with it) is off by the difference, which their σ includes; `refine` fits "
+                "the thrust with the coefficients"
+            ]
+    names = vehicle.result.names
+    held: dict[str, None] = {}
+    for kind, summary in vehicle.summaries.items():
+        for i, c in enumerate(summary.coefficients):
+            propeller = [check.parts[p][kind][i] for p in THRUST_PARTS if p in check.parts]
+            part = float(np.hypot.reduce(propeller)) if propeller else 0.0
+            if c.identifiability != IDENTIFIED and part >= THRUST_SHARE * c.sigma:
+                held[names[i]] = None
+    if not held:
+        return []
+    return [
+        f"{_and(list(held))} and thrust cannot be told apart in this flight: fly "
+        "throttle steps or a glide "
+        "(the thrust is the airframe file's guess within its tolerance, which their σ "
+        "includes)"
+    ]
+
+
+def _and(names: list[str]) -> str:
+    """ "a", "a and b", "a, b and c"."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
 def _refined_warnings(refined: Refined) -> list[str]:
     out = []
+    loose = [
+        n
+        for n, sd, prior in zip(
+            refined.factor_names, refined.factor_sigma, refined.factor_prior_sigma, strict=True
+        )
+        if not (math.isfinite(sd) and sd < FACTOR_TOLD * prior)
+    ]
+    if loose:
+        out.append(
+            f"{refined.label} cannot tell the drag from the propeller's {' and '.join(loose)} "
+            f"in this flight ({refined.factor_text()}): fly throttle steps or a glide"
+        )
     coloured = [
         f"{n} {v:.0f}"
         for n, v in zip(OBS_NAMES, refined.residual_colour, strict=True)

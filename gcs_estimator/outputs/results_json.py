@@ -195,6 +195,16 @@ def refined_dict(refined: Refined, truth: FloatArray | None) -> dict[str, Any]:
             )
         },
         "configured_input_delay_s": refined.configured_delay_s,
+        "propeller_factors": {
+            n: {"estimate": float(f), "sigma": _num(float(s)), "prior_sigma": float(p)}
+            for n, f, s, p in zip(
+                refined.factor_names,
+                refined.factors,
+                refined.factor_sigma,
+                refined.factor_prior_sigma,
+                strict=True,
+            )
+        },
     }
 
 

@@ -293,6 +293,7 @@ def _refined_note(refined: Refined) -> str:
         + "; residual colour (1 = white) "
         + channel_text(refined.residual_colour)
         + (f"; input delay {refined.delay_text()}" if refined.delay_names else "")
+        + (f"; propeller {refined.factor_text()}" if refined.factor_names else "")
     )
 
 
@@ -340,10 +341,15 @@ def _undecided_text(check: StructureCheck) -> str:
     if not check.tolerances:
         return ""
     floor = " and at the configured noise" if "noise_floor" in check.parts else ""
+    propeller = "".join(
+        f", the propeller's {name} ±{1e2 * check.tolerances[key]:.0f} %"
+        for key, name in (("thrust", "thrust"), ("zero_thrust_speed", "zero-thrust airspeed"))
+        if key in check.tolerances
+    )
     text = (
         f", as is how far they moved with the inputs ±{1e3 * check.tolerances['timing']:.0f}"
         f" ms in time, each sensor position ±{1e2 * check.tolerances['placement']:.0f} cm"
-        f"{floor}, times how far the likelihood leaves each from the configured "
+        f"{propeller}{floor}, times how far the likelihood leaves each from the configured "
         "(structure_check.sigma_parts)"
     )
     delay = check.found.get("input_delay_s")

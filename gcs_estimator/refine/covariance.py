@@ -40,13 +40,20 @@ def _autocorrelation(r: FloatArray) -> FloatArray:
 
 
 def sandwich(
-    J: FloatArray, e: FloatArray, mask: FloatArray, observed: BoolArray
+    J: FloatArray,
+    e: FloatArray,
+    mask: FloatArray,
+    observed: BoolArray,
+    prior: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """From the whitened residuals e [N x 7] and their sensitivities J [N x 7 x p]: the
     Cramer-Rao covariance M^-1, the Morelli-Klein covariance and each channel's residual
-    colour (Refined.residual_colour)."""
+    colour (Refined.residual_colour). prior [p x p]: the information of priors on some
+    parameters (white: it adds to M and to the sandwich's middle alike)."""
     N = e.shape[0]
     M = np.einsum("ncp,ncq->pq", J, J)
+    if prior is not None:
+        M = M + prior
     # A parameter the residuals do not feel (a process noise at its lower bound) has no
     # bound: NaN, and the others' without it.
     felt = np.diag(M) > 1e-12 * max(float(np.max(np.diag(M))), 1e-300)
@@ -68,6 +75,8 @@ def sandwich(
         middle += part
         white = float(rho[0]) * float(np.sum(J[:, c, :] ** 2))
         colour[c] = float(np.trace(part)) / white if white > 0.0 else math.nan
+    if prior is not None:
+        middle += prior[np.ix_(felt, felt)]
     inner = Minv[np.ix_(felt, felt)]
     cov_mk = np.full_like(M, np.nan)
     cov_mk[np.ix_(felt, felt)] = inner @ middle @ inner

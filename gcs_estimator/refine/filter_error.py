@@ -75,7 +75,7 @@ class SteadyFilter:
         covariance P and C (the observed channels' rows), linearised at the first frame;
         None where the Riccati equation has no stabilising solution."""
         x, f = self.unpack(theta)
-        m = self.prob.model.arrays
+        m = self.prob.arrays(x)
         u0 = self.prob.u[0]
         xs = self.prob.state(x)
         _, A = eq.dynamics(xs, u0, m)
@@ -102,7 +102,7 @@ class SteadyFilter:
         p = self.prob
         p.count_run()
         raw, ok = steady_innovations(
-            p.state(x), p.t, p.inputs(x), p.y, p.mask, p.model.arrays, g[0], p.max_step, p.linear
+            p.state(x), p.t, p.inputs(x), p.y, p.mask, p.arrays(x), g[0], p.max_step, p.linear
         )
         return raw if ok else None
 
@@ -121,7 +121,16 @@ class SteadyFilter:
         """-2 log likelihood without its constant at a held R (theta feasible at it)."""
         raw = self.run(theta, r)
         assert raw is not None
-        return float(np.sum(self.whitened(raw, r) ** 2) + self.cost(r))
+        return float(np.sum(self.whitened(raw, r) ** 2) + self.cost(r)) + self.prior_cost(theta)
+
+    def prior(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The factors' priors (Problem.prior) as rows over theta's columns."""
+        x, _ = self.unpack(theta)
+        e, J = self.prob.prior(x, self.free)
+        return e, np.hstack([J, np.zeros((J.shape[0], theta.shape[0] - len(self.free)))])
+
+    def prior_cost(self, theta: FloatArray) -> float:
+        return self.prob.prior_cost(self.unpack(theta)[0])
 
     def stable(self, theta: FloatArray, r: FloatArray) -> bool:
         """Whether the gain at theta and R exists and does not over-correct."""
@@ -259,7 +268,7 @@ def fit(
     if start is None:
         raise RefineError("no process noise level gives a stable filter from the start values")
     theta, r = sf.relaxed(start, r) if relax else (start, r)
-    cost = sf.cost(r) if relax else sf.held_cost(theta, r)
+    cost = sf.cost(r) + sf.prior_cost(theta) if relax else sf.held_cost(theta, r)
     lam = 1e-3
     tolerance = COST_TOLERANCE * float(np.sum(sf.counts[sf.obs]))
     for it in range(1, iterations + 1):
@@ -269,15 +278,21 @@ def fit(
         raw = sf.run(theta, r)
         assert raw is not None  # relaxed() left theta feasible at r
         e0 = sf.whitened(raw, r)
-        An, gn, d = scaled_normal_equations(jacobian(sf, theta, r, e0), e0)
+        ep, Jp = sf.prior(theta)
+        An, gn, d = scaled_normal_equations(
+            np.vstack([jacobian(sf, theta, r, e0), Jp]), np.concatenate([e0.ravel(), ep])
+        )
         c0, G = _constraint(sf, theta, r)
-        base = float(np.sum(e0 * e0))
+        base = float(np.sum(e0 * e0)) + float(ep @ ep)
         moved = 0.0
         for _ in range(12):
             trial = theta + _step(An, gn, d, lam, c0, G)
             trial[k:] = np.clip(trial[k:], lo, hi)
             raw_t = sf.run(trial, r)
-            if raw_t is not None and float(np.sum(sf.whitened(raw_t, r) ** 2)) < base:
+            if (
+                raw_t is not None
+                and float(np.sum(sf.whitened(raw_t, r) ** 2)) + sf.prior_cost(trial) < base
+            ):
                 moved = float(np.max(np.abs((trial - theta) * d)))
                 theta = trial
                 lam = max(lam / 10.0, 1e-9)
@@ -287,7 +302,7 @@ def fit(
             report(it, cost, moved)
         if relax:
             theta, r = sf.relaxed(theta, r)
-            new = sf.cost(r)
+            new = sf.cost(r) + sf.prior_cost(theta)
         else:
             new = sf.held_cost(theta, r)
         done = abs(new - cost) < tolerance

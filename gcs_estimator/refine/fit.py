@@ -24,7 +24,13 @@ from gcs_estimator.refine import filter_error
 from gcs_estimator.refine.covariance import sandwich
 from gcs_estimator.refine.output_error import Report, gauss_newton
 from gcs_estimator.refine.problem import Problem, thread_pool
-from gcs_estimator.refine.result import INPUT_NAMES, Refined, RefineError, RefineProgress
+from gcs_estimator.refine.result import (
+    FACTOR_NAMES,
+    INPUT_NAMES,
+    Refined,
+    RefineError,
+    RefineProgress,
+)
 from gcs_estimator.refine.structure import STRUCTURE_ITERATIONS, structure_sigma
 from gcs_estimator.uncertainty.metrics import correlation_of, identifiability
 from gcs_estimator.uncertainty.sigma import FilterEstimate, FitSigma, difference_sigma, fit_sigma
@@ -63,6 +69,8 @@ class _Fitted(NamedTuple):
     state's free entries (structure_sigma)."""
     iterations: int
     converged: bool
+    prior_rows: FloatArray
+    """The factors' priors' rows over J's columns (Problem.prior; none: 0 rows)."""
 
 
 class _Start(NamedTuple):
@@ -99,13 +107,14 @@ def _steady_fit(start: _Start, iterations: int, report: Report) -> _Fitted:
     assert raw is not None
     e = sf.whitened(raw, r)
     J = filter_error.jacobian(sf, theta, r, e)
+    _, prior_rows = sf.prior(theta)
     gain = sf.gain(theta, r)
     assert gain is not None
     _, _, P, C = gain
     state_var = np.zeros(N_OBS)
     state_var[sf.obs] = np.einsum("ij,jk,ik->i", C, P, C)
     noise = np.where(observed, np.sqrt(np.maximum(r - state_var, 0.0)), np.nan)
-    return _Fitted(x, f * f, noise, e, J, refit, total, converged)
+    return _Fitted(x, f * f, noise, e, J, refit, total, converged, prior_rows)
 
 
 def _gauss_newton_fit(start: _Start, iterations: int, hold_noise: bool, report: Report) -> _Fitted:
@@ -123,7 +132,7 @@ def _gauss_newton_fit(start: _Start, iterations: int, hold_noise: bool, report: 
         again = gauss_newton(prob, x, free, q, r * scale, STRUCTURE_ITERATIONS, None, report)
         return again[0][free]
 
-    return _Fitted(x, q, noise, e, J, refit, total, converged)
+    return _Fitted(x, q, noise, e, J, refit, total, converged, prob.prior(x, free)[1])
 
 
 def _over_state(n: int, free: IntArray, values: FloatArray) -> FloatArray:
@@ -146,11 +155,12 @@ def _sigmas(
     coefficients' correlation and each channel's residual colour."""
     n, k = end.x.shape[0], len(free)
     J3 = end.J.reshape(end.e.shape[0], N_OBS, end.J.shape[1])
-    Minv, cov_mk, colour = sandwich(J3, end.e, mask, observed)
+    prior = end.prior_rows.T @ end.prior_rows
+    Minv, cov_mk, colour = sandwich(J3, end.e, mask, observed, prior)
     # The state's free entries lead the parameters (filter error's log F follow them).
     crb = _over_state(n, free, np.sqrt(np.diag(Minv)[:k]))
     mk_var = _over_state(n, free, np.diag(cov_mk)[:k])
-    own = _over_state(n, free, structure_sigma(J3, k, observed, end.x[free], end.refit))
+    own = _over_state(n, free, structure_sigma(J3, k, observed, end.x[free], end.refit, prior))
     cs, bs = model.coefficients, model.biases
     floor = None
     difference = None
@@ -162,7 +172,7 @@ def _sigmas(
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     bias_sigma = fit_sigma(crb[bs], mk_var[bs], own[bs]).sigma
-    ds = np.arange(model.n, n)
+    ds = np.arange(model.n, n)  # the delays, then the factors
     delay_sigma = fit_sigma(crb[ds], mk_var[ds], own[ds]).sigma
     return parts, np.concatenate([bias_sigma, delay_sigma]), correlation_of(full[cs, cs]), colour
 
@@ -202,6 +212,7 @@ def refine(
     threads: int | None = None,
     compared: FilterEstimate | None = None,
     delayed: Sequence[int] = (),
+    factors: Sequence[tuple[int, float]] = (),
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -217,12 +228,16 @@ def refine(
     sigma the fit's sigma takes in (sigma.fit_sigma). delayed: the model inputs (0 the
     elevator, 1 the throttle or thrust) whose delay relative to the response is fitted
     with the other parameters (from 0; decision 0044): the coefficients' sigma then
-    includes what the data leave undecided about the inputs' timing."""
+    includes what the data leave undecided about the inputs' timing. factors: airframe
+    constants (an index into model.k, and a prior 1-sigma relative to the configured value)
+    whose factor is fitted with the other parameters, from 1 with that prior (the
+    propeller's thrust and zero-thrust airspeed; decision 0054): the coefficients' sigma
+    then includes what the data leave undecided about them."""
     t, u, y, mask, observed = _record(model, t_s, inputs, observations)
     lags = np.asarray(delayed, dtype=np.int64)
-    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags)
+    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags, factors)
     prob.pool = thread_pool(threads)
-    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size)])
+    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size), np.ones(len(factors))])
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
@@ -266,6 +281,10 @@ def refine(
         converged=end.converged,
         message=f"{done} ({prob.runs} filter runs)",
         delay_names=tuple(INPUT_NAMES[i] for i in lags),
-        delays_s=end.x[model.n :].copy(),
-        delay_sigma_s=extra_sigma[n_bias:],
+        delays_s=end.x[model.n : prob.factor_start].copy(),
+        delay_sigma_s=extra_sigma[n_bias : n_bias + lags.size],
+        factor_names=tuple(FACTOR_NAMES[i] for i, _ in factors),
+        factors=end.x[prob.factor_start :].copy(),
+        factor_sigma=extra_sigma[n_bias + lags.size :],
+        factor_prior_sigma=prob.factor_sigma.copy(),
     )

@@ -61,8 +61,11 @@ def gauss_newton(
                 "the model, flown over the record from its first frame, leaves finite numbers; "
                 "fit a shorter window (--from/--to) or start nearer"
             )
-        cost = float(np.sum(e * e) + np.sum(logdet))
-        An, gn, d = scaled_normal_equations(prob.jacobian(x, free, q, r, e), e)
+        cost = float(np.sum(e * e) + np.sum(logdet)) + prob.prior_cost(x)
+        ep, Jp = prob.prior(x, free)
+        An, gn, d = scaled_normal_equations(
+            np.vstack([prob.jacobian(x, free, q, r, e), Jp]), np.concatenate([e.ravel(), ep])
+        )
         accepted = False
         moved = 0.0
         for _ in range(12):

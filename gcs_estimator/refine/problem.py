@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -19,6 +19,7 @@ import numpy as np
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.refine.flights import innovations
 
 
@@ -70,9 +71,16 @@ class Problem:
         max_step: float,
         linear: bool,
         delayed: IntArray | None = None,
+        factors: Sequence[tuple[int, float]] = (),
     ) -> None:
         self.model = model
         self.delayed = np.zeros(0, dtype=np.int64) if delayed is None else delayed
+        self.factor_k = np.array([i for i, _ in factors], dtype=np.int64)
+        """Which airframe constants (model.k) a factor multiplies (decision 0054)."""
+        self.factor_sigma = np.array([s for _, s in factors], dtype=float)
+        """Each factor's prior 1-sigma about 1."""
+        self.factor_start = model.n + self.delayed.size
+        """Where the factors sit in the parameters, after the delays."""
         self.t, self.u, self.y, self.mask = t, u, y, mask
         self.max_step = max_step
         self.linear = linear
@@ -80,6 +88,31 @@ class Problem:
         self._lock = threading.Lock()
         self.pool: ThreadPoolExecutor | None = None
         """Threads for the sensitivities' columns (None: the calling thread)."""
+
+    def arrays(self, x: FloatArray) -> ModelArrays:
+        """The model's arrays with the parameters x's factors on their constants."""
+        m = self.model.arrays
+        if self.factor_k.size == 0:
+            return m
+        k = m.k.copy()
+        k[self.factor_k] *= x[self.factor_start :]
+        return m._replace(k=k)
+
+    def prior(self, x: FloatArray, columns: IntArray) -> tuple[FloatArray, FloatArray]:
+        """The factors' priors as residual rows: (x_j - 1) / sigma_j [factors], and their
+        sensitivities [factors x len(columns)] to the parameters `columns` (a factor not
+        among them has a zero row)."""
+        f = self.factor_start + np.arange(self.factor_k.size)
+        e = (x[f] - 1.0) / self.factor_sigma
+        J = np.zeros((f.size, columns.shape[0]))
+        for i, j in enumerate(f):
+            J[i, columns == j] = 1.0 / self.factor_sigma[i]
+        return e, J
+
+    def prior_cost(self, x: FloatArray) -> float:
+        """The factors' priors' share of the cost (sum of their squared residuals)."""
+        e, _ = self.prior(x, np.zeros(0, dtype=np.int64))
+        return float(e @ e)
 
     def state(self, x: FloatArray) -> FloatArray:
         """The model's augmented state of the parameters x."""
@@ -89,12 +122,12 @@ class Problem:
         """The model's inputs at the parameters x's delays."""
         if self.delayed.size == 0:
             return self.u
-        return delayed_inputs(self.t, self.u, self.delayed, x[self.model.n :])
+        return delayed_inputs(self.t, self.u, self.delayed, x[self.model.n : self.factor_start])
 
     def step(self, j: int, value: float) -> float:
         """The finite-difference step of parameter j at `value`: a millionth of its size
-        (at least of 1e-3) for the model's state, DELAY_STEP_S for a delay."""
-        if j >= self.model.n:
+        (at least of 1e-3) for the model's state and a factor, DELAY_STEP_S for a delay."""
+        if self.model.n <= j < self.factor_start:
             return DELAY_STEP_S
         return 1e-6 * max(abs(value), 1e-3)
 
@@ -119,7 +152,7 @@ class Problem:
             self.inputs(x0),
             self.y,
             self.mask,
-            self.model.arrays,
+            self.arrays(x0),
             q,
             r,
             self.max_step,
@@ -130,7 +163,7 @@ class Problem:
     def cost(self, x0: FloatArray, q: FloatArray, r: FloatArray) -> float:
         """Negative log-likelihood (without its constant): sum e^2 + log det S."""
         e, logdet, _, ok = self.run(x0, q, r)
-        c = float(np.sum(e * e) + np.sum(logdet))
+        c = float(np.sum(e * e) + np.sum(logdet)) + self.prior_cost(x0)
         return c if ok and math.isfinite(c) else math.inf
 
     def jacobian(

@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.model.equations import MOTOR_K, PROP_COEF
 from gcs_estimator.uncertainty.sigma import DELAY_WARNING_SIGMA, FitSigma
 
 INPUT_NAMES: tuple[str, ...] = ("elevator", "throttle")
+FACTOR_NAMES: dict[int, str] = {PROP_COEF: "thrust", MOTOR_K: "zero-thrust airspeed"}
+"""The airframe constants (model.k indices) whose factor a fit can estimate, by name."""
 """The model's inputs whose delay a fit can estimate, by their index in the model's
 inputs."""
+
+
+FACTOR_TOLD = 0.5
+"""A fitted factor whose sigma is below this share of its prior's was told apart by the
+flight (the priors' information is then at most a quarter of the fit's)."""
 
 
 def fit_label(method: str) -> str:
@@ -74,6 +83,31 @@ class Refined:
     delay_sigma_s: FloatArray = field(default_factory=lambda: np.zeros(0))
     """Their sigma [s], from the fit's covariance (Morelli-Klein) and structure check as
     the biases' (NaN: the input never moved, so no delay was seen)."""
+
+    factor_names: tuple[str, ...] = ()
+    """The propeller model's guesses fitted as a factor on them (decision 0054)."""
+    factors: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Each one's factor on the airframe file's value (1: as derived or set)."""
+    factor_sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Their sigma after the fit (the Morelli-Klein covariance, priors included)."""
+    factor_prior_sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Their prior sigma (the airframe file's tolerance)."""
+
+    def factor_text(self) -> str:
+        """The fitted factors in words, and whether the flight told them from the drag
+        (their sigma below FACTOR_TOLD of the prior's); "" where none was fitted."""
+        parts = []
+        for name, f, s, p in zip(
+            self.factor_names,
+            self.factors,
+            self.factor_sigma,
+            self.factor_prior_sigma,
+            strict=True,
+        ):
+            told = math.isfinite(s) and s < FACTOR_TOLD * p
+            how = "" if told else " (no better than the airframe file's guess)"
+            parts.append(f"{name} x{f:.3f} ± {s:.3f}{how}")
+        return ", ".join(parts)
 
     @property
     def label(self) -> str:

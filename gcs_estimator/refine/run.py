@@ -12,15 +12,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
-from gcs_estimator.config import REFINE_METHODS
+from gcs_estimator.config import REFINE_METHODS, AircraftConfig
 from gcs_estimator.estimation.filters.core import MAX_STEP_S, FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult
+from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT
 from gcs_estimator.refine.fit import refine
 from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
 from gcs_estimator.uncertainty.sigma import FilterEstimate
+from gcs_estimator.uncertainty.weighting import THRUST_PARTS
 
 if TYPE_CHECKING:
     from gcs_estimator.uncertainty.result import VehicleResult
@@ -135,10 +137,13 @@ def refine_run(
     result = run if isinstance(run, EstimatorResult) else run.result
     if estimate_delays is None:
         estimate_delays = result.config.data.estimate_input_delay
+    factors = thrust_factors(result.config)
     filter_structure = None
+    propeller = None
     check = None if isinstance(run, EstimatorResult) else run.structure
     if check is not None and not check.skipped:
-        filter_structure = _filter_structure(check, kind, estimate_delays)
+        filter_structure = _filter_structure(check, kind, estimate_delays, bool(factors))
+        propeller = _propeller_part(check, kind) if factors else None
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
     choice = ""
@@ -163,8 +168,13 @@ def refine_run(
         progress=progress,
         hold_noise=hold_noise,
         threads=threads,
-        compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+        compared=FilterEstimate(
+            fr.coefficients,
+            fr.sigma if propeller is None else np.hypot(fr.sigma, propeller),
+            filter_structure,
+        ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
+        factors=factors,
     )
     configured = config.data.input_delay_s
     return replace(
@@ -172,15 +182,41 @@ def refine_run(
     )
 
 
+def thrust_factors(config: AircraftConfig) -> tuple[tuple[int, float], ...]:
+    """The propeller model's guesses a fit estimates with the coefficients (decision
+    0054): the thrust (a factor on 0.5 rho S C) and the airspeed where it vanishes (a
+    factor on k), each where the airframe file gives it a tolerance (its prior sigma)."""
+    p = config.propulsion
+    if p.model != "propeller":
+        return ()
+    c = p.constants(config.airframe.air_density_kgpm3)
+    pairs = ((eq.PROP_COEF, c.scale_sigma), (eq.MOTOR_K, c.speed_sigma))
+    return tuple((i, sd) for i, sd in pairs if sd > 0.0)
+
+
 def _filter_structure(
-    check: StructureCheck, kind: FilterKind, estimate_delays: bool
+    check: StructureCheck, kind: FilterKind, estimate_delays: bool, factors: bool
 ) -> FloatArray | None:
     """Filter `kind`'s structure sigma, the floor of the fit's (decision 0031): without its
-    timing part where the fit estimates the inputs' delay itself (decision 0044)."""
-    if not estimate_delays or "timing" not in check.parts:
+    timing part where the fit estimates the inputs' delay itself (decision 0044), nor
+    its propeller parts where it fits the propeller's factors (decision 0054)."""
+    left = ({"timing"} if estimate_delays else set()) | (set(THRUST_PARTS) if factors else set())
+    if not left & set(check.parts):
         return check.sigma.get(kind)
-    kept = [part[kind] for name, part in check.parts.items() if name != "timing"]
+    kept = [part[kind] for name, part in check.parts.items() if name not in left]
     out: FloatArray = np.sqrt(sum(v * v for v in kept))
+    return out
+
+
+def _propeller_part(check: StructureCheck, kind: FilterKind) -> FloatArray | None:
+    """Filter `kind`'s propeller parts of its structure sigma (decision 0054), None where
+    the check has none: the filter flew the airframe file's thrust, so its estimates may
+    lie that far from a fit that fits the thrust without either being wrong (the
+    difference sigma, decision 0030, allows it)."""
+    parts = [check.parts[p][kind] for p in THRUST_PARTS if p in check.parts]
+    if not parts:
+        return None
+    out: FloatArray = np.sqrt(sum(v * v for v in parts))
     return out
 
 

@@ -26,15 +26,16 @@ def structure_sigma(
     observed: BoolArray,
     base: FloatArray,
     refit: Callable[[FloatArray], FloatArray],
+    prior: FloatArray | None = None,
 ) -> FloatArray:
     """The structure sigma of the first k parameters (decision 0017, the filters' check
     applied to a whole-record fit): sqrt(WEIGHT_SHARE * sum_c max(0, d_c^2 - |s_c^2 -
     s^2|)) over the observed channels c, where d_c is how far the fit moves from `base`
     when re-made with channel c's variance times VARIANCE_FACTOR (refit(scale) gives its
     first k parameters), and s_c, s the Cramer-Rao sigmas with and without that (from the
-    whitened sensitivities J3 [N x 7 x p])."""
+    whitened sensitivities J3 [N x 7 x p], with the priors' information `prior` [p x p])."""
     per_channel = np.einsum("ncp,ncq->cpq", J3, J3)
-    M = per_channel.sum(axis=0)
+    M = per_channel.sum(axis=0) + (0.0 if prior is None else prior)
     crb2 = np.diag(np.linalg.pinv(M))[:k]
     excess = np.zeros(k)
     for c in np.flatnonzero(observed):

@@ -335,10 +335,44 @@ def _undecided(
 
     out: list[tuple[str, str, Maker]] = [("timing", "input_delay_s", timing)]
     out += [("placement", key, placement(key)) for key in PLACEMENT_KEYS]
+    tolerances = {"timing": timing_tolerance(t), "placement": placement_tolerance(config)}
+    for label, key, tol, make in _propulsion(config, u):
+        out.append((label, key, make))
+        tolerances[label] = tol
     floor = _configured_noise_scale(est)
     if floor is not None:
         out.append(("noise_floor", "", lambda _: Replay(floor, u)))
-    return out, {"timing": timing_tolerance(t), "placement": placement_tolerance(config)}
+    return out, tolerances
+
+
+THRUST_PARTS = ("thrust", "zero_thrust_speed")
+THRUST_FACTORS = ("thrust_scale", "speed_scale")
+"""The propeller model's guesses whose tolerance enters the sigma (decision 0054): the
+thrust (a factor on it) and the airspeed at which it vanishes (a factor on that), each
+as the part's name (THRUST_PARTS) and the [propulsion] factor the replay moves
+(THRUST_FACTORS)."""
+
+
+def _propulsion(config: AircraftConfig, u: FloatArray) -> list[tuple[str, str, float, Maker]]:
+    """The propeller model's factors with a prior (PropellerConstants' sigmas): each
+    part's name, its key, its tolerance (taken as uniform within +-tol: tol = sqrt(3)
+    sigma, so that the prior's sigma is the constant's) and its replay."""
+    p = config.propulsion
+    if p.model != "propeller":
+        return []
+    c = p.constants(config.airframe.air_density_kgpm3)
+    out: list[tuple[str, str, float, Maker]] = []
+    sigmas = (c.scale_sigma, c.speed_sigma)
+    for label, key, sd in zip(THRUST_PARTS, THRUST_FACTORS, sigmas, strict=True):
+        if sd <= 0.0:
+            continue
+
+        def make(offset: float, key: str = key) -> Replay:
+            moved = replace(p, **{key: getattr(p, key) + offset})
+            return Replay(None, u, replace(config, propulsion=moved), profile=True)
+
+        out.append((label, key, math.sqrt(3.0) * sd, make))
+    return out
 
 
 def _configured_noise_scale(est: Estimator) -> FloatArray | None:
@@ -357,6 +391,8 @@ def _with_data(y: FloatArray) -> list[int]:
     return [i for i in range(N_OBS) if np.isfinite(y[:, i]).any()]
 
 
-def runs(y: FloatArray) -> int:
-    """How many replays of the final pass the check takes (but the noise floor's)."""
-    return 3 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y))
+def runs(y: FloatArray, config: AircraftConfig | None = None) -> int:
+    """How many replays of the final pass the check takes (but the noise floor's): with
+    the config, its propeller's guesses' too."""
+    thrust = 0 if config is None else 2 * len(_propulsion(config, y))
+    return 3 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y)) + thrust
