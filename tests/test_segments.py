@@ -107,8 +107,9 @@ def test_bad_windows_are_refused_naming_the_option(text: str) -> None:
 
 
 def test_the_live_gate_leaves_out_and_counts_and_starts_afresh() -> None:
-    gate = Gate(Limits(trim_airspeed_mps=24.0))
-    seen = [gate.admit(v) for v in (24.0, math.nan, 5.0, math.nan, 24.0, 25.0)]
+    gate = Gate(Limits(trim_airspeed_mps=24.0, windows=parse_windows([":10"])))
+    speeds = (24.0, math.nan, 5.0, math.nan, 24.0, 25.0)
+    seen = [gate.admit(float(i), v) for i, v in enumerate(speeds)]
     assert seen == [
         (True, False),
         (True, False),
@@ -118,4 +119,6 @@ def test_the_live_gate_leaves_out_and_counts_and_starts_afresh() -> None:
         (True, False),
     ]
     assert gate.left_out["airspeed"] == 2 and gate.segments == 2
-    assert gate.admit(24.0, phi=1.2) == (False, False) and gate.left_out["bank"] == 1
+    assert gate.admit(6.0, 24.0, phi=1.2) == (False, False) and gate.left_out["bank"] == 1
+    assert gate.admit(7.0, 24.0) == (True, True)
+    assert gate.admit(10.5, 24.0) == (False, False) and gate.left_out["window"] == 1

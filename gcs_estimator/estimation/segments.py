@@ -292,29 +292,38 @@ def merged(plans: Sequence[Plan], offsets: Sequence[int]) -> Plan:
 
 
 class Gate:
-    """The segments' judgement live, frame by frame: a frame whose latest airspeed (or
-    bank, where frames carry it) is beyond the limits is left out and counted; the next
-    frame within them begins a new segment (the flight states start afresh there). A
-    segment's length is not known while it lasts: live, no run is left out as short."""
+    """The segments' judgement live, frame by frame: a frame outside every --window (from
+    the first frame seen), or whose latest airspeed (or bank, where frames carry it) is
+    beyond the limits, is left out and counted; the next frame within them begins a new
+    segment (the flight states start afresh there). A segment's length is not known while
+    it lasts: live, no run is left out as short."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
         self.left_out = dict.fromkeys(REASONS, 0)
-        self._airspeed = math.nan
-        self._outside = False
         self.segments = 0
+        self._airspeed = math.nan
+        self._t0 = math.nan
+        self._outside = False
 
-    def admit(self, airspeed: float, phi: float = math.nan) -> tuple[bool, bool]:
-        """(whether the frame is used, whether it begins a segment after frames left
-        out)."""
+    def _reason(self, t: float, airspeed: float, phi: float) -> str | None:
+        if math.isnan(self._t0):
+            self._t0 = t
         if math.isfinite(airspeed):
             self._airspeed = airspeed
+        if not in_windows(np.array([t - self._t0]), self.limits.windows)[0]:
+            return "window"
         lo, hi = self.limits.airspeed_mps
-        reason = None
         if math.isfinite(self._airspeed) and not lo <= self._airspeed <= hi:
-            reason = "airspeed"
-        elif math.isfinite(phi) and abs(phi) > self.limits.max_bank_rad:
-            reason = "bank"
+            return "airspeed"
+        if math.isfinite(phi) and abs(phi) > self.limits.max_bank_rad:
+            return "bank"
+        return None
+
+    def admit(self, t: float, airspeed: float, phi: float = math.nan) -> tuple[bool, bool]:
+        """(whether the frame at time t [s] is used, whether it begins a segment after
+        frames left out)."""
+        reason = self._reason(t, airspeed, phi)
         if reason is not None:
             self.left_out[reason] += 1
             self._outside = True
