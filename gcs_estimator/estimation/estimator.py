@@ -26,8 +26,8 @@ from gcs_estimator.estimation.history import Histories, StepOutput, Track
 from gcs_estimator.estimation.noise import NoiseReading, scaled
 from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
-from gcs_estimator.estimation.segments import Gate, Limits, Plan
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
+from gcs_estimator.estimation.segments import Gate, Limits, Plan
 from gcs_estimator.model.aircraft import build_model
 
 __all__ = [
