@@ -34,6 +34,7 @@ from gcs_estimator.config import (
     truths_text,
 )
 from gcs_estimator.estimation.filters.core import Backend
+from gcs_estimator.estimation.segments import Limits, parse_windows
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, data_file
 from gcs_estimator.ingest.logs import detect
@@ -68,6 +69,13 @@ from gcs_estimator.outputs.table import LiveEstimate, live_table
 from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
+from gcs_estimator.runtime.flights import (
+    NoSegmentError,
+    check_one_aircraft,
+    limits_of,
+    source_of,
+    what_flew,
+)
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
@@ -301,9 +309,11 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
     )
     p.add_argument(
         "--window",
-        default=None,
+        action="append",
+        default=[],
         metavar="FROM:TO",
-        help="seconds after the first frame the refinement fits (either side may be empty)",
+        help="only these seconds after the (each) flight's first frame go to the filters and "
+        "the refinement (either side may be empty; repeatable)",
     )
     p.add_argument(
         "--hold-noise",
@@ -421,28 +431,18 @@ def _view_sink(
     return ViewSink(view, None if link is None else (lambda: link.t_first_recv))
 
 
-def _window(text: str | None) -> tuple[float | None, float | None]:
-    if not text:
-        return None, None
-    lo, sep, hi = text.partition(":")
-    try:
-        if not sep:
-            raise ValueError(text)
-        start = float(lo) if lo.strip() else None
-        end = float(hi) if hi.strip() else None
-    except ValueError:
-        raise ConfigError(f"--window {text!r}: expected FROM:TO in seconds, e.g. 0:60") from None
-    if start is not None and end is not None and not start < end:
-        raise ConfigError(f"--window {text!r}: FROM must come before TO, e.g. 0:60")
-    return start, end
+def _limits(args: argparse.Namespace, config: AircraftConfig) -> Limits:
+    """The segments' limits of the run: the airframe's, and the --window given."""
+    return limits_of(config, parse_windows(getattr(args, "window", None)))
 
 
 def _refiner(args: argparse.Namespace) -> RefineAsk | None:
-    """The whole-record fit the command line asked for (None: not asked)."""
+    """The whole-record fit the command line asked for (None: not asked). It fits the
+    frames the filters used: --window has chosen them already (segments.py)."""
     method = getattr(args, "refine", None)
     if method is None:
         return None
-    return RefineAsk(method, _window(args.window), bool(getattr(args, "hold_noise", False)))
+    return RefineAsk(method, (None, None), bool(getattr(args, "hold_noise", False)))
 
 
 EXIT_NOTHING_ESTIMATED = 1
@@ -602,32 +602,50 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
 
-def _flight(data: str, config: AircraftConfig, progress: bool) -> tuple[Path, Recording]:
+def _flight(
+    data: str, config: AircraftConfig, progress: bool
+) -> tuple[Path, Recording, str | None]:
     """A data file or an autopilot's log (by its content); a log's account on stderr."""
     show = sys.stderr.isatty() or progress
     report = stderr_progress(f"reading {Path(data).name}") if show else None
     path, rec, account = load_flight(data, config, report)
     if account:
         print(account, file=sys.stderr)
-    return path, rec
+    return path, rec, account
 
 
 def cmd_offline(args: argparse.Namespace) -> int:
-    config = _config(args)
-    if Path(args.data).is_file() and detect.kind(args.data) == "tlog":
-        args.tlogs, args.speed, args.progress = [args.data], 0.0, False
+    data = [args.data] if isinstance(args.data, str) else list(args.data)
+    if len(data) == 1 and Path(data[0]).is_file() and detect.kind(data[0]) == "tlog":
+        args.tlogs, args.speed, args.progress = data, 0.0, False
         return cmd_replay(args)
-    path, rec = _flight(args.data, config, getattr(args, "progress", False))
-    for note in rec.notes:
-        print(f"note: {note}", file=sys.stderr)
-    want = config.propulsion.input_name
-    if rec.power != want:
-        raise ConfigError(
-            f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
-            f"in the data, but {path} has {rec.power}"
-        )
-    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
-    return _recording_session(config, args, source, f"offline {path.name}", str(path))
+    args.data = data[0]  # the airframe: the bundled record's where it is one
+    config = _config(args)
+    recs, names, flew = [], [], []
+    for item in data:
+        path, rec, account = _flight(item, config, getattr(args, "progress", False))
+        for note in rec.notes:
+            print(f"note: {note}", file=sys.stderr)
+        want = config.propulsion.input_name
+        if rec.power != want:
+            raise ConfigError(
+                f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs "
+                f"{want} in the data, but {path} has {rec.power}"
+            )
+        recs.append(rec)
+        names.append(path.name)
+        flew.append((path.name, what_flew(account, path)))
+    check_one_aircraft(flew)
+    try:
+        source = source_of(recs, names, _limits(args, config))
+    except NoSegmentError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
+    assert source.plan is not None
+    print(source.plan.summary(), file=sys.stderr)
+    label = f"offline {names[0]}" if len(names) == 1 else f"{len(names)} flights"
+    origin = str(data[0]) if len(data) == 1 else ", ".join(str(d) for d in data)
+    return _recording_session(config, args, source, label, origin)
 
 
 STATUS_VEHICLES = 12
@@ -701,7 +719,7 @@ def _link_session(
         )
     else:
         warm_up(config, args.backend)
-        session = Session(config, backend=args.backend, truths=truths)
+        session = Session(config, backend=args.backend, truths=truths, gate=_limits(args, config))
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record and recorder else None,
@@ -817,9 +835,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
     if any(detect.is_log(p) for p in args.tlogs):
-        if len(args.tlogs) != 1 or getattr(args, "each", False):
-            raise ConfigError("an autopilot's log (.bin, .log, .ulg) is replayed on its own")
-        args.data = args.tlogs[0]
+        if getattr(args, "each", False) or not all(detect.is_log(p) for p in args.tlogs):
+            raise ConfigError(
+                "autopilot logs (.bin, .log, .ulg) are replayed on their own, or several "
+                "together as flights of one aircraft, not with .tlog files or --each"
+            )
+        args.data = args.tlogs
         return cmd_offline(args)
     if getattr(args, "each", False):
         from gcs_estimator.runtime.batch import run_each
@@ -870,8 +891,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_refine(args: argparse.Namespace) -> int:
     """Both filters over a recorded flight, then the whole-record fit from their estimate."""
     args.refine = args.refine or args.method
-    if Path(args.flight).is_file() and detect.kind(args.flight) == "tlog":
-        args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
+    flights = list(args.flight)
+    if any(Path(f).is_file() and detect.kind(f) == "tlog" for f in flights):
+        args.tlogs, args.speed, args.progress = flights, 0.0, False
         return cmd_replay(args)
     args.data = args.flight
     return cmd_offline(args)
@@ -1010,8 +1032,10 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.add_argument(
         "data",
+        nargs="+",
         help="flight data: an ArduPilot .bin/.log or PX4 .ulg log, the HFB-320 ASCII record or "
-        "a CSV (see README), or a folder holding one; its content says which",
+        "a CSV (see README), or a folder holding one; its content says which. Several: "
+        "flights of one aircraft, one set of coefficients from all of them",
     )
     p.set_defaults(func=cmd_offline)
 
@@ -1022,7 +1046,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _common(p)
     p.add_argument(
-        "flight", help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or a .tlog"
+        "flight",
+        nargs="+",
+        help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or .tlog files; "
+        "several logs or data files: flights of one aircraft, fitted together",
     )
     p.add_argument(
         "--method",
@@ -1076,7 +1103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.backend = backend_of(os.environ)
         if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
             raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
-        _window(getattr(args, "window", None))  # a bad --window is refused before any work
+        parse_windows(getattr(args, "window", None))  # a bad --window: refused before any work
         if hasattr(args, "out"):
             args.out = str(run_folder(args, started))
             args.started = started

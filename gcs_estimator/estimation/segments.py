@@ -333,3 +333,34 @@ class Gate:
             self.segments += 1
         self._outside = False
         return True, fresh
+
+
+def describe(report: Mapping[str, Any] | None) -> str:
+    """A run's segments in one line, from EstimatorResult.segments ("" where every frame
+    was used)."""
+    if not report:
+        return ""
+    left = report.get("left_out_frames", {})
+    why = ", ".join(f"{r} {left[r]}" for r in REASONS if left.get(r))
+    if "segments" in report:
+        spans = [f"{s['t0_s']:.1f}-{s['t1_s']:.1f} s" for s in report["segments"]]
+        more = "" if len(spans) <= 6 else f" and {len(spans) - 6} more"
+        used = f"{len(spans)} segment(s) used ({', '.join(spans[:6])}{more})"
+    else:
+        used = f"{report.get('segments_begun', 0)} segment(s) begun live"
+    text = f"segments: {used}, {report['frames_used']} of {report['frames']} frames"
+    return text + (f"; frames left out: {why}" if why else "")
+
+
+def describe_flights(flights: Sequence[Mapping[str, Any]], kind: str = "IEKF") -> list[str]:
+    """Each flight's part (Estimator.flight_parts), a line each: for filter `kind`, the
+    share of each coefficient's variance the flight removed."""
+    out = []
+    for part in flights:
+        removed = part["filters"].get(kind, {}).get("variance_removed", {})
+        shares = ", ".join(f"{n} {100 * v:.0f} %" for n, v in removed.items())
+        out.append(
+            f"flight {part['flight']} ({part['frames']} frames): the {kind}'s variance it "
+            f"removed: {shares}"
+        )
+    return out

@@ -1,0 +1,110 @@
+"""Several flights of one airframe estimated together, segments in a run, and --window on
+the filters (runtime/flights.py, estimation/segments.py; decision 0050)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcs_estimator.config import load_config
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.runtime.flights import limits_of, source_of
+from gcs_estimator.runtime.session import Session
+from gcs_estimator.uncertainty.result import VehicleResult
+
+SETTINGS = ["filter.structure_check=off"]
+
+
+def _flight(seconds: float, seed: int) -> tuple[Recording, object]:
+    from sim.truth import simulate
+
+    config = load_config("noc_uav", [*SETTINGS, f"simulation.manoeuvre.duration_s={seconds}"])
+    fl = simulate(config, seed=seed)
+    return Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"), config
+
+
+def _part(rec: Recording, a: int, b: int) -> Recording:
+    return Recording(rec.t_s[a:b], rec.inputs[a:b], rec.measurements[a:b], rec.power)
+
+
+def _run(config: object, recs: list[Recording], names: list[str], windows=()) -> VehicleResult:
+    source = source_of(recs, names, limits_of(config, windows))  # type: ignore[arg-type]
+    session = Session(config)  # type: ignore[arg-type]
+    return session.run(source)[1]
+
+
+@pytest.fixture(scope="module")
+def long_flight() -> tuple[Recording, object]:
+    return _flight(60.0, seed=3)
+
+
+def test_a_flight_split_in_two_estimated_together(long_flight: tuple[Recording, object]) -> None:
+    """Its two halves together: each coefficient's sigma at most that of either half alone,
+    the estimate within the sigmas of the single long flight's; each flight's part said."""
+    rec, config = long_flight
+    half = len(rec) // 2
+    first, second = _part(rec, 0, half), _part(rec, half, len(rec))
+    both = _run(config, [first, second], ["a", "b"]).result.filters["IEKF"]
+    whole = _run(config, [rec], ["whole"]).result.filters["IEKF"]
+    alone = [
+        _run(config, [r], [n]).result.filters["IEKF"] for r, n in ((first, "a"), (second, "b"))
+    ]
+    for one in alone:
+        assert np.all(both.sigma <= 1.05 * one.sigma)
+    z = (both.coefficients - whole.coefficients) / np.hypot(both.sigma, whole.sigma)
+    assert np.all(np.abs(z) < 3.0), z
+    result = _run(config, [first, second], ["a", "b"]).result
+    assert [p["flight"] for p in result.flights] == ["a", "b"]
+    assert sum(p["frames"] for p in result.flights) == result.frames == len(rec)
+    after = np.array(list(result.flights[-1]["filters"]["IEKF"]["sigma"].values()))
+    np.testing.assert_allclose(after, result.filters["IEKF"].sigma, rtol=1e-9)
+    removed = result.flights[0]["filters"]["IEKF"]["variance_removed"]
+    assert all(0.0 < v <= 1.0 for v in removed.values())
+
+
+def test_windows_on_the_filters_leave_the_rest_out(long_flight: tuple[Recording, object]) -> None:
+    """--window 5:20 --window 35:50: only those frames are stepped, the flight states
+    afresh at the second; the frames outside counted."""
+    from gcs_estimator.estimation.segments import parse_windows
+
+    rec, config = long_flight
+    v = _run(config, [rec], ["f"], parse_windows(["5:20", "35:50"]))
+    seg = v.result.segments
+    assert seg is not None and len(seg["segments"]) == 2
+    rel = rec.t_s - rec.t_s[0]
+    inside = int(np.sum(((rel >= 5) & (rel <= 20)) | ((rel >= 35) & (rel <= 50))))
+    assert v.result.frames == seg["frames_used"] == inside
+    assert seg["left_out_frames"]["window"] == len(rec) - inside
+    assert v.result.gaps == 0  # a segment's start is no clock gap
+    track = v.result.filters["IEKF"].track
+    assert track is not None and float(track.t[0] - rec.t_s[0]) >= 5.0
+
+
+def test_offline_with_two_logs_and_a_refused_mix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`offline A.bin B.bin`: one estimate from both flights, each flight's part in the JSON
+    and the table; a DataFlash log and a PX4 log together are refused naming both."""
+    from gcs_estimator.cli import main
+    from sim.cli import main as sim_main
+
+    short = ["--set", "simulation.manoeuvre.duration_s=20", "--set", SETTINGS[0]]
+    for name, seed, fmt in (("a", 1, "--bin"), ("b", 2, "--bin"), ("c", 3, "--ulg")):
+        suffix = ".bin" if fmt == "--bin" else ".ulg"
+        assert sim_main([*short, "--seed", str(seed), fmt, str(tmp_path / f"{name}{suffix}")]) == 0
+    out = tmp_path / "out"
+    argv = ["offline", str(tmp_path / "a.bin"), str(tmp_path / "b.bin"), "--config", "noc_uav"]
+    assert main([*argv, *short, "--view", "off", "--out", str(out)]) == 0
+    data = json.loads((out / "results_sys1.json").read_text())
+    flights = data["diagnostics"]["flights"]
+    assert [f["flight"] for f in flights] == ["a.bin", "b.bin"]
+    assert len(data["diagnostics"]["segments"]["segments"]) >= 2
+    assert "flight b.bin" in (out / "results_sys1.md").read_text()
+    mixed = ["offline", str(tmp_path / "a.bin"), str(tmp_path / "c.ulg"), "--config", "noc_uav"]
+    capsys.readouterr()
+    assert main([*mixed, *short, "--view", "off", "--out", str(tmp_path / "mixed")]) == 2
+    err = capsys.readouterr().err
+    assert "different aircraft flew (a.bin: ArduPlane fixed-wing; c.ulg: PX4 fixed-wing)" in err
