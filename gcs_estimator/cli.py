@@ -69,6 +69,7 @@ from gcs_estimator.outputs.table import LiveEstimate, live_table
 from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
+from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.flights import (
     NoSegmentError,
     check_one_aircraft,
@@ -76,7 +77,6 @@ from gcs_estimator.runtime.flights import (
     source_of,
     what_flew,
 )
-from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
