@@ -634,7 +634,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
             )
         recs.append(rec)
         names.append(path.name)
-        flew.append((path.name, what_flew(account, path)))
+        flew.append((path.name, what_flew(account)))
     check_one_aircraft(flew)
     try:
         source = source_of(recs, names, _limits(args, config))

@@ -108,3 +108,24 @@ def test_offline_with_two_logs_and_a_refused_mix(
     assert main([*mixed, *short, "--view", "off", "--out", str(tmp_path / "mixed")]) == 2
     err = capsys.readouterr().err
     assert "different aircraft flew (a.bin: ArduPlane fixed-wing; c.ulg: PX4 fixed-wing)" in err
+
+
+def test_refine_fits_two_flights_jointly() -> None:
+    """The whole-record fit over two flights, each flown from its own first frame: it
+    converges, each flight's flight states its own (the second piece's start is fitted,
+    not the first flight's end), its sigma no larger than either flight's alone, and the
+    truth within its sigmas."""
+    from gcs_estimator.refine import refine_run
+
+    (a, config), (b, _) = _flight(25.0, seed=5), _flight(25.0, seed=6)
+    joint = refine_run(_run(config, [a, b], ["a", "b"]), "output-error", threads=1)
+    alone = [
+        refine_run(_run(config, [r], [n]), "output-error", threads=1)
+        for r, n in ((a, "a"), (b, "b"))
+    ]
+    assert joint.converged and joint.frames == len(a) + len(b)
+    for one in alone:
+        assert np.all(joint.sigma <= 1.05 * one.sigma), (joint.sigma, one.sigma)
+    truth = np.array(config.truth)  # type: ignore[attr-defined]
+    z = (joint.coefficients - truth) / joint.sigma
+    assert np.all(np.abs(z) < 3.0), z

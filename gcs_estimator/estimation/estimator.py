@@ -336,5 +336,6 @@ class Estimator:
             measurement_sigma=tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
             noise_reading=self.restarts.noise_reading,
             segments=self.segments_report(),
+            fresh_frames=tuple(self.fresh_frames),
             flights=self.flight_parts(),
         )

@@ -127,6 +127,10 @@ class EstimatorResult(NamedTuple):
     segments: dict[str, Any] | None = None
     """The segments the filters stepped in and the frames left out, by reason
     (segments.Plan.as_json; live, the Gate's counts); None: every frame was used."""
+    fresh_frames: tuple[int, ...] = ()
+    """The frames (of the history) at which a segment or a flight began after frames
+    left out: the flight states started afresh there (refine flies each piece from its
+    own)."""
     flights: tuple[dict[str, Any], ...] = ()
     """With several flights of one airframe, each flight's part (Estimator.flight_parts):
     its frames, and per filter the coefficients and sigma after it and the share of each

@@ -136,6 +136,7 @@ def _over_state(n: int, free: IntArray, values: FloatArray) -> FloatArray:
 
 def _sigmas(
     model: Model,
+    n_delays: int,
     end: _Fitted,
     free: IntArray,
     observed: BoolArray,
@@ -162,7 +163,7 @@ def _sigmas(
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     bias_sigma = fit_sigma(crb[bs], mk_var[bs], own[bs]).sigma
-    ds = np.arange(model.n, n)
+    ds = np.arange(model.n, model.n + n_delays)
     delay_sigma = fit_sigma(crb[ds], mk_var[ds], own[ds]).sigma
     return parts, np.concatenate([bias_sigma, delay_sigma]), correlation_of(full[cs, cs]), colour
 
@@ -202,6 +203,7 @@ def refine(
     threads: int | None = None,
     compared: FilterEstimate | None = None,
     delayed: Sequence[int] = (),
+    pieces: Sequence[tuple[int, FloatArray]] = (),
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -217,12 +219,17 @@ def refine(
     sigma the fit's sigma takes in (sigma.fit_sigma). delayed: the model inputs (0 the
     elevator, 1 the throttle or thrust) whose delay relative to the response is fitted
     with the other parameters (from 0; decision 0044): the coefficients' sigma then
-    includes what the data leave undecided about the inputs' timing."""
+    includes what the data leave undecided about the inputs' timing. pieces: where the
+    record is several pieces (segments, flights: decision 0050), each further piece's
+    first frame and its flight states' start [N_FLIGHT]: each piece is flown from its own
+    flight states, fitted with the shared coefficients, biases and delays."""
     t, u, y, mask, observed = _record(model, t_s, inputs, observations)
     lags = np.asarray(delayed, dtype=np.int64)
-    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags)
+    firsts = np.array([first for first, _ in pieces], dtype=np.int64)
+    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags, firsts)
     prob.pool = thread_pool(threads)
-    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size)])
+    starts = [np.asarray(s, float)[:N_FLIGHT] for _, s in pieces]
+    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size), *starts])
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
@@ -238,7 +245,9 @@ def refine(
         end = _steady_fit(begin, iterations, counter.report)
     else:
         end = _gauss_newton_fit(begin, iterations, hold_noise, counter.report)
-    parts, extra_sigma, corr, colour = _sigmas(model, end, free, observed, mask, compared)
+    parts, extra_sigma, corr, colour = _sigmas(
+        model, lags.size, end, free, observed, mask, compared
+    )
     n_bias = len(model.bias_names)
     coefficients = end.x[model.coefficients].copy()
     method = "filter error" if estimate_process_noise else "output error"
@@ -266,6 +275,6 @@ def refine(
         converged=end.converged,
         message=f"{done} ({prob.runs} filter runs)",
         delay_names=tuple(INPUT_NAMES[i] for i in lags),
-        delays_s=end.x[model.n :].copy(),
+        delays_s=end.x[model.n : model.n + lags.size].copy(),
         delay_sigma_s=extra_sigma[n_bias:],
     )

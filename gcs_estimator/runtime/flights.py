@@ -10,7 +10,6 @@ coefficients and their covariance carried). The segments keep each flight's own 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -85,7 +84,7 @@ def source_of(recs: Sequence[Recording], names: Sequence[str], limits: Limits) -
     )
 
 
-def what_flew(account: str | None, path: Path) -> str | None:
+def what_flew(account: str | None) -> str | None:
     """What a flight's log says flew (its account's autopilot and vehicle, the firmware's
     version left out: one aircraft may be updated between flights); None for a data file,
     which does not say."""
