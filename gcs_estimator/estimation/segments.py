@@ -364,3 +364,52 @@ def describe_flights(flights: Sequence[Mapping[str, Any]], kind: str = "IEKF") -
             f"removed: {shares}"
         )
     return out
+
+
+class Pieces:
+    """Where a run's frames start afresh (segments.py's module docstring): one vehicle's
+    segments and flights as its estimator meets them, and what it reports of them."""
+
+    def __init__(self, gate: Limits | None = None) -> None:
+        self.gate = None if gate is None else Gate(gate)
+        """The segments' limits judged frame by frame (live); None: every frame admitted
+        is used (a recording's segments are chosen before its frames come)."""
+        self.plan: Plan | None = None
+        """The recording's segments, where they were chosen before the run (find)."""
+        self.fresh_frames: list[int] = []
+        """The frames (stepped, in order) that began a segment or flight after frames left
+        out: the flight states started afresh there from the measurements."""
+        self.flights: list[tuple[str, int]] = []
+        """Each flight's name and first frame (stepped), where a run holds several."""
+        self.pending = False
+        """The next frame stepped begins a segment."""
+
+    def admit(self, t: float, airspeed: float, stepped: int) -> bool:
+        """Whether the gate (live) uses the frame; one that begins a segment after frames
+        left out is marked pending (not the run's first: that one starts anyway)."""
+        if self.gate is None:
+            return True
+        use, fresh = self.gate.admit(t, airspeed)
+        self.pending = self.pending or (fresh and stepped > 0)
+        return use
+
+    def take(self, stepped: int) -> bool:
+        """Whether frame `stepped`, now stepped, starts afresh (recorded)."""
+        if not self.pending:
+            return False
+        self.pending = False
+        self.fresh_frames.append(stepped)
+        return True
+
+    def report(self, stepped: int) -> dict[str, Any] | None:
+        """The segments used and the frames left out (EstimatorResult.segments)."""
+        if self.plan is not None:
+            return self.plan.as_json()
+        if self.gate is not None:
+            return {
+                "frames": stepped + sum(self.gate.left_out.values()),
+                "frames_used": stepped,
+                "segments_begun": self.gate.segments,
+                "left_out_frames": dict(self.gate.left_out),
+            }
+        return None

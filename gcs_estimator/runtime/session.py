@@ -180,7 +180,7 @@ class Session:
         finally:
             for est in self.estimators.values():
                 est.finish_restarts()
-                est.plan = plan if plan is not None else est.plan
+                est.pieces.plan = plan if plan is not None else est.pieces.plan
             self.elapsed_s = time.perf_counter() - self.started
             try:
                 results = self._results = self.results()
