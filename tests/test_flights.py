@@ -4,12 +4,14 @@ the filters (runtime/flights.py, estimation/segments.py; decision 0050)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from gcs_estimator.config import load_config
+from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.estimation.segments import Window
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.runtime.flights import limits_of, source_of
 from gcs_estimator.runtime.session import Session
@@ -18,7 +20,7 @@ from gcs_estimator.uncertainty.result import VehicleResult
 SETTINGS = ["filter.structure_check=off"]
 
 
-def _flight(seconds: float, seed: int) -> tuple[Recording, object]:
+def _flight(seconds: float, seed: int) -> tuple[Recording, AircraftConfig]:
     from sim.truth import simulate
 
     config = load_config("noc_uav", [*SETTINGS, f"simulation.manoeuvre.duration_s={seconds}"])
@@ -30,18 +32,22 @@ def _part(rec: Recording, a: int, b: int) -> Recording:
     return Recording(rec.t_s[a:b], rec.inputs[a:b], rec.measurements[a:b], rec.power)
 
 
-def _run(config: object, recs: list[Recording], names: list[str], windows=()) -> VehicleResult:
-    source = source_of(recs, names, limits_of(config, windows))  # type: ignore[arg-type]
-    session = Session(config)  # type: ignore[arg-type]
+def _run(
+    config: AircraftConfig, recs: list[Recording], names: list[str], windows: Sequence[Window] = ()
+) -> VehicleResult:
+    source = source_of(recs, names, limits_of(config, windows))
+    session = Session(config)
     return session.run(source)[1]
 
 
 @pytest.fixture(scope="module")
-def long_flight() -> tuple[Recording, object]:
+def long_flight() -> tuple[Recording, AircraftConfig]:
     return _flight(60.0, seed=3)
 
 
-def test_a_flight_split_in_two_estimated_together(long_flight: tuple[Recording, object]) -> None:
+def test_a_flight_split_in_two_estimated_together(
+    long_flight: tuple[Recording, AircraftConfig],
+) -> None:
     """Its two halves together: each coefficient's sigma at most that of either half alone,
     the estimate within the sigmas of the single long flight's; each flight's part said."""
     rec, config = long_flight
@@ -65,7 +71,9 @@ def test_a_flight_split_in_two_estimated_together(long_flight: tuple[Recording, 
     assert all(0.0 < v <= 1.0 for v in removed.values())
 
 
-def test_windows_on_the_filters_leave_the_rest_out(long_flight: tuple[Recording, object]) -> None:
+def test_windows_on_the_filters_leave_the_rest_out(
+    long_flight: tuple[Recording, AircraftConfig],
+) -> None:
     """--window 5:20 --window 35:50: only those frames are stepped, the flight states
     afresh at the second; the frames outside counted."""
     from gcs_estimator.estimation.segments import parse_windows
@@ -126,6 +134,6 @@ def test_refine_fits_two_flights_jointly() -> None:
     assert joint.converged and joint.frames == len(a) + len(b)
     for one in alone:
         assert np.all(joint.sigma <= 1.05 * one.sigma), (joint.sigma, one.sigma)
-    truth = np.array(config.truth)  # type: ignore[attr-defined]
+    truth = np.array(config.truth)
     z = (joint.coefficients - truth) / joint.sigma
     assert np.all(np.abs(z) < 3.0), z
