@@ -75,6 +75,7 @@ from gcs_estimator.runtime.flights import (
     check_one_aircraft,
     limits_of,
     source_of,
+    tlog_recording,
     what_flew,
 )
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
@@ -848,6 +849,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return run_each(args, stop)
     if getattr(args, "jobs", None) is not None:
         raise ConfigError("--jobs: only with --each (the files of one flight are read in order)")
+    if getattr(args, "flights", False):
+        return _tlog_flights(args)
     config = _config(args)
     origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
     session, link = _link_session(config, args, origin, status=False)
@@ -855,6 +858,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if sys.stderr.isatty() or args.progress:
         session.add_sink(ProgressSink(source.progress, "replay"))
     return _run(session, source, stop)
+
+
+def _tlog_flights(args: argparse.Namespace) -> int:
+    """Several .tlog files as flights of one aircraft (replay --flights, refine): each
+    read into its frames, then one estimate from all of them (runtime/flights.py)."""
+    if getattr(args, "each", False):
+        raise ConfigError("--flights and --each: one estimate from all files, or one each")
+    flew = []
+    for log in args.tlogs:
+        named = flight_airframe(side_file(log)) if side_file(log).is_file() else None
+        flew.append((Path(log).name, None if named is None else f"airframe {named.config}"))
+    check_one_aircraft(flew)
+    config = weigh_alpha(_config(args))
+    recs = [tlog_recording(log, config) for log in args.tlogs]
+    names = [Path(log).name for log in args.tlogs]
+    try:
+        source = source_of(recs, names, _limits(args, config))
+    except NoSegmentError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
+    assert source.plan is not None
+    print(source.plan.summary(), file=sys.stderr)
+    return _recording_session(config, args, source, f"{len(recs)} flights", ", ".join(names))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -894,6 +920,7 @@ def cmd_refine(args: argparse.Namespace) -> int:
     flights = list(args.flight)
     if any(Path(f).is_file() and detect.kind(f) == "tlog" for f in flights):
         args.tlogs, args.speed, args.progress = flights, 0.0, False
+        args.flights = len(flights) > 1  # several: flights of one aircraft, fitted together
         return cmd_replay(args)
     args.data = args.flight
     return cmd_offline(args)
@@ -1008,6 +1035,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="every file is a flight of its own: replayed in parallel processes, each into "
         "a folder of its own under --out, the results merged in replays.json and replays.md",
+    )
+    p.add_argument(
+        "--flights",
+        action="store_true",
+        help="every .tlog file is a flight of one aircraft: one set of coefficients from all "
+        "of them, each flight's flight states its own, each flight's part reported",
     )
     p.add_argument(
         "--jobs",

@@ -107,3 +107,43 @@ def check_one_aircraft(flew: Sequence[tuple[str, str | None]]) -> None:
                 "flights estimated together must be of one aircraft (one airframe file); "
                 "estimate them apart"
             )
+
+
+def tlog_recording(path: str, config: AircraftConfig) -> Recording:
+    """A .tlog's flight as a Recording: the frames its first vehicle's messages make, as
+    a replay would step them (the link decodes and synchronises them; ingest.sources)."""
+    from gcs_estimator.ingest.sources import TlogSource
+    from gcs_estimator.ingest.telemetry.decode import ranges_of
+    from gcs_estimator.ingest.telemetry.link import MavlinkLink
+    from gcs_estimator.stop import Stop
+
+    link = MavlinkLink(
+        config.link,
+        linear_inputs=config.data.input_hold == "linear",
+        ranges=ranges_of(config.data),
+        elevator_travel_deg=config.airframe.elevator_travel_deg,
+    )
+    source = TlogSource([path], link)
+    frames = [f for f in source.frames(Stop()) if f is not None]
+    source.close()
+    if frames:
+        first = frames[0].system_id
+        frames = [f for f in frames if f.system_id == first]
+    if not frames:
+        raise ConfigError(f"{path}: no frame could be made of its messages: nothing to estimate")
+    kept, last = [], -np.inf
+    for f in frames:  # in time order: a frame not after the one before is skipped
+        if f.t_vehicle_s > last:
+            kept.append(f)
+            last = f.t_vehicle_s
+    width = max(len(f.inputs) for f in kept)
+    inputs = np.full((len(kept), width), np.nan)
+    for i, f in enumerate(kept):
+        inputs[i, : len(f.inputs)] = f.inputs
+    return Recording(
+        np.array([f.t_vehicle_s for f in kept]),
+        inputs,
+        np.array([f.y for f in kept], float),
+        config.propulsion.input_name,
+        inputs_known=np.array([f.inputs_known for f in kept]),
+    )
