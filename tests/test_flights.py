@@ -115,7 +115,7 @@ def test_offline_with_two_logs_and_a_refused_mix(
     capsys.readouterr()
     assert main([*mixed, *short, "--view", "off", "--out", str(tmp_path / "mixed")]) == 2
     err = capsys.readouterr().err
-    assert "different aircraft flew (a.bin: ArduPlane fixed-wing; c.ulg: PX4 fixed-wing)" in err
+    assert "different aircraft flew (a.bin: ArduPlane fixed-wing; c.ulg: PX4 " in err
 
 
 def test_refine_fits_two_flights_jointly() -> None:
