@@ -158,3 +158,32 @@ def test_replay_flights_takes_each_tlog_as_a_flight(tmp_path: Path) -> None:
     assert [f["flight"] for f in flights] == ["a_1.tlog", "b_1.tlog"]
     assert data["diagnostics"]["frames"] == sum(f["frames"] for f in flights)
     assert len(data["diagnostics"]["segments"]["segments"]) == 2
+
+
+def test_live_gate_skips_counts_and_starts_afresh() -> None:
+    """A session with the live gate: frames whose airspeed leaves the range are skipped and
+    counted, the next one within starts the flight states afresh (no clock gap, the
+    restarts kept); the final pass replayed from the history (as the structure check
+    does) ends exactly where the run did."""
+    from gcs_estimator.estimation.estimator import Estimator
+    from gcs_estimator.runtime.session import RecordingSource
+
+    rec, config = _flight(20.0, seed=4)
+    y = rec.measurements.copy()
+    slow = (rec.t_s - rec.t_s[0] > 8.0) & (rec.t_s - rec.t_s[0] < 11.0)
+    y[slow, 0] = 5.0  # three seconds far below the trim airspeed
+    session = Session(config, gate=limits_of(config))
+    result = session.run(RecordingSource(rec.t_s, rec.inputs, y))[1].result
+    seg = result.segments
+    assert seg is not None and seg["left_out_frames"]["airspeed"] == int(slow.sum())
+    assert result.frames == len(rec) - int(slow.sum()) and seg["segments_begun"] == 2
+    assert len(result.fresh_frames) == 1 and result.gaps == 0
+    assert result.restarts_done == len(config.filter.restart_times_s)
+    est = session.estimators[1]
+    again = Estimator(config, keep_history=False)
+    again.replay_final_pass(est, *est.frame_history.arrays())
+    for kind, lane in again.states.items():
+        run = est.states[kind]
+        assert lane is not None and run is not None
+        np.testing.assert_array_equal(lane.x, run.x)
+        np.testing.assert_array_equal(lane.P, run.P)
