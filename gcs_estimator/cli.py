@@ -439,11 +439,18 @@ def _limits(args: argparse.Namespace, config: AircraftConfig) -> Limits:
 
 def _refiner(args: argparse.Namespace) -> RefineAsk | None:
     """The whole-record fit the command line asked for (None: not asked). It fits the
-    frames the filters used: --window has chosen them already (segments.py)."""
+    frames the filters used: --window has chosen them already (segments.py), but for the
+    filter workers, which use every frame: there the fit alone takes the (one) window."""
     method = getattr(args, "refine", None)
     if method is None:
         return None
-    return RefineAsk(method, (None, None), bool(getattr(args, "hold_noise", False)))
+    window: tuple[float | None, float | None] = (None, None)
+    if getattr(args, "filter_workers", None):
+        windows = parse_windows(getattr(args, "window", None))
+        if len(windows) > 1:
+            raise ConfigError("--window with --filter-workers: one window, which refine fits")
+        window = windows[0] if windows else window
+    return RefineAsk(method, window, bool(getattr(args, "hold_noise", False)))
 
 
 EXIT_NOTHING_ESTIMATED = 1
