@@ -34,6 +34,13 @@ from gcs_estimator.config import (
     truths_text,
 )
 from gcs_estimator.estimation.filters.core import Backend
+from gcs_estimator.estimation.segments import (
+    Limits,
+    Window,
+    excluding,
+    parse_window,
+    parse_windows,
+)
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, data_file
 from gcs_estimator.ingest.logs import detect
@@ -70,6 +77,14 @@ from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
+from gcs_estimator.runtime.flights import (
+    NoSegmentError,
+    check_one_aircraft,
+    limits_of,
+    source_of,
+    tlog_recording,
+    what_flew,
+)
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
 from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
@@ -304,9 +319,11 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
     )
     p.add_argument(
         "--window",
-        default=None,
+        action="append",
+        default=[],
         metavar="FROM:TO",
-        help="seconds after the first frame the refinement fits (either side may be empty)",
+        help="only these seconds after the (each) flight's first frame go to the filters and "
+        "the refinement (either side may be empty; repeatable)",
     )
     p.add_argument(
         "--hold-noise",
@@ -385,26 +402,42 @@ def _checks(args: argparse.Namespace) -> Checks:
     return checks
 
 
+def _held_window(args: argparse.Namespace) -> Window | None:
+    """The window --validate holds out (None: no --validate, or a log)."""
+    text = getattr(args, "validate", None)
+    if not text or Path(text).exists():
+        return None
+    try:
+        return parse_window(text)
+    except ConfigError:
+        raise ConfigError(
+            f"--validate {text!r}: neither a file nor a window FROM:TO in seconds (e.g. 60:90)"
+        ) from None
+
+
+def _fitted_windows(args: argparse.Namespace) -> tuple[Window, ...]:
+    """The windows the filters and the fit take: --window's (none: the whole flight),
+    less the window --validate holds out."""
+    windows = parse_windows(getattr(args, "window", None))
+    held = _held_window(args)
+    return windows if held is None else excluding(windows, held)
+
+
 def _new_checks(args: argparse.Namespace) -> Checks:
     text = getattr(args, "validate", None)
     advise = not getattr(args, "no_advice", False)
-    refine_window = _window(getattr(args, "window", None))
+    # The filter workers step every frame (only refine takes a window there).
+    fitted = () if getattr(args, "filter_workers", None) else _fitted_windows(args)
     if not text:
-        return Checks(advise=advise, refine_window=refine_window)
+        return Checks(advise=advise, fitted=fitted)
     if Path(text).exists():
         if Path(text).is_file() and detect.kind(text) == "tlog":
             raise ConfigError(
                 f"--validate {text}: a .tlog is not read as a held-out log; give a window "
                 "of this record (FROM:TO), or the flight as a .bin, .ulg or .csv"
             )
-        return Checks(log=text, advise=advise, refine_window=refine_window)
-    try:
-        window = _window(text)
-    except ConfigError:
-        raise ConfigError(
-            f"--validate {text!r}: neither a file nor a window FROM:TO in seconds (e.g. 60:90)"
-        ) from None
-    return Checks(window=window, advise=advise, refine_window=refine_window)
+        return Checks(log=text, advise=advise, fitted=fitted)
+    return Checks(window=_held_window(args), advise=advise, fitted=fitted)
 
 
 def _truth_option(p: argparse.ArgumentParser) -> None:
@@ -493,28 +526,26 @@ def _view_sink(
     )
 
 
-def _window(text: str | None) -> tuple[float | None, float | None]:
-    if not text:
-        return None, None
-    lo, sep, hi = text.partition(":")
-    try:
-        if not sep:
-            raise ValueError(text)
-        start = float(lo) if lo.strip() else None
-        end = float(hi) if hi.strip() else None
-    except ValueError:
-        raise ConfigError(f"--window {text!r}: expected FROM:TO in seconds, e.g. 0:60") from None
-    if start is not None and end is not None and not start < end:
-        raise ConfigError(f"--window {text!r}: FROM must come before TO, e.g. 0:60")
-    return start, end
+def _limits(args: argparse.Namespace, config: AircraftConfig) -> Limits:
+    """The segments' limits of the run: the airframe's, and the --window given less the
+    window --validate holds out."""
+    return limits_of(config, _fitted_windows(args))
 
 
 def _refiner(args: argparse.Namespace) -> RefineAsk | None:
-    """The whole-record fit the command line asked for (None: not asked)."""
+    """The whole-record fit the command line asked for (None: not asked). It fits the
+    frames the filters used: --window has chosen them already (segments.py), but for the
+    filter workers, which use every frame: there the fit alone takes the (one) window."""
     method = getattr(args, "refine", None)
     if method is None:
         return None
-    return RefineAsk(method, _window(args.window), bool(getattr(args, "hold_noise", False)))
+    window: tuple[float | None, float | None] = (None, None)
+    if getattr(args, "filter_workers", None):
+        windows = parse_windows(getattr(args, "window", None))
+        if len(windows) > 1:
+            raise ConfigError("--window with --filter-workers: one window, which refine fits")
+        window = windows[0] if windows else window
+    return RefineAsk(method, window, bool(getattr(args, "hold_noise", False)))
 
 
 EXIT_NOTHING_ESTIMATED = 1
@@ -675,33 +706,53 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return _recording_session(config, args, source, f"simulated flight, seed {seed}", None)
 
 
-def _flight(data: str, config: AircraftConfig, progress: bool) -> tuple[Path, Recording]:
+def _flight(
+    data: str, config: AircraftConfig, progress: bool
+) -> tuple[Path, Recording, str | None]:
     """A data file or an autopilot's log (by its content); a log's account on stderr."""
     show = sys.stderr.isatty() or progress
     report = stderr_progress(f"reading {Path(data).name}") if show else None
     path, rec, account = load_flight(data, config, report)
     if account:
         print(account, file=sys.stderr)
-    return path, rec
+    return path, rec, account
 
 
 def cmd_offline(args: argparse.Namespace) -> int:
-    config = _config(args)
-    if Path(args.data).is_file() and detect.kind(args.data) == "tlog":
-        args.tlogs, args.speed, args.progress = [args.data], 0.0, False
+    data = [args.data] if isinstance(args.data, str) else list(args.data)
+    if len(data) == 1 and Path(data[0]).is_file() and detect.kind(data[0]) == "tlog":
+        args.tlogs, args.speed, args.progress = data, 0.0, False
         return cmd_replay(args)
-    path, rec = _flight(args.data, config, getattr(args, "progress", False))
-    args.compatibility = rec.compatibility
-    for note in rec.notes:
-        print(f"note: {note}", file=sys.stderr)
-    want = config.propulsion.input_name
-    if rec.power != want:
-        raise ConfigError(
-            f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs {want} "
-            f"in the data, but {path} has {rec.power}"
-        )
-    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
-    return _recording_session(config, args, source, f"offline {path.name}", str(path))
+    args.data = data[0]  # the airframe: the bundled record's where it is one
+    config = _config(args)
+    recs, names, flew = [], [], []
+    for item in data:
+        path, rec, account = _flight(item, config, getattr(args, "progress", False))
+        for note in rec.notes:
+            print(f"note: {note}", file=sys.stderr)
+        want = config.propulsion.input_name
+        if rec.power != want:
+            raise ConfigError(
+                f"{config.source}: [propulsion] model: {config.propulsion.model!r} needs "
+                f"{want} in the data, but {path} has {rec.power}"
+            )
+        recs.append(rec)
+        names.append(path.name)
+        flew.append((path.name, what_flew(account)))
+    check_one_aircraft(flew)
+    findings = {n: r.compatibility for n, r in zip(names, recs, strict=True) if r.compatibility}
+    # ingest/compat.py's findings: the one flight's, or each flight's by its file's name
+    args.compatibility = recs[0].compatibility if len(recs) == 1 else findings or None
+    try:
+        source = source_of(recs, names, _limits(args, config))
+    except NoSegmentError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
+    assert source.plan is not None
+    print(source.plan.summary(), file=sys.stderr)
+    label = f"offline {names[0]}" if len(names) == 1 else f"{len(names)} flights"
+    origin = str(data[0]) if len(data) == 1 else ", ".join(str(d) for d in data)
+    return _recording_session(config, args, source, label, origin)
 
 
 STATUS_VEHICLES = 12
@@ -775,7 +826,7 @@ def _link_session(
         )
     else:
         warm_up(config, args.backend)
-        session = Session(config, backend=args.backend, truths=truths)
+        session = Session(config, backend=args.backend, truths=truths, gate=_limits(args, config))
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record and recorder else None,
@@ -891,9 +942,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     stop = PROCESS_STOP.install()
     args.tlogs = tlog_paths(args.tlogs)
     if any(detect.is_log(p) for p in args.tlogs):
-        if len(args.tlogs) != 1 or getattr(args, "each", False):
-            raise ConfigError("an autopilot's log (.bin, .log, .ulg) is replayed on its own")
-        args.data = args.tlogs[0]
+        if getattr(args, "each", False) or not all(detect.is_log(p) for p in args.tlogs):
+            raise ConfigError(
+                "autopilot logs (.bin, .log, .ulg) are replayed on their own, or several "
+                "together as flights of one aircraft, not with .tlog files or --each"
+            )
+        args.data = args.tlogs
         return cmd_offline(args)
     if getattr(args, "each", False):
         from gcs_estimator.runtime.batch import run_each
@@ -901,6 +955,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return run_each(args, stop)
     if getattr(args, "jobs", None) is not None:
         raise ConfigError("--jobs: only with --each (the files of one flight are read in order)")
+    if getattr(args, "flights", False):
+        return _tlog_flights(args)
     config = _config(args)
     origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
     session, link = _link_session(config, args, origin, status=False)
@@ -908,6 +964,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if sys.stderr.isatty() or args.progress:
         session.add_sink(ProgressSink(source.progress, "replay"))
     return _run(session, source, stop)
+
+
+def _tlog_flights(args: argparse.Namespace) -> int:
+    """Several .tlog files as flights of one aircraft (replay --flights, refine): each
+    read into its frames, then one estimate from all of them (runtime/flights.py)."""
+    if getattr(args, "each", False):
+        raise ConfigError("--flights and --each: one estimate from all files, or one each")
+    flew = []
+    for log in args.tlogs:
+        named = flight_airframe(side_file(log)) if side_file(log).is_file() else None
+        flew.append((Path(log).name, None if named is None else f"airframe {named.config}"))
+    check_one_aircraft(flew)
+    config = weigh_alpha(_config(args))
+    recs = [tlog_recording(log, config) for log in args.tlogs]
+    names = [Path(log).name for log in args.tlogs]
+    try:
+        source = source_of(recs, names, _limits(args, config))
+    except NoSegmentError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOTHING_ESTIMATED
+    assert source.plan is not None
+    print(source.plan.summary(), file=sys.stderr)
+    return _recording_session(config, args, source, f"{len(recs)} flights", ", ".join(names))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -944,8 +1023,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_refine(args: argparse.Namespace) -> int:
     """Both filters over a recorded flight, then the whole-record fit from their estimate."""
     args.refine = args.refine or args.method
-    if Path(args.flight).is_file() and detect.kind(args.flight) == "tlog":
-        args.tlogs, args.speed, args.progress = [args.flight], 0.0, False
+    flights = list(args.flight)
+    if any(Path(f).is_file() and detect.kind(f) == "tlog" for f in flights):
+        args.tlogs, args.speed, args.progress = flights, 0.0, False
+        args.flights = len(flights) > 1  # several: flights of one aircraft, fitted together
         return cmd_replay(args)
     args.data = args.flight
     return cmd_offline(args)
@@ -1062,6 +1143,12 @@ def build_parser() -> argparse.ArgumentParser:
         "a folder of its own under --out, the results merged in replays.json and replays.md",
     )
     p.add_argument(
+        "--flights",
+        action="store_true",
+        help="every .tlog file is a flight of one aircraft: one set of coefficients from all "
+        "of them, each flight's flight states its own, each flight's part reported",
+    )
+    p.add_argument(
         "--jobs",
         type=int,
         default=None,
@@ -1084,8 +1171,10 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     p.add_argument(
         "data",
+        nargs="+",
         help="flight data: an ArduPilot .bin/.log or PX4 .ulg log, the HFB-320 ASCII record or "
-        "a CSV (see README), or a folder holding one; its content says which",
+        "a CSV (see README), or a folder holding one; its content says which. Several: "
+        "flights of one aircraft, one set of coefficients from all of them",
     )
     p.set_defaults(func=cmd_offline)
 
@@ -1096,7 +1185,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _common(p)
     p.add_argument(
-        "flight", help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or a .tlog"
+        "flight",
+        nargs="+",
+        help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or .tlog files; "
+        "several logs or data files: flights of one aircraft, fitted together",
     )
     p.add_argument(
         "--method",
@@ -1150,7 +1242,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.backend = backend_of(os.environ)
         if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
             raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
-        _window(getattr(args, "window", None))  # a bad --window is refused before any work
+        parse_windows(getattr(args, "window", None))  # a bad --window: refused before any work
         if hasattr(args, "out"):
             args.out = str(run_folder(args, started))
             args.started = started

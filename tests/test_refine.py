@@ -128,19 +128,18 @@ def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() ->
     assert np.all(kept.sigma >= alone.sigma * (1.0 - 1e-12))
 
 
-def test_a_fit_that_fails_says_why_and_sets_the_exit_status(
+def test_a_window_the_flight_does_not_reach_says_so(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`refine` asked for a window the flight does not reach: the filters' results are
-    written (the JSON has no fit), the reason is said, and the exit status is
-    EXIT_REFINE_FAILED, so a script that runs it can tell."""
+    """`refine` asked for a window the flight does not reach: --window chooses the filters'
+    frames too (decision 0050), so nothing is estimated, the run says why (every frame
+    left out by the window) and exits EXIT_NOTHING_ESTIMATED, so a script can tell."""
     out = tmp_path / "out"
     argv = ["refine", "hfb320", "--window", "70:80", "--out", str(out), "--view", "off"]
-    assert cli.main(argv) == cli.EXIT_REFINE_FAILED
+    assert cli.main(argv) == cli.EXIT_NOTHING_ESTIMATED
     err = capsys.readouterr().err
-    assert "error: the whole-record fit failed (vehicle 1: only 0 frames in the window" in err
-    data = json.loads((out / "results_sys1.json").read_text())
-    assert data["refined"] is None and data["filters"]["IEKF"]["estimates"]
+    assert "no segment the model covers" in err and "left out: window 601" in err
+    assert not (out / "results_sys1.json").exists()
 
 
 def test_identifiability_marks() -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from gcs_estimator.estimation.noise import NoiseReading, scaled
 from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
+from gcs_estimator.estimation.segments import Limits, Pieces
 from gcs_estimator.model.aircraft import build_model
 
 __all__ = [
@@ -42,6 +44,9 @@ __all__ = [
 ]
 
 
+# Over 200 lines: the estimation package's one face to the session (admit, step, the
+# restarts' swap, segments and flights, results); each part's work lives in its own module
+# (passes, restarts, segments, history, results) and is only delegated to here.
 class Estimator:
     """EKF and IEKF side by side for one vehicle: the live pass, the restarts that replace
     it, and its history."""
@@ -53,11 +58,14 @@ class Estimator:
         keep_history: bool = True,
         noise_scale: FloatArray | None = None,
         peers_restarting: Callable[[], int] | None = None,
+        gate: Limits | None = None,
     ) -> None:
         """noise_scale: each channel's measurement variance multiplied by this in every
         pass, after the noise is read from the data (the structure check's re-runs:
         weighting.py); None: as configured and read. peers_restarting: how many other
-        vehicles of the station have a restart under way (restarts.GRACE_PER_PEER)."""
+        vehicles of the station have a restart under way (restarts.GRACE_PER_PEER).
+        gate: the segments' limits judged frame by frame (live: segments.Gate); None:
+        every frame admitted is used (a recording's segments are chosen before)."""
         self.config = config
         self.model = build_model(config)
         self.keep_history = keep_history
@@ -89,6 +97,8 @@ class Estimator:
         self.final_pass_from = 0
         """The frame at which the pass now running took over (its history row is that
         pass's output)."""
+        self.pieces = Pieces(gate)
+        """Where the flight states start afresh: segments, flights (decision 0050)."""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -104,7 +114,9 @@ class Estimator:
         noise_scale it ends where source did. Keeps no history of its own."""
         self.runner.starts = dict(source.runner.starts)
         self.tunings = scaled(dict(source.tunings), self.noise_scale)
-        self.runner.replay(self.states, t, u, y, self.tunings, core.MAX_GAP_S)
+        self.runner.replay(
+            self.states, t, u, y, self.tunings, core.MAX_GAP_S, source.pieces.fresh_frames
+        )
         self.frames += len(t)
 
     def admit(self, t: float, y: FloatArray) -> bool:
@@ -115,10 +127,25 @@ class Estimator:
         if not t > self._t_last:
             self.out_of_order += 1
             return False
-        if self.frames and t - self._t_last > core.MAX_GAP_S:
+        if not self.pieces.admit(t, float(y[0]), self.frames):
+            return False
+        if self.frames and t - self._t_last > core.MAX_GAP_S and not self.pieces.pending:
             self.gaps += 1
             self.rebase(t, y)
         return True
+
+    def start_segment(self) -> None:
+        """The next frame begins a segment after frames left out (segments.py): the flight
+        states start afresh from its measurements, as at a frame whose input is a guess,
+        the coefficients and their covariance carried; the restarts under way keep their
+        frames (their re-run starts afresh there too) and the time between is no gap."""
+        self.pieces.pending = self.frames > 0
+
+    def begin_flight(self, name: str) -> None:
+        """The next frame is a new flight's first (several logs of one airframe): its flight
+        states start afresh, the coefficients carried, as at a segment (start_segment)."""
+        self.pieces.flights.append((name, self.frames))
+        self.start_segment()
 
     def step(
         self, t: float, u: FloatArray, y: FloatArray, inputs_known: bool = True
@@ -140,6 +167,9 @@ class Estimator:
         if self.frames == 0:
             self._t0 = t
         self._t_last = t
+        if self.pieces.take(self.frames):
+            inputs_known = False
+            self.delay.restart()
         u = self.delay.at(t, self.model.inputs(u))
         y = np.array(y, float)
         self.restarts.keep((t, u, y, inputs_known))
@@ -239,4 +269,54 @@ class Estimator:
             state_names=self.model.layout.names,
             measurement_sigma=tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
             noise_reading=self.restarts.noise_reading,
+            segments=self.pieces.report(self.frames),
+            fresh_frames=tuple(self.pieces.fresh_frames),
+            flights=flight_parts(self),
         )
+
+
+def flight_parts(est: Estimator) -> tuple[dict[str, Any], ...]:
+    """Each flight's part in the estimate, where the run held several: the final pass
+    replayed flight by flight from its start (Runner.replay, the flight states afresh
+    at every flight and segment), the coefficients and their sigma after each, and the
+    share of each coefficient's variance the flight removed (1 - after^2 / before^2,
+    before: the sigma the pass started from, then the previous flight's). Empty with
+    one flight, or without a history."""
+    flights = est.pieces.flights
+    if len(flights) < 2 or not est.history_rows:
+        return ()
+    t, u, y = est.frame_history.arrays()
+    runner = Runner(est.model, est.backend)
+    runner.starts = dict(est.runner.starts)
+    lanes: Lanes = dict.fromkeys(FILTER_KINDS)
+    coef = est.model.coefficients
+    before = {k: _start_sigma(est, k) for k in FILTER_KINDS}
+    bounds = [first for _, first in flights] + [len(t)]
+    out: list[dict[str, Any]] = []
+    for j, (name, first) in enumerate(flights):
+        end = bounds[j + 1]
+        fresh = [i - first for i in est.pieces.fresh_frames if first <= i < end]
+        part = slice(first, end)
+        runner.replay(lanes, t[part], u[part], y[part], est.tunings, core.MAX_GAP_S, fresh)
+        filters: dict[str, Any] = {}
+        for kind, lane in lanes.items():
+            if lane is None:
+                continue
+            sigma = np.sqrt(np.diag(lane.P))[coef]
+            removed = 1.0 - sigma**2 / np.maximum(before[kind], 1e-300) ** 2
+            filters[kind] = {
+                "coefficients": dict(zip(est.names, lane.x[coef].tolist(), strict=True)),
+                "sigma": dict(zip(est.names, sigma.tolist(), strict=True)),
+                "variance_removed": dict(zip(est.names, removed.tolist(), strict=True)),
+            }
+            before[kind] = sigma
+        out.append({"flight": name, "frames": end - first, "filters": filters})
+    return tuple(out)
+
+
+def _start_sigma(est: Estimator, kind: FilterKind) -> FloatArray:
+    """The coefficients' sigma the final pass of filter `kind` started from."""
+    start = est.runner.starts[kind].sigma
+    if start is not None:
+        return np.asarray(start, float)
+    return np.asarray(est.tunings[kind].prior_sigma[est.model.coefficients], float)

@@ -169,23 +169,26 @@ class Runner:
         y: FloatArray,
         tunings: Tunings,
         max_gap_s: float,
+        fresh: Sequence[int] = (),
     ) -> None:
         """A record (t, u, y as a history holds them) through both filters of a pass,
         the flight states started afresh after every gap longer than max_gap_s as a run
-        does, each run of frames in one compiled call per filter where the backend has
-        blocks."""
+        does, and at each frame in `fresh` as a segment's first frame is (stepped as a
+        frame whose input is a guess: afresh, no update; segments.py), each run of frames
+        in one compiled call per filter where the backend has blocks."""
+        starts = set(fresh)
         i, n = 0, len(t)
         while i < n:
             end = i + 1
-            while end < n and t[end] - t[end - 1] <= max_gap_s:
+            while end < n and t[end] - t[end - 1] <= max_gap_s and end not in starts:
                 end += 1
             frames = [
-                (float(t[j]), self.model.inputs(u[j]), np.array(y[j], float), True)
+                (float(t[j]), self.model.inputs(u[j]), np.array(y[j], float), j not in starts)
                 for j in range(i, end)
             ]
             for kind in FILTER_KINDS:
                 lane = lanes[kind]
-                if lane is not None:
+                if lane is not None and i not in starts:
                     t0, _, y0, _ = frames[0]
                     lane.load(core.rebase(lane.state, self.model, tunings[kind], t0, y0))
                 if not self.blocks:  # a backend without blocks: frame by frame

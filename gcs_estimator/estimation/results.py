@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -124,3 +124,14 @@ class EstimatorResult(NamedTuple):
     noise_reading: NoiseReading | None = None
     """Each channel's noise as read from the data (None: none read); the final pass used
     it only where it was clearly below the configured sigma (noise.reading_z)."""
+    segments: dict[str, Any] | None = None
+    """The segments the filters stepped in and the frames left out, by reason
+    (segments.Plan.as_json; live, the Gate's counts); None: every frame was used."""
+    fresh_frames: tuple[int, ...] = ()
+    """The frames (of the history) at which a segment or a flight began after frames
+    left out: the flight states started afresh there (refine flies each piece from its
+    own)."""
+    flights: tuple[dict[str, Any], ...] = ()
+    """With several flights of one airframe, each flight's part (Estimator.flight_parts):
+    its frames, and per filter the coefficients and sigma after it and the share of each
+    coefficient's variance it removed."""

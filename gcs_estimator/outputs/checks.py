@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.estimation.segments import Window
 from gcs_estimator.outputs.table import LiveEstimate
 from gcs_estimator.uncertainty.advice import advice_of, live_advice
 from gcs_estimator.uncertainty.holdout import Holdout, dropped_marks, dropped_summary
@@ -19,8 +20,6 @@ from gcs_estimator.uncertainty.result import VehicleResult
 
 if TYPE_CHECKING:
     from gcs_estimator.refine import Refined
-
-Window = tuple[float | None, float | None]
 
 
 def _window_text(w: Window) -> str:
@@ -39,13 +38,14 @@ def _overlap(a: Window, b: Window) -> bool:
 class Checks:
     """The held-out check and the advice, as a results sink's `checks` (a value, so a
     filter worker can be given it). validate: a window of the record (seconds after its
-    first frame) or another log of the same aircraft; refine_window: the window the
-    whole-record fit took (to tell whether the held-out window was fitted too)."""
+    first frame) or another log of the same aircraft; fitted: the windows the filters and
+    the whole-record fit took (none: the whole flight), to tell whether the held-out
+    window was fitted too."""
 
     window: Window | None = None
     log: str | None = None
     advise: bool = True
-    refine_window: Window = (None, None)
+    fitted: tuple[Window, ...] = ()
     failures: list[str] = field(default_factory=list, compare=False, repr=False)
     done: dict[int, VehicleResult] = field(default_factory=dict, compare=False, repr=False)
     """Each vehicle as checked (the view's final panels read it)."""
@@ -106,7 +106,8 @@ class Checks:
         lo = -np.inf if self.window[0] is None else self.window[0]
         hi = np.inf if self.window[1] is None else self.window[1]
         idx = np.flatnonzero((rel >= lo) & (rel <= hi))
-        in_sample = refined is None or _overlap(self.window, self.refine_window)
+        window = self.window
+        in_sample = not self.fitted or any(_overlap(window, w) for w in self.fitted)
         return check(
             config,
             coefficients,

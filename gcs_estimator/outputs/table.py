@@ -13,6 +13,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimation import segments
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, FilterKind
 from gcs_estimator.estimation.noise import MIN_DIFFERENCES, NoiseReading
 from gcs_estimator.estimation.results import EstimatorResult, Snapshot
@@ -314,7 +315,7 @@ def _run_notes(vehicle: VehicleResult) -> list[str]:
     """What the run estimated beside the coefficients or fitted to start them, the noise
     it used, and its structure check."""
     result = vehicle.result
-    notes = _bias_notes(result)
+    notes = _bias_notes(result) + _segment_notes(result)
     if result.warm_start_samples is not None:
         cd, cl, cm = result.warm_start_samples
         notes.append(
@@ -333,6 +334,12 @@ def _run_notes(vehicle: VehicleResult) -> list[str]:
             "estimates is in σ (the JSON's sigma_parts.structure)" + _undecided_text(check)
         )
     return notes
+
+
+def _segment_notes(result: EstimatorResult) -> list[str]:
+    """The segments used and the frames left out, and each flight's part (segments.py)."""
+    line = segments.describe(result.segments)
+    return ([line] if line else []) + segments.describe_flights(result.flights)
 
 
 def _undecided_text(check: StructureCheck) -> str:
@@ -408,7 +415,8 @@ def terminal_text(vehicle: VehicleResult, refined: Refined | None = None) -> str
     (terminal_table), a short legend, the sensor biases and the whole-record fit's note
     where there are some, and the warnings; the rest is in results.md (final_table)."""
     table = terminal_table(vehicle.summaries, vehicle.result.config.truth_label, refined)
-    notes = _bias_notes(vehicle.result) + ([] if refined is None else [_refined_note(refined)])
+    notes = _bias_notes(vehicle.result) + _segment_notes(vehicle.result)
+    notes += [] if refined is None else [_refined_note(refined)]
     text = table + "\n" + bullets([terminal_legend(refined), *notes], TERMINAL_WIDTH)
     checks = check_lines(vehicle)
     if checks:

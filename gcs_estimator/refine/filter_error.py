@@ -101,10 +101,25 @@ class SteadyFilter:
         x, _ = self.unpack(theta)
         p = self.prob
         p.count_run()
-        raw, ok = steady_innovations(
-            p.state(x), p.t, p.inputs(x), p.y, p.mask, p.arrays(x), g[0], p.max_step, p.linear
-        )
-        return raw if ok else None
+        u = p.inputs(x)
+        arrays = p.arrays(x)
+        parts = []
+        for part, start in p.pieces(x):  # each piece from its own flight states
+            raw, ok = steady_innovations(
+                start,
+                p.t[part],
+                np.ascontiguousarray(u[part]),
+                p.y[part],
+                p.mask[part],
+                arrays,
+                g[0],
+                p.max_step,
+                p.linear,
+            )
+            if not ok:
+                return None
+            parts.append(raw)
+        return parts[0] if len(parts) == 1 else np.vstack(parts)
 
     def variances(self, raw: FloatArray, r: FloatArray) -> FloatArray:
         """R set to the innovations' mean square on the observed channels."""

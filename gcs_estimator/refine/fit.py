@@ -145,14 +145,16 @@ def _over_state(n: int, free: IntArray, values: FloatArray) -> FloatArray:
 
 def _sigmas(
     model: Model,
+    n_extra: int,
     end: _Fitted,
     free: IntArray,
     observed: BoolArray,
     mask: FloatArray,
     compared: FilterEstimate | None,
 ) -> tuple[FitSigma, FloatArray, FloatArray, FloatArray]:
-    """The coefficients' sigma to trust with its parts, the biases' sigma, the
-    coefficients' correlation and each channel's residual colour."""
+    """The coefficients' sigma to trust with its parts, the sigma of the biases and of the
+    n_extra delays and factors that follow the state, the coefficients' correlation and
+    each channel's residual colour."""
     n, k = end.x.shape[0], len(free)
     J3 = end.J.reshape(end.e.shape[0], N_OBS, end.J.shape[1])
     prior = end.prior_rows.T @ end.prior_rows
@@ -172,7 +174,7 @@ def _sigmas(
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     bias_sigma = fit_sigma(crb[bs], mk_var[bs], own[bs]).sigma
-    ds = np.arange(model.n, n)  # the delays, then the factors
+    ds = np.arange(model.n, model.n + n_extra)  # the delays, then the factors
     delay_sigma = fit_sigma(crb[ds], mk_var[ds], own[ds]).sigma
     return parts, np.concatenate([bias_sigma, delay_sigma]), correlation_of(full[cs, cs]), colour
 
@@ -213,6 +215,7 @@ def refine(
     compared: FilterEstimate | None = None,
     delayed: Sequence[int] = (),
     factors: Sequence[tuple[int, float]] = (),
+    pieces: Sequence[tuple[int, FloatArray]] = (),
 ) -> Refined:
     """Maximum likelihood over the record (t_s [N], inputs [N x 2 or 3], observations
     [N x 7], NaN where missing), from the augmented state `start` (flight states at
@@ -232,12 +235,19 @@ def refine(
     constants (an index into model.k, and a prior 1-sigma relative to the configured value)
     whose factor is fitted with the other parameters, from 1 with that prior (the
     propeller's thrust and zero-thrust airspeed; decision 0054): the coefficients' sigma
-    then includes what the data leave undecided about them."""
+    then includes what the data leave undecided about them. pieces: where the
+    record is several pieces (segments, flights: decision 0050), each further piece's
+    first frame and its flight states' start [N_FLIGHT]: each piece is flown from its own
+    flight states, fitted with the shared coefficients, biases, delays and factors."""
     t, u, y, mask, observed = _record(model, t_s, inputs, observations)
     lags = np.asarray(delayed, dtype=np.int64)
-    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags, factors)
+    firsts = np.array([first for first, _ in pieces], dtype=np.int64)
+    prob = Problem(model, t, u, y, mask, max_step_s, linear_inputs, lags, factors, firsts)
     prob.pool = thread_pool(threads)
-    x = np.concatenate([np.asarray(start, float), np.zeros(lags.size), np.ones(len(factors))])
+    starts = [np.asarray(s, float)[:N_FLIGHT] for _, s in pieces]
+    x = np.concatenate(
+        [np.asarray(start, float), np.zeros(lags.size), np.ones(len(factors)), *starts]
+    )
     nd = model.arrays.n_dynamic
     q = np.asarray(process_noise, float)[:nd].copy() if estimate_process_noise else np.zeros(nd)
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
@@ -253,7 +263,9 @@ def refine(
         end = _steady_fit(begin, iterations, counter.report)
     else:
         end = _gauss_newton_fit(begin, iterations, hold_noise, counter.report)
-    parts, extra_sigma, corr, colour = _sigmas(model, end, free, observed, mask, compared)
+    parts, extra_sigma, corr, colour = _sigmas(
+        model, lags.size + len(factors), end, free, observed, mask, compared
+    )
     n_bias = len(model.bias_names)
     coefficients = end.x[model.coefficients].copy()
     method = "filter error" if estimate_process_noise else "output error"
@@ -284,7 +296,7 @@ def refine(
         delays_s=end.x[model.n : prob.factor_start].copy(),
         delay_sigma_s=extra_sigma[n_bias : n_bias + lags.size],
         factor_names=tuple(FACTOR_NAMES[i] for i, _ in factors),
-        factors=end.x[prob.factor_start :].copy(),
+        factors=end.x[prob.factor_start : prob.pieces_start].copy(),
         factor_sigma=extra_sigma[n_bias + lags.size :],
         factor_prior_sigma=prob.factor_sigma.copy(),
     )

@@ -19,6 +19,7 @@ import numpy as np
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.refine.flights import innovations
 
@@ -59,7 +60,10 @@ class Problem:
     mask [N x 7] is 0) and how the model flies over it (Runge-Kutta steps of at most
     max_step [s]; inputs linear between samples, or held). The parameters are the
     model's augmented state (model.n entries), then a delay [s] of each input in
-    `delayed` (delayed_inputs; decision 0044)."""
+    `delayed` (delayed_inputs; decision 0044), then a factor on each airframe constant
+    in `factors` (decision 0054), then the flight states of each further
+    piece of the record: segments or flights (decision 0050), each flown from its own
+    first frame, the coefficients, biases and delays shared."""
 
     def __init__(
         self,
@@ -72,7 +76,10 @@ class Problem:
         linear: bool,
         delayed: IntArray | None = None,
         factors: Sequence[tuple[int, float]] = (),
+        pieces: IntArray | None = None,
     ) -> None:
+        """pieces: the first frame of each piece after the first (increasing; none: the
+        record is one piece)."""
         self.model = model
         self.delayed = np.zeros(0, dtype=np.int64) if delayed is None else delayed
         self.factor_k = np.array([i for i, _ in factors], dtype=np.int64)
@@ -81,6 +88,10 @@ class Problem:
         """Each factor's prior 1-sigma about 1."""
         self.factor_start = model.n + self.delayed.size
         """Where the factors sit in the parameters, after the delays."""
+        self.pieces_start = self.factor_start + self.factor_k.size
+        """Where the further pieces' flight states sit, after the factors."""
+        self.bounds = [0, *(int(i) for i in ([] if pieces is None else pieces)), len(t)]
+        """Each piece's first frame, then the record's length."""
         self.t, self.u, self.y, self.mask = t, u, y, mask
         self.max_step = max_step
         self.linear = linear
@@ -95,7 +106,7 @@ class Problem:
         if self.factor_k.size == 0:
             return m
         k = m.k.copy()
-        k[self.factor_k] *= x[self.factor_start :]
+        k[self.factor_k] *= x[self.factor_start : self.pieces_start]
         return m._replace(k=k)
 
     def prior(self, x: FloatArray, columns: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -126,10 +137,24 @@ class Problem:
 
     def step(self, j: int, value: float) -> float:
         """The finite-difference step of parameter j at `value`: a millionth of its size
-        (at least of 1e-3) for the model's state and a factor, DELAY_STEP_S for a delay."""
+        (at least of 1e-3) for a state and a factor, DELAY_STEP_S for a delay."""
         if self.model.n <= j < self.factor_start:
             return DELAY_STEP_S
         return 1e-6 * max(abs(value), 1e-3)
+
+    def pieces(self, x: FloatArray) -> list[tuple[slice, FloatArray]]:
+        """Each piece's frames and the augmented state it is flown from: the model's state
+        of x with that piece's own flight states (the first piece's: x's own)."""
+        state = self.state(x)
+        extra = self.pieces_start
+        out = []
+        for p in range(len(self.bounds) - 1):
+            x0 = state
+            if p > 0:
+                x0 = state.copy()
+                x0[:N_FLIGHT] = x[extra + (p - 1) * N_FLIGHT : extra + p * N_FLIGHT]
+            out.append((slice(self.bounds[p], self.bounds[p + 1]), x0))
+        return out
 
     def count_run(self) -> None:
         with self._lock:
@@ -144,21 +169,41 @@ class Problem:
     def run(
         self, x0: FloatArray, q: FloatArray, r: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
-        """flights.innovations from x0 at process noise density q and noise variances r."""
+        """flights.innovations from x0 at process noise density q and noise variances r,
+        piece by piece (each from its own flight states)."""
         self.count_run()
-        out: tuple[FloatArray, FloatArray, FloatArray, bool] = innovations(
-            self.state(x0),
-            self.t,
-            self.inputs(x0),
-            self.y,
-            self.mask,
-            self.arrays(x0),
-            q,
-            r,
-            self.max_step,
-            self.linear,
+        u = self.inputs(x0)
+        arrays = self.arrays(x0)
+        parts = []
+        for part, start in self.pieces(x0):
+            parts.append(
+                innovations(
+                    start,
+                    self.t[part],
+                    np.ascontiguousarray(u[part]),
+                    self.y[part],
+                    self.mask[part],
+                    arrays,
+                    q,
+                    r,
+                    self.max_step,
+                    self.linear,
+                )
+            )
+            if not parts[-1][3]:
+                break
+        if len(parts) == 1:
+            return parts[0]
+        ok = all(p[3] for p in parts) and len(parts) == len(self.bounds) - 1
+        if not ok:
+            n = len(self.t)
+            return np.zeros((n, N_OBS)), np.zeros(n), np.zeros((n, N_OBS)), False
+        return (
+            np.vstack([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            np.vstack([p[2] for p in parts]),
+            True,
         )
-        return out
 
     def cost(self, x0: FloatArray, q: FloatArray, r: FloatArray) -> float:
         """Negative log-likelihood (without its constant): sum e^2 + log det S."""

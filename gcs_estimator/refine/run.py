@@ -13,7 +13,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import REFINE_METHODS, AircraftConfig
-from gcs_estimator.estimation.filters.core import MAX_STEP_S, FilterKind
+from gcs_estimator.estimation.filters.core import MAX_GAP_S, MAX_STEP_S, FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult
 from gcs_estimator.model import equations as eq
@@ -110,6 +110,18 @@ def _start(model: Model, fr: FilterResult, track: Track, first: int) -> FloatArr
     return start
 
 
+def _pieces(
+    result: EstimatorResult, model: Model, fr: FilterResult, track: Track, idx: IntArray
+) -> list[tuple[int, FloatArray]]:
+    """Where the frames idx are several pieces (a segment or a flight began afresh, or a
+    gap longer than MAX_GAP_S: decision 0050), each further piece's first frame (in idx)
+    and its start (_start)."""
+    firsts = {int(j) for j in np.searchsorted(idx, np.asarray(result.fresh_frames, int))}
+    gaps = np.flatnonzero(np.diff(track.t[idx]) > MAX_GAP_S) + 1
+    firsts |= {int(j) for j in gaps}
+    return [(j, _start(model, fr, track, int(idx[j]))) for j in sorted(firsts) if 0 < j < len(idx)]
+
+
 def refine_run(
     run: EstimatorResult | VehicleResult,
     method: str = "auto",
@@ -175,6 +187,7 @@ def refine_run(
         ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
         factors=factors,
+        pieces=_pieces(result, model, fr, track, idx),
     )
     configured = config.data.input_delay_s
     return replace(

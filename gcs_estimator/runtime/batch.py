@@ -95,13 +95,14 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
         cmd += ["--set", item]
     for option, value in (
         ("--refine", args.refine),
-        ("--window", args.window),
         ("--reference", args.reference),
         ("--truth", args.truth),
         ("--filter-workers", args.filter_workers),
     ):
         if value is not None:
             cmd += [option, str(value)]
+    for window in args.window or []:
+        cmd += ["--window", window]
     cmd += ["--view", args.view or "save", "--history", args.history]
     if args.hold_noise:
         cmd.append("--hold-noise")

@@ -14,7 +14,7 @@ import gc
 import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -27,6 +27,7 @@ from gcs_estimator.estimation.estimator import (
     FilterKind,
     StepOutput,
 )
+from gcs_estimator.estimation.segments import Limits, Plan
 from gcs_estimator.frames import Frame
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty import weighting
@@ -39,6 +40,16 @@ WORK_AHEAD_S = 0.002
 packet arriving meanwhile waits little for it."""
 WORK_AHEAD_FRAMES = 5
 """Frames of one vehicle's re-run at a time before the next vehicle's turn."""
+
+
+@dataclass(frozen=True)
+class SegmentFrame(Frame):
+    """A recording's frame that begins a segment after frames left out (segments.py), or
+    a new flight of several of one airframe: the flight states start afresh there."""
+
+    segment_start: bool = False
+    flight: str | None = None
+    """The flight this frame begins (its file's name), where a run holds several."""
 
 
 class Source(Protocol):
@@ -100,8 +111,12 @@ class Session:
         keep_history: bool = True,
         truths: Mapping[int, Sequence[float]] | None = None,
         truth_for_first: bool = True,
+        gate: Limits | None = None,
     ) -> None:
         self.config = config
+        self.gate = gate
+        """The segments' limits judged live, frame by frame (segments.Gate); None: every
+        frame is used (a recording's segments are chosen before its frames come)."""
         self.truths = truths
         """Each vehicle's true coefficients by system id (a truth file); None: the
         config's [truth] describes one vehicle, the first heard (see truth_of)."""
@@ -128,6 +143,7 @@ class Session:
                 backend=self.backend,
                 keep_history=self.keep_history,
                 peers_restarting=lambda: self._restarting(but=system_id),
+                gate=self.gate,
             )
         return est
 
@@ -152,6 +168,7 @@ class Session:
         stop = stop if stop is not None else Stop()
         self.started = time.perf_counter()
         self._results = None
+        plan: Plan | None = getattr(source, "plan", None)
         try:
             for frame in source.frames(stop):
                 if frame is not None:
@@ -163,6 +180,7 @@ class Session:
         finally:
             for est in self.estimators.values():
                 est.finish_restarts()
+                est.pieces.plan = plan if plan is not None else est.pieces.plan
             self.elapsed_s = time.perf_counter() - self.started
             try:
                 results = self._results = self.results()
@@ -198,6 +216,11 @@ class Session:
         est = self.estimator(frame.system_id)
         if frame.clock_reset:
             est.rebase(frame.t_vehicle_s, frame.y)
+        if isinstance(frame, SegmentFrame):
+            if frame.flight is not None:
+                est.begin_flight(frame.flight)
+            elif frame.segment_start:
+                est.start_segment()
         if not est.admit(frame.t_vehicle_s, frame.y):
             return {}
         outs = est.step(frame.t_vehicle_s, frame.inputs, frame.y, frame.inputs_known)
@@ -250,7 +273,9 @@ class Session:
 
 
 class RecordingSource:
-    """The frames of a recording held in arrays (a data file, a simulated flight)."""
+    """The frames of a recording held in arrays (a data file, a simulated flight), or of
+    several flights of one airframe in a row; with a plan (segments.find), only the
+    frames of its segments, each segment's first starting the flight states afresh."""
 
     SYSTEM_ID = 1
 
@@ -260,23 +285,53 @@ class RecordingSource:
         inputs: FloatArray,
         measurements: FloatArray,
         inputs_known: BoolArray | None = None,
+        plan: Plan | None = None,
+        flights: Sequence[tuple[str, int]] = (),
     ) -> None:
+        """flights: each flight's name and first frame, where the arrays hold several
+        (their times increasing from flight to flight)."""
         self.t_s = np.asarray(t_s, float)
         self.inputs = np.asarray(inputs, float)
         self.measurements = np.asarray(measurements, float)
         self.inputs_known = inputs_known
         """False where a frame's input is a guess (Frame.inputs_known); None: all known."""
+        self.plan = plan
+        self.flights = list(flights)
         self.done = 0
 
+    def _marks(self) -> tuple[BoolArray, BoolArray, dict[int, str]]:
+        """Which frames are used, which begin a segment, and which begin a flight (its
+        first frame used)."""
+        n = len(self.t_s)
+        use = np.ones(n, bool) if self.plan is None else self.plan.mask()
+        starts = np.zeros(n, bool) if self.plan is None else self.plan.starts()
+        begins: dict[int, str] = {}
+        bounds = [first for _, first in self.flights] + [n]
+        for j, (name, first) in enumerate(self.flights):
+            used = np.flatnonzero(use[first : bounds[j + 1]])
+            if used.size:
+                begins[first + int(used[0])] = name
+        return use, starts, begins
+
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        use, starts, begins = self._marks()
         for i in range(len(self.t_s)):
             if stop.requested:
                 return
-            t = float(self.t_s[i])
             self.done = i + 1
+            if not use[i]:
+                continue
+            t = float(self.t_s[i])
             known = True if self.inputs_known is None else bool(self.inputs_known[i])
-            yield Frame(
-                self.SYSTEM_ID, t, t, self.inputs[i], self.measurements[i], inputs_known=known
+            yield SegmentFrame(
+                self.SYSTEM_ID,
+                t,
+                t,
+                self.inputs[i],
+                self.measurements[i],
+                inputs_known=known,
+                segment_start=bool(starts[i]),
+                flight=begins.get(i),
             )
 
     def progress(self) -> tuple[int, int]:

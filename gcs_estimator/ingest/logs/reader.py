@@ -249,6 +249,23 @@ def _input(frames: FloatArray, sig: Signal, hold: str) -> FloatArray:
     return np.interp(frames, sig.t_s, sig.values)
 
 
+def _within(t: FloatArray, spans: list[Span]) -> FloatArray:
+    """1.0 at the times within some span, else 0.0."""
+    out = np.zeros(len(t))
+    for a, b in spans:
+        out[(t >= a) & (t <= b)] = 1.0
+    return out
+
+
+def flight_flags(frames: FloatArray, content: LogContent) -> dict[str, FloatArray]:
+    """The autopilot's judgement at the frames, for the segments (estimation/segments.py):
+    "airborne" (1 in the air, 0 on the ground: a touch-and-go between flights) and "hover"
+    (1 while a VTOL flew as a multirotor); none where the log does not say when it flew."""
+    if content.airborne is None:
+        return {}
+    return {"airborne": _within(frames, content.airborne), "hover": _within(frames, content.hover)}
+
+
 def _need(path: Path, content: LogContent, ch: str, what: str) -> Signal:
     sig = content.signals.get(ch)
     if sig is None or not len(sig.t_s):
@@ -302,6 +319,7 @@ def to_recording(
         ]
     )
     aux = {c: on_frames(frames, content.signals[c]) for c in AUX if c in content.signals}
+    aux.update(flight_flags(frames, content))
     notes = list(content.notes)
     for c in MEASURED:
         if c not in content.signals:
