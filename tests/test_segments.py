@@ -122,3 +122,18 @@ def test_the_live_gate_leaves_out_and_counts_and_starts_afresh() -> None:
     assert gate.admit(6.0, 24.0, phi=1.2) == (False, False) and gate.left_out["bank"] == 1
     assert gate.admit(7.0, 24.0) == (True, True)
     assert gate.admit(10.5, 24.0) == (False, False) and gate.left_out["window"] == 1
+
+
+def test_a_held_out_window_is_taken_out_of_the_windows_fitted() -> None:
+    # No --window: the whole flight less the held-out stretch, on both sides of it.
+    assert segments.excluding((), (60.0, 90.0)) == ((None, 60.0), (90.0, None))
+    # A window that ends inside the held-out stretch is cut at its start; one beyond it
+    # stays whole; one that covers it is split in two.
+    fitted = segments.excluding(((0.0, 70.0), (100.0, 150.0), (None, None)), (60.0, 90.0))
+    assert fitted == ((0.0, 60.0), (100.0, 150.0), (None, 60.0), (90.0, None))
+    # Held out from the start: nothing of the flight before it is left.
+    assert segments.excluding((), (None, 30.0)) == ((30.0, None),)
+    t = np.arange(0.0, 120.0, 1.0)
+    used = segments.in_windows(t, segments.excluding((), (60.0, 90.0)))
+    assert not used[(t > 60.0) & (t < 90.0)].any()
+    assert used[t < 60.0].all() and used[t > 90.0].all()
