@@ -163,13 +163,31 @@ def refine_run(
         progress=progress,
         hold_noise=hold_noise,
         threads=threads,
-        compared=FilterEstimate(fr.coefficients, fr.sigma, filter_structure),
+        compared=FilterEstimate(
+            fr.coefficients, fr.sigma, filter_structure, _filter_trusted(run, kind, window_s)
+        ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
     )
     configured = config.data.input_delay_s
     return replace(
         fit, choice=choice, delays_s=fit.delays_s + configured, configured_delay_s=configured
     )
+
+
+def _filter_trusted(
+    run: EstimatorResult | VehicleResult,
+    kind: FilterKind,
+    window_s: tuple[float | None, float | None],
+) -> FloatArray | None:
+    """Filter `kind`'s sigma to trust, the floor of the fit's sigma (decision 0057), where
+    the fit reads the frames the filter was judged over (no window) and the run was
+    summarised (a vehicle's)."""
+    if isinstance(run, EstimatorResult) or window_s != (None, None):
+        return None
+    summary = run.summaries.get(kind)
+    if summary is None:
+        return None
+    return np.array([c.sigma for c in summary.coefficients])
 
 
 def _filter_structure(
