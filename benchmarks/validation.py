@@ -439,8 +439,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--again",
         action="store_true",
-        help="report the outcomes the last run kept in --out (out/validation/outcomes/), "
-        "as far as it got, without running anything",
+        help="report the outcomes the last runs kept in --out (out/validation/ and the "
+        "--outcomes folders), as far as they got, without running anything",
     )
     ap.add_argument(
         "--outcomes",
@@ -503,7 +503,8 @@ def _priority(job: Job) -> tuple[bool, str, int]:
 
 def estimate(todo: list[Job], workers: int, kept: Path) -> list[Outcome]:
     """Run the records in `workers` processes, each outcome kept in `kept` as it comes
-    (what an earlier run kept there is removed first: `--again` reports one run)."""
+    (what an earlier run kept there is removed first: `--again` reports the runs of the
+    folders it is given)."""
     kept.mkdir(parents=True, exist_ok=True)
     for old in kept.glob("*.pickle"):
         old.unlink()
