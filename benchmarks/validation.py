@@ -379,10 +379,10 @@ def print_misses(outcomes: list[Outcome]) -> None:
                 print(f"| {o.job.name} | {k} | {o.names[i]} | {z:+.1f} | " + _parts(o, k, i))
     counts: dict[tuple[str, str], list[int]] = {}
     for o in outcomes:
-        for k, z in o.z.items():
+        for k, zs in o.z.items():
             for i, n in enumerate(o.names):
                 c = counts.setdefault((k, n), [0, 0])
-                c[0] += int(abs(z[i]) > 3.0)
+                c[0] += int(abs(zs[i]) > 3.0)
                 c[1] += 1
     print("\n## Beyond 3σ, by coefficient (any mark)\n")
     print("| estimator | coefficient | beyond 3σ | records |")

@@ -127,6 +127,7 @@ def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() ->
     assert alone.sigma_parts.filter_trusted is None
     np.testing.assert_array_equal(kept.sigma_parts.filter_trusted, trusted)
     assert np.all(kept.sigma >= trusted)
+    assert kept.difference_sigma is not None
     own = np.sqrt(kept.sigma_within_fit**2 + kept.difference_sigma**2)
     np.testing.assert_allclose(kept.sigma, np.fmax(own, trusted), rtol=1e-12)
     # The vane's error is in alpha: the filter's check finds the lift depends more on
