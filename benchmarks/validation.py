@@ -53,8 +53,10 @@ from gcs_estimator.config import REFINE_METHODS, load_config
 from gcs_estimator.estimation.estimator import FILTER_KINDS
 from gcs_estimator.ingest.flightdata import load_recording
 from gcs_estimator.refine import RefineError, refine_run
+from gcs_estimator.refine.result import Refined
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
+from gcs_estimator.uncertainty.result import VehicleResult
 
 ESTIMATORS = (*FILTER_KINDS, "refine")
 TARGET_WITHIN = 90.0
@@ -101,6 +103,12 @@ class Outcome:
     cpu_seconds: float = 0.0
     """The worker's CPU time on the record (all its threads)."""
     failed: str = ""
+    parts: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    """Per estimator, what each coefficient's shown sigma is made of (filters: the
+    covariance, the movement factor, the structure check's parts; refine: Cramer-Rao,
+    Morelli-Klein, its structure, the filter's structure floor, the difference)."""
+    delay_ms: tuple[float, float] = (math.nan, math.nan)
+    """refine's fitted elevator delay and its sigma [ms] (NaN: none fitted)."""
 
 
 def run_job(job: Job) -> Outcome:
@@ -142,9 +150,45 @@ def run_job(job: Job) -> Outcome:
     for estimator, (est, sigma, marks) in found.items():
         out.z[estimator] = ((est - goal) / sigma).tolist()
         out.marks[estimator] = marks
+    out.parts = sigma_parts(vehicle, oe)
+    for estimator, (_, sigma, _) in found.items():
+        out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
+    if oe is not None and "elevator" in oe.delay_names:
+        i = oe.delay_names.index("elevator")
+        out.delay_ms = (1e3 * float(oe.delays_s[i]), 1e3 * float(oe.delay_sigma_s[i]))
     out.table = _table(names, goal, found)
     out.seconds = time.perf_counter() - start
     out.cpu_seconds = time.process_time() - cpu
+    return out
+
+
+def sigma_parts(vehicle: VehicleResult, oe: Refined | None) -> dict[str, dict[str, list[float]]]:
+    """What each estimator's shown sigma is made of, per coefficient (Outcome.parts)."""
+    out: dict[str, dict[str, list[float]]] = {}
+    check = vehicle.structure
+    for k in FILTER_KINDS:
+        coefficients = vehicle.summaries[k].coefficients
+        parts = {
+            "covariance": [c.sigma_parts.covariance for c in coefficients],
+            "movement": [c.sigma_parts.movement_factor for c in coefficients],
+            "structure": [c.sigma_parts.structure for c in coefficients],
+        }
+        if check is not None and not check.skipped:
+            for label, per_filter in check.parts.items():
+                if k in per_filter:
+                    parts[label] = np.asarray(per_filter[k], float).tolist()
+        out[k] = parts
+    if oe is not None:
+        fit = oe.sigma_parts
+        out["refine"] = {
+            "cramer_rao": fit.cramer_rao.tolist(),
+            "morelli_klein": fit.morelli_klein.tolist(),
+            "structure": fit.structure.tolist(),
+        }
+        if fit.filter_structure is not None:
+            out["refine"]["filter_structure"] = np.asarray(fit.filter_structure).tolist()
+        if fit.difference is not None:
+            out["refine"]["difference"] = np.asarray(fit.difference).tolist()
     return out
 
 
@@ -170,9 +214,10 @@ def jobs(args: argparse.Namespace) -> list[Job]:
     """Every record of the set: the JSBSim flights (flown here where out/ lacks them),
     then the NOC simulator's and HFB-320's."""
     seeds = tuple(range(1, args.seeds + 1))
-    units = vf.generate(seeds, args.jobs, Path(args.out))
+    wanted = chosen(args)
+    units = vf.generate(seeds, args.jobs, Path(args.out), [m for m in wanted if m not in OTHERS])
     over = tuple(args.set)
-    found = []
+    found: list[Job] = []
     for unit in units.values():
         goal = unit["best_fit"]
         records = unit["records"]
@@ -184,7 +229,7 @@ def jobs(args: argparse.Namespace) -> list[Job]:
             found.append(
                 Job(name, model, f"{timing}_{air}_{noise}", over, args.refine, goal, csv, seed)
             )
-    for seed in seeds:
+    for seed in seeds if "noc" in wanted else ():
         for air, preset in NOC_CONDITIONS:
             for noise in vf.NOISES:
                 sim = [f'simulation.turbulence.preset="{preset}"']
@@ -193,8 +238,18 @@ def jobs(args: argparse.Namespace) -> list[Job]:
                 found.append(
                     Job(name, "noc", f"{air}_{noise}", (*over, *sim), args.refine, seed=seed)
                 )
-    found.append(Job("hfb320", "hfb320", "flight test", over, args.refine))
-    return found
+    if "hfb320" in wanted:
+        found.append(Job("hfb320", "hfb320", "flight test", over, args.refine))
+    return [j for j in found if all(word in j.condition for word in args.condition)]
+
+
+def chosen(args: argparse.Namespace) -> list[str]:
+    """The members to run: those of --half, narrowed to --aircraft where given."""
+    members = [m for m in ORDER if args.half == "all" or membership(m)[2] == args.half]
+    unknown = set(args.aircraft) - set(ORDER)
+    if unknown:
+        raise SystemExit(f"--aircraft: no member {sorted(unknown)}; the set: {ORDER}")
+    return [m for m in members if not args.aircraft or m in args.aircraft]
 
 
 def membership(aircraft: str) -> tuple[str, str, str]:
@@ -309,6 +364,44 @@ def print_by(outcomes: list[Outcome], key: str) -> None:
         print("| " + " | ".join(row) + " |")
 
 
+def print_misses(outcomes: list[Outcome]) -> None:
+    """Every coefficient marked identified beyond 3 shown sigma, with what its sigma is
+    made of (each part in the shown sigma's units: a part's share of the sigma)."""
+    print("\n## Identified beyond 3σ: z and the sigma's parts\n")
+    print("| record | estimator | coefficient | z | σ shown | parts (σ units) |")
+    print("|---|---|---|---|---|---|")
+    for o in outcomes:
+        for k, marks in o.marks.items():
+            for i, mark in enumerate(marks):
+                z = o.z[k][i]
+                if mark != IDENTIFIED or abs(z) <= 3.0:
+                    continue
+                print(f"| {o.job.name} | {k} | {o.names[i]} | {z:+.1f} | " + _parts(o, k, i))
+    counts: dict[tuple[str, str], list[int]] = {}
+    for o in outcomes:
+        for k, zs in o.z.items():
+            for i, n in enumerate(o.names):
+                c = counts.setdefault((k, n), [0, 0])
+                c[0] += int(abs(zs[i]) > 3.0)
+                c[1] += 1
+    print("\n## Beyond 3σ, by coefficient (any mark)\n")
+    print("| estimator | coefficient | beyond 3σ | records |")
+    print("|---|---|---|---|")
+    for (k, n), (bad, total) in counts.items():
+        print(f"| {k} | {n} | {bad} | {total} |")
+
+
+def _parts(o: Outcome, k: str, i: int) -> str:
+    parts = o.parts.get(k, {})
+    shown = parts["shown"][i]
+    text = ", ".join(
+        f"{label} {v[i]:.2g}" if label == "movement" else f"{label} {v[i] / shown:.2g}"
+        for label, v in parts.items()
+        if label != "shown"
+    )
+    return f"{shown:.2g} | {text} |"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", type=int, default=1, help="turbulence and noise seeds 1..N")
@@ -323,10 +416,39 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--refine", choices=(*REFINE_METHODS, "none"), default="auto")
     ap.add_argument(
+        "--half",
+        choices=(vf.TUNING, vf.HELD_OUT, "all"),
+        default="all",
+        help="run one half only (defaults are chosen on the tuning half alone)",
+    )
+    ap.add_argument(
+        "--aircraft",
+        nargs="+",
+        default=[],
+        metavar="MODEL",
+        help="run these members only (JSBSim model names, hfb320, noc)",
+    )
+    ap.add_argument(
+        "--condition",
+        action="append",
+        default=[],
+        metavar="WORD",
+        help="run the records whose condition holds WORD only (fcs, step, calm, light, "
+        "noisy, clean; repeat: all of them)",
+    )
+    ap.add_argument(
         "--again",
         action="store_true",
-        help="report the outcomes the last run kept in --out (out/validation/outcomes/), "
-        "as far as it got, without running anything",
+        help="report the outcomes the last runs kept in --out (out/validation/ and the "
+        "--outcomes folders), as far as they got, without running anything",
+    )
+    ap.add_argument(
+        "--outcomes",
+        nargs="+",
+        default=["outcomes"],
+        metavar="NAME",
+        help="folders under --out the outcomes are kept in as they come (the first; it is "
+        "emptied first) and --again reads (all of them: e.g. a tuning and a held-out run)",
     )
     record.add_argument(ap, "validation")
     args = ap.parse_args(argv)
@@ -336,9 +458,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    kept = Path(args.out) / "outcomes"
+    kept = Path(args.out) / args.outcomes[0]
     if args.again:
-        outcomes, flown = [pickle.loads(p.read_bytes()) for p in kept.glob("*.pickle")], 0.0
+        folders = [Path(args.out) / name for name in args.outcomes]
+        outcomes = [pickle.loads(p.read_bytes()) for f in folders for p in f.glob("*.pickle")]
+        flown = 0.0
     else:
         todo = sorted(jobs(args), key=_priority)
         flown = time.perf_counter() - start
@@ -353,6 +477,9 @@ def run(args: argparse.Namespace) -> int:
     print_halves(outcomes)
     print_by(outcomes, "aircraft")
     print_by([o for o in outcomes if o.job.aircraft not in OTHERS], "condition")
+    print_misses(outcomes)
+    delays = [f"{o.job.name} {o.delay_ms[0]:.1f}±{o.delay_ms[1]:.1f}" for o in outcomes]
+    print("\nrefine's elevator delay [ms]: " + "; ".join(delays))
     if failed:
         print("\n" + "\n".join(failed))
     print(
@@ -376,7 +503,8 @@ def _priority(job: Job) -> tuple[bool, str, int]:
 
 def estimate(todo: list[Job], workers: int, kept: Path) -> list[Outcome]:
     """Run the records in `workers` processes, each outcome kept in `kept` as it comes
-    (what an earlier run kept there is removed first: `--again` reports one run)."""
+    (what an earlier run kept there is removed first: `--again` reports the runs of the
+    folders it is given)."""
     kept.mkdir(parents=True, exist_ok=True)
     for old in kept.glob("*.pickle"):
         old.unlink()

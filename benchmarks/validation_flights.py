@@ -270,12 +270,16 @@ def elevator_lag(ac: Aircraft, timing: str, calm: dict[str, FloatArray]) -> floa
 
 
 def generate(
-    seeds: Sequence[int] = (1,), jobs: int = 2, out: Path = OUT
+    seeds: Sequence[int] = (1,), jobs: int = 2, out: Path = OUT, models: Sequence[str] = ()
 ) -> dict[str, dict[str, object]]:
-    """Every unit of the set (aircraft x elevator timing), flown where out/ lacks it, in
-    `jobs` processes; returns each unit's index by "model_timing"."""
+    """Every unit of the set (aircraft x elevator timing; of `models` only where given),
+    flown where out/ lacks it, in `jobs` processes; returns each unit's index by
+    "model_timing"."""
     out.mkdir(parents=True, exist_ok=True)
-    units = [(m.aircraft.model, timing, tuple(seeds), str(out)) for m in SET for timing in TIMINGS]
+    members = [m for m in SET if not models or m.aircraft.model in models]
+    units = [
+        (m.aircraft.model, timing, tuple(seeds), str(out)) for m in members for timing in TIMINGS
+    ]
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
             done = list(pool.map(fly_unit, units))

@@ -120,6 +120,16 @@ def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() ->
     np.testing.assert_allclose(
         kept.structure_sigma, np.fmax(alone.structure_sigma, filters), rtol=1e-12
     )
+    # The fit is trusted no further than the filter it started from (decision 0057): its
+    # sigma is at least the IEKF's sigma to trust over the same frames, and a fit given
+    # the bare result has no such floor.
+    trusted = np.array([c.sigma for c in vehicle.summaries["IEKF"].coefficients])
+    assert alone.sigma_parts.filter_trusted is None
+    np.testing.assert_array_equal(kept.sigma_parts.filter_trusted, trusted)
+    assert np.all(kept.sigma >= trusted)
+    assert kept.difference_sigma is not None
+    own = np.sqrt(kept.sigma_within_fit**2 + kept.difference_sigma**2)
+    np.testing.assert_allclose(kept.sigma, np.fmax(own, trusted), rtol=1e-12)
     # The vane's error is in alpha: the filter's check finds the lift depends more on
     # the channels' weights than the fit's own does, and the fit's sigma takes that up
     # (where the Cramer-Rao bound is not already the larger).

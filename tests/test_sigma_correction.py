@@ -16,7 +16,12 @@ from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED
 from gcs_estimator.uncertainty.result import VehicleResult
-from gcs_estimator.uncertainty.sigma import movement_ratio, movement_start, trusted_sigma
+from gcs_estimator.uncertainty.sigma import (
+    fit_sigma,
+    movement_ratio,
+    movement_start,
+    trusted_sigma,
+)
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
@@ -113,6 +118,26 @@ def lagged_servo_flight() -> Flight:
     the inputs hold between samples: a model error the filters cannot see."""
     flying = load_config("noc_uav", ["simulation.actuator_time_constant_s=0.05"])
     return simulate(flying, seed=1)
+
+
+def test_a_fit_is_trusted_no_further_than_the_filter_it_started_from() -> None:
+    """The whole-record fit's sigma is its own (Morelli-Klein with the structure, the
+    difference from the filter) or the filter's sigma to trust, whichever is larger;
+    where the filter has none (NaN) the fit's own stands (decision 0057)."""
+    rng = np.random.default_rng(11)
+    crb = rng.uniform(0.1, 1.0, 6)
+    mk_var = (crb * rng.uniform(1.0, 3.0, 6)) ** 2
+    structure = rng.uniform(0.0, 2.0, 6)
+    difference = rng.uniform(0.0, 1.0, 6)
+    own = fit_sigma(crb, mk_var, structure, difference=difference)
+    filt = own.sigma * np.array([0.5, 2.0, 0.9, 3.0, math.nan, 1.0])
+    floored = fit_sigma(crb, mk_var, structure, difference=difference, filter_trusted=filt)
+    assert own.filter_trusted is None
+    larger = np.fmax(own.sigma, filt)
+    np.testing.assert_array_equal(floored.sigma, larger)
+    assert floored.sigma[4] == own.sigma[4] and floored.sigma[3] == filt[3]
+    # The fit's own parts are left as they were: only the sigma to trust is floored.
+    np.testing.assert_array_equal(floored.within_fit, own.within_fit)
 
 
 def test_a_model_error_the_filter_cannot_see_is_in_the_sigma_to_trust(

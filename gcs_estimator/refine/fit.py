@@ -166,11 +166,13 @@ def _sigmas(
     cs, bs = model.coefficients, model.biases
     floor = None
     difference = None
+    trusted = None
     if compared is not None:
         difference = difference_sigma(end.x[cs], crb[cs], compared)
         if compared.structure is not None:
             floor = np.asarray(compared.structure, float)
-    parts = fit_sigma(crb[cs], mk_var[cs], own[cs], floor, difference)
+        trusted = compared.trusted
+    parts = fit_sigma(crb[cs], mk_var[cs], own[cs], floor, difference, trusted)
     full = np.zeros((n, n))
     full[np.ix_(free, free)] = cov_mk[:k, :k]
     bias_sigma = fit_sigma(crb[bs], mk_var[bs], own[bs]).sigma

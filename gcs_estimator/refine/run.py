@@ -184,6 +184,7 @@ def refine_run(
             fr.coefficients,
             fr.sigma if propeller is None else np.hypot(fr.sigma, propeller),
             filter_structure,
+            _filter_trusted(run, kind, window_s),
         ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
         factors=factors,
@@ -205,6 +206,22 @@ def thrust_factors(config: AircraftConfig) -> tuple[tuple[int, float], ...]:
     c = p.constants(config.airframe.air_density_kgpm3)
     pairs = ((eq.PROP_COEF, c.scale_sigma), (eq.MOTOR_K, c.speed_sigma))
     return tuple((i, sd) for i, sd in pairs if sd > 0.0)
+
+
+def _filter_trusted(
+    run: EstimatorResult | VehicleResult,
+    kind: FilterKind,
+    window_s: tuple[float | None, float | None],
+) -> FloatArray | None:
+    """Filter `kind`'s sigma to trust, the floor of the fit's sigma (decision 0057), where
+    the fit reads the frames the filter was judged over (no window) and the run was
+    summarised (a vehicle's)."""
+    if isinstance(run, EstimatorResult) or window_s != (None, None):
+        return None
+    summary = run.summaries.get(kind)
+    if summary is None:
+        return None
+    return np.array([c.sigma for c in summary.coefficients])
 
 
 def _filter_structure(

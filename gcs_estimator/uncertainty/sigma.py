@@ -195,9 +195,16 @@ def filter_sigma(
 #   beyond what the two covariances allow: sigma_D (difference_sigma).
 #
 #     sigma_fit = max(sqrt(max(v_MK, 0) + max(sigma_S, sigma_SF)^2), sigma_CR)
-#     sigma     = sqrt(sigma_fit^2 + sigma_D^2)
+#     sigma     = max(sqrt(sigma_fit^2 + sigma_D^2), sigma_F)
 #
-# sigma_fit is the fit's own (a fit started from no filter's run stops there). This sigma
+# sigma_fit is the fit's own (a fit started from no filter's run stops there). sigma_F is
+# the sigma to trust of the filter the fit started from, over the same frames (decision
+# 0057): the fit reads the record the filter read, with the same structure and the same
+# timing; what the filter's checks found its estimates carry beyond its covariance (how
+# far they moved, the channels' weights, timing, placement, the noise floor) the fit's
+# residuals need not show (its Cramer-Rao and Morelli-Klein sigmas trust its own noise
+# model, and a step between two samples pins its fitted delay at zero), so the fit is
+# trusted no further than the filter. This sigma
 # is the one the table, the JSON, the warnings and the identifiability marks use; its
 # parts are kept beside it (FitSigma).
 
@@ -212,6 +219,9 @@ class FilterEstimate(NamedTuple):
     structure: FloatArray | None = None
     """Its structure sigma (weighting.structure_check of the same record; NaN where a
     coefficient was not checked); None where the run made no check."""
+    trusted: FloatArray | None = None
+    """Its sigma to trust (filter_sigma) over the frames the fit reads; None where the
+    fit reads other frames (a window) or the run has no summaries."""
 
 
 class FitSigma(NamedTuple):
@@ -233,6 +243,9 @@ class FitSigma(NamedTuple):
     none was given."""
     difference: FloatArray | None = None
     """sigma_D; None for a fit not compared with a filter."""
+    filter_trusted: FloatArray | None = None
+    """sigma_F: the filter's sigma to trust the fit's does not fall below (decision
+    0057); None where none was given."""
 
 
 def fit_sigma(
@@ -241,6 +254,7 @@ def fit_sigma(
     structure: FloatArray,
     filter_structure: FloatArray | None = None,
     difference: FloatArray | None = None,
+    filter_trusted: FloatArray | None = None,
 ) -> FitSigma:
     """The sigma to trust from its parts (module docstring).
 
@@ -251,11 +265,15 @@ def fit_sigma(
         structure: the fit's own structure sigma.
         filter_structure: sigma_SF, the filter's (NaN where it has none; None: no check).
         difference: sigma_D (difference_sigma; None: not compared with a filter).
+        filter_trusted: sigma_F, the filter's sigma to trust over the same frames (NaN
+            where it has none; None: not given).
     """
     if filter_structure is not None:
         structure = np.fmax(structure, filter_structure)
     within = np.maximum(np.sqrt(np.maximum(morelli_klein_var, 0.0) + structure**2), cramer_rao)
     sigma = within if difference is None else np.sqrt(within**2 + difference**2)
+    if filter_trusted is not None:
+        sigma = np.fmax(sigma, filter_trusted)
     return FitSigma(
         sigma=np.asarray(sigma),
         cramer_rao=cramer_rao,
@@ -264,6 +282,7 @@ def fit_sigma(
         within_fit=within,
         filter_structure=filter_structure,
         difference=difference,
+        filter_trusted=filter_trusted,
     )
 
 
