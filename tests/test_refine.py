@@ -210,6 +210,9 @@ def test_refine_command_on_hfb320_and_on_a_tlog(
         # The session's structure check of the IEKF reached the fit (decision 0031).
         assert parts["filter_structure"] == checked[name]["sigma_parts"]["structure"], name
         assert parts["structure"] >= parts["filter_structure"], name
+        # The fit is trusted no further than the filter it started from (decision 0057).
+        assert parts["filter_trusted"] == checked[name]["sigma"], name
+        assert e["sigma"] >= parts["filter_trusted"], name
     marks = {n: e["identifiability"] for n, e in data["filters"]["IEKF"]["estimates"].items()}
     assert marks["Cma"] == IDENTIFIED and marks["CmV"] == NOT_IDENTIFIED
     rows = [

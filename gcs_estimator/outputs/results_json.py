@@ -214,11 +214,14 @@ def _refined_parts(refined: Refined, i: int) -> dict[str, float | None]:
     """What the fit's sigma of coefficient i is made of (refine.Refined, its sigma_parts)."""
     difference = refined.difference_sigma
     floor = refined.filter_structure_sigma
+    trusted = refined.sigma_parts.filter_trusted
     return {
         "cramer_rao": _num(float(refined.crb_sigma[i])),
         "structure": _num(float(refined.structure_sigma[i])),
         "difference": None if difference is None else _num(float(difference[i])),
         "filter_structure": None if floor is None else _num(float(floor[i])),
+        # the filter's sigma to trust, which the fit's does not fall below (decision 0057)
+        "filter_trusted": None if trusted is None else _num(float(trusted[i])),
     }
 
 
