@@ -1,7 +1,7 @@
 """Signal channels: one numbering for decoding, synchronising and the observation model.
 
 Channels 0..6 are the observations y in the order of h(x) (spec: docs/model.md, eq. 13-14);
-7 and 8 are the inputs. The observation model's row i is Channel(i).
+7 on are the inputs. The observation model's row i is Channel(i).
 """
 
 from __future__ import annotations
@@ -30,10 +30,17 @@ class Channel(IntEnum):
     """Throttle [0..1] or thrust [N] (input)."""
     DENSITY = 9
     """Air density [kg/m^3] (input; where the data carry none, the airframe's)."""
+    PHI = 10
+    """Bank angle [rad], right wing down positive (input; missing: wings level)."""
+    ROLL_RATE = 11
+    """Body roll rate p [rad/s] (input; missing: 0)."""
+    YAW_RATE = 12
+    """Body yaw rate r [rad/s] (input; missing: 0)."""
 
 
-N_INPUTS = 3
-"""Inputs per frame: elevator, throttle or thrust, air density (Channel.ELEVATOR ..)."""
+N_INPUTS = 6
+"""Inputs per frame: elevator, throttle or thrust, air density, bank angle, roll and yaw
+rate (Channel.ELEVATOR .. Channel.YAW_RATE; docs/model.md "Turns")."""
 REQUIRED_INPUTS = 2
 """The inputs a frame cannot do without (elevator and power); density falls back."""
 N_OBS = 7
