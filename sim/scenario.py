@@ -148,17 +148,19 @@ def mission(turbulence: str = "light", duration_s: float = MISSION_DURATION_S) -
     overrides: straight legs of 40 s joined by coordinated turns of 20-35 deg bank, a
     3-2-1-1 on every other leg and none on the others, a climb and a descent on throttle,
     a steady 6 m/s wind, and `turbulence` ("none" for calm). Scaled to duration_s
-    (default about 8 min; the tests fly a short one)."""
+    (default about 8 min; the tests fly a short one). Times fall on tenths of a second, on
+    the sample grid: an input switching between samples is one the data misplace."""
     scale = duration_s / MISSION_DURATION_S
     legs = [40.0 + 80.0 * i for i in range(6)]  # leg starts; turns 20 s after each
-    turn_starts = [round((leg + 25.0) * scale, 3) for leg in legs]
-    turn_lengths = [round(max(15.0 * scale, 7.0), 3)] * len(legs)
+    turn_starts = [round((leg + 25.0) * scale, 1) for leg in legs]
+    turn_lengths = [round(max(15.0 * scale, 7.0), 1)] * len(legs)
     banks = [25.0, -30.0, 20.0, 35.0, -25.0, 30.0]
-    multisteps = [round((leg - 30.0 + 5.0) * scale, 3) for leg in legs[::2]]
-    multisteps += [round((leg + 5.0) * scale, 3) for leg in legs[1::2]]
-    pulses = [round(t * scale, 3) for t in (170.0, 330.0)]
-    climb = [round(t * scale, 3) for t in (210.0, 290.0)]
-    steps = round(max(25.0 * scale, 5.0), 3)
+    # The first leg opens with two 3-2-1-1s before the filters' restarts (5 and 10 s by
+    # default), as the wings-level manoeuvre does; later ones on every other leg.
+    multisteps = [2.0, 6.0] + [round((leg + 5.0) * scale, 1) for leg in legs[1::2]]
+    pulses = [round(t * scale, 1) for t in (170.0, 330.0)]
+    climb = [round(t * scale, 1) for t in (210.0, 290.0)]
+    steps = round(max(25.0 * scale, 5.0), 1)
     return [
         f"simulation.manoeuvre.duration_s={duration_s}",
         f"simulation.manoeuvre.multistep_starts_s={sorted(multisteps)}",

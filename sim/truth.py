@@ -20,8 +20,7 @@ from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.model.equations import GRAV as eq_GRAV
-from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe_in_gust
+from gcs_estimator.model.equations import GRAV, ModelArrays, air_relative, fly_step, observe_in_gust
 from sim.scenario import Manoeuvre, Simulation, Turbulence, scenario_of
 
 
@@ -31,8 +30,8 @@ class Flight:
 
     t_s [N] vehicle time [s]; inputs [N x 2] elevator [rad] and throttle [0..1] (or
     thrust [N]), with turns [N x 6]: then the air density [kg/m^3], bank angle phi [rad],
-    roll and yaw rate p, r [rad/s] (model.channels); measurements [N x 7] V [m/s], alpha [rad], theta [rad], q [rad/s],
-    qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4] the true air-relative V, alpha,
+    roll and yaw rate p, r [rad/s] (model.channels); measurements [N x 7] V [m/s],
+    alpha [rad], theta [rad], q [rad/s], qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4] the true air-relative V, alpha,
     theta, q; truth [p] the true coefficients.
     """
 
@@ -272,7 +271,7 @@ class TurnFeed:
         self.sim = sim
         self.rho = rho
         self.V = float(trimmed.state[0])
-        self.g = float(model.k[eq_GRAV])
+        self.g = float(model.k[GRAV])
         self.extra: dict[float, tuple[float, float]] = {}
         for bank in set(sim.turns.banks_deg):
             self.extra[bank] = self._turn_trim(model, truth, trimmed, math.radians(bank))

@@ -27,6 +27,7 @@ from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.model.channels import Channel
 
 __all__ = [
     "FILTER_KINDS",
@@ -86,6 +87,10 @@ class Estimator:
         started afresh there."""
         self.out_of_order = 0
         """Frames at or before the previous frame's time: skipped."""
+        self.bank_limit = math.radians(config.filter.bank_limit_deg)
+        self.banked_out = 0
+        """Frames banked beyond [filter] bank_limit_deg: predicted through, not used in the
+        update (decision 0048)."""
         self.final_pass_from = 0
         """The frame at which the pass now running took over (its history row is that
         pass's output)."""
@@ -142,6 +147,9 @@ class Estimator:
         self._t_last = t
         u = self.delay.at(t, self.model.inputs(u))
         y = np.array(y, float)
+        if abs(u[Channel.PHI - Channel.ELEVATOR]) > self.bank_limit:
+            self.banked_out += 1
+            y[:] = np.nan
         self.restarts.keep((t, u, y, inputs_known))
         outs = self.runner.frame(self.states, t, u, y, inputs_known, self.tunings)
         self.frames += 1
@@ -235,6 +243,7 @@ class Estimator:
             warm_start_frames=0 if warm is None else warm.frames,
             gaps=self.gaps,
             frames_out_of_order=self.out_of_order,
+            frames_banked_out=self.banked_out,
             final_pass_from=self.final_pass_from,
             state_names=self.model.layout.names,
             measurement_sigma=tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),
