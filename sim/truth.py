@@ -31,8 +31,8 @@ class Flight:
     t_s [N] vehicle time [s]; inputs [N x 2] elevator [rad] and throttle [0..1] (or
     thrust [N]), with turns [N x 6]: then the air density [kg/m^3], bank angle phi [rad],
     roll and yaw rate p, r [rad/s] (model.channels); measurements [N x 7] V [m/s],
-    alpha [rad], theta [rad], q [rad/s], qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4] the true air-relative V, alpha,
-    theta, q; truth [p] the true coefficients.
+    alpha [rad], theta [rad], q [rad/s], qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4]
+    the true air-relative V, alpha, theta, q; truth [p] the true coefficients.
     """
 
     t_s: FloatArray
