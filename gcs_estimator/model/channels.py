@@ -41,6 +41,8 @@ class Channel(IntEnum):
 N_INPUTS = 6
 """Inputs per frame: elevator, throttle or thrust, air density, bank angle, roll and yaw
 rate (Channel.ELEVATOR .. Channel.YAW_RATE; docs/model.md "Turns")."""
+TURN_INPUTS: tuple[str, ...] = ("in_phi_rad", "in_p_radps", "in_r_radps")
+"""The history's columns of the turn's inputs (after elevator, power and density)."""
 REQUIRED_INPUTS = 2
 """The inputs a frame cannot do without (elevator and power); density falls back."""
 N_OBS = 7
