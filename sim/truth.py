@@ -207,9 +207,9 @@ def simulate(
     de0, power0 = servo_commands(config, trimmed.inputs.reshape(1, 2))[0]
     x0 = model.augment(_steady_state(model, truth, trimmed.state, de0, power0), truth)
     sensors = sim.sensors
-    noise_sigma = np.array(sensors.noise_sigma)
-    bias = np.array(sensors.bias)
-    quantum = np.array(sensors.quantum)
+    noise_sigma = _per_channel(sensors.noise_sigma)
+    bias = _per_channel(sensors.bias)
+    quantum = _per_channel(sensors.quantum)
 
     n_steps = (n_samples - 1) * per_sample
     t_samples = np.arange(n_samples) / sim.sample_rate_hz
@@ -342,6 +342,14 @@ class TurnFeed:
         if self.sim.banked:
             out = np.column_stack([out, np.full(len(t), self.rho), phi, p, r])
         return out
+
+
+def _per_channel(values: tuple[float, ...]) -> FloatArray:
+    """One value per observation channel, zero for channels a scenario made in code before
+    the climb rate does not name."""
+    out = np.zeros(N_OBS)
+    out[: len(values)] = values
+    return out
 
 
 def servo_lag(command: FloatArray, start: float, dt: float, tau: float) -> FloatArray:

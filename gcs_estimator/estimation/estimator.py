@@ -27,7 +27,7 @@ from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import Channel
+from gcs_estimator.model.channels import Channel, pad_observations
 
 __all__ = [
     "FILTER_KINDS",
@@ -146,7 +146,7 @@ class Estimator:
             self._t0 = t
         self._t_last = t
         u = self.delay.at(t, self.model.inputs(u))
-        y = np.array(y, float)
+        y = pad_observations(np.array(y, float))
         if abs(u[Channel.PHI - Channel.ELEVATOR]) > self.bank_limit:
             self.banked_out += 1
             y[:] = np.nan
