@@ -1,7 +1,8 @@
 """Signal channels: one numbering for decoding, synchronising and the observation model.
 
 Channels 0..7 are the observations y in the order of h(x) (spec: docs/model.md, eq. 13-14,
-and the climb rate of "Alpha without a vane"); 8 on are the inputs. The observation model's row i is Channel(i).
+and the climb rate of "Alpha without a vane"); 8 on are the inputs. The observation
+model's row i is Channel(i).
 """
 
 from __future__ import annotations
