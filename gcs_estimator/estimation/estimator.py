@@ -43,6 +43,19 @@ __all__ = [
 ]
 
 
+def observed(u: FloatArray, y: FloatArray, bank_limit_deg: float) -> tuple[FloatArray, bool]:
+    """A frame's observations as the filters take them: N_OBS wide (pad_observations),
+    and none where the bank is beyond bank_limit_deg (decision 0048); and whether it
+    was."""
+    y = pad_observations(np.array(y, float))
+    beyond = abs(u[Channel.PHI - Channel.ELEVATOR]) > math.radians(bank_limit_deg)
+    if beyond:
+        y[:] = np.nan
+    return y, bool(beyond)
+
+
+# Over 200 lines: the run's one owner of both filters' passes, restarts, history and
+# counters (gaps, out of order, banked out); the per-frame work lives in passes.py.
 class Estimator:
     """EKF and IEKF side by side for one vehicle: the live pass, the restarts that replace
     it, and its history."""
@@ -87,10 +100,7 @@ class Estimator:
         started afresh there."""
         self.out_of_order = 0
         """Frames at or before the previous frame's time: skipped."""
-        self.bank_limit = math.radians(config.filter.bank_limit_deg)
-        self.banked_out = 0
-        """Frames banked beyond [filter] bank_limit_deg: predicted through, not used in the
-        update (decision 0048)."""
+        self.banked_out = 0  # frames beyond the bank limit: not in the update (0048)
         self.final_pass_from = 0
         """The frame at which the pass now running took over (its history row is that
         pass's output)."""
@@ -146,10 +156,8 @@ class Estimator:
             self._t0 = t
         self._t_last = t
         u = self.delay.at(t, self.model.inputs(u))
-        y = pad_observations(np.array(y, float))
-        if abs(u[Channel.PHI - Channel.ELEVATOR]) > self.bank_limit:
-            self.banked_out += 1
-            y[:] = np.nan
+        y, beyond = observed(u, y, self.config.filter.bank_limit_deg)
+        self.banked_out += beyond
         self.restarts.keep((t, u, y, inputs_known))
         outs = self.runner.frame(self.states, t, u, y, inputs_known, self.tunings)
         self.frames += 1
