@@ -224,7 +224,7 @@ def simulate(
     )
     if sim.banked or sim.throttle.starts_s:
         turn = TurnFeed(model, truth, trimmed, sim, config.airframe.air_density_kgpm3)
-        u_steps = turn.inputs(u_steps, t_mid)
+        u_steps = turn.inputs(u_steps, np.asarray(t_mid, np.float64))
         u_samples = turn.inputs(u_samples, t_samples)
     if sim.actuator_time_constant_s > 0.0:
         # The servo lags its command: the elevator moves between samples, flown as it

@@ -93,7 +93,7 @@ def inertial_coupling(u: FloatArray, k: FloatArray) -> float:
     if k[IXX] <= 0.0 or k[IZZ] <= 0.0:
         return 0.0
     _, p, r = bank(u)
-    return ((k[IZZ] - k[IXX]) * p * r + k[IXZ] * (r * r - p * p)) / k[IYY]
+    return float(((k[IZZ] - k[IXX]) * p * r + k[IXZ] * (r * r - p * p)) / k[IYY])
 
 
 def thrust(V: float, u1: float, rho: float, k: FloatArray) -> tuple[float, float]:

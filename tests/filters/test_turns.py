@@ -7,7 +7,10 @@ import math
 
 import numpy as np
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import load_config
+from gcs_estimator.estimation.filters.core import FilterKind
+from gcs_estimator.estimation.results import EstimatorResult
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.runtime.session import run_recording
 from sim.scenario import mission
@@ -18,9 +21,10 @@ FAST = ['filter.structure_check="off"']
 PHI = Channel.PHI - Channel.ELEVATOR
 
 
-def _z(result: object, truth: np.ndarray, kind: str) -> np.ndarray:
-    f = result.filters[kind]  # type: ignore[attr-defined]
-    return (np.asarray(f.coefficients) - truth) / np.asarray(f.sigma)
+def _z(result: EstimatorResult, truth: FloatArray, kind: FilterKind) -> FloatArray:
+    f = result.filters[kind]
+    z: FloatArray = (np.asarray(f.coefficients) - truth) / np.asarray(f.sigma)
+    return z
 
 
 def test_a_banked_flight_is_within_three_sigma_and_worse_without_the_turn() -> None:
@@ -34,7 +38,8 @@ def test_a_banked_flight_is_within_three_sigma_and_worse_without_the_turn() -> N
     assert math.degrees(float(np.max(np.abs(flight.inputs[:, PHI])))) > 30.0
     turns = run_recording(config, flight.t_s, flight.inputs, flight.measurements).result
     level = run_recording(config, flight.t_s, flight.inputs[:, :3], flight.measurements).result
-    for kind in ("EKF", "IEKF"):
+    kinds: tuple[FilterKind, ...] = ("EKF", "IEKF")
+    for kind in kinds:
         z_turn = _z(turns, flight.truth, kind)
         z_level = _z(level, flight.truth, kind)
         print(
@@ -43,7 +48,7 @@ def test_a_banked_flight_is_within_three_sigma_and_worse_without_the_turn() -> N
             f"(max |z| {np.max(np.abs(z_level)):.1f})"
         )
         assert np.all(np.abs(z_turn) < 3.0), z_turn
-        assert np.mean(z_level**2) > 10.0 * max(np.mean(z_turn**2), 1.0)
+        assert np.mean(z_level**2) > 10.0 * max(float(np.mean(z_turn**2)), 1.0)
         assert turns.frames_banked_out == 0
 
 
