@@ -71,7 +71,8 @@ def run(seeds: int, minutes: float) -> None:
         print("|---|---|---:|---:|---:|---:|")
         for (vane, kind), figs in rows.items():
             w3 = np.mean([f[0] for f in figs])
-            w5 = np.nanmean([f[1] for f in figs])
+            marked = [f[1] for f in figs if np.isfinite(f[1])]
+            w5 = np.mean(marked) if marked else float("nan")  # nan: none marked identified
             print(
                 f"| {vane} | {kind} | {100 * w3:.0f} % | {100 * w5:.0f} % | "
                 f"{np.mean([f[2] for f in figs]):.1f} | {np.mean([f[3] for f in figs]):.2f} |"
