@@ -322,9 +322,6 @@ def to_recording(
         ]
     )
     aux = {c: on_frames(frames, content.signals[c]) for c in AUX if c in content.signals}
-    # The climb rate, up positive, from the log's vertical speed (down positive).
-    climb = -aux["vz"] if "vz" in aux else np.full(len(frames), np.nan)
-    measured = np.column_stack([measured, climb])
     notes = list(content.notes)
     for c in MEASURED:
         if c not in content.signals:

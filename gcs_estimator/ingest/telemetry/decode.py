@@ -388,7 +388,7 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         plan(
             "VFR_HUD",
             ("airspeed", "climb"),
-            lambda f: Found(None, [(Channel.V, f[0]), (Channel.HDOT, f[1])], (("vz", -f[1]),)),
+            lambda f: Found(None, [(Channel.V, f[0])], (("vz", -f[1]),)),
         ),
         plan("SERVO_OUTPUT_RAW", ("time_usec", "port", *SERVO_FIELDS), servo),
         plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure),
