@@ -69,11 +69,8 @@ NOC_SENSOR_SIGMA: tuple[float, ...] = (
     0.05,
     0.2,
     0.2,
-    0.3,
 )
-"""The simulated sensors' noise, and the filters' measurement sigma unless set (h_dot:
-a GPS vertical speed's, with the vertical air motion the model does not carry where
-turbulence is white process noise: decision 0049)."""
+"""The simulated sensors' noise, and the filters' measurement sigma unless set."""
 
 PropulsionKind = Literal["propeller", "measured"]
 PowerInput = Literal["throttle", "thrust"]
@@ -210,7 +207,7 @@ def per_channel(fill: float | tuple[float, ...], **spec: Any) -> Any:
     """A schema field of one number per observation channel (OBS_NAMES), angles also in
     degrees (KEY_deg)."""
     return setting(
-        fill if isinstance(fill, tuple) else (fill,) * len(OBS_NAMES),
+        fill if isinstance(fill, tuple) else (fill,) * 7,
         keys=OBS_NAMES,
         fill=fill,
         degrees=ANGLES,

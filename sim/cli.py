@@ -215,7 +215,7 @@ def _add_format_options(ap: argparse.ArgumentParser) -> None:
 def scenario_sets(scenario: str | None, no_vane: bool) -> list[str]:
     """The [simulation] overrides of --scenario and --no-vane."""
     out = [] if scenario is None else mission("none" if scenario == "mission-calm" else "light")
-    return [*out, "simulation.vane=false", "simulation.climb_rate=true"] if no_vane else out
+    return [*out, "simulation.vane=false"] if no_vane else out
 
 
 def recordings(args: argparse.Namespace) -> list[Recording]:

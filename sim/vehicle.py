@@ -247,8 +247,7 @@ class SimulatedVehicle:
             out.append(mav.highres_imu_encode(us, *imu, 0b11111))
         if "VFR_HUD" in due:
             thr_pct = max(0, min(100, int(round(100 * power)) if link.throttle_servo else 0))
-            climb = float(y[7]) if y.shape[0] > 7 and math.isfinite(y[7]) else 0.0
-            out.append(mav.vfr_hud_encode(float(y[0]), float(y[0]), 0, thr_pct, 100.0, climb))
+            out.append(mav.vfr_hud_encode(float(y[0]), float(y[0]), 0, thr_pct, 100.0, 0.0))
         return out
 
     def close(self) -> None:

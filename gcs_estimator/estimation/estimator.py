@@ -27,7 +27,7 @@ from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import Channel, pad_observations
+from gcs_estimator.model.channels import Channel
 
 __all__ = [
     "FILTER_KINDS",
@@ -44,10 +44,9 @@ __all__ = [
 
 
 def observed(u: FloatArray, y: FloatArray, bank_limit_deg: float) -> tuple[FloatArray, bool]:
-    """A frame's observations as the filters take them: N_OBS wide (pad_observations),
-    and none where the bank is beyond bank_limit_deg (decision 0048); and whether it
-    was."""
-    y = pad_observations(np.array(y, float))
+    """A frame's observations as the filters take them: none where the bank is beyond
+    bank_limit_deg (decision 0048); and whether it was."""
+    y = np.array(y, float)
     beyond = abs(u[Channel.PHI - Channel.ELEVATOR]) > math.radians(bank_limit_deg)
     if beyond:
         y[:] = np.nan

@@ -37,7 +37,6 @@ from gcs_estimator.config import (
     PowerInput,
 )
 from gcs_estimator.model import atmosphere
-from gcs_estimator.model.channels import N_OBS, pad_observations
 
 
 class FlightDataError(ValueError):
@@ -63,11 +62,6 @@ class Recording:
     aux: dict[str, FloatArray] = field(default_factory=dict)
     """Further signals at the sample times, by name (an autopilot's log: roll, roll and
     yaw rates, vertical speed, wind; ingest/logs/content.py AUX), unused by the filters."""
-
-    def __post_init__(self) -> None:
-        """Measurements of the seven channels before the climb rate get a missing h_dot."""
-        if np.ndim(self.measurements) == 2 and np.shape(self.measurements)[1] < N_OBS:
-            object.__setattr__(self, "measurements", pad_observations(self.measurements))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -661,6 +655,6 @@ def write_csv(path: str | Path, rec: Recording) -> None:
         for i in range(len(rec)):
             w.writerow(
                 [repr(float(rec.t_s[i]))]
-                + [cell(v) for v in rec.measurements[i, : len(OBSERVED)]]
+                + [cell(v) for v in rec.measurements[i]]
                 + [cell(v) for v in rec.inputs[i, :n_in]]
             )

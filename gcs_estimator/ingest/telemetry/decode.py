@@ -55,7 +55,6 @@ def ranges_of(data: DataConfig) -> dict[Channel, tuple[float, float]]:
     out[Channel.V] = (0.5, data.plausible("airspeed"))
     out[Channel.POWER] = (-1e7, 1e7)
     out[Channel.DENSITY] = (0.01, 2.0)
-    out[Channel.HDOT] = (-data.plausible("airspeed"), data.plausible("airspeed"))
     out[Channel.PHI] = (-math.pi, math.pi)
     rate = data.plausible("q")
     out[Channel.ROLL_RATE] = (-rate, rate)
@@ -396,12 +395,12 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         plan(
             "GLOBAL_POSITION_INT",
             ("time_boot_ms", "vz"),
-            lambda f: Found(f[0] * 1e-3, [(Channel.HDOT, -f[1] * 1e-2)], (("vz", f[1] * 1e-2),)),
+            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1] * 1e-2),)),
         ),
         plan(
             "LOCAL_POSITION_NED",
             ("time_boot_ms", "vz"),
-            lambda f: Found(f[0] * 1e-3, [(Channel.HDOT, -f[1])], (("vz", f[1]),)),
+            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1]),)),
         ),
         plan("WIND", ("direction", "speed", "speed_z"), _wind),
     )
