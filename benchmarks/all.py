@@ -73,6 +73,8 @@ PLAN = (
     Run("advice", "advice", ("--seeds", "3"), 1),
     Run("pitch_gust_share", "pitch_gust_share", ("--seeds", "3"), 0.1),
     Run("turbulence_models", "turbulence_models", ("--seeds", "5", "--noc-seeds", "20"), 2.6),
+    # Issue 53's NOC targets: the mission (turns, climb, descent), vane and no vane.
+    Run("noc_mission", "noc_mission", ("--seeds", "20"), 60),
     # Speed and the live link: one core's filter steps, a long replay, a station's
     # vehicles over UDP (10, and 50 to load it), its memory, endurance, stop and start.
     Run("speed", "speed", (), 0.4),

@@ -104,6 +104,15 @@ class Airframe:
         doc="b: the pitch gust's scale (MIL-F-8785C), which the simulator flies and the "
         "filters model (docs/decisions/0016); 0: no pitch gust",
     )
+    inertia_xx_kgm2: float = setting(
+        0.0,
+        ge=0,
+        unit="kg m^2",
+        doc="roll inertia: with inertia_zz_kgm2, q-dot's inertial coupling in turns "
+        "((Izz-Ixx) p r + Ixz (r^2-p^2))/Iy (docs/decisions/0048); 0: left out",
+    )
+    inertia_zz_kgm2: float = setting(0.0, ge=0, unit="kg m^2", doc="yaw inertia (as Ixx)")
+    inertia_xz_kgm2: float = setting(0.0, unit="kg m^2", doc="product of inertia Ixz")
     elevator_travel_deg: float = setting(
         0.0,
         ge=0,
@@ -400,6 +409,14 @@ class FilterTuning:
         "all the vehicles of a run (a vehicle that would go past it is not checked, and its "
         "results say so); the check costs a replay of the final pass per channel, and one "
         "more",
+    )
+    bank_limit_deg: float = setting(
+        45.0,
+        gt=0,
+        le=90,
+        unit="deg",
+        doc="frames banked beyond this are predicted through but not used in the update, "
+        "and counted (the model's no-sideslip, coordinated turn: docs/decisions/0048)",
     )
     initial_sigma: InitialSigma = table(InitialSigma)
     process_noise: ProcessNoise = table(ProcessNoise)

@@ -30,7 +30,7 @@ from sim.formats.ardupilot import (
     parse_rates,
 )
 from sim.ports import Port, SerialPort, Shared, UdpIn
-from sim.scenario import scenario_of, scenario_reference
+from sim.scenario import mission, scenario_of, scenario_reference
 from sim.truth import simulate
 from sim.vehicle import BOOT_OFFSET_S, SimulatedVehicle
 
@@ -108,6 +108,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="a shipped config's name or a TOML path (default: %(default)s)",
     )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument(
+        "--scenario",
+        choices=("mission", "mission-calm"),
+        default=None,
+        help="fly a mission as an autopilot does (sim.scenario.mission: about 8 min of legs "
+        "and coordinated turns of 20-35 deg, multisteps on every other leg, a climb and a "
+        "descent on throttle, light turbulence or calm); --set overrides it",
+    )
+    ap.add_argument(
+        "--no-vane", action="store_true", help="no angle-of-attack vane: alpha is not sent"
+    )
     ap.add_argument(
         "--target",
         type=_target,
@@ -201,6 +212,12 @@ def _add_format_options(ap: argparse.ArgumentParser) -> None:
     )
 
 
+def scenario_sets(scenario: str | None, no_vane: bool) -> list[str]:
+    """The [simulation] overrides of --scenario and --no-vane."""
+    out = [] if scenario is None else mission("none" if scenario == "mission-calm" else "light")
+    return [*out, "simulation.vane=false"] if no_vane else out
+
+
 def recordings(args: argparse.Namespace) -> list[Recording]:
     """What each vehicle flies (and, with --truth, the file of their true coefficients)."""
     return simulated(args)[0]
@@ -282,6 +299,7 @@ def _vehicle(
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.set = [*scenario_sets(args.scenario, args.no_vane), *args.set]
     if args.keys:
         print(scenario_reference(), end="")
         return 0

@@ -20,7 +20,7 @@ from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
 from gcs_estimator.model.channels import N_FLIGHT, N_OBS
-from gcs_estimator.model.equations import ModelArrays, air_relative, fly_step, observe_in_gust
+from gcs_estimator.model.equations import GRAV, ModelArrays, air_relative, fly_step, observe_in_gust
 from sim.scenario import Manoeuvre, Simulation, Turbulence, scenario_of
 
 
@@ -29,9 +29,10 @@ class Flight:
     """A simulated flight sampled at the sensor rate.
 
     t_s [N] vehicle time [s]; inputs [N x 2] elevator [rad] and throttle [0..1] (or
-    thrust [N]); measurements [N x 7] V [m/s], alpha [rad], theta [rad], q [rad/s],
-    qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4] the true air-relative V, alpha,
-    theta, q; truth [p] the true coefficients.
+    thrust [N]), with turns [N x 6]: then the air density [kg/m^3], bank angle phi [rad],
+    roll and yaw rate p, r [rad/s] (model.channels); measurements [N x 7] V [m/s],
+    alpha [rad], theta [rad], q [rad/s], qdot [rad/s^2], a_x, a_z [m/s^2]; states [N x 4]
+    the true air-relative V, alpha, theta, q; truth [p] the true coefficients.
     """
 
     t_s: FloatArray
@@ -221,6 +222,10 @@ def simulate(
     u_samples = np.column_stack(
         [de0 + elevator_offsets_rad(sim.manoeuvre, t_samples), np.full(n_samples, power0)]
     )
+    if sim.banked or sim.throttle.starts_s:
+        turn = TurnFeed(model, truth, trimmed, sim, config.airframe.air_density_kgpm3)
+        u_steps = turn.inputs(u_steps, np.asarray(t_mid, np.float64))
+        u_samples = turn.inputs(u_samples, t_samples)
     if sim.actuator_time_constant_s > 0.0:
         # The servo lags its command: the elevator moves between samples, flown as it
         # moves and reported (to PWM resolution) as it stands at each sample.
@@ -240,6 +245,8 @@ def simulate(
     y = clean + bias + noise_sigma * rng.standard_normal(clean.shape)
     q_nz = quantum > 0
     y[:, q_nz] = np.round(y[:, q_nz] / quantum[q_nz]) * quantum[q_nz]
+    if not sim.vane:
+        y[:, 1] = np.nan
     t_out, u_out, y_out, x_out, clean_out = t_samples, u_samples, y, air_states, clean
     return Flight(
         t_s=t_out,
@@ -250,6 +257,91 @@ def simulate(
         trim=trimmed,
         clean=clean_out,
     )
+
+
+class TurnFeed:
+    """The inputs of a mission (sim.scenario Turns, ThrottleSteps): the bank profile and
+    its roll and yaw rates as inputs, the throttle steps, and the elevator and throttle an
+    autopilot adds to hold height in a turn (feedforward, from the level turn's trim at
+    the turn's full bank, scaled with the load factor's increment 1/cos(phi) - 1)."""
+
+    def __init__(
+        self, model: Model, truth: FloatArray, trimmed: Trim, sim: Simulation, rho: float
+    ) -> None:
+        self.sim = sim
+        self.rho = rho
+        self.V = float(trimmed.state[0])
+        self.g = float(model.k[GRAV])
+        self.extra: dict[float, tuple[float, float]] = {}
+        for bank in set(sim.turns.banks_deg):
+            self.extra[bank] = self._turn_trim(model, truth, trimmed, math.radians(bank))
+
+    def _turn_trim(
+        self, model: Model, truth: FloatArray, trimmed: Trim, phi: float
+    ) -> tuple[float, float]:
+        """(elevator, throttle) added to trim for a level turn at bank phi."""
+        from scipy.optimize import least_squares
+
+        omega = self.g * math.tan(phi) / self.V
+        q, r = omega * math.sin(phi), omega * math.cos(phi)
+        de0, power0 = trimmed.inputs
+
+        def residual(z: FloatArray) -> FloatArray:
+            x = model.augment(np.array([self.V, z[0], z[0], q]), truth)
+            u = np.array([de0 + z[1], power0 + z[2], self.rho, phi, 0.0, r])
+            f, _ = model.f(x, u)
+            return np.array([f[0], f[1] * self.V, f[3]])
+
+        z0 = np.array([float(trimmed.state[1]), 0.0, 0.0])
+        sol = least_squares(residual, z0, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+        return float(sol.x[1]), float(sol.x[2])
+
+    def bank(self, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """phi, p [rad, rad/s] at times t, and the elevator and throttle added for it."""
+        turns = self.sim.turns
+        phi = np.zeros_like(t)
+        p = np.zeros_like(t)
+        de = np.zeros_like(t)
+        dp = np.zeros_like(t)
+        T = turns.roll_s
+        for start, length, bank in zip(
+            turns.starts_s, turns.durations_s, turns.banks_deg, strict=True
+        ):
+            B = math.radians(bank)
+            tau = t - start
+            roll_in = (tau >= 0.0) & (tau < T)
+            hold = (tau >= T) & (tau < length - T)
+            roll_out = (tau >= length - T) & (tau < length)
+            phi[roll_in] = 0.5 * B * (1.0 - np.cos(math.pi * tau[roll_in] / T))
+            p[roll_in] = 0.5 * B * math.pi / T * np.sin(math.pi * tau[roll_in] / T)
+            phi[hold] = B
+            back = tau[roll_out] - (length - T)
+            phi[roll_out] = 0.5 * B * (1.0 + np.cos(math.pi * back / T))
+            p[roll_out] = -0.5 * B * math.pi / T * np.sin(math.pi * back / T)
+            inside = (tau >= 0.0) & (tau < length)
+            share = (1.0 / np.cos(phi[inside]) - 1.0) / (1.0 / math.cos(B) - 1.0)
+            de[inside] = self.extra[bank][0] * share
+            dp[inside] = self.extra[bank][1] * share
+        return phi, p, de, dp
+
+    def throttle(self, t: FloatArray) -> FloatArray:
+        out = np.zeros_like(t)
+        steps = self.sim.throttle
+        for start, length, amount in zip(
+            steps.starts_s, steps.durations_s, steps.amounts, strict=True
+        ):
+            out[(t >= start - 1e-9) & (t < start + length - 1e-9)] = amount
+        return out
+
+    def inputs(self, u: FloatArray, t: FloatArray) -> FloatArray:
+        """u [N x 2] with the turns' and steps' elevator and throttle added, and the
+        density, phi, p, r columns."""
+        phi, p, de, dp = self.bank(t)
+        r = self.g * np.sin(phi) / self.V
+        out = np.column_stack([u[:, 0] + de, u[:, 1] + dp + self.throttle(t)])
+        if self.sim.banked:
+            out = np.column_stack([out, np.full(len(t), self.rho), phi, p, r])
+        return out
 
 
 def servo_lag(command: FloatArray, start: float, dt: float, tau: float) -> FloatArray:

@@ -237,10 +237,11 @@ class SimulatedVehicle:
                 out.append(mav.named_value_float_encode(ms, link.thrust_name.encode(), power))
             if math.isfinite(y[4]):
                 out.append(mav.named_value_float_encode(ms, link.qdot_name.encode(), float(y[4])))
-        if "AOA_SSA" in due:
+        if "AOA_SSA" in due and math.isfinite(y[1]):  # no vane: no AOA_SSA
             out.append(mav.aoa_ssa_encode(us, math.degrees(float(y[1])), 0.0))
         if "ATTITUDE" in due:
-            out.append(mav.attitude_encode(ms, 0.0, float(y[2]), 0.0, 0.0, float(y[3]), 0.0))
+            roll, p, r = _lateral(inputs)
+            out.append(mav.attitude_encode(ms, roll, float(y[2]), 0.0, p, float(y[3]), r))
         if "HIGHRES_IMU" in due:
             imu = (float(y[5]), 0.0, float(y[6]), 0.0, float(y[3]), 0.0) + (0.0,) * 7
             out.append(mav.highres_imu_encode(us, *imu, 0b11111))
@@ -254,6 +255,14 @@ class SimulatedVehicle:
             self._tlog.close()
             self._tlog = None
         self.port.close()
+
+
+def _lateral(inputs: FloatArray) -> tuple[float, float, float]:
+    """Bank angle, roll and yaw rate of a sample's inputs (model.channels; 0 wings level
+    where the flight has none)."""
+    if inputs.shape[0] < 6:
+        return 0.0, 0.0, 0.0
+    return tuple(float(v) if math.isfinite(v) else 0.0 for v in inputs[3:6])  # type: ignore[return-value]
 
 
 STREAMS: dict[int, tuple[str, ...]] = {

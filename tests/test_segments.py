@@ -137,3 +137,21 @@ def test_a_held_out_window_is_taken_out_of_the_windows_fitted() -> None:
     used = segments.in_windows(t, segments.excluding((), (60.0, 90.0)))
     assert not used[(t > 60.0) & (t < 90.0)].any()
     assert used[t < 60.0].all() and used[t > 90.0].all()
+
+
+def test_the_segments_bank_limit_is_the_filters_and_live_frames_carry_the_bank() -> None:
+    from gcs_estimator.config import load_config
+    from gcs_estimator.model.channels import bank_of
+    from gcs_estimator.runtime.flights import limits_of
+
+    config = load_config("noc_uav")
+    limits = limits_of(config)
+    assert limits.max_bank_rad == pytest.approx(math.radians(config.filter.bank_limit_deg))
+    steep = math.radians(config.filter.bank_limit_deg + 5.0)
+    inputs = np.array([0.0, 0.3, np.nan, steep, 0.0, 0.2])
+    assert bank_of(inputs) == steep and math.isnan(bank_of(inputs[:3]))
+    gate = Gate(limits)
+    assert gate.admit(0.0, 24.0, bank_of(inputs[:3])) == (True, False)  # no bank: used
+    assert gate.admit(0.1, 24.0, bank_of(inputs)) == (False, False)
+    assert gate.left_out["bank"] == 1
+    assert gate.admit(0.2, 24.0, 0.1) == (True, True)  # back within: afresh

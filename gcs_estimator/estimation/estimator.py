@@ -29,6 +29,7 @@ from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.estimation.segments import Limits, Pieces
 from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.model.channels import BANK_INPUT
 
 __all__ = [
     "FILTER_KINDS",
@@ -44,9 +45,20 @@ __all__ = [
 ]
 
 
+def observed(u: FloatArray, y: FloatArray, bank_limit_deg: float) -> tuple[FloatArray, bool]:
+    """A frame's observations as the filters take them: none where the bank is beyond
+    bank_limit_deg (decision 0048); and whether it was."""
+    y = np.array(y, float)
+    beyond = abs(u[BANK_INPUT]) > math.radians(bank_limit_deg)
+    if beyond:
+        y[:] = np.nan
+    return y, bool(beyond)
+
+
 # Over 200 lines: the estimation package's one face to the session (admit, step, the
-# restarts' swap, segments and flights, results); each part's work lives in its own module
-# (passes, restarts, segments, history, results) and is only delegated to here.
+# restarts' swap, segments and flights, the counters: gaps, out of order, banked out,
+# results); each part's work lives in its own module (passes, restarts, segments,
+# history, results) and is only delegated to here.
 class Estimator:
     """EKF and IEKF side by side for one vehicle: the live pass, the restarts that replace
     it, and its history."""
@@ -94,6 +106,7 @@ class Estimator:
         started afresh there."""
         self.out_of_order = 0
         """Frames at or before the previous frame's time: skipped."""
+        self.banked_out = 0  # frames beyond the bank limit: not in the update (0048)
         self.final_pass_from = 0
         """The frame at which the pass now running took over (its history row is that
         pass's output)."""
@@ -119,15 +132,16 @@ class Estimator:
         )
         self.frames += len(t)
 
-    def admit(self, t: float, y: FloatArray) -> bool:
-        """Whether a frame at vehicle time t can be processed next. A frame not after the
-        last one is skipped; one after a gap longer than core.MAX_GAP_S rebases the
-        flight states there, so no prediction spans more than MAX_GAP_S (a far-future
-        time never makes the filters integrate for hours)."""
+    def admit(self, t: float, y: FloatArray, phi: float = math.nan) -> bool:
+        """Whether a frame at vehicle time t (bank phi [rad] where the frame carries it)
+        can be processed next. A frame not after the last one is skipped; one the live
+        gate leaves out (segments.Gate) too; one after a gap longer than core.MAX_GAP_S
+        rebases the flight states there, so no prediction spans more than MAX_GAP_S (a
+        far-future time never makes the filters integrate for hours)."""
         if not t > self._t_last:
             self.out_of_order += 1
             return False
-        if not self.pieces.admit(t, float(y[0]), self.frames):
+        if not self.pieces.admit(t, float(y[0]), self.frames, phi):
             return False
         if self.frames and t - self._t_last > core.MAX_GAP_S and not self.pieces.pending:
             self.gaps += 1
@@ -171,7 +185,8 @@ class Estimator:
             inputs_known = False
             self.delay.restart()
         u = self.delay.at(t, self.model.inputs(u))
-        y = np.array(y, float)
+        y, beyond = observed(u, y, self.config.filter.bank_limit_deg)
+        self.banked_out += beyond
         self.restarts.keep((t, u, y, inputs_known))
         outs = self.runner.frame(self.states, t, u, y, inputs_known, self.tunings)
         self.frames += 1
@@ -265,6 +280,7 @@ class Estimator:
             warm_start_frames=0 if warm is None else warm.frames,
             gaps=self.gaps,
             frames_out_of_order=self.out_of_order,
+            frames_banked_out=self.banked_out,
             final_pass_from=self.final_pass_from,
             state_names=self.model.layout.names,
             measurement_sigma=tuple(float(v) for v in np.sqrt(np.diag(self.tunings["EKF"].R))),

@@ -113,6 +113,9 @@ class EstimatorResult(NamedTuple):
     """Frames after which the flight states started afresh (filters.core.MAX_GAP_S)."""
     frames_out_of_order: int = 0
     """Frames skipped because they were not after the previous one."""
+    frames_banked_out: int = 0
+    """Frames banked beyond [filter] bank_limit_deg: predicted through, not used in the
+    update."""
     final_pass_from: int = 0
     """First frame whose history row is the final pass's (after the last restart's swap)."""
     state_names: tuple[str, ...] = ()

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from gcs_estimator.arrays import BoolArray, FloatArray
-from gcs_estimator.config import ConfigError
+from gcs_estimator.config import ConfigError, FilterTuning
 
 Window = tuple[float | None, float | None]
 """Seconds after a flight's first frame (either side open: None)."""
@@ -33,11 +33,6 @@ REASONS = ("window", "ground", "hover", "airspeed", "bank", "short")
 """Why frames are left out, in the order they are judged: outside every --window, on the
 ground, hovering (a VTOL), airspeed out of range, bank beyond the limit, in a run of
 frames too short to be a segment."""
-
-MAX_BANK_DEG = 45.0
-"""Bank beyond which a frame is left out [deg]: the longitudinal model with the lateral
-states as inputs covers coordinated turns (docs/model.md); steeper ones load the aircraft
-beyond where its coefficients were fitted."""
 
 AIRSPEED_RANGE = (0.5, 2.0)
 """The airspeeds the model covers, as multiples of [airframe] trim_airspeed_mps: below,
@@ -58,7 +53,10 @@ class Limits:
 
     trim_airspeed_mps: float
     airspeed_range: tuple[float, float] = AIRSPEED_RANGE
-    max_bank_rad: float = math.radians(MAX_BANK_DEG)
+    max_bank_rad: float = math.radians(FilterTuning.bank_limit_deg)
+    """Bank beyond which a frame is left out: the run's [filter] bank_limit_deg (the
+    filters' own limit, decision 0048), so a segment ends where the filters stop taking
+    frames in their update."""
     min_segment_s: float = MIN_SEGMENT_S
     windows: tuple[Window, ...] = ()
     """--window FROM:TO (seconds after the flight's first frame); empty: the whole flight."""
@@ -399,12 +397,13 @@ class Pieces:
         self.pending = False
         """The next frame stepped begins a segment."""
 
-    def admit(self, t: float, airspeed: float, stepped: int) -> bool:
-        """Whether the gate (live) uses the frame; one that begins a segment after frames
-        left out is marked pending (not the run's first: that one starts anyway)."""
+    def admit(self, t: float, airspeed: float, stepped: int, phi: float = math.nan) -> bool:
+        """Whether the gate (live) uses the frame (bank phi [rad], NaN where unknown); one
+        that begins a segment after frames left out is marked pending (not the run's
+        first: that one starts anyway)."""
         if self.gate is None:
             return True
-        use, fresh = self.gate.admit(t, airspeed)
+        use, fresh = self.gate.admit(t, airspeed, phi)
         self.pending = self.pending or (fresh and stepped > 0)
         return use
 

@@ -90,13 +90,16 @@ class Model:
         return eq.observe(x, u, self.arrays)
 
     def inputs(self, u: FloatArray | Sequence[float]) -> FloatArray:
-        """u as the equations take it: [elevator, throttle or thrust, air density], the
-        density being the airframe's wherever u has none (absent, NaN or not positive)."""
+        """u as the equations take it: [elevator, throttle or thrust, air density, phi, p,
+        r], the density being the airframe's wherever u has none (absent, NaN or not
+        positive), the bank and the roll and yaw rates 0 (wings level) where absent or NaN."""
         u = np.asarray(u, float)
-        out = np.empty(N_INPUTS)
+        out = np.zeros(N_INPUTS)
         out[:REQUIRED_INPUTS] = u[:REQUIRED_INPUTS]
         rho = float(u[2]) if u.shape[0] > 2 else math.nan
         out[2] = rho if math.isfinite(rho) and rho > 0.0 else float(self.k[eq.RHO])
+        lateral = np.asarray(u[3:N_INPUTS], float)
+        out[3 : 3 + lateral.shape[0]] = np.where(np.isfinite(lateral), lateral, 0.0)
         return out
 
     def augment(self, state: FloatArray, beta: FloatArray) -> FloatArray:
@@ -132,6 +135,7 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     turbulence = config.filter.turbulence
     k[eq.GUST_LU], k[eq.GUST_LW] = turbulence.length_u_m, turbulence.length_w_m
     k[eq.SPAN] = a.wing_span_m
+    k[eq.IXX], k[eq.IZZ], k[eq.IXZ] = a.inertia_xx_kgm2, a.inertia_zz_kgm2, a.inertia_xz_kgm2
     if p.model == "propeller":
         k[eq.PROP_KIND] = eq.PROP_PROPELLER
         c = p.constants(a.air_density_kgpm3)

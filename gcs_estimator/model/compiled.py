@@ -16,6 +16,8 @@ from gcs_estimator.model.equations import ModelArrays
 
 for _fn in (
     eq.density,
+    eq.bank,
+    eq.inertial_coupling,
     eq.thrust,
     eq.aero_coefficients,
     eq._alpha_rate,
@@ -33,6 +35,7 @@ for _fn in (
     eq.dynamics_rows,
     eq.dynamics,
     eq.sensor_placement,
+    eq.turn_placement,
     eq.still_observe,
     eq.observe,
     eq.air_relative,

@@ -5,10 +5,12 @@ Source: Meng, Liu and Veres (2010), eq. 11-14, as corrected in docs/model.md.
 Augmented state x_a (model.state): the flight states [V, alpha, theta, q] first
 (airspeed [m/s], angle of attack [rad], pitch angle [rad], pitch rate [rad/s]), the
 aerodynamic coefficients from ``coef_start`` on, and whatever other blocks the layout
-declares. Input u = [de, throttle_or_thrust, rho]: elevator [rad] (positive trailing
-edge down), throttle [0..1] for the propeller model or thrust [N] when thrust is
-measured, and the air density [kg/m^3] at the sample; a two-element u flies at the
-airframe's constant density k[RHO].
+declares. Input u = [de, throttle_or_thrust, rho, phi, p, r]: elevator [rad] (positive
+trailing edge down), throttle [0..1] for the propeller model or thrust [N] when thrust is
+measured, the air density [kg/m^3] at the sample, and the lateral motion as measured
+inputs (docs/model.md, "Turns"): bank angle phi [rad], roll rate p and yaw rate r
+[rad/s], sideslip taken as zero. A two-element u flies at the airframe's constant density
+k[RHO], a u without the last three (or with them NaN) wings level.
 
 The functions take the aircraft as ModelArrays: the airframe packed into a float array
 ``k`` (indices below), the coefficient structure as two int arrays, ``axis[i]`` (0 = CD,
@@ -36,7 +38,10 @@ GUST_LU, GUST_LW = 17, 18
 """Scale lengths [m] of the filters' gust states (where the layout has them)."""
 SPAN = 19
 """Wing span [m]: the scale of the pitch gust (0: none)."""
-N_CONST = 20
+IXX, IZZ, IXZ = 20, 21, 22
+"""Roll and yaw inertia and their product [kg m^2] for q-dot's inertial coupling in turns
+(Ixx = Izz = 0: the coupling left out)."""
+N_CONST = 23
 PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
 
 N_STATE = N_FLIGHT
@@ -69,6 +74,26 @@ def density(u: FloatArray, k: FloatArray) -> float:
     if u.shape[0] > 2:
         return float(u[2])
     return float(k[RHO])
+
+
+def bank(u: FloatArray) -> tuple[float, float, float]:
+    """(phi, p, r) of the inputs: bank angle [rad], roll and yaw rate [rad/s]; zero (wings
+    level) where u has none or they are not numbers."""
+    if u.shape[0] < 6:
+        return 0.0, 0.0, 0.0
+    phi = float(u[3]) if math.isfinite(u[3]) else 0.0
+    p = float(u[4]) if math.isfinite(u[4]) else 0.0
+    r = float(u[5]) if math.isfinite(u[5]) else 0.0
+    return phi, p, r
+
+
+def inertial_coupling(u: FloatArray, k: FloatArray) -> float:
+    """q-dot's inertial coupling in a turn [rad/s^2]: ((Izz - Ixx) p r + Ixz (r^2 - p^2))/Iy
+    (Euler's pitch equation); 0 without Ixx and Izz."""
+    if k[IXX] <= 0.0 or k[IZZ] <= 0.0:
+        return 0.0
+    _, p, r = bank(u)
+    return float(((k[IZZ] - k[IXX]) * p * r + k[IXZ] * (r * r - p * p)) / k[IYY])
 
 
 def thrust(V: float, u1: float, rho: float, k: FloatArray) -> tuple[float, float]:
@@ -138,16 +163,35 @@ def aero_coefficients(
     return C, dC
 
 
-def _angles(x: FloatArray, k: FloatArray) -> tuple[float, float, float, float]:
-    """(sin, cos) of alpha - theta (gravity) and of alpha + sigma_T (thrust)."""
+def _angles(x: FloatArray, u: FloatArray, k: FloatArray) -> FloatArray:
+    """Gravity's and thrust's angles (docs/model.md, "Turns"), as [G1, G2, dG1/dtheta,
+    dG2/dtheta, sin(alpha + sigma_T), cos(alpha + sigma_T)] with, e = cos(phi) - 1,
+
+        G1 = sin(alpha) cos(phi) cos(theta) - cos(alpha) sin(theta)
+           = sin(alpha - theta) + e sin(alpha) cos(theta)       (Vdot's g)
+        G2 = cos(alpha) cos(phi) cos(theta) + sin(alpha) sin(theta)
+           = cos(alpha - theta) + e cos(alpha) cos(theta)       ((V/g) alphadot's g)
+
+    dG1/dalpha = G2, dG2/dalpha = -G1. Written as the wings-level terms plus e times the
+    rest, wings level (e = 0) gives the wings-level equations bit for bit."""
     alpha = x[1]
     theta = x[2]
-    return (
-        math.sin(alpha - theta),
-        math.cos(alpha - theta),
-        math.sin(alpha + k[SIGMA_T]),
-        math.cos(alpha + k[SIGMA_T]),
-    )
+    phi, _, _ = bank(u)
+    e = math.cos(phi) - 1.0
+    sa = math.sin(alpha)
+    ca = math.cos(alpha)
+    st = math.sin(theta)
+    ct = math.cos(theta)
+    sat = math.sin(alpha - theta)
+    cat = math.cos(alpha - theta)
+    out = np.empty(6)
+    out[0] = sat + e * sa * ct
+    out[1] = cat + e * ca * ct
+    out[2] = -cat - e * sa * st
+    out[3] = sat - e * ca * st
+    out[4] = math.sin(alpha + k[SIGMA_T])
+    out[5] = math.cos(alpha + k[SIGMA_T])
+    return out
 
 
 def _alpha_rate(
@@ -159,30 +203,34 @@ def _alpha_rate(
     Fe: float,
     dFe: float,
     row: FloatArray,
-    angles: tuple[float, float, float, float],
+    angles: FloatArray,
 ) -> float:
-    """alphadot given the coefficients C, dC (paper eq. 11) and the angles' sines and
-    cosines (_angles), its derivative d/dx_a written into row [n]:
+    """alphadot given the coefficients C, dC (paper eq. 11) and the angles (_angles), its
+    derivative d/dx_a written into row [n]:
 
-        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
-                   - (Fe/(m*V))*sin(alpha + sigma_T)
-    """
+        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*G2 - (Fe/(m*V))*sin(alpha + sigma_T)
+
+    G2 = cos(alpha) cos(phi) cos(theta) + sin(alpha) sin(theta), cos(alpha - theta) wings
+    level (docs/model.md, "Turns")."""
     k = m.k
     V = x[0]
     A = k[AREA] / k[MASS]
     g = k[GRAV]
     mass = k[MASS]
-    sat, cat, sas, cas = angles
+    g1 = angles[0]
+    g2 = angles[1]
+    sas = angles[4]
+    cas = angles[5]
     for j in range(row.shape[0]):
         row[j] = -0.5 * rho * V * A * dC[1, j]
     # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
     row[0] += (
-        -0.5 * rho * A * C[1] - g / (V * V) * cat - (dFe / (mass * V) - Fe / (mass * V * V)) * sas
+        -0.5 * rho * A * C[1] - g / (V * V) * g2 - (dFe / (mass * V) - Fe / (mass * V * V)) * sas
     )
-    row[1] += -g / V * sat - Fe / (mass * V) * cas
-    row[2] += g / V * sat
+    row[1] += -g / V * g1 - Fe / (mass * V) * cas
+    row[2] += g / V * angles[3]
     row[3] += 1.0
-    return float(-0.5 * rho * V * A * C[1] + x[3] + g / V * cat - Fe / (mass * V) * sas)
+    return float(-0.5 * rho * V * A * C[1] + x[3] + g / V * g2 - Fe / (mass * V) * sas)
 
 
 def has_alpha_rate(m: ModelArrays) -> bool:
@@ -215,7 +263,7 @@ def coefficients(
     kc = k[CHORD] / (2.0 * k[V0])
     kappa = 0.5 * rho * V * k[AREA] / k[MASS]
     row0 = np.zeros(n)
-    f0 = _alpha_rate(x, m, C, dC, rho, Fe, dFe, row0, _angles(x, k))
+    f0 = _alpha_rate(x, m, C, dC, rho, Fe, dFe, row0, _angles(x, u, k))
     c0 = m.coef_start
     cl_ad = 0.0
     for i in range(m.axis.shape[0]):
@@ -377,14 +425,18 @@ def dynamics_rows(
 
 def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
     """State derivative f(x_a, u) and the rows of F = df/dx_a that are not zero, the
-    first n_dynamic, in still air (paper eq. 11, corrected).
+    first n_dynamic, in still air (paper eq. 11, corrected, with the turn's terms of
+    docs/model.md, "Turns": bank phi, roll and yaw rate p, r as inputs, no sideslip).
 
-        Vdot     = -(qbar*S/m)*CD + g*sin(alpha - theta) + (Fe/m)*cos(alpha + sigma_T)
-        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*cos(alpha - theta)
-                   - (Fe/(m*V))*sin(alpha + sigma_T)
-        thetadot = q
-        qdot     = (qbar*S*cbar/Iy)*Cm + Fe*arm/Iy
+        Vdot     = -(qbar*S/m)*CD + g*G1 + (Fe/m)*cos(alpha + sigma_T)
+        alphadot = -(qbar*S/(m*V))*CL + q + (g/V)*G2 - (Fe/(m*V))*sin(alpha + sigma_T)
+        thetadot = q*cos(phi) - r*sin(phi)
+        qdot     = (qbar*S*cbar/Iy)*Cm + Fe*arm/Iy + ((Izz-Ixx)*p*r + Ixz*(r^2-p^2))/Iy
         betadot  = 0
+
+    G1 = sin(alpha) cos(phi) cos(theta) - cos(alpha) sin(theta) and G2 =
+    cos(alpha) cos(phi) cos(theta) + sin(alpha) sin(theta) (_angles): sin(alpha - theta)
+    and cos(alpha - theta) wings level, the paper's case.
 
     Returns f [n] and F[:n_dynamic] [n_dynamic x n], n the dimension of the augmented
     state.
@@ -400,25 +452,28 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     Fe, dFe = thrust(V, u[1], rho, k)
     C, dC = coefficients(x, u, model, rho, Fe, dFe)
     qbar = 0.5 * rho * V * V
-    angles = _angles(x, k)
-    sat, cat, sas, cas = angles
+    angles = _angles(x, u, k)
+    cas = angles[5]
+    sas = angles[4]
     mcoef = k[AREA] * k[CHORD] / k[IYY]
+    phi, _, r = bank(u)
+    cphi = math.cos(phi)
 
     f = np.zeros(n)
     F = np.zeros((model.n_dynamic, n))
-    f[0] = -qbar * A * C[0] + g * sat + Fe / m * cas
+    f[0] = -qbar * A * C[0] + g * angles[0] + Fe / m * cas
     f[1] = _alpha_rate(x, model, C, dC, rho, Fe, dFe, F[1], angles)
-    f[2] = q
-    f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
+    f[2] = q * cphi - r * math.sin(phi)
+    f[3] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY] + inertial_coupling(u, k)
 
     for j in range(n):
         F[0, j] = -qbar * A * dC[0, j]
         F[3, j] = qbar * mcoef * dC[2, j]
     # Explicit dependence on V, alpha, theta, q beyond that through the coefficients.
     F[0, 0] += -rho * V * A * C[0] + dFe / m * cas
-    F[0, 1] += g * cat - Fe / m * sas
-    F[0, 2] += -g * cat
-    F[2, 3] = 1.0
+    F[0, 1] += g * angles[1] - Fe / m * sas
+    F[0, 2] += g * angles[2]
+    F[2, 3] = cphi
     F[3, 0] += rho * V * mcoef * C[2] + dFe * k[ARM] / k[IYY]
     return f, F
 
@@ -468,7 +523,7 @@ def still_observe(
     h[1] = alpha
     h[2] = x[2]
     h[3] = x[3]
-    h[4] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY]
+    h[4] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY] + inertial_coupling(u, k)
     h[5] = qbar * A * CX + Fe / m * math.cos(k[SIGMA_T])
     h[6] = qbar * A * CZ - Fe / m * math.sin(k[SIGMA_T])
 
@@ -487,6 +542,7 @@ def still_observe(
     H[5, 1] += qbar * A * (C[1] * ca + C[0] * sa)
     H[6, 1] += qbar * A * (C[1] * sa - C[0] * ca)
     sensor_placement(x, k, h, H)
+    turn_placement(u, k, h)
     for i in range(model.bias_channel.shape[0]):
         h[model.bias_channel[i]] += x[model.bias_start + i]
         H[model.bias_channel[i], model.bias_start + i] = 1.0
@@ -499,7 +555,8 @@ def sensor_placement(x: FloatArray, k: FloatArray, h: FloatArray, H: FloatArray)
     A point r = (x, z) of the body (x forward, z down) moves with V_cg + omega x r, so a
     vane there reads alpha_v = atan2(V sin(alpha) - q x, V cos(alpha) + q z), and
     accelerometers there add qdot x r + omega x (omega x r):
-    a_x + qdot z - q^2 x and a_z - qdot x - q^2 z, qdot being h[4].
+    a_x + qdot z - q^2 x and a_z - qdot x - q^2 z, qdot being h[4] (turn_placement adds
+    the roll and yaw rates' terms).
     """
     V, alpha, q = x[0], x[1], x[3]
     xv, zv = k[VANE_X], k[VANE_Z]
@@ -521,6 +578,17 @@ def sensor_placement(x: FloatArray, k: FloatArray, h: FloatArray, H: FloatArray)
             H[6, j] -= H[4, j] * xa
         H[5, 3] -= 2.0 * q * xa
         H[6, 3] -= 2.0 * q * za
+
+
+def turn_placement(u: FloatArray, k: FloatArray, h: FloatArray) -> None:
+    """The accelerometers' centripetal terms of the roll and yaw rates (in place): omega x
+    (omega x r) adds -r^2 x + p r z to a_x and p r x - p^2 z to a_z (the roll and yaw
+    accelerations' terms are left out: not measured). No state in them: H unchanged."""
+    xa, za = k[ACCEL_X], k[ACCEL_Z]
+    if xa != 0.0 or za != 0.0:
+        _, p, r = bank(u)
+        h[5] += -r * r * xa + p * r * za
+        h[6] += p * r * xa - p * p * za
 
 
 def air_relative(x: FloatArray, gust: FloatArray) -> FloatArray:
@@ -563,11 +631,13 @@ def wind_slope(x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArray
     which is turned by delta = alpha_a - alpha from the ground velocity; gravity and the
     kinematics act on the motion over the ground:
 
-        Vdot     = (-D cos(delta) + L sin(delta) + Fe cos(alpha + sigma_T))/m
-                   - g sin(theta - alpha)
+        Vdot     = (-D cos(delta) + L sin(delta) + Fe cos(alpha + sigma_T))/m + g G1
         alphadot = q + (-L cos(delta) - D sin(delta) - Fe sin(alpha + sigma_T))/(m V)
-                   + (g/V) cos(theta - alpha)
-        thetadot = q,   qdot = (qbar_a S cbar/Iy) Cm + Fe arm/Iy
+                   + (g/V) G2
+        thetadot = q cos(phi) - r sin(phi)
+        qdot     = (qbar_a S cbar/Iy) Cm + Fe arm/Iy + inertial coupling
+
+    (G1, G2 of the bank: _angles; wings level -sin(theta - alpha) and cos(theta - alpha))
 
     with L, D, Cm at the air-relative state. In still air this is dynamics() exactly.
     (Applying dynamics() to the air-relative state instead, a shortcut that is exact in a
@@ -582,7 +652,6 @@ def wind_slope(x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArray
     Va = xa[0]
     V = x[0]
     alpha = x[1]
-    theta = x[2]
     rho = density(u, k)
     Fe, dFe = thrust(Va, u[1], rho, k)
     C, _ = coefficients(xa, u, model, rho, Fe, dFe)
@@ -594,15 +663,17 @@ def wind_slope(x: FloatArray, u: FloatArray, gust: FloatArray, model: ModelArray
     cd = math.cos(delta)
     sd = math.sin(delta)
     g = k[GRAV]
+    angles = _angles(x, u, k)
+    phi, _, r = bank(u)
     f = np.zeros(x.shape[0])
-    f[0] = (-D * cd + L * sd + Fe * math.cos(alpha + k[SIGMA_T])) / m - g * math.sin(theta - alpha)
+    f[0] = (-D * cd + L * sd + Fe * math.cos(alpha + k[SIGMA_T])) / m + g * angles[0]
     f[1] = (
-        x[3]
-        + (-L * cd - D * sd - Fe * math.sin(alpha + k[SIGMA_T])) / (m * V)
-        + g / V * math.cos(theta - alpha)
+        x[3] + (-L * cd - D * sd - Fe * math.sin(alpha + k[SIGMA_T])) / (m * V) + g / V * angles[1]
     )
-    f[2] = x[3]
-    f[3] = qbar * k[AREA] * k[CHORD] / k[IYY] * C[2] + Fe * k[ARM] / k[IYY]
+    f[2] = x[3] * math.cos(phi) - r * math.sin(phi)
+    f[3] = (
+        qbar * k[AREA] * k[CHORD] / k[IYY] * C[2] + Fe * k[ARM] / k[IYY] + inertial_coupling(u, k)
+    )
     return f
 
 

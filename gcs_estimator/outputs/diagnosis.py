@@ -292,6 +292,12 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
                 f"the equation-error warm start fitted CD, CL, Cm on only {cd}, {cl}, {cm} of "
                 f"{result.warm_start_frames} frames (gaps or missing channels)"
             )
+    if result.frames_banked_out:
+        limit = result.config.filter.bank_limit_deg
+        out.append(
+            f"{result.frames_banked_out} of {result.frames} frames banked beyond {limit:g} deg "
+            "were predicted through but not used in the update ([filter] bank_limit_deg)"
+        )
     return out
 
 

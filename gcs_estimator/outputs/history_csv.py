@@ -12,7 +12,7 @@ from gcs_estimator.config import POWER_COLUMNS
 from gcs_estimator.estimation.filters.core import FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult
-from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.model.channels import OBS_NAMES, TURN_INPUTS
 
 
 class HistoryCsv:
@@ -38,6 +38,7 @@ class HistoryCsv:
             + names
             + [f"sigma_{n}" for n in names]
             + ["nis", "channels", "in_elevator_rad", f"in_{power}", "in_air_density_kgpm3"]
+            + list(TURN_INPUTS)
             + [f"meas_{n}" for n in OBS_NAMES]
         )
         self.rows = 0

@@ -41,6 +41,7 @@ def results_dict(
             "frames_out_of_order": result.frames_out_of_order,
             "segments": result.segments,
             "flights": list(result.flights),
+            "frames_banked_out": result.frames_banked_out,
             "warm_start": None if result.warm_start is None else result.warm_start.tolist(),
             "warm_start_samples": result.warm_start_samples,
             "warm_start_frames": result.warm_start_frames,

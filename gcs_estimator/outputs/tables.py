@@ -24,7 +24,7 @@ from gcs_estimator.config import POWER_COLUMNS
 from gcs_estimator.estimation.filters.core import FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult
-from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.model.channels import OBS_NAMES, TURN_INPUTS
 from gcs_estimator.uncertainty.result import VehicleResult
 
 TABLE_VERSION = 1
@@ -218,7 +218,7 @@ class HistoryParquet:
 
         first = next(iter(tracks.values()))
         cols: dict[str, Any] = {"t_s": pa.array(np.asarray(first.t[a:n], float))}
-        inputs = ("in_elevator_rad", f"in_{self.power}", "in_air_density_kgpm3")
+        inputs = ("in_elevator_rad", f"in_{self.power}", "in_air_density_kgpm3", *TURN_INPUTS)
         for k, name in enumerate(inputs):
             cols[name] = pa.array(np.asarray(first.u[a:n, k], float))
         for k, name in enumerate(OBS_NAMES):

@@ -9,6 +9,7 @@ coefficients and their covariance carried). The segments keep each flight's own 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -31,7 +32,11 @@ class NoSegmentError(ConfigError):
 
 def limits_of(config: AircraftConfig, windows: Sequence[Window] = ()) -> Limits:
     """The segments' limits for the airframe (its trim airspeed) and the --window given."""
-    return Limits(config.airframe.trim_airspeed_mps, windows=tuple(windows))
+    return Limits(
+        config.airframe.trim_airspeed_mps,
+        max_bank_rad=math.radians(config.filter.bank_limit_deg),
+        windows=tuple(windows),
+    )
 
 
 def plan_of(rec: Recording, limits: Limits, flight: int = 0) -> Plan:

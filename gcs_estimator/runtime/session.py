@@ -29,6 +29,7 @@ from gcs_estimator.estimation.estimator import (
 )
 from gcs_estimator.estimation.segments import Limits, Plan
 from gcs_estimator.frames import Frame
+from gcs_estimator.model.channels import bank_of
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty import weighting
 from gcs_estimator.uncertainty.metrics import summarise
@@ -221,7 +222,7 @@ class Session:
                 est.begin_flight(frame.flight)
             elif frame.segment_start:
                 est.start_segment()
-        if not est.admit(frame.t_vehicle_s, frame.y):
+        if not est.admit(frame.t_vehicle_s, frame.y, bank_of(frame.inputs)):
             return {}
         outs = est.step(frame.t_vehicle_s, frame.inputs, frame.y, frame.inputs_known)
         for sink in self.sinks:

@@ -42,9 +42,10 @@ def assert_jacobian_close(analytic: FloatArray, numeric: FloatArray) -> None:
 
 
 @st.composite
-def states(draw: st.DrawFn, model: Model) -> tuple[FloatArray, FloatArray]:
+def states(draw: st.DrawFn, model: Model, banked: bool = False) -> tuple[FloatArray, FloatArray]:
     """Random augmented states and inputs, alpha up to 1 mrad from +-90 deg (near-singular
-    trigonometry) and airspeed down to 30 % of trim (large 1/V terms)."""
+    trigonometry) and airspeed down to 30 % of trim (large 1/V terms); banked: with a
+    bank angle up to 80 deg and roll and yaw rates as inputs."""
     V0 = float(model.k[eq.V0])
     V = draw(st.floats(0.3 * V0, 2.0 * V0))
     alpha = draw(st.floats(-math.pi / 2 + 1e-3, math.pi / 2 - 1e-3))
@@ -56,7 +57,11 @@ def states(draw: st.DrawFn, model: Model) -> tuple[FloatArray, FloatArray]:
     power = draw(st.floats(0.0, 1.0)) if propeller else draw(st.floats(0.0, 5e4))
     x = model.augment(np.array([V, alpha, theta, q]), beta)
     x[model.biases] = [draw(st.floats(-0.1, 0.1)) for _ in model.bias_names]
-    return x, np.array([de, power])
+    if not banked:
+        return x, np.array([de, power])
+    phi = draw(st.floats(-1.4, 1.4))
+    p, r = draw(st.floats(-2.0, 2.0)), draw(st.floats(-2.0, 2.0))
+    return x, np.array([de, power, 1.1, phi, p, r])
 
 
 PLACED = [
@@ -81,10 +86,25 @@ PITCH_GUST = [*GUSTS, "airframe.wing_span_m=2.6"]
 WHITE_PITCH_GUST = [*PLACED, "airframe.wing_span_m=2.6"]
 """White gust noise with a wing span: the pitch gust's state alone after the flight states
 (and the sensors off the CG, with biases)."""
+INERTIA = [
+    "airframe.inertia_xx_kgm2=1.9",
+    "airframe.inertia_zz_kgm2=3.1",
+    "airframe.inertia_xz_kgm2=0.2",
+]
+"""Roll and yaw inertia: q-dot's inertial coupling in turns."""
+BANKED = {
+    "banked": INERTIA,
+    "banked placed": [*PLACED, *INERTIA],
+    "banked alpha rate": ALPHA_RATE,
+    "banked pitch gust": [*PITCH_GUST, *INERTIA],
+    "banked white pitch gust": WHITE_PITCH_GUST,
+}
+"""Turns: the bank angle, roll and yaw rates as inputs (docs/model.md, "Turns")."""
 
 
 @pytest.mark.parametrize(
-    "which", ["noc", "hfb", "placed", "alpha rate", "gusts", "pitch gust", "white pitch gust"]
+    "which",
+    ["noc", "hfb", "placed", "alpha rate", "gusts", "pitch gust", "white pitch gust", *BANKED],
 )
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
@@ -97,10 +117,12 @@ def test_jacobians_match_numerical(
         "gusts": GUSTS,
         "pitch gust": PITCH_GUST,
         "white pitch gust": WHITE_PITCH_GUST,
+        **BANKED,
     }.get(which, [])
     config = {"noc": noc_config, "hfb": hfb_config}.get(which) or load_config("noc_uav", overrides)
     model = build_model(config)
-    x, u = data.draw(states(model))
+    x, u = data.draw(states(model, banked=which in BANKED))
+    which = which.removeprefix("banked ")
     if which in ("gusts", "pitch gust"):
         x[model.gusts] = [data.draw(st.floats(-5.0, 5.0)) for _ in range(2)] + (
             [data.draw(st.floats(-0.5, 0.5))] if which == "pitch gust" else []
@@ -348,3 +370,59 @@ def test_a_clock_reset_takes_the_white_pitch_gust_afresh_with_alpha() -> None:
     assert new.P[4, 1] == pytest.approx(-c * new.x[0] * new.P[1, 1])
     assert new.P[4, 0] == pytest.approx(-c * new.x[1] * new.P[0, 0])
     np.testing.assert_array_equal(new.x[model.coefficients], 1.0)
+
+
+def _wings_level_rows(x: FloatArray, u: FloatArray, model: Model) -> FloatArray:
+    """The paper's wings-level equations (docs/model.md before "Turns"), written out."""
+    k = model.k
+    V, alpha, theta, q = x[:4]
+    rho = float(u[2])
+    Fe, dFe = eq.thrust(V, u[1], rho, k)
+    C, _ = eq.coefficients(x, u, model.arrays, rho, Fe, dFe)
+    qbar = 0.5 * rho * V * V
+    m, g = k[eq.MASS], k[eq.GRAV]
+    return np.array(
+        [
+            -qbar * k[eq.AREA] / m * C[0]
+            + g * math.sin(alpha - theta)
+            + Fe / m * math.cos(alpha + k[eq.SIGMA_T]),
+            -qbar * k[eq.AREA] / (m * V) * C[1]
+            + q
+            + g / V * math.cos(alpha - theta)
+            - Fe / (m * V) * math.sin(alpha + k[eq.SIGMA_T]),
+            q,
+            qbar * k[eq.AREA] * k[eq.CHORD] / k[eq.IYY] * C[2] + Fe * k[eq.ARM] / k[eq.IYY],
+        ]
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_wings_level_is_the_papers_model(data: st.DataObject) -> None:
+    """phi = p = r = 0 (or absent, or NaN) gives the wings-level equations: the turn's terms
+    vanish bit for bit, inertias or not."""
+    model = build_model(load_config("noc_uav", [*INERTIA, *PLACED]))
+    x, u = data.draw(states(model))
+    level = model.inputs(np.array([*u, 1.1, 0.0, 0.0, 0.0]))
+    f, F = model.f(x, level)
+    np.testing.assert_allclose(f[:4], _wings_level_rows(x, level, model), rtol=1e-12, atol=1e-12)
+    for other in (np.array([*u, 1.1]), np.array([*u, 1.1, math.nan, math.nan, math.nan])):
+        f2, F2 = model.f(x, model.inputs(other))
+        assert np.array_equal(f2, f) and np.array_equal(F2, F)
+        h2, H2 = model.h(x, model.inputs(other))
+        h, H = model.h(x, level)
+        assert np.array_equal(h2, h) and np.array_equal(H2, H)
+
+
+def test_a_level_turn_holds_its_pitch(noc_config: AircraftConfig) -> None:
+    """In a level coordinated turn at bank phi the heading turns at Omega = g tan(phi)/V,
+    which the body feels as q = Omega sin(phi), r = Omega cos(phi): theta stays put
+    (thetadot = q cos(phi) - r sin(phi) = 0) though the pitch gyro reads q > 0."""
+    model = build_model(noc_config)
+    V, phi = 20.0, math.radians(30.0)
+    omega = STANDARD_GRAVITY_MPS2 * math.tan(phi) / V
+    q, r = omega * math.sin(phi), omega * math.cos(phi)
+    x = model.augment(np.array([V, 0.08, 0.08, q]), np.zeros(model.n_coefficients))
+    f, _ = model.f(x, model.inputs([0.0, 0.5, 1.2, phi, 0.0, r]))
+    assert q > 0.05
+    assert abs(f[2]) < 1e-15

@@ -76,7 +76,15 @@ def test_imus_in_milli_g_and_milli_radians_per_second(vehicle: Codec, name: str)
 def test_attitude_gives_theta_and_q_and_the_lateral_signals(vehicle: Codec) -> None:
     s = _sample(vehicle.pack(vehicle.mav.attitude_encode(4200, 0.3, 0.05, 1.0, 0.1, -0.2, 0.4)))
     assert s.t_vehicle_s == pytest.approx(4.2)
-    assert dict(s.values) == pytest.approx({Channel.THETA: 0.05, Channel.Q: -0.2})
+    assert dict(s.values) == pytest.approx(
+        {
+            Channel.THETA: 0.05,
+            Channel.Q: -0.2,
+            Channel.PHI: 0.3,
+            Channel.ROLL_RATE: 0.1,
+            Channel.YAW_RATE: 0.4,
+        }
+    )
     assert dict(s.aux) == pytest.approx({"phi": 0.3, "p": 0.1, "r": 0.4})
 
 

@@ -215,6 +215,27 @@ def _frames(content: LogContent, window: Span, max_hz: float) -> FloatArray:
     )
 
 
+LATERAL = ("phi", "p", "r")
+"""The turn's inputs (model.channels Channel.PHI ..), from the log's attitude and gyros."""
+
+
+def _lateral(frames: FloatArray, content: LogContent) -> list[FloatArray]:
+    """Bank angle, roll and yaw rate at the frame times (interpolated, as inputs are;
+    NaN outside their samples, which the model takes as wings level): none where the log
+    gives no bank angle."""
+    if "phi" not in content.signals:
+        return []
+    out = []
+    for name in LATERAL:
+        sig = content.signals.get(name)
+        col = np.full(len(frames), np.nan)
+        if sig is not None and len(sig.t_s):
+            inside = (frames >= sig.t_s[0]) & (frames <= sig.t_s[-1])
+            col[inside] = np.interp(frames[inside], sig.t_s, sig.values)
+        out.append(col)
+    return out
+
+
 def on_frames(frames: FloatArray, sig: Signal) -> FloatArray:
     """A channel at the frame times: interpolated where it is about as fast as the frames
     (missing across its gaps and outside its samples), else each sample at the frame
@@ -326,7 +347,7 @@ def to_recording(
             notes.append(f"{path}: no {c} in the log: the filters go without that channel")
     rec = Recording(
         t_s=frames.copy(),
-        inputs=np.column_stack([de, thr, rho]),
+        inputs=np.column_stack([de, thr, rho, *_lateral(frames, content)]),
         measurements=measured,
         power="throttle",
         notes=tuple(notes),

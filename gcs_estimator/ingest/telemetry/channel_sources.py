@@ -43,6 +43,9 @@ CHANNEL_NAMES: dict[Channel, str] = {
     Channel.ELEVATOR: "elevator",
     Channel.POWER: "power",
     Channel.DENSITY: "density",
+    Channel.PHI: "phi",
+    Channel.ROLL_RATE: "p",
+    Channel.YAW_RATE: "r",
 }
 
 SHORT_PERIOD_MIN_HZ = 10.0

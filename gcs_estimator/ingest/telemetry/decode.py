@@ -55,6 +55,10 @@ def ranges_of(data: DataConfig) -> dict[Channel, tuple[float, float]]:
     out[Channel.V] = (0.5, data.plausible("airspeed"))
     out[Channel.POWER] = (-1e7, 1e7)
     out[Channel.DENSITY] = (0.01, 2.0)
+    out[Channel.PHI] = (-math.pi, math.pi)
+    rate = data.plausible("q")
+    out[Channel.ROLL_RATE] = (-rate, rate)
+    out[Channel.YAW_RATE] = (-rate, rate)
     return out
 
 
@@ -342,7 +346,13 @@ def _attitude(f: tuple[Any, ...]) -> Found:
     t, roll, pitch, rollspeed, pitchspeed, yawspeed = f
     return Found(
         t * 1e-3,
-        [(Channel.THETA, pitch), (Channel.Q, pitchspeed)],
+        [
+            (Channel.THETA, pitch),
+            (Channel.Q, pitchspeed),
+            (Channel.PHI, roll),
+            (Channel.ROLL_RATE, rollspeed),
+            (Channel.YAW_RATE, yawspeed),
+        ],
         (("phi", roll), ("p", rollspeed), ("r", yawspeed)),
     )
 
