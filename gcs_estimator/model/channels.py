@@ -7,8 +7,9 @@ Channels 0..6 are the observations y in the order of h(x) (spec: docs/model.md, 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from enum import IntEnum
+
+from gcs_estimator.arrays import FloatArray
 
 
 class Channel(IntEnum):
@@ -58,6 +59,6 @@ BANK_INPUT = Channel.PHI - Channel.ELEVATOR
 """The bank angle's column in a frame's or a model's inputs."""
 
 
-def bank_of(inputs: Sequence[float]) -> float:
+def bank_of(inputs: FloatArray) -> float:
     """The bank angle [rad] among a frame's inputs (NaN where they carry none)."""
     return float(inputs[BANK_INPUT]) if len(inputs) > BANK_INPUT else math.nan
