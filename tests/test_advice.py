@@ -77,9 +77,13 @@ def test_advice_names_the_short_period_and_a_multistep(flown: Flown) -> None:
     assert set(named) == unidentified
     assert unidentified & set(SHORT_PERIOD)
     assert any(named[n].candidate.kind in MULTISTEPS for n in unidentified & set(SHORT_PERIOD))
+    sigma_shown = {c.name: c.sigma for c in flown.first.summaries["IEKF"].coefficients}
     for a in flown.advice.advised:
         assert a.predicted_sigma <= a.sigma
         assert abs(a.candidate.airspeed_mps - 24.0) < 1.0
+        # The advice speaks of the sigma the table shows, not the covariance's alone.
+        assert a.trusted_sigma == pytest.approx(sigma_shown[a.name], rel=1e-9)
+        assert a.predicted_trusted_sigma <= a.trusted_sigma
     text = "\n".join(flown.advice.lines())
     assert "3-2-1-1" in text or "doublet" in text
 

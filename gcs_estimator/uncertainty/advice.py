@@ -253,6 +253,19 @@ class Advised:
     """Its sigma predicted after the candidate."""
     predicted_mark: str
     """The mark predicted after it (identifiability)."""
+    widen: float = 1.0
+    """The sigma to trust over the covariance's now (movement, structure), which the
+    prediction keeps: the table shows sigma * widen."""
+
+    @property
+    def trusted_sigma(self) -> float:
+        """The sigma to trust now, as the table shows it."""
+        return self.sigma * self.widen
+
+    @property
+    def predicted_trusted_sigma(self) -> float:
+        """The sigma to trust predicted after the candidate."""
+        return self.predicted_sigma * self.widen
 
 
 @dataclass(frozen=True)
@@ -283,8 +296,8 @@ class Advice:
         for a in self.advised:
             verdict = a.predicted_mark
             out.append(
-                f"  {a.name} ({a.mark}, σ {a.sigma:.3g}): {a.candidate.label()} -> "
-                f"σ {a.predicted_sigma:.3g} ({verdict})"
+                f"  {a.name} ({a.mark}, σ {a.trusted_sigma:.3g}): {a.candidate.label()} -> "
+                f"σ {a.predicted_trusted_sigma:.3g} ({verdict})"
             )
         return out
 
@@ -297,9 +310,11 @@ class Advice:
                 {
                     "name": a.name,
                     "mark": a.mark,
-                    "sigma": a.sigma,
+                    "sigma": a.trusted_sigma,
+                    "sigma_covariance": a.sigma,
                     "manoeuvre": a.candidate.as_dict(),
-                    "predicted_sigma": a.predicted_sigma,
+                    "predicted_sigma": a.predicted_trusted_sigma,
+                    "predicted_sigma_covariance": a.predicted_sigma,
                     "predicted_mark": a.predicted_mark,
                 }
                 for a in self.advised
@@ -404,7 +419,13 @@ def advise(
         best = min(predicted, key=lambda k: (RANK[marks_after[k][i]], float(predicted[k][i])))
         advised.append(
             Advised(
-                name, float(now[i]), mark, by[best], float(predicted[best][i]), marks_after[best][i]
+                name,
+                float(now[i]),
+                mark,
+                by[best],
+                float(predicted[best][i]),
+                marks_after[best][i],
+                float(widen[i]),
             )
         )
     return Advice(names, V, omega, tuple(advised), predicted)
