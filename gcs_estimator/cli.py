@@ -743,6 +743,21 @@ def cmd_offline(args: argparse.Namespace) -> int:
     findings = {n: r.compatibility for n, r in zip(names, recs, strict=True) if r.compatibility}
     # ingest/compat.py's findings: the one flight's, or each flight's by its file's name
     args.compatibility = recs[0].compatibility if len(recs) == 1 else findings or None
+    label = f"offline {names[0]}" if len(names) == 1 else f"{len(names)} flights"
+    origin = str(data[0]) if len(data) == 1 else ", ".join(str(d) for d in data)
+    return _flights_session(config, args, recs, names, label, origin)
+
+
+def _flights_session(
+    config: AircraftConfig,
+    args: argparse.Namespace,
+    recs: list[Recording],
+    names: list[str],
+    label: str,
+    origin: str,
+) -> int:
+    """One estimate from the recordings' segments (flights of one aircraft), its
+    segments summarised in a line first."""
     try:
         source = source_of(recs, names, _limits(args, config))
     except NoSegmentError as exc:
@@ -750,8 +765,6 @@ def cmd_offline(args: argparse.Namespace) -> int:
         return EXIT_NOTHING_ESTIMATED
     assert source.plan is not None
     print(source.plan.summary(), file=sys.stderr)
-    label = f"offline {names[0]}" if len(names) == 1 else f"{len(names)} flights"
-    origin = str(data[0]) if len(data) == 1 else ", ".join(str(d) for d in data)
     return _recording_session(config, args, source, label, origin)
 
 
@@ -979,14 +992,7 @@ def _tlog_flights(args: argparse.Namespace) -> int:
     config = weigh_alpha(_config(args))
     recs = [tlog_recording(log, config) for log in args.tlogs]
     names = [Path(log).name for log in args.tlogs]
-    try:
-        source = source_of(recs, names, _limits(args, config))
-    except NoSegmentError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NOTHING_ESTIMATED
-    assert source.plan is not None
-    print(source.plan.summary(), file=sys.stderr)
-    return _recording_session(config, args, source, f"{len(recs)} flights", ", ".join(names))
+    return _flights_session(config, args, recs, names, f"{len(recs)} flights", ", ".join(names))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
