@@ -725,7 +725,7 @@ def cmd_offline(args: argparse.Namespace) -> int:
         return cmd_replay(args)
     args.data = data[0]  # the airframe: the bundled record's where it is one
     config = _config(args)
-    recs, names, flew = [], [], []
+    recs, names, paths, flew = [], [], [], []
     for item in data:
         path, rec, account = _flight(item, config, getattr(args, "progress", False))
         for note in rec.notes:
@@ -738,13 +738,14 @@ def cmd_offline(args: argparse.Namespace) -> int:
             )
         recs.append(rec)
         names.append(path.name)
+        paths.append(str(path))
         flew.append((path.name, what_flew(account)))
     check_one_aircraft(flew)
     findings = {n: r.compatibility for n, r in zip(names, recs, strict=True) if r.compatibility}
     # ingest/compat.py's findings: the one flight's, or each flight's by its file's name
     args.compatibility = recs[0].compatibility if len(recs) == 1 else findings or None
     label = f"offline {names[0]}" if len(names) == 1 else f"{len(names)} flights"
-    origin = str(data[0]) if len(data) == 1 else ", ".join(str(d) for d in data)
+    origin = ", ".join(paths)  # the files read (a bundled record's too: hashed in the JSON)
     return _flights_session(config, args, recs, names, label, origin)
 
 

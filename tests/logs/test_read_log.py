@@ -60,7 +60,8 @@ def test_every_channel_comes_back_within_the_logs_resolution(
     np.testing.assert_allclose(v[::2], truth(fl.tas)[::2], atol=2e-3)  # EAS back to TAS
     np.testing.assert_allclose(alpha[::2], truth(fl.alpha)[::2], atol=1e-4)
     assert np.isnan(qdot).all()
-    de, throttle, rho = rec.inputs.T
+    de, throttle, rho, phi, _, _ = rec.inputs.T
+    np.testing.assert_array_equal(phi, rec.aux["phi"])  # the bank: the turn's input (0048)
     pwm_step = math.radians(TRAVEL_DEG) / 380.0  # one microsecond of the shorter half
     np.testing.assert_allclose(de, truth(fl.elevator_rad), atol=1.2 * pwm_step)
     np.testing.assert_allclose(throttle, truth(fl.throttle), atol=1.1e-3)
@@ -184,7 +185,8 @@ def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
     assert np.isfinite(v[::2]).all() and np.isnan(v[1::2]).all()
     np.testing.assert_allclose(v[::2], truth(fl.tas)[::2], atol=2e-3)
     assert np.isnan(alpha).all()  # PX4 logs none
-    de, throttle, rho = rec.inputs.T
+    de, throttle, rho, phi, _, _ = rec.inputs.T
+    np.testing.assert_array_equal(phi, rec.aux["phi"])  # the bank: the turn's input (0048)
     # the servo's torque sign (CA_SV_CS1_TRQ_P < 0) turned into nose-up, then the model's
     # sign; between two 25 Hz samples a sine interpolated linearly (A w^2 dt^2 / 8)
     bend = 0.04**2 / 8

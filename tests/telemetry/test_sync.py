@@ -17,7 +17,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry.decode import WRAP_US32_S, Sample
 from gcs_estimator.ingest.telemetry.sync import Synchronizer
-from gcs_estimator.model.channels import Channel
+from gcs_estimator.model.channels import N_INPUTS, N_OBS, Channel
 
 LINK = LinkConfig()
 OBS = {"v": 24.0, "alpha": 0.05, "theta": 0.05, "q": 0.0, "qdot": 0.0, "ax": 0.1, "az": -9.8}
@@ -65,8 +65,9 @@ def test_a_frame_goes_once_complete_with_its_inputs_at_its_time() -> None:
     samples = _tick(1.0, elevator=0.01)
     assert _feed(sync, samples[:-1]) == []
     (frame,) = sync.add(samples[-1])
-    # No air density came: NaN, and the estimator flies the airframe's constant.
-    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, np.nan])
+    # No air density came: NaN, and the estimator flies the airframe's constant; no bank
+    # nor roll and yaw rate: NaN, wings level (docs/model.md, Turns).
+    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, *[np.nan] * (N_INPUTS - 2)])
     np.testing.assert_array_equal(frame.y, list(OBS.values()))
     assert frame.t_vehicle_s == 1.0 and not frame.clock_reset
     assert sync.stats.frames == 1 and sync.stats.partial_frames == 0
@@ -131,7 +132,7 @@ def test_receive_times_and_stalls_never_change_the_frames(stalls: list[float], l
         at = (k * 37) % len(samples)
         stalled[at:] = [r + pause for r in stalled[at:]]
     a, b = np.array(frames(steady)), np.array(frames(stalled))
-    assert a.shape == (40, 1 + 3 + 7)
+    assert a.shape == (40, 1 + N_INPUTS + N_OBS)
     np.testing.assert_array_equal(a, b)
 
 
