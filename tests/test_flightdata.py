@@ -50,7 +50,8 @@ def _write_foreign(path: Path, rec: Recording, drop: str = "") -> None:
 @pytest.fixture(scope="module")
 def flight() -> Recording:
     fl = simulate(load_config("noc_uav", ["simulation.manoeuvre.duration_s=5"]), seed=3)
-    return Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    # The seven channels the CSV layout has (no climb-rate column): h_dot missing.
+    return Recording(fl.t_s, fl.inputs, fl.measurements[:, :7], "throttle")
 
 
 def test_a_foreign_csv_reads_back_in_si(tmp_path: Path, flight: Recording) -> None:
@@ -333,7 +334,7 @@ def _write_ros(path: Path, rec: Recording, every: int = 2) -> None:
         w.writerow(["stamp_ns", "airspeed", "pitch", "gyro_y", "acc_x", "acc_z", "elevator_cmd",
                     "thrust"])  # fmt: skip
         for i in range(len(rec)):
-            v, _, theta, q, _, a_x, a_z = rec.measurements[i]
+            v, _, theta, q, _, a_x, a_z = rec.measurements[i, :7]
             cmd = rec.inputs[i, 0] / math.radians(TRAVEL_DEG)
             elevator = repr(float(cmd)) if i % every == 0 else ""
             t_ns = T0_NS + round(float(rec.t_s[i]) * 1e9)
