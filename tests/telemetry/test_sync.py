@@ -17,7 +17,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry.decode import WRAP_US32_S, Sample
 from gcs_estimator.ingest.telemetry.sync import Synchronizer
-from gcs_estimator.model.channels import Channel
+from gcs_estimator.model.channels import N_INPUTS, N_OBS, Channel
 
 LINK = LinkConfig()
 OBS = {"v": 24.0, "alpha": 0.05, "theta": 0.05, "q": 0.0, "qdot": 0.0, "ax": 0.1, "az": -9.8}
@@ -66,8 +66,11 @@ def test_a_frame_goes_once_complete_with_its_inputs_at_its_time() -> None:
     assert _feed(sync, samples[:-1]) == []
     (frame,) = sync.add(samples[-1])
     # No air density came: NaN, and the estimator flies the airframe's constant.
-    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, np.nan])
-    np.testing.assert_array_equal(frame.y, list(OBS.values()))
+    # No air density came: NaN, and the estimator flies the airframe's constant; no bank,
+    # roll or yaw rate either (wings level).
+    np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, *[np.nan] * (N_INPUTS - 2)])
+    # No climb rate came: h_dot missing.
+    np.testing.assert_array_equal(frame.y, [*OBS.values(), np.nan])
     assert frame.t_vehicle_s == 1.0 and not frame.clock_reset
     assert sync.stats.frames == 1 and sync.stats.partial_frames == 0
 
@@ -91,7 +94,8 @@ def test_a_lost_observation_leaves_only_its_own_channel_missing() -> None:
     frames = _feed(sync, [s for tick in ticks for s in tick if s is not lost]) + sync.finish()
     assert len(frames) == 20
     assert np.isnan(frames[3].y[Channel.ALPHA])
-    assert all(np.isfinite(f.y).all() for k, f in enumerate(frames) if k != 3)
+    assert all(np.isfinite(f.y[: len(OBS)]).all() for k, f in enumerate(frames) if k != 3)
+    assert all(np.isnan(f.y[Channel.HDOT]) for f in frames)  # no climb rate sent
     np.testing.assert_allclose([f.inputs[0] for f in frames], 0.01 * np.arange(20), atol=1e-12)
     assert sync.stats.partial_frames == 1
 
@@ -131,7 +135,7 @@ def test_receive_times_and_stalls_never_change_the_frames(stalls: list[float], l
         at = (k * 37) % len(samples)
         stalled[at:] = [r + pause for r in stalled[at:]]
     a, b = np.array(frames(steady)), np.array(frames(stalled))
-    assert a.shape == (40, 1 + 3 + 7)
+    assert a.shape == (40, 1 + N_INPUTS + N_OBS)
     np.testing.assert_array_equal(a, b)
 
 
