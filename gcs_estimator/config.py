@@ -71,8 +71,11 @@ NOC_SENSOR_SIGMA: tuple[float, ...] = (
     0.05,
     0.2,
     0.2,
+    0.3,
 )
-"""The simulated sensors' noise, and the filters' measurement sigma unless set."""
+"""The simulated sensors' noise, and the filters' measurement sigma unless set (h_dot:
+a GPS vertical speed's, with the vertical air motion the model does not carry where
+turbulence is white process noise: decision 0049)."""
 
 PropulsionKind = Literal["propeller", "measured"]
 PowerInput = Literal["throttle", "thrust"]
@@ -285,7 +288,7 @@ def per_channel(fill: float | tuple[float, ...], **spec: Any) -> Any:
     """A schema field of one number per observation channel (OBS_NAMES), angles also in
     degrees (KEY_deg)."""
     return setting(
-        fill if isinstance(fill, tuple) else (fill,) * 7,
+        fill if isinstance(fill, tuple) else (fill,) * len(OBS_NAMES),
         keys=OBS_NAMES,
         fill=fill,
         degrees=ANGLES,
@@ -449,6 +452,7 @@ QUANTITY_KINDS: dict[str, str] = {
     "static_pressure": "pressure",
     "pressure_altitude": "length",
     "air_temperature": "temperature",
+    "climb_rate": "speed",
 }
 """The quantities of a flight-data file and the kind of unit each takes (units.UNITS)."""
 ATMOSPHERE_QUANTITIES: tuple[str, ...] = (
@@ -505,6 +509,11 @@ class Columns:
     static_pressure: str = _column("static_pressure_pa", optional=True)
     pressure_altitude: str = _column("pressure_altitude_m", optional=True)
     air_temperature: str = _column("air_temperature_k", optional=True)
+    climb_rate: str = setting(
+        "climb_rate_mps",
+        doc="the file's column name (optional: the climb rate h_dot, up positive; "
+        "without it the filters go without that channel)",
+    )
 
 
 @dataclass(frozen=True)
@@ -526,6 +535,7 @@ class Units:
     static_pressure: str = _unit("static_pressure")
     pressure_altitude: str = _unit("pressure_altitude")
     air_temperature: str = _unit("air_temperature")
+    climb_rate: str = _unit("climb_rate")
 
     def factor(self, quantity: str) -> float:
         """Multiplier from this file's unit of `quantity` to SI (a normalised elevator:

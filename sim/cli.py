@@ -6,6 +6,7 @@ import argparse
 import sys
 import threading
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from gcs_estimator.config import (
 from gcs_estimator.ingest import endpoints
 from gcs_estimator.ingest.endpoints import Endpoint
 from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_recording
+from gcs_estimator.model.channels import Channel
 from sim.formats import flight_record, numbered, write_truth
 from sim.formats.ardupilot import (
     DEFAULT_STREAM_HZ,
@@ -215,7 +217,7 @@ def _add_format_options(ap: argparse.ArgumentParser) -> None:
 def scenario_sets(scenario: str | None, no_vane: bool) -> list[str]:
     """The [simulation] overrides of --scenario and --no-vane."""
     out = [] if scenario is None else mission("none" if scenario == "mission-calm" else "light")
-    return [*out, "simulation.vane=false"] if no_vane else out
+    return [*out, "simulation.vane=false", "simulation.climb_rate=true"] if no_vane else out
 
 
 def recordings(args: argparse.Namespace) -> list[Recording]:
@@ -243,7 +245,10 @@ def simulated(args: argparse.Namespace) -> tuple[list[Recording], dict[int, tupl
             signs = np.where(np.arange(len(config.truth)) % 2 == 0, 1.0, -1.0)
             c = config.with_truth(tuple(np.array(config.truth) * (1 + args.perturb * signs)))
         fl = simulate(c, seed=base + k)
-        out.append(Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"))
+        # The true climb rate (vz, down positive) beside the measurements: VFR_HUD.climb
+        # carries it whether or not the vehicle has a climb-rate sensor (h_dot).
+        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+        out.append(replace(rec, aux={"vz": -fl.clean[:, Channel.HDOT]}))
         truths[k + 1] = tuple(float(v) for v in fl.truth)
     if args.truth:
         Path(args.truth).write_text(truths_text(truths, config.coefficient_names))

@@ -57,9 +57,11 @@ def output_error(
         start = model.augment(flight.states[0], flight.truth)
     scale = np.maximum(np.abs(start), 1e-3)
 
+    measured = np.isfinite(y)  # a channel the flight lacks (no climb-rate sensor) left out
+
     def residual(z: FloatArray) -> FloatArray:
         _, h = integrate(z * scale, u_steps, u_samples, no_gust, dt, per_sample, model.arrays)
-        return np.asarray(((y - h) * weight).ravel())
+        return np.asarray(((y - h) * weight)[measured])
 
     sol = least_squares(residual, start / scale, x_scale="jac", method="lm", xtol=1e-12)
     x = sol.x * scale

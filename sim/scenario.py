@@ -127,6 +127,9 @@ class Simulation:
         0.0, ge=0, unit="s", doc="first-order servo lag; 0: each command holds until the next"
     )
     vane: bool = setting(True, doc="false: no angle-of-attack vane (alpha not sent)")
+    climb_rate: bool = setting(
+        False, doc="a climb-rate sensor (h_dot, GPS vertical speed): the missions' (decision 0049)"
+    )
     manoeuvre: Manoeuvre = table(Manoeuvre)
     sensors: Sensors = table(Sensors)
     turbulence: Turbulence = table(Turbulence)
@@ -175,6 +178,7 @@ def mission(turbulence: str = "light", duration_s: float = MISSION_DURATION_S) -
         f"simulation.throttle.amounts={[0.05, -0.05]}",
         "simulation.wind.speed_mps=6.0",
         "simulation.wind.from_deg=30.0",
+        "simulation.climb_rate=true",
         f'simulation.turbulence.preset="{turbulence}"',
     ]
 

@@ -19,7 +19,7 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.model import compiled  # noqa: F401  (makes the equations compilable)
 from gcs_estimator.model.aircraft import Model, Trim, build_model, steady_residual, trim
-from gcs_estimator.model.channels import N_FLIGHT, N_OBS
+from gcs_estimator.model.channels import LEGACY_OBS, N_FLIGHT, N_OBS
 from gcs_estimator.model.equations import GRAV, ModelArrays, air_relative, fly_step, observe_in_gust
 from sim.scenario import Manoeuvre, Simulation, Turbulence, scenario_of
 
@@ -207,9 +207,9 @@ def simulate(
     de0, power0 = servo_commands(config, trimmed.inputs.reshape(1, 2))[0]
     x0 = model.augment(_steady_state(model, truth, trimmed.state, de0, power0), truth)
     sensors = sim.sensors
-    noise_sigma = np.array(sensors.noise_sigma)
-    bias = np.array(sensors.bias)
-    quantum = np.array(sensors.quantum)
+    noise_sigma = _per_channel(sensors.noise_sigma)
+    bias = _per_channel(sensors.bias)
+    quantum = _per_channel(sensors.quantum)
 
     n_steps = (n_samples - 1) * per_sample
     t_samples = np.arange(n_samples) / sim.sample_rate_hz
@@ -242,11 +242,19 @@ def simulate(
         gusts.step(dt)
 
     air_states, clean = integrate(x0, u_steps, u_samples, gust, dt, per_sample, model.arrays)
-    y = clean + bias + noise_sigma * rng.standard_normal(clean.shape)
+    # The seven channels' noise drawn first, as before the climb rate: a flight without
+    # it is the same flight, seed for seed.
+    noise = np.zeros(clean.shape)
+    noise[:, :LEGACY_OBS] = rng.standard_normal((clean.shape[0], LEGACY_OBS))
+    if sim.climb_rate:
+        noise[:, LEGACY_OBS:] = rng.standard_normal((clean.shape[0], N_OBS - LEGACY_OBS))
+    y = clean + bias + noise_sigma * noise
     q_nz = quantum > 0
     y[:, q_nz] = np.round(y[:, q_nz] / quantum[q_nz]) * quantum[q_nz]
     if not sim.vane:
         y[:, 1] = np.nan
+    if not sim.climb_rate:
+        y[:, LEGACY_OBS:] = np.nan
     t_out, u_out, y_out, x_out, clean_out = t_samples, u_samples, y, air_states, clean
     return Flight(
         t_s=t_out,
@@ -342,6 +350,14 @@ class TurnFeed:
         if self.sim.banked:
             out = np.column_stack([out, np.full(len(t), self.rho), phi, p, r])
         return out
+
+
+def _per_channel(values: tuple[float, ...]) -> FloatArray:
+    """One value per observation channel, zero for channels a scenario made in code before
+    the climb rate does not name."""
+    out = np.zeros(N_OBS)
+    out[: len(values)] = values
+    return out
 
 
 def servo_lag(command: FloatArray, start: float, dt: float, tau: float) -> FloatArray:

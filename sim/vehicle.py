@@ -21,6 +21,7 @@ from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import mavlink, pwm
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
 from gcs_estimator.ingest.telemetry.signing import load_key, sign_outgoing
+from gcs_estimator.model.channels import Channel
 from sim.ports import Port, UdpOut
 
 BOOT_OFFSET_S = 5.0
@@ -193,7 +194,8 @@ class SimulatedVehicle:
                 self._send(self.mav.system_time_encode(int(time.time() * 1e6), ms))
             due = self._due(t, next_due) | self.requested
             self.requested = set()
-            for msg in self._messages(due, us, ms, rec.measurements[i], rec.inputs[i]):
+            climb = self._climb(i)
+            for msg in self._messages(due, us, ms, rec.measurements[i], rec.inputs[i], climb):
                 self._send(msg)
         self._serve()
         self.close()
@@ -218,8 +220,18 @@ class SimulatedVehicle:
                     next_due[m] = t + 1.0 / r
         return due
 
+    def _climb(self, i: int) -> float:
+        """The true climb rate [m/s, up positive] at sample i: the recording's vertical
+        speed (aux "vz", down positive), else its measured h_dot, else 0."""
+        rec = self.recording
+        vz = rec.aux.get("vz")
+        if vz is not None and math.isfinite(vz[i]):
+            return -float(vz[i])
+        y = rec.measurements[i]
+        return float(y[Channel.HDOT]) if math.isfinite(y[Channel.HDOT]) else 0.0
+
     def _messages(
-        self, due: set[str], us: int, ms: int, y: FloatArray, inputs: FloatArray
+        self, due: set[str], us: int, ms: int, y: FloatArray, inputs: FloatArray, climb: float
     ) -> list[Any]:
         """The due messages of one sample. Inputs first, then observations: a frame is
         complete when its last observation arrives."""
@@ -246,8 +258,20 @@ class SimulatedVehicle:
             imu = (float(y[5]), 0.0, float(y[6]), 0.0, float(y[3]), 0.0) + (0.0,) * 7
             out.append(mav.highres_imu_encode(us, *imu, 0b11111))
         if "VFR_HUD" in due:
-            thr_pct = max(0, min(100, int(round(100 * power)) if link.throttle_servo else 0))
-            out.append(mav.vfr_hud_encode(float(y[0]), float(y[0]), 0, thr_pct, 100.0, 0.0))
+            out.extend(self._climb_messages(ms, y, power, climb))
+        return out
+
+    def _climb_messages(self, ms: int, y: FloatArray, power: float, climb: float) -> list[Any]:
+        """VFR_HUD with the true climb rate [m/s, up positive], and before it, where the
+        vehicle has a climb-rate sensor (simulation.climb_rate), its h_dot as
+        GLOBAL_POSITION_INT.vz (cm/s, down positive) at VFR_HUD's rate."""
+        link, mav = self.link, self.mav
+        out: list[Any] = []
+        if len(y) > Channel.HDOT and math.isfinite(y[Channel.HDOT]):
+            vz_cm = int(round(-100.0 * float(y[Channel.HDOT])))
+            out.append(mav.global_position_int_encode(ms, 0, 0, 0, 0, 0, 0, vz_cm, 0))
+        thr_pct = max(0, min(100, int(round(100 * power)) if link.throttle_servo else 0))
+        out.append(mav.vfr_hud_encode(float(y[0]), float(y[0]), 0, thr_pct, 100.0, climb))
         return out
 
     def close(self) -> None:

@@ -14,6 +14,7 @@ from gcs_estimator.config import load_config
 from gcs_estimator.ingest.compat import Compatibility, check
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.logs.reader import load_flight
+from gcs_estimator.model.channels import LEGACY_OBS
 from gcs_estimator.runtime.session import run_recording
 from sim.truth import Flight, simulate
 
@@ -144,7 +145,8 @@ def _csv(path: Path, rec: Recording) -> Path:
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
         for t, y, u in zip(rec.t_s, rec.measurements, rec.inputs, strict=True):
-            w.writerow([f"{t:.3f}", *(f"{x:.7g}" for x in y), f"{u[0]:.7g}", f"{u[1]:.7g}"])
+            obs = y[:LEGACY_OBS]  # the layout's seven observed columns (no climb rate)
+            w.writerow([f"{t:.3f}", *(f"{x:.7g}" for x in obs), f"{u[0]:.7g}", f"{u[1]:.7g}"])
     return path
 
 

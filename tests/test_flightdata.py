@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_csv
+from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_csv, write_csv
+from gcs_estimator.model.channels import Channel
 from gcs_estimator.units import FOOT, G0, KNOT
 from sim.truth import simulate
 
@@ -50,7 +51,8 @@ def _write_foreign(path: Path, rec: Recording, drop: str = "") -> None:
 @pytest.fixture(scope="module")
 def flight() -> Recording:
     fl = simulate(load_config("noc_uav", ["simulation.manoeuvre.duration_s=5"]), seed=3)
-    return Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    # The seven channels the CSV layout has (no climb-rate column): h_dot missing.
+    return Recording(fl.t_s, fl.inputs, fl.measurements[:, :7], "throttle")
 
 
 def test_a_foreign_csv_reads_back_in_si(tmp_path: Path, flight: Recording) -> None:
@@ -61,6 +63,30 @@ def test_a_foreign_csv_reads_back_in_si(tmp_path: Path, flight: Recording) -> No
     np.testing.assert_allclose(rec.t_s, flight.t_s, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(rec.measurements, flight.measurements, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(rec.inputs, flight.inputs, rtol=1e-12, atol=1e-12)
+
+
+def test_a_climb_rate_column_is_read_in_its_unit_and_written_back(tmp_path: Path) -> None:
+    """The optional climb-rate column ([data.columns] climb_rate): h_dot where the file
+    has it, in its configured unit; write_csv writes it where the recording has one."""
+    fl = simulate(
+        load_config("noc_uav", ["simulation.manoeuvre.duration_s=5", "simulation.climb_rate=true"]),
+        seed=3,
+    )
+    rec = Recording(fl.t_s, fl.inputs[:, :2], fl.measurements, "throttle")
+    assert np.isfinite(rec.measurements[:, Channel.HDOT]).all()
+    path = tmp_path / "with.csv"
+    write_csv(path, rec)
+    back = load_csv(path)
+    np.testing.assert_array_equal(back.measurements, rec.measurements)
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    col = rows[0].index("climb_rate_mps")
+    for row in rows[1:]:
+        row[col] = repr(float(row[col]) / FOOT)
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    data = load_config("noc_uav", ['data.units.climb_rate="ft/s"']).data
+    np.testing.assert_allclose(load_csv(path, data).measurements, rec.measurements, rtol=1e-12)
 
 
 def test_a_missing_column_names_the_key_to_set(tmp_path: Path, flight: Recording) -> None:
@@ -333,7 +359,7 @@ def _write_ros(path: Path, rec: Recording, every: int = 2) -> None:
         w.writerow(["stamp_ns", "airspeed", "pitch", "gyro_y", "acc_x", "acc_z", "elevator_cmd",
                     "thrust"])  # fmt: skip
         for i in range(len(rec)):
-            v, _, theta, q, _, a_x, a_z = rec.measurements[i]
+            v, _, theta, q, _, a_x, a_z = rec.measurements[i, :7]
             cmd = rec.inputs[i, 0] / math.radians(TRAVEL_DEG)
             elevator = repr(float(cmd)) if i % every == 0 else ""
             t_ns = T0_NS + round(float(rec.t_s[i]) * 1e9)

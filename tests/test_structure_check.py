@@ -67,7 +67,7 @@ def test_a_channel_trusted_less_has_its_variance_scaled_in_every_pass() -> None:
         assert est.restarts.done == 2  # the final pass's settings came from the data
     for kind in plain.tunings:
         ratio = np.diag(less.tunings[kind].R) / np.diag(plain.tunings[kind].R)
-        np.testing.assert_allclose(ratio, scale)
+        np.testing.assert_allclose(ratio[: len(scale)], scale)  # h_dot's, unnamed: 1
     replayed = Estimator(config, keep_history=False, noise_scale=scale)
     replayed.replay_final_pass(plain, fl.t_s, fl.inputs, fl.measurements)
     for kind in plain.tunings:

@@ -29,7 +29,7 @@ from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.estimation.segments import Limits, Pieces
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import BANK_INPUT
+from gcs_estimator.model.channels import BANK_INPUT, pad_observations
 
 __all__ = [
     "FILTER_KINDS",
@@ -46,9 +46,10 @@ __all__ = [
 
 
 def observed(u: FloatArray, y: FloatArray, bank_limit_deg: float) -> tuple[FloatArray, bool]:
-    """A frame's observations as the filters take them: none where the bank is beyond
-    bank_limit_deg (decision 0048); and whether it was."""
-    y = np.array(y, float)
+    """A frame's observations as the filters take them: N_OBS wide (pad_observations),
+    and none where the bank is beyond bank_limit_deg (decision 0048); and whether it
+    was."""
+    y = pad_observations(np.array(y, float))
     beyond = abs(u[BANK_INPUT]) > math.radians(bank_limit_deg)
     if beyond:
         y[:] = np.nan

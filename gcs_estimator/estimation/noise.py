@@ -123,5 +123,7 @@ def scaled(
     as they are)."""
     if noise_scale is None:
         return tunings
-    root = np.sqrt(noise_scale)
+    n = next(iter(tunings.values())).R.shape[0]
+    root = np.ones(n)  # channels a shorter scale does not name (h_dot) as they are
+    root[: len(noise_scale)] = np.sqrt(noise_scale)
     return {k: tn._replace(R=tn.R * np.outer(root, root)) for k, tn in tunings.items()}

@@ -80,6 +80,21 @@ def _smooth(t: FloatArray, x: FloatArray, span_s: float, deriv: int = 0) -> Floa
     return out
 
 
+def alpha_from_climb(y: FloatArray, inputs: FloatArray) -> FloatArray:
+    """Angle of attack [rad] per frame from airspeed, pitch angle and climb rate
+    (equations.alpha_from_climb, the bank from the inputs where they carry it); NaN where
+    a channel is missing."""
+    phi = inputs[:, 3] if inputs.shape[1] > 3 else np.zeros(len(y))
+    if y.shape[1] <= 7:
+        return np.full(len(y), np.nan)
+    return np.array(
+        [
+            eq.alpha_from_climb(float(v), float(th), float(h), float(p))
+            for v, th, h, p in zip(y[:, 0], y[:, 2], y[:, 7], phi, strict=True)
+        ]
+    )
+
+
 def equation_error(
     model: Model,
     t_s: FloatArray,
@@ -102,6 +117,8 @@ def equation_error(
         qdot = _qdot_from_q(t_s, q)
     # Back to the CG from where the sensors sit (model.equations: sensor placement).
     alpha = y[:, 1] + q * k[eq.VANE_X] / V
+    if not np.isfinite(alpha).any():  # no vane: alpha = theta - gamma (decision 0049)
+        alpha = alpha_from_climb(y, inputs)
     ax = y[:, 5] - qdot * k[eq.ACCEL_Z] + q * q * k[eq.ACCEL_X]
     az = y[:, 6] + qdot * k[eq.ACCEL_X] + q * q * k[eq.ACCEL_Z]
     de = inputs[:, 0]

@@ -38,6 +38,7 @@ from gcs_estimator.config import (
     PowerInput,
 )
 from gcs_estimator.model import atmosphere
+from gcs_estimator.model.channels import N_OBS, pad_observations
 
 
 class FlightDataError(ValueError):
@@ -66,6 +67,11 @@ class Recording:
     compatibility: dict[str, Any] | None = None
     """What the data compatibility check found (ingest/compat.py), for the results JSON;
     None: not checked."""
+
+    def __post_init__(self) -> None:
+        """Measurements of the seven channels before the climb rate get a missing h_dot."""
+        if np.ndim(self.measurements) == 2 and np.shape(self.measurements)[1] < N_OBS:
+            object.__setattr__(self, "measurements", pad_observations(self.measurements))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -307,7 +313,8 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
         absent.append("thrust")
         notes.append(f'{path}: no thrust column ([data.columns] thrust = ""): a glide, thrust 0')
     air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
-    wanted = ("time", *OBSERVED, "elevator", power, *air)
+    climb = ("climb_rate",) if cols.climb_rate in header else ()
+    wanted = ("time", *OBSERVED, "elevator", power, *air, *climb)
     read = [i for i, q in enumerate(wanted) if q not in absent]
     scale = np.array([_factor(path, data, q, travel_deg) for q in wanted])
     shift = np.array([units.offset(getattr(data.units, q)) for q in wanted])
@@ -332,13 +339,15 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     if power == "thrust" and not glide and not np.any(arr[:, 9]):
         notes.append(f"{path}: thrust 0 throughout ({cols.thrust!r}): a glide")
     inputs = arr[:, [8, 9]]
-    rho = _density(dict(zip(air, arr[:, 10:].T, strict=True)))
+    rho = _density(dict(zip(air, arr[:, 10 : 10 + len(air)].T, strict=True)))
     if rho is not None:
         inputs = np.column_stack([inputs, rho])
+    # The climb rate (h_dot) where the file has its column; missing otherwise.
+    h_dot = arr[:, -1] if climb else np.full(len(arr), np.nan)
     return Recording(
         t_s=arr[:, 0],
         inputs=inputs,
-        measurements=arr[:, 1:8],
+        measurements=np.column_stack([arr[:, 1:8], h_dot]),
         power="thrust" if power == "thrust" else "throttle",
         notes=tuple(notes),
         inputs_known=None if known.all() else known,
@@ -649,6 +658,9 @@ def write_csv(path: str | Path, rec: Recording) -> None:
     n_in = min(rec.inputs.shape[1], 3)
     if n_in == 3:
         head.append(cols.air_density)
+    climb = rec.measurements.shape[1] > len(OBSERVED) and np.isfinite(rec.measurements[:, -1]).any()
+    if climb:
+        head.append(cols.climb_rate)
 
     def cell(v: float) -> str:
         return "" if not math.isfinite(v) else repr(float(v))
@@ -659,6 +671,7 @@ def write_csv(path: str | Path, rec: Recording) -> None:
         for i in range(len(rec)):
             w.writerow(
                 [repr(float(rec.t_s[i]))]
-                + [cell(v) for v in rec.measurements[i]]
+                + [cell(v) for v in rec.measurements[i, : len(OBSERVED)]]
                 + [cell(v) for v in rec.inputs[i, :n_in]]
+                + ([cell(rec.measurements[i, -1])] if climb else [])
             )

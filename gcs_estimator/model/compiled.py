@@ -37,6 +37,7 @@ for _fn in (
     eq.sensor_placement,
     eq.turn_placement,
     eq.still_observe,
+    eq.climb_rate,
     eq.observe,
     eq.air_relative,
     eq.rk4_step,

@@ -478,14 +478,57 @@ def still_rows(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatA
     return f, F
 
 
+def climb_rate(x: FloatArray, u: FloatArray) -> tuple[float, float, float, float]:
+    """Climb rate h-dot [m/s, up] of the flight states and its derivatives by V, alpha,
+    theta (docs/model.md, "Alpha without a vane"): h-dot = V sin(gamma),
+
+        sin(gamma) = cos(alpha) sin(theta) - cos(phi) sin(alpha) cos(theta)
+
+    (sideslip zero; wings level gamma = theta - alpha)."""
+    V = x[0]
+    sa = math.sin(x[1])
+    ca = math.cos(x[1])
+    st = math.sin(x[2])
+    ct = math.cos(x[2])
+    phi, _, _ = bank(u)
+    cphi = math.cos(phi)
+    sg = ca * st - cphi * sa * ct
+    return V * sg, sg, V * (-sa * st - cphi * ca * ct), V * (ca * ct + cphi * sa * st)
+
+
+def alpha_from_climb(V: float, theta: float, climb: float, phi: float) -> float:
+    """The angle of attack [rad] at which climb_rate gives `climb` [m/s]: alpha =
+    theta - gamma wings level, gamma = asin(climb / V); in a bank, the root of
+    cos(alpha) sin(theta) - cos(phi) sin(alpha) cos(theta) = climb / V nearest it.
+    NaN where V is not positive or a value is missing."""
+    if not (V > 0.0 and math.isfinite(theta) and math.isfinite(climb)):
+        return math.nan
+    phi = phi if math.isfinite(phi) else 0.0
+    a = math.sin(theta)
+    b = math.cos(phi) * math.cos(theta)
+    r = math.hypot(a, b)
+    s = max(-1.0, min(1.0, climb / V / r))
+    return math.acos(s) - math.atan2(b, a)
+
+
 def observe(x: FloatArray, u: FloatArray, model: ModelArrays) -> tuple[FloatArray, FloatArray]:
     """Observations h(x_a, u) and H = dh/dx_a (still_observe); with gust states, of the
-    air-relative state (the pitot, the vane and the aerodynamic forces see the air)."""
+    air-relative state (the pitot, the vane and the aerodynamic forces see the air) but
+    for the climb rate, which is the motion over the ground's: the vertical wind is
+    what tells the vane's alpha and the climb rate's apart (decision 0049)."""
     if not has_gust_states(model):
         return still_observe(x, u, model)
     xa = air_relative(x, x[N_FLIGHT : N_FLIGHT + 2])
     h, H = still_observe(xa, u, model)
     _gust_chain(x, H, N_OBS)
+    c = N_OBS - 1
+    ground, dV, da, dt = climb_rate(x, u)
+    h[c] += ground - climb_rate(xa, u)[0]
+    for j in range(N_FLIGHT + 2):
+        H[c, j] = 0.0
+    H[c, 0] = dV
+    H[c, 1] = da
+    H[c, 2] = dt
     return h, H
 
 
@@ -494,12 +537,12 @@ def still_observe(
 ) -> tuple[FloatArray, FloatArray]:
     """Observations h(x_a, u) and H = dh/dx_a (paper eq. 13-14, C_Z corrected).
 
-        y = [V, alpha, theta, q, qdot, a_x, a_z]
+        y = [V, alpha, theta, q, qdot, a_x, a_z, h_dot]
         a_x = (qbar*S/m)*C_X + (Fe/m)*cos(sigma_T),  C_X =  CL*sin(alpha) - CD*cos(alpha)
         a_z = (qbar*S/m)*C_Z - (Fe/m)*sin(sigma_T),  C_Z = -CL*cos(alpha) - CD*sin(alpha)
 
-    a_x, a_z are body-axis specific forces [m/s^2]; qdot [rad/s^2] as in dynamics().
-    Returns h [7] and H [7 x n].
+    a_x, a_z are body-axis specific forces [m/s^2]; qdot [rad/s^2] as in dynamics();
+    h_dot the climb rate (climb_rate). Returns h [N_OBS] and H [N_OBS x n].
     """
     k = model.k
     n = x.shape[0]
@@ -526,6 +569,11 @@ def still_observe(
     h[4] = qbar * mcoef * C[2] + Fe * k[ARM] / k[IYY] + inertial_coupling(u, k)
     h[5] = qbar * A * CX + Fe / m * math.cos(k[SIGMA_T])
     h[6] = qbar * A * CZ - Fe / m * math.sin(k[SIGMA_T])
+    climb, dV, da, dt = climb_rate(x, u)
+    h[7] = climb
+    H[7, 0] = dV
+    H[7, 1] = da
+    H[7, 2] = dt
 
     H[0, 0] = 1.0
     H[1, 1] = 1.0
@@ -611,11 +659,12 @@ def observe_in_gust(
     accelerometers' q^2 lever-arm term takes q - q_g, a second-order difference)."""
     xa = air_relative(x, gust)
     h, _ = observe(xa, u, model)
+    h[N_OBS - 1] += climb_rate(x, u)[0] - climb_rate(xa, u)[0]  # over the ground
     if gust.shape[0] > 2:
         xq = xa.copy()
         xq[3] = x[3] - gust[2]
         ha, _ = observe(xq, u, model)
-        for c in range(4, N_OBS):
+        for c in range(4, N_OBS - 1):
             h[c] = ha[c]
     return h
 

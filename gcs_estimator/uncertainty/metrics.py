@@ -66,8 +66,9 @@ ALPHA = OBS_NAMES.index("alpha")
 
 
 def needs_alpha_level(name: str) -> bool:
-    """A coefficient only a measured angle of attack fixes: an intercept (CD0, CL0, Cm0)
-    or an alpha derivative (CDa, CLa, Cma). Without alpha the filters reconstruct it from
+    """A coefficient only an informed angle of attack fixes (a vane, or a climb rate where
+    the vertical wind is told apart: _alpha_absent): an intercept (CD0, CL0, Cm0) or an
+    alpha derivative (CDa, CLa, Cma). Without either the filters reconstruct alpha from
     the dynamics alone, and an offset in it moves these and nothing the data can see."""
     return name.endswith("0") or name[2:].startswith("a")
 
@@ -86,9 +87,25 @@ def without_alpha(names: tuple[str, ...], marks: tuple[str, ...]) -> tuple[str, 
     return tuple(out)
 
 
+HDOT = OBS_NAMES.index("h_dot")
+CALM_FOR_CLIMB_MPS = 0.1
+"""Vertical gust level [m/s] (the pass's average) up to which a climb rate informs alpha:
+above it the vertical wind moves the air's alpha against the path's, which the climb
+rate sees, and the two are not told apart (decision 0049: with gust states too, on the
+NOC mission in light turbulence the estimates missed by up to 26 sigma)."""
+
+
 def _alpha_absent(track: Track) -> bool:
+    """Whether nothing informs alpha's level: no vane, and no climb rate or a climb rate
+    in air that moved (the pass's gust level above CALM_FOR_CLIMB_MPS)."""
     y = np.asarray(track.y)
-    return bool(y.ndim == 2 and y.shape[0] > 0 and not np.isfinite(y[:, ALPHA]).any())
+    if not (y.ndim == 2 and y.shape[0] > 0) or np.isfinite(y[:, ALPHA]).any():
+        return False
+    if y.shape[1] <= HDOT or not np.isfinite(y[:, HDOT]).any():
+        return True
+    gust = np.asarray(track.gust_pass_sigma, float)
+    level = float(gust[-1]) if gust.size and np.isfinite(gust[-1]) else 0.0
+    return level > CALM_FOR_CLIMB_MPS
 
 
 def most_correlated(correlation: FloatArray, names: tuple[str, ...], i: int) -> tuple[str, float]:

@@ -280,6 +280,9 @@ def test_fast_equals_reference_over_a_flight(noc_config: AircraftConfig, turbule
     n = 600  # 12 s: both restarts and the first multisteps
     y = flight.measurements[:n].copy()
     y[::7, 4] = np.nan  # missing channels on some frames
+    # Without the climb rate: its bounds on the zero start's rounding were measured on
+    # the seven channels (the kernel tests above step with it).
+    y[:, 7] = np.nan
     fast_est = Estimator(config, backend="fast")
     ref_est = Estimator(config, backend="reference")
     for i in range(n):

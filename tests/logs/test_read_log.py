@@ -16,6 +16,7 @@ from gcs_estimator.ingest.flightdata import FlightDataError
 from gcs_estimator.ingest.logs import detect
 from gcs_estimator.ingest.logs.reader import NotAFlightError, read_log
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
+from gcs_estimator.model.channels import LEGACY_OBS, Channel
 from tests.logs.dataflash_files import TRAVEL_DEG, arduplane_log, flight
 from tests.logs.ulog_files import px4_log
 
@@ -49,7 +50,7 @@ def test_every_channel_comes_back_within_the_logs_resolution(
     # frames: the first IMU's samples (50 Hz) while STAT says flying
     assert t[0] == pytest.approx(fl.takeoff_s) and t[-1] <= fl.landing_s
     assert np.allclose(np.diff(t), 0.02)
-    v, alpha, theta, q, qdot, a_x, a_z = rec.measurements.T
+    v, alpha, theta, q, qdot, a_x, a_z = rec.measurements[:, :LEGACY_OBS].T
     np.testing.assert_allclose(theta, truth(fl.theta), atol=math.radians(0.006))
     np.testing.assert_allclose(q, truth(fl.q), atol=1e-6)  # the first IMU, not the second
     np.testing.assert_allclose(a_x, truth(fl.a_x), atol=1e-5)
@@ -60,14 +61,16 @@ def test_every_channel_comes_back_within_the_logs_resolution(
     np.testing.assert_allclose(v[::2], truth(fl.tas)[::2], atol=2e-3)  # EAS back to TAS
     np.testing.assert_allclose(alpha[::2], truth(fl.alpha)[::2], atol=1e-4)
     assert np.isnan(qdot).all()
-    de, throttle, rho, phi, _, _ = rec.inputs.T
-    np.testing.assert_array_equal(phi, rec.aux["phi"])  # the bank: the turn's input (0048)
+    de, throttle, rho = rec.inputs[:, :3].T  # then the turn inputs
     pwm_step = math.radians(TRAVEL_DEG) / 380.0  # one microsecond of the shorter half
     np.testing.assert_allclose(de, truth(fl.elevator_rad), atol=1.2 * pwm_step)
     np.testing.assert_allclose(throttle, truth(fl.throttle), atol=1.1e-3)
     np.testing.assert_allclose(rho, truth(fl.rho), rtol=1e-5)
     np.testing.assert_allclose(rec.aux["phi"], truth(fl.phi), atol=math.radians(0.006))
     assert rec.aux["vz"][::2] == pytest.approx(0.5)  # GPS and XKF2 at 25 Hz too
+    # the climb rate channel: the vertical speed, up positive, where it was sampled
+    h_dot = rec.measurements[:, Channel.HDOT]
+    np.testing.assert_array_equal(h_dot, -rec.aux["vz"])
     assert rec.aux["wind_n"][::2] == pytest.approx(3.0)
     # GPS velocity from GPS.Spd 20 m/s along GCrs 90 deg, VZ; the heading from ATT.Yaw 90
     for name, value in (("vn", 0.0), ("ve", 20.0), ("vd", 0.5), ("psi", math.pi / 2)):
@@ -175,7 +178,7 @@ def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
         return np.asarray(np.interp(t, fl.t_s, x))
 
     assert t[0] == pytest.approx(fl.takeoff_s) and t[-1] <= fl.landing_s
-    v, alpha, theta, q, qdot, a_x, a_z = rec.measurements.T
+    v, alpha, theta, q, qdot, a_x, a_z = rec.measurements[:, :LEGACY_OBS].T
     np.testing.assert_allclose(theta, truth(fl.theta), atol=1e-6)  # from the quaternion
     np.testing.assert_allclose(q, truth(fl.q), atol=1e-6)
     np.testing.assert_allclose(qdot, 0.3, atol=1e-6)
@@ -185,8 +188,7 @@ def test_a_px4_fixed_wing_ulog_comes_back_channel_by_channel(
     assert np.isfinite(v[::2]).all() and np.isnan(v[1::2]).all()
     np.testing.assert_allclose(v[::2], truth(fl.tas)[::2], atol=2e-3)
     assert np.isnan(alpha).all()  # PX4 logs none
-    de, throttle, rho, phi, _, _ = rec.inputs.T
-    np.testing.assert_array_equal(phi, rec.aux["phi"])  # the bank: the turn's input (0048)
+    de, throttle, rho = rec.inputs[:, :3].T  # then the turn inputs
     # the servo's torque sign (CA_SV_CS1_TRQ_P < 0) turned into nose-up, then the model's
     # sign; between two 25 Hz samples a sine interpolated linearly (A w^2 dt^2 / 8)
     bend = 0.04**2 / 8

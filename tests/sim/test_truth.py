@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gcs_estimator.config import AircraftConfig
+from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.model.channels import Channel
 from sim.scenario import Manoeuvre, Turbulence, scenario_of
 from sim.truth import _GustModel, elevator_offset_rad, simulate
 
@@ -57,7 +58,13 @@ def test_multistep_and_pulses() -> None:
 
 
 def test_sensor_noise_has_the_configured_sigma(noc_config: AircraftConfig) -> None:
-    flight = simulate(noc_config, seed=3)
+    # with the climb-rate sensor (h_dot); the seven other channels' noise as without it
+    without = simulate(noc_config, seed=3)
+    assert np.isnan(without.measurements[:, Channel.HDOT]).all()
+    flight = simulate(load_config("noc_uav", ["simulation.climb_rate=true"]), seed=3)
+    np.testing.assert_array_equal(
+        flight.measurements[:, : Channel.HDOT], without.measurements[:, : Channel.HDOT]
+    )
     err = flight.measurements - flight.clean
     sigma = np.array(scenario_of(noc_config).sensors.noise_sigma)
     # 3001 samples: the sample sigma is within ~2.6 % of the true one at 3 standard errors.

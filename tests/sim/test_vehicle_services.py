@@ -8,14 +8,17 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import pytest
 from pymavlink import mavutil
 
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import mavlink
+from gcs_estimator.model.channels import Channel
 from sim.ports import UdpOut
 from sim.truth import simulate
 from sim.vehicle import STREAM_PARAMS, SimulatedVehicle
@@ -136,3 +139,35 @@ def test_parameters_list_read_and_set(pair: tuple[Ground, SimulatedVehicle]) -> 
     echo = [m for m in got if m.get_type() == "PARAM_VALUE"][-1]
     assert (echo.param_id, echo.param_value) == ("SR0_RAW_SENS", 10.0)
     assert vehicle.rates["HIGHRES_IMU"] == 10.0
+
+
+def test_the_climb_rate_is_sent_true_and_as_the_sensor_reads_it() -> None:
+    """VFR_HUD.climb carries the flight's true climb rate (not 0); a vehicle with a
+    climb-rate sensor (simulation.climb_rate) also sends its h_dot as
+    GLOBAL_POSITION_INT.vz (cm/s, down positive), one without sends none."""
+    for sensor in (False, True):
+        config = load_config("noc_uav", [*SHORT, f"simulation.climb_rate={str(sensor).lower()}"])
+        fl = simulate(config, seed=1)
+        truth = fl.clean[:, Channel.HDOT]
+        rec = replace(Recording(fl.t_s, fl.inputs, fl.measurements, "throttle"), aux={"vz": -truth})
+        ground = Ground()
+        vehicle = SimulatedVehicle(rec, config.link, ground.sock.getsockname(), speed=0.0)
+        vehicle.run(stop_after_s=1.0)
+        ground.sock.setblocking(False)  # all sent on loopback before run returned
+        got: list[Any] = []
+        while True:
+            try:
+                data = ground.sock.recv(65535)
+            except BlockingIOError:
+                break
+            got += [m for m in ground.codec.parse(data) if m.get_type() != "BAD_DATA"]
+        climbs = [m.climb for m in got if m.get_type() == "VFR_HUD"]
+        assert len(climbs) >= 10 and np.any(np.abs(climbs) > 0.0)
+        np.testing.assert_allclose(climbs, truth[: len(climbs)], atol=1e-5)  # float32
+        vz = [m.vz for m in got if m.get_type() == "GLOBAL_POSITION_INT"]
+        if sensor:
+            assert len(vz) == len(climbs)
+            h_dot = fl.measurements[: len(vz), Channel.HDOT]
+            np.testing.assert_allclose(vz, np.round(-100.0 * h_dot), atol=0.0)
+        else:
+            assert vz == []

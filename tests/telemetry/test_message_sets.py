@@ -100,10 +100,11 @@ def test_vertical_speed_and_wind_in_si(vehicle: Codec) -> None:
     positive; WIND's direction in degrees (where it blows from)."""
     mav = vehicle.mav
     gpi = _sample(vehicle.pack(mav.global_position_int_encode(1500, 0, 0, 0, 0, 100, 0, -150, 0)))
-    assert gpi.values == ()
+    assert dict(gpi.values) == pytest.approx({Channel.HDOT: 1.5})
     assert dict(gpi.aux) == pytest.approx({"vz": -1.5, "vn": 1.0, "ve": 0.0, "vd": -1.5})
     assert gpi.t_vehicle_s == pytest.approx(1.5)
     lpn = _sample(vehicle.pack(mav.local_position_ned_encode(1500, 0, 0, 0, 20.0, 0, 0.75)))
+    assert dict(lpn.values) == pytest.approx({Channel.HDOT: -0.75})
     assert dict(lpn.aux) == pytest.approx({"vz": 0.75})
     hud = _sample(vehicle.pack(mav.vfr_hud_encode(18.0, 17.0, 90, 40, 100.0, 2.0)))
     assert dict(hud.values) == pytest.approx({Channel.V: 18.0})

@@ -65,10 +65,12 @@ def test_a_frame_goes_once_complete_with_its_inputs_at_its_time() -> None:
     samples = _tick(1.0, elevator=0.01)
     assert _feed(sync, samples[:-1]) == []
     (frame,) = sync.add(samples[-1])
-    # No air density came: NaN, and the estimator flies the airframe's constant; no bank
-    # nor roll and yaw rate: NaN, wings level (docs/model.md, Turns).
+    # No air density came: NaN, and the estimator flies the airframe's constant.
+    # No air density came: NaN, and the estimator flies the airframe's constant; no bank,
+    # roll or yaw rate either (wings level).
     np.testing.assert_array_equal(frame.inputs, [0.01, 0.3, *[np.nan] * (N_INPUTS - 2)])
-    np.testing.assert_array_equal(frame.y, list(OBS.values()))
+    # No climb rate came: h_dot missing.
+    np.testing.assert_array_equal(frame.y, [*OBS.values(), np.nan])
     assert frame.t_vehicle_s == 1.0 and not frame.clock_reset
     assert sync.stats.frames == 1 and sync.stats.partial_frames == 0
 
@@ -92,7 +94,8 @@ def test_a_lost_observation_leaves_only_its_own_channel_missing() -> None:
     frames = _feed(sync, [s for tick in ticks for s in tick if s is not lost]) + sync.finish()
     assert len(frames) == 20
     assert np.isnan(frames[3].y[Channel.ALPHA])
-    assert all(np.isfinite(f.y).all() for k, f in enumerate(frames) if k != 3)
+    assert all(np.isfinite(f.y[: len(OBS)]).all() for k, f in enumerate(frames) if k != 3)
+    assert all(np.isnan(f.y[Channel.HDOT]) for f in frames)  # no climb rate sent
     np.testing.assert_allclose([f.inputs[0] for f in frames], 0.01 * np.arange(20), atol=1e-12)
     assert sync.stats.partial_frames == 1
 

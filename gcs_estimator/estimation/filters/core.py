@@ -38,7 +38,7 @@ from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model
-from gcs_estimator.model.channels import N_OBS
+from gcs_estimator.model.channels import N_OBS, Channel
 from gcs_estimator.model.equations import ModelArrays
 from gcs_estimator.model.turbulence import gust_state_densities
 
@@ -92,7 +92,16 @@ FLIGHT_PRIOR_SIGMA: tuple[float, ...] = (1.0, 0.02, 0.02, 0.02)
 """Prior 1 sigma of the flight states [V m/s, alpha rad, theta rad, q rad/s] about their
 first measurement (or trim speed and zeros where it has none)."""
 
-BIAS_SIGMA: tuple[float, ...] = (1.0, math.radians(2.0), math.radians(2.0), 0.01, 0.1, 0.5, 0.5)
+BIAS_SIGMA: tuple[float, ...] = (
+    1.0,
+    math.radians(2.0),
+    math.radians(2.0),
+    0.01,
+    0.1,
+    0.5,
+    0.5,
+    0.5,
+)
 """Prior 1 sigma of an estimated sensor bias, per channel [SI]; the biases are constant
 (no process noise)."""
 
@@ -314,6 +323,11 @@ def initial_state(
     state = np.array([model.k[eq.V0], 0.0, 0.0, 0.0])
     measured = np.isfinite(y[flight])
     state[measured] = y[flight][measured]
+    if not measured[1]:  # no vane: alpha from the climb rate (decision 0049)
+        phi = eq.bank(np.asarray(u, float))[0]
+        climb = float(y[Channel.HDOT]) if y.shape[0] > Channel.HDOT else math.nan
+        alpha = eq.alpha_from_climb(state[0], state[2], climb, phi)
+        state[1] = alpha if math.isfinite(alpha) else 0.0
     x[flight] = state
     if coefficients is not None:
         x[model.coefficients] = coefficients

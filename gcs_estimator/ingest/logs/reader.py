@@ -340,6 +340,10 @@ def to_recording(
         ]
     )
     aux = {c: on_frames(frames, content.signals[c]) for c in AUX if c in content.signals}
+    # The climb rate channel (h_dot, up positive) from the log's vertical speed (down
+    # positive); missing where the log has none (decision 0049).
+    climb = -aux["vz"] if "vz" in aux else np.full(len(frames), np.nan)
+    measured = np.column_stack([measured, climb])
     aux.update(flight_flags(frames, content))
     notes = list(content.notes)
     for c in MEASURED:

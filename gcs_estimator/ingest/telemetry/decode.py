@@ -55,6 +55,7 @@ def ranges_of(data: DataConfig) -> dict[Channel, tuple[float, float]]:
     out[Channel.V] = (0.5, data.plausible("airspeed"))
     out[Channel.POWER] = (-1e7, 1e7)
     out[Channel.DENSITY] = (0.01, 2.0)
+    out[Channel.HDOT] = (-data.plausible("airspeed"), data.plausible("airspeed"))
     out[Channel.PHI] = (-math.pi, math.pi)
     rate = data.plausible("q")
     out[Channel.ROLL_RATE] = (-rate, rate)
@@ -422,7 +423,7 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
             ("time_boot_ms", "vx", "vy", "vz"),
             lambda f: Found(
                 f[0] * 1e-3,
-                [],
+                [(Channel.HDOT, f[3] * -1e-2)],  # an int 0 and a float 0 both -0.0
                 (
                     ("vz", f[3] * 1e-2),
                     ("vn", f[1] * 1e-2),
@@ -434,7 +435,7 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         plan(
             "LOCAL_POSITION_NED",
             ("time_boot_ms", "vz"),
-            lambda f: Found(f[0] * 1e-3, [], (("vz", f[1]),)),
+            lambda f: Found(f[0] * 1e-3, [(Channel.HDOT, -f[1])], (("vz", f[1]),)),
         ),
         plan("WIND", ("direction", "speed", "speed_z"), _wind),
     )

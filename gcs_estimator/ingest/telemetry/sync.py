@@ -66,6 +66,10 @@ PERIOD_SPACINGS = 15
 EXPECT_PRESENCE = 0.75
 """A channel is expected in every frame when it was in this share of recent frames."""
 PRESENCE_GAIN = 0.1
+FIRST_EXPECTED: tuple[int, ...] = tuple(range(Channel.HDOT))
+"""The channels expected before any frame has gone: V .. a_z. The climb rate (h_dot, the
+last channel), which many vehicles send slower or not at all, becomes expected once it is
+present."""
 
 
 @dataclass
@@ -243,9 +247,9 @@ class Synchronizer:
     _untimed: list[tuple[Channel, float]] = field(default_factory=list)
     _pending: list[tuple[float | None, Sample]] = field(default_factory=list)
     """Samples off the current time base, waiting for confirmation (timed ones' times)."""
-    _presence: list[float] = field(default_factory=lambda: [1.0] * N_OBS)
+    _presence: list[float] = field(default_factory=lambda: [1.0] * len(FIRST_EXPECTED) + [0.0])
     _spacings: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_SPACINGS))
-    _expected: list[int] = field(default_factory=lambda: list(range(N_OBS)))
+    _expected: list[int] = field(default_factory=lambda: list(FIRST_EXPECTED))
     """Channels the vehicle sends in (nearly) every frame."""
     _period: float = math.inf
     """Median spacing of recent frames (inf until known)."""
