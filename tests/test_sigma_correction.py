@@ -261,7 +261,18 @@ def test_a_channel_the_data_never_hold_is_named() -> None:
         said[channel] = [w for w in trust_warnings(run) if "in these data at all" in w]
         assert not any("elevator did not move" in w for w in trust_warnings(run))
     assert len(said[1]) == 1 and said[1][0].startswith("no alpha in these data at all")
+    assert "weak at best" in said[1][0] and "climb rate" not in said[1][0]
     assert said[4] == []
+    # With a climb rate, alpha comes from the flight path: in calm air only (0049).
+    climbing = load_config(
+        "noc_uav", ["simulation.manoeuvre.duration_s=12", "simulation.climb_rate=true"]
+    )
+    flight = simulate(climbing, seed=4)
+    y = flight.measurements.copy()
+    y[:, 1] = np.nan
+    run = run_recording(climbing, flight.t_s, flight.inputs, y)
+    (line,) = [w for w in trust_warnings(run) if "in these data at all" in w]
+    assert line.startswith("no alpha") and "climb rate" in line and "calm air only" in line
 
 
 def test_an_elevator_that_never_moves_is_named() -> None:

@@ -220,9 +220,10 @@ STILL_ELEVATOR_RAD = math.radians(0.1)
 """An elevator that moves less than this over a whole flight [rad] did not move: no
 manoeuvre, or the elevator read from the wrong servo or column."""
 
-OPTIONAL_CHANNELS = ("qdot",)
+OPTIONAL_CHANNELS = ("qdot", "h_dot")
 """Observation channels a flight may lack with nothing to warn of (the warm start
-differentiates q; the README's CSV layout lets qdot be empty)."""
+differentiates q; the README's CSV layout lets qdot be empty; a climb rate matters only
+without alpha, and the warning about alpha then says what its absence costs)."""
 
 
 def _sign_warnings(kind: str, s: FilterSummary) -> list[str]:
@@ -270,12 +271,7 @@ def _run_warnings(result: EstimatorResult) -> list[str]:
                 f"{'it' if len(none) == 1 else 'them'}, and what only "
                 f"{'it tells' if len(none) == 1 else 'they tell'} is not identified (a column "
                 "the file lacks, or a message the vehicle does not send)"
-                + (
-                    "; without alpha the intercepts and alpha derivatives are not identified "
-                    "and every other coefficient is weak at best"
-                    if "alpha" in none
-                    else ""
-                )
+                + _without_alpha_text(none, bool(held[OBS_NAMES.index("h_dot")]))
             )
     for kind, f in result.filters.items():
         if f.health.divergences:
@@ -440,3 +436,21 @@ def _refined_warnings(refined: Refined) -> list[str]:
     if not refined.converged:
         out.append(f"{refined.label}: {refined.message}")
     return out
+
+
+def _without_alpha_text(missing: list[str], climb_rate: bool) -> str:
+    """What a record without alpha loses, where alpha is among the missing channels: with
+    a climb rate, alpha's level is told from the flight path in calm air only (decision
+    0049); without one, never."""
+    if "alpha" not in missing:
+        return ""
+    if climb_rate:
+        return (
+            "; alpha is taken from the climb rate and the pitch angle (the flight path), "
+            "which tells its level in calm air only: where the vertical wind moved, the "
+            "intercepts and alpha derivatives are not identified"
+        )
+    return (
+        "; without alpha the intercepts and alpha derivatives are not identified and every "
+        "other coefficient is weak at best"
+    )
