@@ -14,6 +14,7 @@ from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import read_tlog
+from gcs_estimator.model.channels import N_OBS, OBS_NAMES
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.outputs.sinks import RefineStatus
@@ -56,7 +57,9 @@ def test_output_error_matches_the_simulators_own_fit(noc_config: AircraftConfig)
     assert refined.difference_sigma is not None
     assert np.all(refined.difference_sigma < 0.3 * refined.crb_sigma)
     assert not any("lands further from the filter" in w for w in trust_warnings(run, refined))
-    assert np.all(refined.residual_colour < 2.0)
+    colour = refined.residual_colour
+    assert np.isnan(colour[OBS_NAMES.index("h_dot")])  # no climb rate in the record
+    assert np.all(colour[np.isfinite(colour)] < 2.0) and np.isfinite(colour).sum() == 7
     simulated = np.array(scenario_of(noc_config).sensors.noise_sigma)
     np.testing.assert_allclose(refined.noise_sigma[:4], simulated[:4], rtol=0.1)
     truth = np.array(noc_config.truth)
@@ -174,10 +177,7 @@ def test_noise_model_that_does_not_fit_is_named(hfb_config: AircraftConfig) -> N
     small = tuple(s / 10 for s in hfb_config.filter.measurement_sigma)
     config = load_config(
         "hfb320",
-        [
-            f"filter.measurement_sigma.{n}={v}"
-            for n, v in zip(("V", "alpha", "theta", "q", "qdot", "a_x", "a_z"), small, strict=True)
-        ],
+        [f"filter.measurement_sigma.{n}={v}" for n, v in zip(OBS_NAMES, small, strict=True)],
     )
     rec = load_recording("hfb320", config.data)[1]
     run = run_recording(config, rec.t_s, rec.inputs, rec.measurements)
@@ -260,7 +260,8 @@ def test_held_noise_reproduces_the_books_filter_error_fit(
     fit = json.loads((out / "results_sys1.json").read_text())["refined"]
     assert fit["method"] == "filter error, noise held" and fit["converged"]
     sigma = [fit["noise_sigma"][n] for n in ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")]
-    np.testing.assert_allclose(sigma, book_noise.filter.measurement_sigma, rtol=1e-12)
+    # the record's seven channels (it has no climb rate, h_dot)
+    np.testing.assert_allclose(sigma, book_noise.filter.measurement_sigma[:7], rtol=1e-12)
     held_q = [fit["process_noise_density"][n] for n in ("V", "alpha", "theta", "q")]
     np.testing.assert_allclose(held_q, book_noise.filter.process_noise.states[:4], rtol=1e-12)
     assert book_noise.truth is not None
@@ -307,7 +308,8 @@ def test_filter_error_estimates_the_noise_as_the_book_does(
         assert abs(fit["process_noise_density"][name] / level - 1.0) < 0.25, name
     names = ("V", "alpha", "theta", "q", "qdot", "a_x", "a_z")
     sigma = np.array([fit["noise_sigma"][n] for n in names])
-    assert np.all(sigma > 0.0) and np.all(sigma < np.array(config.filter.measurement_sigma))
+    configured = np.array(config.filter.measurement_sigma)[:7]  # no h_dot in the record
+    assert np.all(sigma > 0.0) and np.all(sigma < configured)
     for name, e in fit["estimates"].items():
         assert e["sigma"] >= e["sigma_parts"]["cramer_rao"], name
 
@@ -352,18 +354,18 @@ def test_constant_gain_kernel_without_gain_flies_open_loop(hfb_config: AircraftC
     x[model.coefficients] = hfb_config.truth
     x[:4] = rec.measurements[0, :4]
     u = np.ascontiguousarray([model.inputs(row) for row in rec.inputs], dtype=float)
-    mask = np.ones_like(rec.measurements)
+    mask = np.isfinite(rec.measurements).astype(float)  # every sample but h_dot's
     mask[100:140, 1] = 0.0  # alpha missing for 4 s
     y = np.ascontiguousarray(np.where(mask > 0, rec.measurements, 0.0))
     t = np.ascontiguousarray(rec.t_s, dtype=float)
     nd = model.arrays.n_dynamic
     args = (t, u, y, mask, model.arrays)
-    open_loop, ok = steady_innovations(x, *args, np.zeros((nd, 7)), 0.02, True)
-    _, _, raw, ok2 = innovations(x, *args, np.zeros(nd), np.ones(7), 0.02, True)
+    open_loop, ok = steady_innovations(x, *args, np.zeros((nd, N_OBS)), 0.02, True)
+    _, _, raw, ok2 = innovations(x, *args, np.zeros(nd), np.ones(N_OBS), 0.02, True)
     assert ok and ok2
     np.testing.assert_array_equal(open_loop, raw)
     assert np.all(open_loop[100:140, 1] == 0.0)
-    K = np.zeros((nd, 7))
+    K = np.zeros((nd, N_OBS))
     K[2, 2] = K[3, 3] = 0.5  # theta and q pulled halfway to their samples
     closed, ok3 = steady_innovations(x, *args, K, 0.02, True)
     assert ok3
