@@ -32,10 +32,11 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.filters.core import MAX_STEP_S, FilterKind
 from gcs_estimator.estimation.filters.fast import fly
 from gcs_estimator.estimation.results import EstimatorResult
+from gcs_estimator.ingest.telemetry.channel_sources import MIN_RATE_HZ
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import Model, build_model, trim
-from gcs_estimator.model.channels import N_FLIGHT, N_OBS
+from gcs_estimator.model.channels import N_FLIGHT, N_OBS, OBS_NAMES
 from gcs_estimator.model.equations import ModelArrays, observe
 from gcs_estimator.uncertainty.metrics import (
     ALPHA,
@@ -70,6 +71,14 @@ SETTLE_PERIODS = 3.0
 MIN_SETTLE_S = 2.0
 SAMPLE_RATE_HZ = 50.0
 """The candidates' sample rate where the run gives none."""
+PILOT_MIN_UNIT_S = 0.3
+"""The shortest multistep unit step advised [s]: a step a pilot can fly by hand and
+repeat (a stick held for less than about a third of a second is a pulse, not a step);
+an aircraft whose short period wants shorter steps gets them at this length, and the
+prediction is for the step as advised."""
+MIN_SAMPLES_PER_STEP = 3
+"""A unit step must span at least this many samples of the fastest channel the short
+period shows in (theta, q, a_z, alpha), or no channel of the record sees its edges."""
 FD_STEP = 1e-5
 """Central-difference step, relative to a parameter's magnitude (at least 1e-3)."""
 
@@ -226,15 +235,19 @@ def flight_information(
     return 0.5 * (out + out.T)
 
 
-def candidates(airspeed: float, omega_sp: float) -> list[Candidate]:
+def candidates(
+    airspeed: float, omega_sp: float, min_unit_s: float = PILOT_MIN_UNIT_S
+) -> list[Candidate]:
     """Every candidate manoeuvre at `airspeed`, the multisteps' unit steps tuned to the
-    short period's natural frequency omega_sp [rad/s]."""
-    out = []
+    short period's natural frequency omega_sp [rad/s], none shorter than min_unit_s."""
+    out: list[Candidate] = []
     for kind, tuning in (("doublet", DOUBLET_TUNING), ("3-2-1-1", MULTISTEP_TUNING)):
         base = tuning / max(omega_sp, 1e-3)
         for scale in UNIT_SCALES:
             for amp in AMPLITUDES_DEG:
-                out.append(Candidate(kind, amp, round(scale * base, 2), airspeed))
+                c = Candidate(kind, amp, round(max(scale * base, min_unit_s), 2), airspeed)
+                if c not in out:
+                    out.append(c)
     out += [Candidate("throttle step", a, THROTTLE_HOLD_S, airspeed) for a in THROTTLE_STEPS]
     out.append(Candidate("speed sweep", 0.0, SWEEP_HOLD_S, airspeed))
     return out
@@ -281,18 +294,32 @@ class Advice:
     """Each candidate's label: every coefficient's predicted sigma."""
     note: str = ""
     """Why no advice could be made, where none could."""
+    slow: tuple[tuple[str, float], ...] = ()
+    """Channels the run sampled below the rate their motion needs (MIN_RATE_HZ), with
+    their rate [Hz]: no manoeuvre makes up for them, a faster log or stream does."""
+
+    def rates_line(self) -> list[str]:
+        """A line on the channels sampled too slowly ([] when none was)."""
+        if not self.slow:
+            return []
+        listed = ", ".join(f"{n} {r:.1f} Hz (needs {MIN_RATE_HZ[n]:g})" for n, r in self.slow)
+        return [
+            f"  first, faster data: {listed}; raise the telemetry stream rates or use the "
+            "autopilot's onboard log (.bin, .ulg): the predictions below are at the rates "
+            "this run had"
+        ]
 
     def lines(self) -> list[str]:
         """The advice in words: a line per coefficient not identified."""
         if self.note:
-            return [f"what to fly next: {self.note}"]
+            return [f"what to fly next: {self.note}", *self.rates_line()]
         if not self.advised:
             return ["what to fly next: nothing; every coefficient is identified"]
         head = (
             f"what to fly next (at {self.airspeed_mps:.1f} m/s; short period "
             f"{self.short_period_rad_s:.1f} rad/s; calm-air prediction):"
         )
-        out = [head]
+        out = [head, *self.rates_line()]
         for a in self.advised:
             verdict = a.predicted_mark
             out.append(
@@ -306,6 +333,7 @@ class Advice:
             "airspeed_mps": self.airspeed_mps,
             "short_period_rad_s": self.short_period_rad_s,
             "note": self.note,
+            "slow_channels_hz": dict(self.slow),
             "not_identified": [
                 {
                     "name": a.name,
@@ -368,6 +396,7 @@ def advise(
     airspeed_mps: float | None = None,
     rate_hz: float = SAMPLE_RATE_HZ,
     trusted_sigma: Sequence[float] | None = None,
+    channel_rates_hz: Sequence[float] | None = None,
 ) -> Advice:
     """What to fly next after a run that ended on coefficients beta with covariance
     `covariance` [p x p] and these marks, its channels observed (`observed` [7]) with
@@ -375,18 +404,34 @@ def advise(
     samples at rate_hz. Every candidate is flown (module docstring); for each
     coefficient not identified, the one that leaves it the best mark (identifiability,
     of the predicted sigma widened as trusted_sigma widens the covariance's now, and the
-    predicted correlations), then the smallest sigma."""
+    predicted correlations), then the smallest sigma. channel_rates_hz [N_OBS]: each
+    channel's own sample rate where it is slower than rate_hz: a channel sampled at a
+    quarter of the rate carries a quarter of the information (its noise taken twice as
+    large), and the multisteps' unit steps span MIN_SAMPLES_PER_STEP of the fastest
+    short-period channel's samples."""
     model = build_model(config, gust_states=False)
     beta = np.asarray(beta, float)
     names = config.coefficient_names
     V = float(config.airframe.trim_airspeed_mps if airspeed_mps is None else airspeed_mps)
     sd = np.asarray(noise_sigma, float)
     ok = np.asarray(observed, bool) & np.isfinite(sd) & (sd > 0)
+    rates = (
+        np.full(N_OBS, rate_hz)
+        if channel_rates_hz is None
+        else np.clip(np.nan_to_num(np.asarray(channel_rates_hz, float)), 1e-6, rate_hz)
+    )
+    sd = sd * np.sqrt(rate_hz / rates)
     weights = np.where(ok, 1.0 / np.where(ok, sd, 1.0), 0.0)
+    min_unit = max(PILOT_MIN_UNIT_S, MIN_SAMPLES_PER_STEP / _fastest_short_period(rates, ok))
+    slow = tuple(
+        (n, float(r))
+        for n, r, seen in zip(OBS_NAMES, rates, ok, strict=True)
+        if seen and r < MIN_RATE_HZ.get(n, 0.0)
+    )
     try:
         omega = short_period(model, beta, V)
     except (ValueError, np.linalg.LinAlgError) as exc:
-        return Advice(names, V, math.nan, (), note=f"no trim at {V:.1f} m/s ({exc})")
+        return Advice(names, V, math.nan, (), note=f"no trim at {V:.1f} m/s ({exc})", slow=slow)
     covariance = np.asarray(covariance, float)
     now = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     # The sigma the marks read is the covariance's widened (movement, structure): the
@@ -400,7 +445,7 @@ def advise(
     predicted: dict[str, FloatArray] = {}
     marks_after: dict[str, tuple[str, ...]] = {}
     by: dict[str, Candidate] = {}
-    for c in candidates(V, omega):
+    for c in candidates(V, omega, min_unit):
         cov = predict(model, beta, info, c, weights, rate_hz, omega)
         if cov is None:
             continue
@@ -411,7 +456,7 @@ def advise(
         marks_after[c.label()] = after if ok[ALPHA] else without_alpha(names, after)
         by[c.label()] = c
     if not predicted:
-        return Advice(names, V, omega, (), note="every candidate left the model's range")
+        return Advice(names, V, omega, (), note="every candidate left the model's range", slow=slow)
     advised = []
     for i, (name, mark) in enumerate(zip(names, marks, strict=True)):
         if mark == IDENTIFIED:
@@ -428,7 +473,21 @@ def advise(
                 float(widen[i]),
             )
         )
-    return Advice(names, V, omega, tuple(advised), predicted)
+    return Advice(names, V, omega, tuple(advised), predicted, slow=slow)
+
+
+SHORT_PERIOD_CHANNELS = ("alpha", "theta", "q", "a_z")
+"""The channels the short period shows in, whose fastest sets the shortest unit step."""
+
+
+def _fastest_short_period(rates: FloatArray, observed: BoolArray) -> float:
+    """The fastest observed short-period channel's rate [Hz] (inf: none observed)."""
+    picked = [
+        float(r)
+        for n, r, o in zip(OBS_NAMES, rates, observed, strict=True)
+        if o and n in SHORT_PERIOD_CHANNELS
+    ]
+    return max(picked) if picked else math.inf
 
 
 FLYING_SHARE = 0.5
@@ -457,6 +516,8 @@ def advice_of(
     steps = np.diff(t)
     steps = steps[steps > 0]
     rate = 1.0 / float(np.median(steps)) if steps.size else SAMPLE_RATE_HZ
+    # Each channel's rate: the frame rate times the share of frames that carry it.
+    channel_rates = rate * np.isfinite(y).mean(axis=0) if len(y) else None
     noise = result.measurement_sigma or result.config.filter.measurement_sigma
     return advise(
         result.config,
@@ -468,6 +529,7 @@ def advice_of(
         airspeed,
         rate,
         [c.sigma for c in summary.coefficients],
+        channel_rates,
     )
 
 
