@@ -158,7 +158,9 @@ class _Stream:
         self.kinds.clear()
 
     def timed(self, t: float) -> None:
-        self.newest_t = t if math.isnan(self.newest_t) else max(self.newest_t, t)
+        newest = self.newest_t
+        if newest != newest or t > newest:  # NaN (none yet), or later: max(newest, t)
+            self.newest_t = t
 
 
 @dataclass(slots=True)
