@@ -89,7 +89,7 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
 
     def decode() -> list[Any]:
         of = MavlinkLink(config.link, log=io.StringIO()).samples.of_fields
-        return [of(*a[:4], a[4], t) if a else None for _, t, a in items]
+        return [of(a[0], a[1], a[2], a[3], a[4], t) if a else None for _, t, a in items]
 
     t, decoded = _cpu(decode, rounds)
     out.append(("SampleReader.of_fields", t))
