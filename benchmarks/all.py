@@ -100,6 +100,8 @@ NOT_IN_PLAN = {
     "it fly it themselves",
     "validation_flights": "writes the wide validation set's flights, not a record; "
     "`validation` flies them itself (once per seed, then reuses them)",
+    "link_stages": "prints where a tlog's decoding spends its CPU, part by part "
+    "(docs/decisions/0058); no record",
     "jsbsim_missions": "writes the validation set flown as a mission (turns, wind, no vane) "
     "in the autopilots' formats, not a record (docs/decisions/0053)",
 }

@@ -158,7 +158,9 @@ class _Stream:
         self.kinds.clear()
 
     def timed(self, t: float) -> None:
-        self.newest_t = t if math.isnan(self.newest_t) else max(self.newest_t, t)
+        newest = self.newest_t
+        if newest != newest or t > newest:  # NaN (none yet), or later: max(newest, t)
+            self.newest_t = t
 
 
 @dataclass(slots=True)
@@ -220,12 +222,12 @@ class LinkHealth:
 
         t_vehicle_s: the vehicle time it carries, if its clock does not wrap within days;
         kind: its message type (whose own clock that time is)."""
-        counts = self.counts(link)
-        if self._is_copy((system_id, component_id), seq, packet, t_vehicle_s, link):
-            counts.duplicates += 1
-            return False
+        counts = self.links.get(link) or self.counts(link)
         key = (link, system_id, component_id)
         stream = self._streams.get(key)
+        if self._is_copy((system_id, component_id), seq, packet, t_vehicle_s, link, stream):
+            counts.duplicates += 1
+            return False
         if stream is None:
             stream = _Stream(seq, counted=(system_id, component_id) not in self._ground)
             self._streams[key] = stream
@@ -242,7 +244,13 @@ class LinkHealth:
         return True
 
     def _is_copy(
-        self, key: tuple[int, int], seq: int, packet: bytes, t: float | None, link: str
+        self,
+        key: tuple[int, int],
+        seq: int,
+        packet: bytes,
+        t: float | None,
+        link: str,
+        stream: _Stream | None,
     ) -> bool:
         """Whether the packet is a copy of one taken less than a wrap of its sequence
         before (on its own link by that link's count of packets sent, losses and whole
@@ -254,8 +262,7 @@ class LinkHealth:
         seen = c.seen
         step = (seq - c.last_seq) & 0xFF
         position = c.position + (step if 0 < step < 128 else 0)
-        stream = self._streams.get((link, *key))
-        index = -1 if stream is None else stream.index
+        index = -1 if stream is None else stream.index  # the stream of (link, *key)
         at = seen.get(packet)
         if at is not None:
             near = index - at[2] < 255 if at[0] == link else position - at[1] < 256

@@ -484,16 +484,17 @@ def _sample(
         return None
     t, vals, aux, outputs = found
     good: list[tuple[Channel, float]] = []
+    finite = math.isfinite
     for ch, v in vals:
         lo, hi = ranges[ch]
         fv = float(v)
-        if math.isfinite(fv) and lo <= fv <= hi:
+        if finite(fv) and lo <= fv <= hi:
             good.append((ch, fv))
         else:
             stats.invalid_values += 1
     fine = aux
     if aux:
-        fine = tuple((k, float(v)) for k, v in aux if math.isfinite(v))
+        fine = tuple([(k, float(v)) for k, v in aux if finite(v)])
         stats.invalid_values += len(aux) - len(fine)
     if not (good or fine or outputs):
         return None

@@ -174,7 +174,12 @@ class InputTrack:
     v: list[float] = field(default_factory=list)
 
     def add(self, t: float, v: float) -> None:
-        i = bisect.bisect_left(self.t, t)
+        times = self.t
+        if not times or times[-1] < t:  # after every sample: the common case
+            times.append(t)
+            self.v.append(v)
+            return
+        i = bisect.bisect_left(times, t)
         if i < len(self.t) and self.t[i] == t:
             self.v[i] = v  # a copy of the same sample
             return
@@ -188,6 +193,8 @@ class InputTrack:
     def at(self, t: float, window: float, linear: bool) -> float:
         """The value at t: the sample at t, else interpolated between the samples around
         it (or the earlier held), else the last before it held; NaN before any."""
+        if not self.t:
+            return math.nan
         i = bisect.bisect_left(self.t, t - window)
         if i < len(self.t) and self.t[i] <= t + window:
             return self.v[i]
@@ -209,6 +216,8 @@ class InputTrack:
 
     def prune(self, before: float) -> None:
         """Forget samples before `before` but the last one (the hold needs it)."""
+        if len(self.t) < 2 or self.t[1] >= before:
+            return  # (sorted) nothing to forget
         i = bisect.bisect_left(self.t, before)
         if i > 1:
             del self.t[: i - 1]
@@ -219,11 +228,15 @@ class InputTrack:
         self.v.clear()
 
 
-@dataclass
+@dataclass(slots=True)
 class _Open:
     t: float
     t_last_recv: float
     y: list[float]
+
+
+def _time_of(frame: _Open) -> float:
+    return frame.t
 
 
 @dataclass
@@ -262,6 +275,8 @@ class Synchronizer:
                 self._pending.append((None, sample))
                 return []
             return self._add_untimed(sample)
+        if self.anchor.anchored:  # the common case: ClockAnchor.take would give [sample]
+            return self._timed(sample)
         return [f for s in self.anchor.take(sample) for f in self._timed(s)]
 
     def _timed(self, sample: Sample) -> list[Frame]:
@@ -270,6 +285,8 @@ class Synchronizer:
         t = self.clock.unwrap(sample.message, t0, sample.wrap_s, newest)
         self.stats.clock_wraps = self.clock.wraps
         if newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S:  # on base
+            if not self._pending:
+                return self._accept(t, sample)
             return self._drop_pending() + self._accept(t, sample)
         return self._off_base(t, sample)
 
@@ -339,10 +356,13 @@ class Synchronizer:
     def _frame_at(self, t: float, t_recv_s: float) -> _Open:
         """The open frame that time t belongs to (a new one if none)."""
         window = FRAME_WINDOW_S
-        times = [f.t for f in self._open]
-        i = bisect.bisect_left(times, t - window)
-        if i < len(times) and times[i] <= t + window:
-            frame = self._open[i]
+        opened = self._open
+        if opened and opened[-1].t < t - window:
+            i = len(opened)  # after the newest open frame: the common case
+        else:
+            i = bisect.bisect_left(opened, t - window, key=_time_of)
+        if i < len(opened) and opened[i].t <= t + window:
+            frame = opened[i]
             frame.t_last_recv = max(frame.t_last_recv, t_recv_s)
             return frame
         frame = _Open(t, t_recv_s, [math.nan] * N_OBS)

@@ -269,10 +269,12 @@ class CompiledTlogSource(TlogSource):
         of_fields = link.samples.of_fields
         messages = table.messages
         data, values, width = run.data, run.values, run.width
+        starts, ends, times = run.starts, run.ends, run.times
+        seqs, sysids, compids = run.seq, run.system_id, run.component_id
         signed = link.signing is not None
         for j, status in enumerate(run.status):
-            t = run.times[j] * 1e-6
-            packet = data[run.starts[j] : run.ends[j]]
+            t = times[j] * 1e-6
+            packet = data[starts[j] : ends[j]]
             if status < 0 or signed:
                 out = packet_frames(packet, t)
             else:
@@ -281,9 +283,7 @@ class CompiledTlogSource(TlogSource):
                 fields = values[at : at + msg.count]
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
-                sample = of_fields(
-                    msg.msgid, run.seq[j], run.system_id[j], run.component_id[j], fields, t
-                )
+                sample = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
                 out = decoded_frames(packet, t, sample)
             if out:
                 yield from out

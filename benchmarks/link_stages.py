@@ -1,0 +1,176 @@
+"""Where a tlog's decoding spends its CPU, part by part (decision 0058).
+
+    python benchmarks/link_stages.py [--seconds 600] [--rounds 2]
+
+Simulates one flight of the NOC UAV (.tlog, the simulator's native message set), then
+runs each part of the link alone over the same records in order, by the CPU time charged
+to this process (the machine's load does not count, other than through its caches) with
+the garbage collector off: the kernel reading (framing, CRC, fields, its columns as
+lists), the per-record loop, SampleReader.of_fields, LinkHealth.on_packet, the channel
+choice (VehicleSetup.prepare) and the vehicle and synchroniser; then the whole decoding
+to frames (CompiledTlogSource) and one log estimated as a batch's task does it
+(estimate_file). The minimum of --rounds for each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import io
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fleet_dask import _overrides
+
+from gcs_estimator.config import load_config
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry.decode import Sample
+from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.mavlink import TlogStats
+from gcs_estimator.ingest.telemetry.tlog_fast import (
+    CompiledTlogSource,
+    _with_text,
+    read_runs,
+    table_of,
+    warm_up,
+)
+from gcs_estimator.runtime.logs import estimate_file
+from gcs_estimator.stop import Stop
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+
+Item = tuple[bytes, float, Any]
+
+
+def _cpu(work: Callable[[], Any], rounds: int) -> tuple[float, Any]:
+    """The least CPU time of `rounds` runs, and the last run's result."""
+    best, out = float("inf"), None
+    for _ in range(rounds):
+        c0 = time.process_time()
+        out = work()
+        best = min(best, time.process_time() - c0)
+    return best, out
+
+
+def _records(path: Path, config: Any) -> list[Item]:
+    """Each record's packet, receive time and what of_fields takes (None: not a
+    channel message the kernel read), as CompiledTlogSource._run_frames makes them."""
+    table = table_of(config.link)
+    items: list[Item] = []
+    for run in read_runs(path, TlogStats(), table):
+        for j, status in enumerate(run.status):
+            t = run.times[j] * 1e-6
+            packet = run.data[run.starts[j] : run.ends[j]]
+            if status < 0:
+                items.append((packet, t, None))
+                continue
+            msg = table.messages[status]
+            fields = run.values[j * run.width : j * run.width + msg.count]
+            if msg.texts:
+                fields = _with_text(packet, msg, fields)
+            head = (msg.msgid, run.seq[j], run.system_id[j], run.component_id[j])
+            items.append((packet, t, (*head, fields)))
+    return items
+
+
+def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
+    """CPU seconds of each part, run alone over the log's records in order."""
+    out = []
+    table = table_of(config.link)
+    t, _ = _cpu(lambda: list(read_runs(path, TlogStats(), table)), rounds)
+    out.append(("reading (kernel, columns)", t))
+    t, items = _cpu(lambda: _records(path, config), rounds)
+    out.append(("+ per-record loop", t - out[0][1]))
+
+    def decode() -> list[Any]:
+        of = MavlinkLink(config.link, log=io.StringIO()).samples.of_fields
+        return [of(a[0], a[1], a[2], a[3], a[4], t) if a else None for _, t, a in items]
+
+    t, decoded = _cpu(decode, rounds)
+    out.append(("SampleReader.of_fields", t))
+    samples = [(p, d) for (p, _, _), d in zip(items, decoded, strict=True) if d is not None]
+
+    def count() -> list[Sample]:
+        health = MavlinkLink(config.link, log=io.StringIO()).health
+        kept = []
+        for packet, d in samples:
+            e = d.event
+            timed = isinstance(e, Sample)
+            t_v, kind = (e.t_vehicle_s, e.message) if timed else (None, "")
+            counted = health.on_packet(
+                "recording", d.system_id, d.component_id, d.seq, packet, t_v, kind
+            )
+            if counted and timed:
+                kept.append(e)
+        return kept
+
+    t, kept = _cpu(count, rounds)
+    out.append(("LinkHealth.on_packet", t))
+
+    def choose() -> list[Sample | None]:
+        setup = MavlinkLink(config.link, log=io.StringIO()).setup(1)
+        return [setup.prepare(s) for s in kept]
+
+    t, prepared = _cpu(choose, rounds)
+    out.append(("channel choice (prepare)", t))
+
+    def synchronise() -> int:
+        link = MavlinkLink(config.link, log=io.StringIO())
+        v = link.fleet.vehicle(1)
+        assert v is not None
+        return sum(len(link.fleet.sample(v, s, 1)) for s in prepared if s is not None)
+
+    out.append(("vehicle and synchroniser", _cpu(synchronise, rounds)[0]))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seconds", type=float, default=600.0)
+    ap.add_argument("--rounds", type=int, default=2)
+    args = ap.parse_args(argv)
+    config = load_config("noc_uav", _overrides(args.seconds))
+    with tempfile.TemporaryDirectory() as tmp_dir:
+        path = Path(tmp_dir) / "flight.tlog"
+        fl = simulate(config, seed=100)
+        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+        SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+        warm_up()
+        estimate_file(path, config, Path(tmp_dir) / "warm")
+        print(f"{args.seconds:g} s flight; load average {os.getloadavg()[0]:.1f}; CPU s:")
+        gc.disable()
+        parts = stages(path, config, args.rounds)
+        gc.enable()
+        for name, t in parts:
+            print(f"  {name:<28} {t:6.2f}")
+        print(f"  {'sum of the parts':<28} {sum(t for _, t in parts):6.2f}")
+
+        def frames() -> int:
+            link = MavlinkLink(config.link, log=io.StringIO())
+            source = CompiledTlogSource([path], link, log=io.StringIO())
+            return sum(f is not None for f in source.frames(Stop()))
+
+        t_frames, n = _cpu(frames, args.rounds)
+        t_all, one = _cpu(lambda: estimate_file(path, config, Path(tmp_dir) / "run"), args.rounds)
+        row = one.summaries[0]
+        print(
+            "  the estimate's own clocks [s]: "
+            + ", ".join(f"{k} {row[k]:.2f}" for k in ("seconds", "decode_s", "filter_s", "write_s"))
+        )
+        print(f"  {'decoding to frames':<28} {t_frames:6.2f} ({n} frames)")
+        print(
+            f"  {'the estimate':<28} {t_all:6.2f}: {args.seconds / t_all:.0f} flight-hours per "
+            f"CPU-hour (target 200); the rest (filters, the structure check where the "
+            f"run is within filter.structure_check_max_frames, writing) {t_all - t_frames:.2f}"
+        )
+        print(f"load average at the end {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
