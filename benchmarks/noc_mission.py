@@ -20,7 +20,8 @@ decision 0049). Per case and filter it prints
 The third case flies the light turbulence's along-path gusts without its vertical wind
 (sigma_w = 0, sigma_u the light preset's): the vertical wind is what a vane sees and
 the climb rate does not, so the ratio there against light turbulence's says how much of
-the turbulent ratio is the vertical wind.
+the turbulent ratio is the vertical wind (all of it, decision 0060). That air is not the
+filters' turbulence model (sigma_u = 1.5 sigma_w): with the vane they read it badly.
 """
 
 from __future__ import annotations
