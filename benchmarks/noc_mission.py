@@ -13,8 +13,15 @@ decision 0049). Per case and filter it prints
 - the coefficient NEES (mean over seeds; 11 is its expectation) and the mean NIS against
   the channels used (its expectation);
 - the no-vane sigma over the vane sigma per coefficient (median over seeds): what losing
-  the vane costs. In turbulence the filters' white gust noise also carries the vertical
-  wind, which the vane sees and the climb rate does not: the ratio holds that share.
+  the vane costs, for the table's sigma and for the filters' own (covariance sigma
+  times the movement factor, without the structure check and without the prior an
+  uninformed alpha adds: decision 0060).
+
+The third case flies the light turbulence's along-path gusts without its vertical wind
+(sigma_w = 0, sigma_u the light preset's): the vertical wind is what a vane sees and
+the climb rate does not, so the ratio there against light turbulence's says how much of
+the turbulent ratio is the vertical wind (all of it, decision 0060). That air is not the
+filters' turbulence model (sigma_u = 1.5 sigma_w): with the vane they read it badly.
 """
 
 from __future__ import annotations
@@ -28,17 +35,34 @@ from record import add_argument, recorded
 
 from gcs_estimator.config import load_config
 from gcs_estimator.model.channels import Channel
+from gcs_estimator.model.turbulence import SIGMA_U_RATIO, SIGMA_W_PRESETS
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 from gcs_estimator.uncertainty.result import VehicleResult
 from sim.scenario import mission
 from sim.truth import simulate
 
-CASES = (("calm", "none"), ("light", "light"))
+SIGMA_U_LIGHT = SIGMA_U_RATIO * SIGMA_W_PRESETS["light"]
+CASES: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
+    ("calm", "calm", "none", ()),
+    ("light", "light", "light", ()),
+    (
+        "light-horizontal",
+        "light, no vertical wind",
+        "custom",
+        (
+            "simulation.turbulence.sigma_w_mps=0.0",
+            f"simulation.turbulence.sigma_u_mps={SIGMA_U_LIGHT}",
+        ),
+    ),
+)
+"""(key for --cases, heading, [simulation.turbulence] preset, further overrides)"""
+Figures = tuple[float, float, float, float, np.ndarray, np.ndarray]
 
 
-def _figures(run: VehicleResult, kind: str) -> tuple[float, float, float, float, np.ndarray]:
-    """(share within 3 sigma, share of the identified within 5 %, NEES, mean NIS, sigmas)."""
+def _figures(run: VehicleResult, kind: str) -> Figures:
+    """(share within 3 sigma, share of the identified within 5 %, NEES, mean NIS, sigmas,
+    the filter's own sigmas: covariance times movement factor)."""
     s = run.summaries[kind]  # type: ignore[index]
     z = np.array([c.z for c in s.coefficients], float)
     sig = np.array([c.sigma for c in s.coefficients], float)
@@ -46,14 +70,22 @@ def _figures(run: VehicleResult, kind: str) -> tuple[float, float, float, float,
     close = [abs(c.error_pct or 0.0) <= 5.0 for c in marked]
     within5 = float(np.mean(close)) if close else float("nan")
     nees = float(s.nees) if s.nees is not None else float("nan")
-    return float(np.mean(np.abs(z) < 3.0)), within5, nees, float(s.mean_nis), sig
+    own = np.array(
+        [
+            c.sigma_parts.covariance * np.nan_to_num(c.sigma_parts.movement_factor, nan=1.0)
+            for c in s.coefficients
+        ]
+    )
+    return float(np.mean(np.abs(z) < 3.0)), within5, nees, float(s.mean_nis), sig, own
 
 
-def run(seeds: int, minutes: float) -> None:
+def run(seeds: int, minutes: float, cases: tuple[str, ...] = ()) -> None:
     print(f"NOC mission of {minutes:g} min, {seeds} seed(s), both filters; vane vs no vane\n")
-    for label, turbulence in CASES:
-        config = load_config("noc_uav", [*mission(turbulence, 60.0 * minutes)])
-        rows: dict[tuple[str, str], list[tuple[float, float, float, float, np.ndarray]]] = {}
+    for key, label, turbulence, extra in CASES:
+        if cases and key not in cases:
+            continue
+        config = load_config("noc_uav", [*mission(turbulence, 60.0 * minutes), *extra])
+        rows: dict[tuple[str, str], list[Figures]] = {}
         names: tuple[str, ...] = ()
         start = time.perf_counter()
         for seed in range(1, seeds + 1):
@@ -78,15 +110,16 @@ def run(seeds: int, minutes: float) -> None:
                 f"{np.mean([f[2] for f in figs]):.1f} | {np.mean([f[3] for f in figs]):.2f} |"
             )
         for kind in ("EKF", "IEKF"):
-            ratio = np.median(
-                [
-                    b[4] / a[4]
-                    for a, b in zip(rows[("vane", kind)], rows[("no vane", kind)], strict=True)
-                ],
-                axis=0,
-            )
-            pairs = ", ".join(f"{n} {r:.2f}" for n, r in zip(names, ratio, strict=True))
-            print(f"\n{kind} sigma no vane / vane (median): {pairs}")
+            for which, col in (("table's", 4), ("filter's own", 5)):
+                ratio = np.median(
+                    [
+                        b[col] / a[col]
+                        for a, b in zip(rows[("vane", kind)], rows[("no vane", kind)], strict=True)
+                    ],
+                    axis=0,
+                )
+                pairs = ", ".join(f"{n} {r:.2f}" for n, r in zip(names, ratio, strict=True))
+                print(f"\n{kind} {which} sigma no vane / vane (median): {pairs}")
         print()
 
 
@@ -96,12 +129,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--minutes", type=float, default=8.0, help="mission length (default %(default)s)"
     )
+    ap.add_argument(
+        "--cases",
+        default="calm,light,light-horizontal",
+        help="which air (default %(default)s; light-horizontal: without the vertical wind)",
+    )
     add_argument(ap, "noc_mission")
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.minutes <= 0:
         raise SystemExit("noc_mission: --seeds must be 1 or more, --minutes positive")
     with recorded("noc_mission", args.record, "NOC mission: turns, wind, vane and no vane"):
-        run(args.seeds, args.minutes)
+        run(args.seeds, args.minutes, tuple(args.cases.split(",")))
     return 0
 
 

@@ -108,6 +108,32 @@ def _alpha_absent(track: Track) -> bool:
     return level > CALM_FOR_CLIMB_MPS
 
 
+def moves_with_alpha(name: str) -> bool:
+    """A coefficient an uninformed alpha drags (with_alpha_confound): those only alpha's
+    level fixes (needs_alpha_level), and the pitch-rate derivatives (CLq, Cmq), which in
+    the short period take what alpha's excursions leave (q and alpha-dot move together):
+    on the NOC mission in light turbulence without a vane they missed by 2 to 7 sigmas
+    where the elevator derivatives stayed within 2."""
+    return needs_alpha_level(name) or name[2:].startswith("q")
+
+
+def with_alpha_confound(
+    names: tuple[str, ...], prior: FloatArray, structure: FloatArray | None
+) -> FloatArray:
+    """The structure sigma with what an uninformed alpha leaves undecided (decision 0060):
+    each coefficient alpha's level and excursions drag (moves_with_alpha) known no better
+    than before the flight, its prior sigma added in quadrature; the others as they
+    were. Without a vane, in air that moves, the filters' alpha takes the vertical wind
+    with the manoeuvre, and their covariance does not hold it: on the NOC mission in
+    light turbulence CLa and Cma came out at half their truth, 25 to 70 covariance
+    sigmas off, with the gust level right and with gust states alike."""
+    base = np.zeros(len(names)) if structure is None else np.nan_to_num(structure, nan=0.0)
+    confound = np.array(
+        [float(prior[i]) if moves_with_alpha(n) else 0.0 for i, n in enumerate(names)]
+    )
+    return np.asarray(np.hypot(base, confound))
+
+
 def most_correlated(correlation: FloatArray, names: tuple[str, ...], i: int) -> tuple[str, float]:
     """The coefficient most correlated with coefficient i, and that correlation."""
     best, value = "", 0.0
@@ -217,13 +243,16 @@ def summarise(
         if track is None or len(track.t) == 0:
             continue
         struct = None if structure is None else structure.get(kind)
+        prior = np.asarray(result.config.filter.initial_sigma.coefficients)
+        absent = _alpha_absent(track)
+        if absent:
+            struct = with_alpha_confound(result.names, prior, struct)
         trusted = filter_sigma(
             track.coefficients, track.coefficient_sigma, fr.sigma, result.final_pass_from, struct
         )
-        prior = np.asarray(result.config.filter.initial_sigma.coefficients)
         corr = correlation_of(fr.covariance)
         marks = identifiability(fr.coefficients, trusted.sigma, corr, prior)
-        if _alpha_absent(track):
+        if absent:
             marks = without_alpha(result.names, marks)
         coeffs = tuple(
             _coefficient(result.names, i, fr.coefficients, trusted, track, truth, corr, marks[i])

@@ -6,10 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from gcs_estimator.config import load_config
+from gcs_estimator.estimation.filters import core
 from gcs_estimator.estimation.warmstart import alpha_from_climb
+from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.runtime.session import run_recording
-from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, needs_alpha_level
+from gcs_estimator.uncertainty.metrics import (
+    NOT_IDENTIFIED,
+    moves_with_alpha,
+    needs_alpha_level,
+    with_alpha_confound,
+)
 from sim.scenario import mission
 from sim.truth import simulate
 
@@ -41,14 +48,45 @@ def test_a_calm_flight_without_a_vane_is_within_three_sigma() -> None:
         assert np.all(np.abs(z) < 3.0), z
 
 
+def test_the_climb_rate_carries_the_vertical_wind_where_turbulence_is_white_noise() -> None:
+    """Decision 0060: with white gust noise the climb rate's R gains sigma_w^2 2 L_w / V
+    per frame interval, and only once a gust level is applied; the gust states carry
+    the vertical wind themselves (nothing added)."""
+    config = load_config("noc_uav")
+    tuning = core.tuning_of(config, build_model(config), "EKF")
+    turb = config.filter.turbulence
+    per_var = 2.0 * turb.length_w_m / config.airframe.trim_airspeed_mps
+    np.testing.assert_array_equal(core.measurement_noise(tuning, 0.0, 0.02), tuning.R)
+    R = core.measurement_noise(tuning, 0.6, 0.02)
+    added = np.diag(R - tuning.R)
+    assert added[Channel.HDOT] == np.float64(0.6 * per_var / 0.02)
+    assert np.count_nonzero(added) == 1
+    states = load_config("noc_uav", ['filter.turbulence.model="states"'])
+    tuned = core.tuning_of(states, build_model(states), "EKF")
+    np.testing.assert_array_equal(core.measurement_noise(tuned, 0.6, 0.02), tuned.R)
+
+
+def test_an_uninformed_alpha_adds_the_prior_to_its_coefficients_structure_sigma() -> None:
+    names = ("CD0", "CDde", "CLa", "Cmq")
+    prior = np.array([10.0, 10.0, 10.0, 100.0])
+    out = with_alpha_confound(names, prior, np.array([3.0, 2.0, np.nan, 5.0]))
+    np.testing.assert_allclose(out, [np.hypot(3.0, 10.0), 2.0, 10.0, np.hypot(5.0, 100.0)])
+    np.testing.assert_allclose(with_alpha_confound(names, prior, None), [10.0, 0.0, 10.0, 100.0])
+
+
 def test_turbulence_without_a_vane_or_gust_states_leaves_alphas_coefficients_unmarked() -> None:
     """In light turbulence with white gust noise the climb rate cannot tell alpha from the
-    vertical wind: the intercepts and alpha derivatives are not identified."""
+    vertical wind: the intercepts and alpha derivatives are not identified, and their
+    sigma holds it (no smaller than the prior's: decision 0060)."""
     overrides = [*mission("light", 40.0), "simulation.vane=false", *FAST]
     config = load_config("noc_uav", overrides)
     flight = simulate(config, seed=6)
     run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    names = run.result.names
+    prior = config.filter.initial_sigma.coefficients
     for s in run.summaries.values():
         for c in s.coefficients:
             if needs_alpha_level(c.name):
                 assert c.identifiability == NOT_IDENTIFIED, c
+            if moves_with_alpha(c.name):
+                assert c.sigma >= prior[names.index(c.name)], c

@@ -237,6 +237,10 @@ class Tuning(NamedTuple):
     airspeed not above zero, the belief has run away (see plausible)."""
     settle_s: float
     """Time after the elevator's last move before a step informs the gust level [s]."""
+    r_gust: FloatArray
+    """Per observation channel, the measurement variance a unit gust variance adds, times
+    the frame interval [s] (measurement_noise): the vertical wind in the climb rate where
+    turbulence is white process noise (decision 0060); zero elsewhere."""
 
 
 class StepInfo(NamedTuple):
@@ -286,6 +290,9 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
     prior_sigma[flight] = FLIGHT_PRIOR_SIGMA
     prior_sigma[coef] = ft.initial_sigma.coefficients
     prior_sigma[model.biases] = np.array(BIAS_SIGMA)[list(config.sensors.bias_channels)]
+    r_gust = np.zeros(N_OBS)
+    if not model.has_gust_states:
+        r_gust[Channel.HDOT] = climb_rate_gust(turb.length_w_m, v0)
     return Tuning(
         R=np.diag(np.square(ft.measurement_sigma)),
         q=q,
@@ -301,7 +308,33 @@ def tuning_of(config: AircraftConfig, model: Model, kind: FilterKind) -> Tuning:
         state_max=STATE_MARGIN
         * np.array([config.data.plausible(q) for q in ("airspeed", "alpha", "theta", "q")]),
         settle_s=turb.settle_s,
+        r_gust=r_gust,
     )
+
+
+def climb_rate_gust(length_w_m: float, airspeed_mps: float) -> float:
+    """The climb rate's measurement variance per unit gust variance, times the frame
+    interval [s], where turbulence is white process noise (decision 0060).
+
+    The climb rate is the motion over the ground; the filter's alpha, driven by the white
+    gust noise, is the air's. Their difference is the vertical wind w_g, which goes into
+    the climb rate's innovation whole: variance sigma_w^2, correlated over about
+    T = L_w / V. The coefficients feel its slow part (alpha's level), whose spectral
+    density at zero frequency is that of white noise of density 2 sigma_w^2 T: frames
+    dt apart carry as much about a level as independent ones of variance
+    2 sigma_w^2 T / dt each. So that is what it adds to the climb rate's R."""
+    return 2.0 * length_w_m / airspeed_mps
+
+
+def measurement_noise(tuning: Tuning, applied: float, dt: float) -> FloatArray:
+    """The step's measurement noise covariance: R, plus the gust level applied times
+    r_gust / dt on the diagonal (the vertical wind in the climb rate)."""
+    if not (applied > 0.0 and dt > 0.0):
+        return tuning.R
+    R = tuning.R.copy()
+    for c in range(R.shape[0]):
+        R[c, c] += applied * tuning.r_gust[c] / dt
+    return R
 
 
 def initial_state(

@@ -41,6 +41,7 @@ for _fn in (
     core.gust_applied,
     core.input_path,
     core.process_noise,
+    core.measurement_noise,
     core.gust_match,
     core.adapt_gust,
 ):
@@ -331,7 +332,13 @@ def _iterate(
 
 @njit(cache=True, inline="always")
 def _update(
-    xp: FloatArray, Pp: FloatArray, u: FloatArray, y: FloatArray, tun: Tuning, m: ModelArrays
+    xp: FloatArray,
+    Pp: FloatArray,
+    u: FloatArray,
+    y: FloatArray,
+    R: FloatArray,
+    tun: Tuning,
+    m: ModelArrays,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float, int, int]:  # pragma: no cover
     """Measurement update: (x+, P+, innovations [7], their sigmas [7], NIS, channels used,
     iterations); channels used -1 with NaN innovations and NIS when it failed."""
@@ -353,7 +360,7 @@ def _update(
     for a in range(k):
         yu[a] = y[idx[a]]
         for b in range(k):
-            Ru[a, b] = tun.R[idx[a], idx[b]]
+            Ru[a, b] = R[idx[a], idx[b]]
     S = small.gram(HuP, Hu, Ru)
     L, ok = small.cholesky(S, PSD_JITTER)
     if not ok:
@@ -382,7 +389,8 @@ def _step(
     dt = t - st.t
     q, applied = core.process_noise(st, tun)
     xp, Pp = propagate(st.x, st.P, u_prev, u_end, q, dt, tun.max_step_s, m)
-    x, P, e, s, nis, used, done = _update(xp, Pp, u, y, tun, m)
+    R = core.measurement_noise(tun, applied, dt)
+    x, P, e, s, nis, used, done = _update(xp, Pp, u, y, R, tun, m)
     sigma = np.empty(P.shape[0])
     smallest = math.inf
     for i in range(P.shape[0]):
@@ -499,6 +507,7 @@ def _unpack(tf: FloatArray, ti: IntArray) -> tuple[Tuning, ModelArrays]:  # prag
         linear_inputs=_int(ti, t.linear_inputs) != 0,
         state_max=_floats(tf, ti, t.state_max),
         settle_s=_float(tf, ti, t.settle_s),
+        r_gust=_floats(tf, ti, t.r_gust),
     )
     model = ModelArrays(
         k=_floats(tf, ti, a.k),

@@ -38,7 +38,7 @@ def kernel_step(
             lambda x: model.h(x, u),
             prior,
             y,
-            tuning.R,
+            core.measurement_noise(tuning, applied, dt),
             iterations=tuning.iterations,
             relinearise=tuning.relinearise,
             judged=model.coefficients,
