@@ -32,11 +32,10 @@ tolerance (the vane's and the accelerometers' place, from an airframe file's mea
 or guess), and, where the run read a channel's noise below the configured sigma
 (measurement_noise = "auto" on a record with almost no noise), at the configured noise.
 Each tolerance is taken as uniform, so a move d gives the variance d^2 / 3; the noise
-replay's covariance sigma, times the run's movement factor (0008), is a floor under the
-run's (a record read as clean is trusted no further than one at the sensors' nominal
-noise: what the model misses stays as the noise goes). These parts are added to the
-structure sigma in quadrature (the floor as its excess over the run's covariance), and
-kept apart in `parts`.
+replay's covariance sigma is a floor under the run's (a record read as clean is trusted
+no further than one at the sensors' nominal noise: what the model misses stays as the
+noise goes). These parts are added to the structure sigma in quadrature (the floor as
+its excess over the run's covariance), and kept apart in `parts`.
 
 Two more replays carry what the data cannot decide and no likelihood sharpens
 (docs/decisions/0059): the final pass with the inputs held the other way between frames
@@ -64,7 +63,6 @@ from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.delay import delayed_inputs
 from gcs_estimator.estimation.estimator import FILTER_KINDS, Estimator, FilterKind
 from gcs_estimator.model.channels import N_OBS, OBS_NAMES
-from gcs_estimator.uncertainty.sigma import movement_ratio, movement_start
 
 TIMING_TOLERANCE_S = 0.01
 """How far the inputs' timing is taken as unknown either way, at least [s] (the data's
@@ -112,7 +110,7 @@ class StructureCheck(NamedTuple):
     """The sigma's parts per filter and coefficient: "weights" (the channels' weights),
     "timing" (the inputs TIMING_TOLERANCE_S later), "placement" (the sensor positions
     within their tolerance), "noise_floor" (the excess of the covariance sigma at the
-    configured noise over the run's, times the run's movement factor) and "noise_level"
+    configured noise over the run's) and "noise_level"
     (the estimates' move at the configured noise), both absent where no channel was read
     below it; "hold" (the estimates' move with the inputs held the other way between
     frames); `sigma` is their root sum of squares."""
@@ -233,9 +231,6 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
     rest = finals[len(channels) :]
     found = _undecided_parts(parts, base, rest, undecided, tolerances, again)
-    if "noise_floor" in parts:
-        factors = _movement_factors(est, p)
-        parts["noise_floor"] = {k: v * factors[k] for k, v in parts["noise_floor"].items()}
     sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
     names = tuple(OBS_NAMES[i] for i in channels)
     return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
@@ -287,25 +282,6 @@ def _undecided_parts(
             if kind == FILTER_KINDS[0]:
                 found[key] = where
     return found
-
-
-def _movement_factors(est: Estimator, p: int) -> dict[FilterKind, FloatArray]:
-    """Each filter's movement factor m = sqrt(max(1, r)) per coefficient over the run
-    (sigma.movement_ratio, as its sigma to trust takes it; 1 where the run kept no track
-    or is too short to judge). The noise floor is taken at m times the covariance at the
-    configured noise: a record read as clean is trusted no further than the same record
-    at the sensors' nominal noise with the same overcount of its information."""
-    tracks = est.history.tracks(FILTER_KINDS, est.model)
-    out: dict[FilterKind, FloatArray] = {}
-    for kind in FILTER_KINDS:
-        track = tracks.get(kind)
-        if track is None or track.coefficients.shape[0] == 0:
-            out[kind] = np.ones(p)
-            continue
-        start = movement_start(track.coefficients.shape[0], est.final_pass_from)
-        ratio = movement_ratio(track.coefficients, track.coefficient_sigma, start)
-        out[kind] = np.sqrt(np.fmax(ratio, 1.0))
-    return out
 
 
 def _one_replay(
