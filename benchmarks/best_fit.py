@@ -83,7 +83,10 @@ def _fit(
     first[1] -= g[0, 1] / first[0]
     x0 = model.augment(first, np.asarray(coefficients, float))
     n_free = x0.shape[0] if free_coefficients else 4
-    weight = 1.0 / np.array(config.filter.measurement_sigma if sigma is None else sigma)
+    # The channels `clean` holds, the first ones in the model's order (a flight without a
+    # climb-rate column is fitted on the seven before it).
+    c = clean.shape[1]
+    weight = 1.0 / np.array(config.filter.measurement_sigma if sigma is None else sigma)[:c]
     scale = np.maximum(np.abs(x0), 1e-3)
     t = np.ascontiguousarray(t_s, dtype=float)
 
@@ -93,7 +96,7 @@ def _fit(
         return x
 
     def residual(z: FloatArray) -> FloatArray:
-        out = _outputs(full(z), t, u, g, model.arrays)
+        out = _outputs(full(z), t, u, g, model.arrays)[:, :c]
         return np.asarray(((clean - out) * weight).ravel())
 
     z0 = x0[:n_free] / scale[:n_free]

@@ -162,6 +162,19 @@ def run_job(job: Job) -> Outcome:
     return out
 
 
+def run_job_kept(job: Job) -> Outcome:
+    """run_job, with an error of the record's own kept as its outcome (the run goes on with
+    the other records; the report lists it) rather than ending the whole run."""
+    start = time.perf_counter()
+    try:
+        return run_job(job)
+    except Exception as exc:  # any record's failure is reported, not fatal
+        out = Outcome(job, ())
+        out.failed = f"{type(exc).__name__}: {exc}"
+        out.seconds = time.perf_counter() - start
+        return out
+
+
 def sigma_parts(vehicle: VehicleResult, oe: Refined | None) -> dict[str, dict[str, list[float]]]:
     """What each estimator's shown sigma is made of, per coefficient (Outcome.parts)."""
     out: dict[str, dict[str, list[float]]] = {}
@@ -443,6 +456,12 @@ def main(argv: list[str] | None = None) -> int:
         "--outcomes folders), as far as they got, without running anything",
     )
     ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the outcomes the first --outcomes folder holds and run only the records "
+        "it lacks (a run stopped early is finished, not started again)",
+    )
+    ap.add_argument(
         "--outcomes",
         nargs="+",
         default=["outcomes"],
@@ -466,7 +485,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         todo = sorted(jobs(args), key=_priority)
         flown = time.perf_counter() - start
-        outcomes = estimate(todo, args.jobs, kept)
+        outcomes = estimate(todo, args.jobs, kept, args.resume)
     outcomes.sort(key=lambda o: (ORDER.index(o.job.aircraft), o.job.name))
     tables = Path(args.out) / "tables"
     tables.mkdir(parents=True, exist_ok=True)
@@ -501,16 +520,23 @@ def _priority(job: Job) -> tuple[bool, str, int]:
     return "clean" in job.condition, job.condition, ORDER.index(job.aircraft)
 
 
-def estimate(todo: list[Job], workers: int, kept: Path) -> list[Outcome]:
+def estimate(todo: list[Job], workers: int, kept: Path, resume: bool = False) -> list[Outcome]:
     """Run the records in `workers` processes, each outcome kept in `kept` as it comes
-    (what an earlier run kept there is removed first: `--again` reports the runs of the
-    folders it is given)."""
+    (what an earlier run kept there is removed first, so that `--again` reports the runs
+    of the folders it is given; with `resume`, the outcomes kept there of records in
+    `todo` are taken as they are and only the others run)."""
     kept.mkdir(parents=True, exist_ok=True)
+    outcomes: list[Outcome] = []
+    names = {job.name for job in todo}
     for old in kept.glob("*.pickle"):
-        old.unlink()
-    outcomes = []
+        if resume and old.stem in names:
+            outcomes.append(pickle.loads(old.read_bytes()))
+        else:
+            old.unlink()
+    done_names = {o.job.name for o in outcomes}
+    todo = [job for job in todo if job.name not in done_names]
     with ProcessPoolExecutor(workers) as pool:
-        for done in as_completed([pool.submit(run_job, job) for job in todo]):
+        for done in as_completed([pool.submit(run_job_kept, job) for job in todo]):
             outcome = done.result()
             (kept / f"{outcome.job.name}.pickle").write_bytes(pickle.dumps(outcome))
             outcomes.append(outcome)

@@ -36,10 +36,19 @@ replay's covariance sigma is a floor under the run's (a record read as clean is 
 no further than one at the sensors' nominal noise: what the model misses stays as the
 noise goes). These parts are added to the structure sigma in quadrature (the floor as
 its excess over the run's covariance), and kept apart in `parts`.
+
+Two more replays carry what the data cannot decide and no likelihood sharpens
+(docs/decisions/0059): the final pass with the inputs held the other way between frames
+("hold": linear against held at the earlier sample, [data] input_hold; an input that
+steps between two samples lies somewhere between the two), and the estimates' move in the
+noise replay ("noise_level": the noise of a record read as clean lies between the level
+read and the configured). Each is a quantity uniform between the run's value and the
+replay's, so the move beyond what the two covariances allow gives the variance d^2 / 3.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from collections.abc import Callable
@@ -101,8 +110,10 @@ class StructureCheck(NamedTuple):
     """The sigma's parts per filter and coefficient: "weights" (the channels' weights),
     "timing" (the inputs TIMING_TOLERANCE_S later), "placement" (the sensor positions
     within their tolerance), "noise_floor" (the excess of the covariance sigma at the
-    configured noise over the run's; absent where no channel was read below it);
-    `sigma` is their root sum of squares."""
+    configured noise over the run's) and "noise_level"
+    (the estimates' move at the configured noise), both absent where no channel was read
+    below it; "hold" (the estimates' move with the inputs held the other way between
+    frames); `sigma` is their root sum of squares."""
     tolerances: dict[str, float] = {}  # noqa: RUF012  (never mutated)
     """The tolerances the check took: "timing" [s], "placement" [m]."""
     found: dict[str, tuple[float, float]] = {}  # noqa: RUF012  (never mutated)
@@ -144,6 +155,9 @@ class Replay(NamedTuple):
     config: AircraftConfig | None = None
     profile: bool = False
     """Sum each filter's -2 log likelihood over the pass (frame by frame)."""
+    linear_inputs: bool | None = None
+    """The inputs between two frames linear (True) or held at the earlier (False); None:
+    as the run took them ([data] input_hold)."""
 
 
 Final = dict[FilterKind, tuple[FloatArray, FloatArray, float]]
@@ -160,7 +174,12 @@ def _final(est: Estimator, t: FloatArray, y: FloatArray, replay: Replay) -> Fina
     if replay.profile:
         again.runner.blocks = False
         again.runner.likelihood = {}
-    again.replay_final_pass(est, t, u, y)
+    source = est
+    if replay.linear_inputs is not None:  # the run's pass under the other hold
+        source = copy.copy(est)
+        hold = replay.linear_inputs
+        source.tunings = {k: tn._replace(linear_inputs=hold) for k, tn in est.tunings.items()}
+    again.replay_final_pass(source, t, u, y)
     coef = again.model.coefficients
     sums = again.runner.likelihood or {}
     out: Final = {}
@@ -230,7 +249,8 @@ def _undecided_parts(
     again: Callable[[list[Replay]], list[Final]],
 ) -> dict[str, tuple[float, float]]:
     """Add the undecided quantities' parts to `parts` from their replays `rest` (in
-    _undecided's order: a pair at +tol and -tol per quantity, one for the noise floor);
+    _undecided's order: a pair at +tol and -tol per quantity, one each for the noise
+    floor and the other hold);
     where the likelihood has no curvature over a pair, the pair again at PROFILE_WIDE
     tolerances (`again` replays them). Returns where the first filter's likelihood puts
     each quantity (_profile)."""
@@ -240,10 +260,15 @@ def _undecided_parts(
     for label, key, make in undecided:
         part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
         tol = tolerances.get(label, 0.0)
-        if tol <= 0.0:  # the noise floor: the covariance at the configured noise, beyond
+        if tol <= 0.0:  # one replay: the noise floor's or the other hold's
+            moved = parts.setdefault(
+                ONE_REPLAY_MOVES[label], {k: np.zeros(p) for k in FILTER_KINDS}
+            )
             for kind in FILTER_KINDS:
-                s, vs = base[kind][1], rest[j][kind][1]
-                part[kind] = np.hypot(part[kind], np.sqrt(np.maximum(0.0, vs * vs - s * s)))
+                floor, move = _one_replay(base[kind], rest[j][kind])
+                moved[kind] = move
+                if label == "noise_floor":
+                    part[kind] = floor
             j += 1
             continue
         up, down, step = rest[j], rest[j + 1], tol
@@ -257,6 +282,21 @@ def _undecided_parts(
             if kind == FILTER_KINDS[0]:
                 found[key] = where
     return found
+
+
+def _one_replay(
+    base: tuple[FloatArray, FloatArray, float], run: tuple[FloatArray, FloatArray, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Two parts from one replay (the noise floor's, at the configured noise; the hold's,
+    with the inputs held the other way between frames): the excess of the replay's
+    covariance sigma over the run's (the noise floor), and the move of the estimates
+    beyond the variance their covariances differ by, the quantity taken as uniform
+    between the run's value and the replay's (UNIFORM_SHARE of the move squared)."""
+    (b, s, _), (v, vs, _) = base, run
+    d = v - b
+    floor = np.sqrt(np.maximum(0.0, vs * vs - s * s))
+    moved = np.sqrt(UNIFORM_SHARE * np.maximum(0.0, d * d - np.abs(vs * vs - s * s)))
+    return np.asarray(floor), np.asarray(moved)
 
 
 def _curved(
@@ -342,8 +382,15 @@ def _undecided(
     floor = _configured_noise_scale(est)
     if floor is not None:
         out.append(("noise_floor", "", lambda _: Replay(floor, u)))
+    held = not est.tunings[FILTER_KINDS[0]].linear_inputs
+    out.append(("hold", "", lambda _: Replay(None, u, linear_inputs=held)))
     return out, tolerances
 
+
+ONE_REPLAY_MOVES = {"noise_floor": "noise_level", "hold": "hold"}
+"""The part that holds how far the estimates moved in each one-replay quantity's replay:
+with the noise at the configured level rather than the level read (the noise floor's
+replay; "noise_level"), and with the inputs held the other way between frames ("hold")."""
 
 THRUST_PARTS = ("thrust", "zero_thrust_speed")
 THRUST_FACTORS = ("thrust_scale", "speed_scale")
@@ -395,4 +442,4 @@ def runs(y: FloatArray, config: AircraftConfig | None = None) -> int:
     """How many replays of the final pass the check takes (but the noise floor's): with
     the config, its propeller's guesses' too."""
     thrust = 0 if config is None else 2 * len(_propulsion(config, y))
-    return 3 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y)) + thrust
+    return 4 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y)) + thrust
