@@ -51,6 +51,25 @@ def _qdot_from_q(t: FloatArray, q: FloatArray) -> FloatArray:
 
 SMOOTH_S = 0.2
 """Span of the Savitzky-Golay smoother of the alpha regressor [s]."""
+BRIDGE_S = 0.3
+"""A channel's samples are carried linearly to frames at most this far [s] from one of
+them: a channel sent at 2.5 Hz among 10 Hz frames still reaches every frame, a gap of a
+lost second does not."""
+
+
+def _bridge(t: FloatArray, x: FloatArray, reach_s: float) -> FloatArray:
+    """x linearly interpolated over its NaNs, NaN where the nearest real sample is more
+    than reach_s away (and where x has fewer than two samples)."""
+    finite = np.isfinite(x)
+    if finite.sum() < 2:
+        return x.copy()
+    known = t[finite]
+    filled = np.interp(t, known, x[finite])
+    after = np.clip(np.searchsorted(known, t), 0, len(known) - 1)
+    before = np.clip(after - 1, 0, len(known) - 1)
+    nearest = np.minimum(np.abs(known[after] - t), np.abs(t - known[before]))
+    out: FloatArray = np.where(nearest > reach_s, np.nan, filled)
+    return out
 
 
 def _smooth(t: FloatArray, x: FloatArray, span_s: float, deriv: int = 0) -> FloatArray:
@@ -68,15 +87,12 @@ def _smooth(t: FloatArray, x: FloatArray, span_s: float, deriv: int = 0) -> Floa
     n = n if n % 2 == 1 else n - 1
     if n < 5 or n > len(x):
         return unsmoothed
-    known = t[finite]
-    filled = np.interp(t, known, x[finite])
-    after = np.clip(np.searchsorted(known, t), 0, len(known) - 1)
-    before = np.clip(after - 1, 0, len(known) - 1)
-    nearest = np.minimum(np.abs(known[after] - t), np.abs(t - known[before]))
+    bridged = _bridge(t, x, 0.5 * span_s)
+    filled = np.interp(t, t[finite], x[finite])
     out = np.full_like(x, np.nan)
     kernel = savgol_coeffs(n, 2, deriv=deriv, delta=dt)
     out[n // 2 : len(x) - n // 2] = np.convolve(filled, kernel, mode="valid")
-    out[nearest > 0.5 * span_s] = np.nan
+    out[~np.isfinite(bridged)] = np.nan
     return out
 
 
@@ -109,7 +125,9 @@ def equation_error(
     excite at their prior values instead of letting the solve go singular.
     """
     k = model.k
-    y = measurements
+    # Channels sent slower than the frames (or a packet lost) reach the frames between
+    # their samples; a frame that needs a channel farther than BRIDGE_S from one is left out.
+    y = np.column_stack([_bridge(t_s, col, BRIDGE_S) for col in np.asarray(measurements).T])
     V = y[:, 0]
     q = y[:, 3]
     qdot = y[:, 4].copy()
