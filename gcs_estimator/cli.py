@@ -68,8 +68,8 @@ from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
     ResultsSink,
+    RunEnd,
     StatusSink,
-    results_stem,
     vehicle_heading,
 )
 from gcs_estimator.outputs.table import LiveEstimate, live_table
@@ -391,15 +391,17 @@ def _live_advice(
     return lambda sid, airspeed: live_advice_text(session.estimator(sid), airspeed)
 
 
-def _checks(args: argparse.Namespace) -> Checks:
-    """The checks the command line asked for (outputs.checks), one object per run: the
-    view's final panels read what the results sink checked."""
-    made = getattr(args, "checks_made", None)
-    if isinstance(made, Checks):
+def run_end(args: argparse.Namespace) -> RunEnd:
+    """The end of the run the command line asked for (outputs.sinks.RunEnd: --refine,
+    --validate, --no-advice, --history), one value per run whichever path ends it: the
+    results sink in this process, or the filter workers (--filter-workers); the view's
+    final panels read what its checks checked."""
+    made = getattr(args, "run_end_made", None)
+    if isinstance(made, RunEnd):
         return made
-    checks = _new_checks(args)
-    args.checks_made = checks
-    return checks
+    end = RunEnd(_refiner(args), _new_checks(args), args.history)
+    args.run_end_made = end
+    return end
 
 
 def _held_window(args: argparse.Namespace) -> Window | None:
@@ -518,7 +520,7 @@ def _view_sink(
         truth_of=session.truth_of,
         advice_source=_live_advice(args, session),
     )
-    checks = _checks(args)
+    checks = run_end(args).checks
     return ViewSink(
         view,
         None if link is None else (lambda: link.t_first_recv),
@@ -652,17 +654,14 @@ def _results_sink(
     heading: Callable[[VehicleResult, float], str],
     origin: str | None,
 ) -> ResultsSink:
-    """The table on stdout and the result files in the run's folder, with the run's record."""
-    return ResultsSink(
+    """The end of the run (run_end) as this process's results sink: the table on stdout
+    and the result files in the run's folder, with the run's record."""
+    return run_end(args).sink(
         Path(args.out),
         heading,
-        results_stem,
         lambda: session.elapsed_s,
-        refine=_refiner(args),
         run=lambda: run_info(args, config, origin),
         estimators=lambda: session.estimators,
-        history_format=args.history,
-        checks=_checks(args),
     )
 
 
@@ -834,9 +833,8 @@ def _link_session(
             args.out,
             backend=args.backend,
             truths=truths,
-            refine=_refiner(args),
+            end=run_end(args),
             run_info=lambda: run_info(args, config, origin),
-            history_format=args.history,
         )
     else:
         warm_up(config, args.backend)

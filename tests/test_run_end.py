@@ -1,0 +1,136 @@
+"""The end of a run (outputs.sinks.RunEnd: the whole-record fit, the held-out check, the
+advice, the table and the JSON) on the paths that do not end in one process: `listen
+--filter-workers` (real simulator process, real UDP on loopback, real worker processes)
+and `replay --each` (real .tlog files, a replay process per file). Each vehicle ends as
+a single replay's does."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gcs_estimator.cli import build_parser
+from gcs_estimator.config import load_config
+from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.runtime.batch import child_command
+from sim.cli import command as vehicle_command
+from sim.truth import simulate
+from sim.vehicle import SimulatedVehicle
+from tests.telemetry.station import bound_port, start_listen
+
+ROOT = Path(__file__).resolve().parent.parent
+SHORT = ["simulation.manoeuvre.duration_s=12"]
+QUICK = ("--set", "filter.structure_check=off", "--view", "off")
+HELD = "2:6"
+"""The held-out window: seconds 2 to 6 of each 12 s flight."""
+
+
+def _gcs(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "gcs_estimator", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def _results(folder: Path, sid: int = 1) -> dict[str, Any]:
+    out: dict[str, Any] = json.loads((folder / f"results_sys{sid}.json").read_text())
+    return out
+
+
+def _ending(result: dict[str, Any]) -> tuple[Any, Any]:
+    """What the end of the run added to a vehicle's JSON: the held-out check, the advice."""
+    return result["holdout"], result["advice"]
+
+
+def _tlog(path: Path, seed: int) -> Path:
+    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
+    fl = simulate(config, seed=seed)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+    return path
+
+
+def test_listen_with_filter_workers_ends_each_vehicle_as_a_single_replay(tmp_path: Path) -> None:
+    """Two simulated vehicles -> UDP -> `listen --filter-workers 2 --validate 2:6`: each
+    vehicle's table and JSON have its held-out check and what to fly next, made in its
+    worker; the recording replayed in one process with the same workers' path gives the
+    same, and a single replay of it (one process, no workers) the same advice."""
+    live = tmp_path / "live"
+    station, line = start_listen(
+        "udpin:127.0.0.1:0", "--filter-workers", "2", "--idle-exit", "1.5",
+        "--validate", HELD, "--out", str(live), *QUICK,
+    )  # fmt: skip
+    flown = subprocess.run(
+        vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{bound_port(line)}", 4.0,
+                        SHORT, vehicles=2),
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert flown.returncode == 0, flown.stderr
+    out, err = station.communicate(timeout=300)
+    assert station.returncode == 0, err
+    for sid in (1, 2):
+        holdout, advice = _ending(_results(live, sid))
+        assert holdout is not None and holdout["segment"] == "the window 2 s to 6 s of the record"
+        assert holdout["in_sample"]  # the workers' filters step every frame
+        assert advice is not None
+    # The tables on stdout say so too, once per vehicle.
+    assert out.count("held-out check on the window 2 s to 6 s") == 2, out
+    assert out.count("what to fly next") == 2, out
+
+    # One process, no --validate: the same advice for the same estimates.
+    tlog = str(live / "telemetry.tlog")
+    alone = tmp_path / "alone"
+    workers = tmp_path / "workers"
+    single = _gcs("replay", tlog, "--config", "noc_uav", "--out", str(alone), *QUICK)
+    assert single.returncode == 0, single.stderr
+    sharded = _gcs("replay", tlog, "--config", "noc_uav", "--filter-workers", "2",
+                   "--out", str(workers), *QUICK)  # fmt: skip
+    assert sharded.returncode == 0, sharded.stderr
+    for sid in (1, 2):
+        one, two = _results(alone, sid), _results(workers, sid)
+        assert two["holdout"] is None and one["holdout"] is None
+        assert two["advice"] == one["advice"]
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    d = tmp_path_factory.mktemp("flights")
+    return [_tlog(d / "a.tlog", 3), _tlog(d / "b.tlog", 4)]
+
+
+def test_replay_each_ends_every_file_as_its_single_replay(
+    tmp_path: Path, flights: list[Path]
+) -> None:
+    """`replay --each`: every file's results have the advice (and the held-out check, or
+    none) its single replay gives, value for value, and its table in its folder's log
+    says what to fly next as the single replay's does."""
+    out = tmp_path / "each"
+    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), "--config", "noc_uav",
+                "--out", str(out), *QUICK)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    files = json.loads((out / "replays.json").read_text())["files"]
+    for f, path in zip(files, flights, strict=True):
+        assert f["vehicles"][0]["advice"] is not None
+        alone = tmp_path / f"alone_{path.stem}"
+        single = _gcs("replay", str(path), "--config", "noc_uav", "--out", str(alone), *QUICK)
+        assert single.returncode == 0, single.stderr
+        assert _ending(f["vehicles"][0]) == _ending(_results(alone))
+        log = (Path(f["folder"]) / "replay.log").read_text()
+        assert "what to fly next" in log and "what to fly next" in single.stdout
+
+
+def test_each_files_replay_is_given_the_checks_options(tmp_path: Path) -> None:
+    args = build_parser().parse_args(
+        ["replay", "--each", "a.tlog", "--validate", HELD, "--no-advice"]
+    )
+    cmd = child_command(args, Path("a.tlog"), tmp_path / "a")
+    assert cmd[cmd.index("--validate") + 1] == HELD
+    assert "--no-advice" in cmd
