@@ -73,8 +73,8 @@ from gcs_estimator.outputs.sinks import (
     vehicle_heading,
 )
 from gcs_estimator.outputs.table import LiveEstimate, live_table
-from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
+from gcs_estimator.runtime import options
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.flights import (
@@ -150,17 +150,12 @@ def run_info(
     return info
 
 
-def _config_arg(p: argparse.ArgumentParser, default: str | None) -> None:
-    p.add_argument(
-        "--config",
-        default=default,
-        help="the airframe file: a TOML path or a shipped name (noc_uav, hfb320); "
-        + (
-            "default: %(default)s"
-            if default
-            else "a log needs one, unless it is the simulator's (its truth file beside it "
-            "names the airframe) or the bundled HFB-320 record"
-        ),
+def _config_arg(p: options.Parser, default: str | None) -> None:
+    options.config_option(
+        p,
+        default,
+        "a log needs one, unless it is the simulator's (its truth file beside it names the "
+        "airframe) or the bundled HFB-320 record",
     )
 
 
@@ -287,60 +282,65 @@ def _write_flight_file(
         return  # nor can the recording be written there: opening it says why, and stops
 
 
+AIRCRAFT = "the aircraft"
+RECORDINGS = "what is read"
+OUTPUTS = "where the results go"
+FRAMES = "which frames the filters take"
+FIT = "the whole-record fit (maximum likelihood, after the filters)"
+CHECKS = "the model checked, and what to fly next"
+PROCESSES = "more than one core"
+VIEW = "live view (Rerun)"
+"""The groups of a command's options in its --help, in this order (options.group)."""
+
+
 def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> None:
-    _config_arg(p, config_default)
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value, e.g. --set filter.iterations=3 (repeatable)",
-    )
-    p.add_argument(
-        "--out",
-        default=None,
-        help="this run's folder (default: out/COMMAND_UTCTIME); one that holds a run's "
-        "outputs already is refused unless --force",
-    )
-    p.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
-    p.add_argument(
-        "--history",
-        choices=HISTORY_FORMATS,
-        default=HISTORY_FORMATS[0],
-        help="each vehicle's per-frame history file: parquet (default) or csv",
-    )
-    p.add_argument(
-        "--refine",
-        choices=REFINE_METHODS,
-        default=None,
-        help="at the end, also fit the whole record by maximum likelihood from the IEKF's "
-        "estimate: auto (filter error where the filters found turbulence, else output "
-        "error), output-error or filter-error (with process noise); see `refine`",
-    )
-    p.add_argument(
-        "--window",
-        action="append",
-        default=[],
-        metavar="FROM:TO",
-        help="only these seconds after the (each) flight's first frame go to the filters and "
-        "the refinement (either side may be empty; repeatable)",
-    )
-    p.add_argument(
-        "--hold-noise",
-        action="store_true",
-        help="the refinement keeps the noise levels the filters used (measurement sigmas; "
-        "filter error: the config's process noise) instead of estimating them: for sensors "
-        "and air whose noise you know",
-    )
-    p.add_argument(
+    """The options of every command that estimates, grouped as --help lists them."""
+    for title in (AIRCRAFT, RECORDINGS, OUTPUTS, FRAMES, FIT, CHECKS, PROCESSES, VIEW):
+        options.group(p, title)
+    a = options.group(p, AIRCRAFT)
+    _config_arg(a, config_default)
+    options.set_option(a)
+    a.add_argument(
         "--reference",
         default=None,
         metavar="TOML",
         help="reference coefficient values to show and compare against (a [truth] table, "
         "e.g. a textbook's); replaces the config's [truth]",
     )
+    o = options.group(p, OUTPUTS)
+    options.out_options(
+        o,
+        "this run's folder (default: out/COMMAND_UTCTIME); one that holds a run's outputs "
+        "already is refused unless --force",
+        "overwrite the outputs in --out",
+    )
+    options.history_option(o, "each vehicle's")
+    options.group(p, FRAMES).add_argument(
+        "--window",
+        action="append",
+        default=[],
+        metavar="FROM:TO",
+        help="only these seconds after the (each) flight's first frame go to the filters and "
+        "the fit, e.g. 60:300 or 60: (either side may be empty; repeatable)",
+    )
+    f = options.group(p, FIT)
+    f.add_argument(
+        "--refine",
+        choices=REFINE_METHODS,
+        default=None,
+        help="at the end, also fit the whole record by maximum likelihood from the IEKF's "
+        "estimate: auto (filter error where the filters found turbulence, else output "
+        "error), output-error (calm air) or filter-error (with process noise); see `refine`",
+    )
+    f.add_argument(
+        "--hold-noise",
+        action="store_true",
+        help="the fit keeps the noise levels the filters used (measurement sigmas; filter "
+        "error: the config's process noise) instead of estimating them: for sensors and air "
+        "whose noise you know",
+    )
     _checks_options(p)
-    v = p.add_argument_group("live view (Rerun)")
+    v = options.group(p, VIEW)
     v.add_argument(
         "--view",
         default=None,
@@ -349,9 +349,15 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
         "local viewer), connect (a running viewer), off, auto (spawn+save with a display, "
         "else save). Default: [view] outputs of the config, normally auto",
     )
-    v.add_argument("--rrd", default=None, help=f"the .rrd to save (default: OUT/{VIEW_FILE})")
     v.add_argument(
-        "--serve-port", type=int, default=None, help="port of the served view (default 9877)"
+        "--rrd", default=None, metavar="FILE", help=f"the .rrd to save (default: OUT/{VIEW_FILE})"
+    )
+    v.add_argument(
+        "--serve-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="port of the served view (default 9877)",
     )
     v.add_argument(
         "--connect",
@@ -364,7 +370,7 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
 
 def _checks_options(p: argparse.ArgumentParser) -> None:
     """The held-out check and the advice (decisions 0051, 0052)."""
-    c = p.add_argument_group("the model checked, and what to fly next")
+    c = options.group(p, CHECKS)
     c.add_argument(
         "--validate",
         default=None,
@@ -442,8 +448,10 @@ def _new_checks(args: argparse.Namespace) -> Checks:
     return Checks(window=_held_window(args), advise=advise, fitted=fitted)
 
 
-def _truth_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
+def _station_options(p: argparse.ArgumentParser) -> None:
+    """What a station over a MAVLink link takes besides _common (listen, replay): each
+    vehicle's truth, and its vehicles' filters in worker processes."""
+    options.group(p, AIRCRAFT).add_argument(
         "--truth",
         default=None,
         metavar="FILE",
@@ -451,10 +459,7 @@ def _truth_option(p: argparse.ArgumentParser) -> None:
         "without it only the first vehicle heard is scored, against --reference or the "
         "[truth] of the airframe file given with --config",
     )
-
-
-def _filter_workers_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
+    options.group(p, PROCESSES).add_argument(
         "--filter-workers",
         type=_positive_int,
         default=None,
@@ -1073,31 +1078,85 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="gcs-estimator",
         description="Identify a fixed-wing aircraft's longitudinal aerodynamic coefficients "
-        "from flight data with an EKF and an iterated EKF side by side.",
+        "(lift, drag, pitching moment) from flight data, with an EKF and an iterated EKF "
+        "side by side, live or from recordings; each run ends with a table of the "
+        "estimates, how far to trust each, and what to fly next.",
+        epilog="Start with `demo` (no aircraft needed). For your own aircraft: `airframe "
+        "my_plane.toml`, fill it in, then `replay`/`offline`/`listen --config my_plane.toml`. "
+        "`gcs-estimator COMMAND --help` lists a command's options.",
     )
     ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulated(sub)
+    _add_listen(sub)
+    _add_replay(sub)
+    _add_recorded(sub)
 
-    p = sub.add_parser("simulate", help="fly the simulated aircraft and estimate offline")
+    p = sub.add_parser(
+        "airframe",
+        help="write a starter airframe file to fill in from the aircraft's spec sheet "
+        "(each key with what it means and where to find it)",
+    )
+    p.add_argument("file", help="the TOML file to write, e.g. my_plane.toml")
+    p.add_argument("--force", action="store_true", help="overwrite the file if it exists")
+    p.set_defaults(func=cmd_airframe)
+
+    p = sub.add_parser(
+        "keys", help="list every config key: its default, unit, allowed values and meaning"
+    )
+    _config_arg(p, DEFAULT_CONFIG)
+    p.set_defaults(func=cmd_keys)
+
+    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
+
+    add_commands(sub)
+    return ap
+
+
+def _add_simulated(sub: Any) -> None:
+    """`simulate` and `demo`: the simulator's aircraft, no data needed."""
+    p = sub.add_parser(
+        "simulate",
+        help="fly the simulated aircraft and estimate from its data in this process (seconds)",
+    )
     _common(p, DEFAULT_CONFIG)
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
+    _seed_option(p)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
-        "demo", help="the main job: simulated UAV -> MAVLink over UDP -> both filters -> table"
+        "demo",
+        help="the whole chain: the simulated UAV sends MAVLink over UDP to a ground station "
+        "that runs both filters live (view, table, JSON)",
     )
     _common(p, DEFAULT_CONFIG)
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
-    p.add_argument(
+    _seed_option(p)
+    options.group(p, RECORDINGS).add_argument(
         "--speed",
         type=float,
         default=1.0,
-        help="flight speed, multiple of real time (0 = as fast as possible)",
+        metavar="X",
+        help="the flight at X times real time (default 1; 0 = as fast as possible)",
     )
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("listen", help="estimate live from MAVLink telemetry on UDP")
+
+def _seed_option(p: argparse.ArgumentParser) -> None:
+    options.group(p, RECORDINGS).add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="the simulated flight's noise and turbulence seed (default: the config's)",
+    )
+
+
+def _add_listen(sub: Any) -> None:
+    p = sub.add_parser(
+        "listen",
+        help="estimate live from a vehicle's (or several vehicles') MAVLink telemetry: UDP, "
+        "TCP or a serial port; every packet recorded to a .tlog",
+    )
     _common(p)
+    r = options.group(p, RECORDINGS)
     p.add_argument(
         "endpoint",
         nargs="?",
@@ -1108,70 +1167,82 @@ def build_parser() -> argparse.ArgumentParser:
         "[ADDR]:PORT (default: %(default)s, this machine only; udpin:0.0.0.0:14550 for a "
         "vehicle on the network)",
     )
-    p.add_argument(
+    r.add_argument(
         "--record",
         default=None,
+        metavar="FILE",
         help=f".tlog to record every packet to (default: OUT/{TLOG_FILE}; an existing file "
-        "only with --force)",
+        "only with --force); replay it later for the same estimates",
     )
-    p.add_argument(
+    r.add_argument(
         "--idle-exit",
         type=float,
         default=None,
-        help="stop after this many seconds without data (once data came)",
+        metavar="S",
+        help="stop after S seconds without data (once data came); default: run until Ctrl-C",
     )
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument(
+    r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    options.group(p, PROCESSES).add_argument(
         "--link-worker",
         action="store_true",
         help="UDP only: receive, decode and record in a second process while this one runs "
         "the filters (two cores; the same frames and estimates)",
     )
-    _filter_workers_option(p)
-    _truth_option(p)
+    _station_options(p)
     p.set_defaults(func=cmd_listen)
 
+
+def _add_replay(sub: Any) -> None:
     p = sub.add_parser(
-        "replay", help="estimate from recorded .tlog files (or one ArduPilot/PX4 log)"
+        "replay",
+        help="estimate from recorded .tlog files (one flight, several flights of one "
+        "aircraft, or each on its own) or one ArduPilot/PX4 log",
     )
     _common(p)
+    r = options.group(p, RECORDINGS)
     p.add_argument(
         "tlogs",
         nargs="+",
         help=".tlog files, in order (one flight); a folder stands for the .tlog files in it; "
         "or one autopilot log (.bin, .log, .ulg)",
     )
-    p.add_argument(
-        "--each",
-        action="store_true",
-        help="every file is a flight of its own: replayed in parallel processes, each into "
-        "a folder of its own under --out, the results merged in replays.json and replays.md",
-    )
-    p.add_argument(
+    r.add_argument(
         "--flights",
         action="store_true",
         help="every .tlog file is a flight of one aircraft: one set of coefficients from all "
         "of them, each flight's flight states its own, each flight's part reported",
     )
-    p.add_argument(
-        "--jobs",
-        type=int,
-        default=None,
-        help="with --each: files replayed at a time (default: the machine's cores)",
+    r.add_argument(
+        "--each",
+        action="store_true",
+        help="every file is a flight of its own: each replayed in a process of its own, into "
+        "a folder of its own under --out, the results merged in replays.json and replays.md",
     )
-    p.add_argument(
+    r.add_argument(
         "--speed",
         type=float,
         default=0.0,
-        help="0 = as fast as possible (default), else a multiple of real time",
+        metavar="X",
+        help="replay at X times real time, as the live run saw it (default 0: as fast as possible)",
     )
-    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
-    _filter_workers_option(p)
-    _truth_option(p)
+    r.add_argument("--progress", action="store_true", help="a progress bar even when not a tty")
+    options.group(p, PROCESSES).add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --each: N files replayed at a time (default: the machine's cores)",
+    )
+    _station_options(p)
     p.set_defaults(func=cmd_replay)
 
+
+def _add_recorded(sub: Any) -> None:
+    """`offline` and `refine`: a recorded flight read whole."""
     p = sub.add_parser(
-        "offline", help="estimate from a log or data file (ArduPilot, PX4, CSV, HFB-320)"
+        "offline",
+        help="estimate from an autopilot's log or a data file (ArduPilot .bin/.log, PX4 .ulg, "
+        "CSV, the HFB-320 record); several: flights of one aircraft",
     )
     _common(p)
     p.add_argument(
@@ -1185,8 +1256,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "refine",
-        help="fit a recorded flight (a log, CSV, HFB-320 record or .tlog) by maximum likelihood "
-        "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
+        help="both filters over a recorded flight, then a maximum-likelihood fit of the whole "
+        "record from their estimate, with Cramer-Rao and corrected sigmas",
     )
     _common(p)
     p.add_argument(
@@ -1195,7 +1266,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or .tlog files; "
         "several logs or data files: flights of one aircraft, fitted together",
     )
-    p.add_argument(
+    options.group(p, FIT).add_argument(
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
@@ -1205,24 +1276,6 @@ def build_parser() -> argparse.ArgumentParser:
         "process noise estimated too)",
     )
     p.set_defaults(func=cmd_refine)
-
-    p = sub.add_parser(
-        "airframe",
-        help="write a starter airframe file (geometry, mass, inertia, propeller: each key "
-        "with what it means and where to find it) to fill in",
-    )
-    p.add_argument("file", help="the TOML file to write, e.g. my_plane.toml")
-    p.add_argument("--force", action="store_true", help="overwrite the file if it exists")
-    p.set_defaults(func=cmd_airframe)
-
-    p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
-    _config_arg(p, DEFAULT_CONFIG)
-    p.set_defaults(func=cmd_keys)
-
-    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
-
-    add_commands(sub, lambda p: _config_arg(p, None))
-    return ap
 
 
 BACKEND_VARIABLE = "GCS_ESTIMATOR_BACKEND"
