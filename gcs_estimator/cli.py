@@ -86,7 +86,7 @@ from gcs_estimator.runtime.flights import (
     what_flew,
 )
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
+from gcs_estimator.runtime.session import Hold, RecordingSource, Session, Source, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -283,7 +283,9 @@ def _write_flight_file(
 
 
 AIRCRAFT = "the aircraft"
-RECORDINGS = "what is read"
+READING = "what is read"
+"""Its title differs by command (_common's `reading`): the simulated flight, the link,
+the recordings."""
 OUTPUTS = "where the results go"
 FRAMES = "which frames the filters take"
 FIT = "the whole-record fit (maximum likelihood, after the filters)"
@@ -293,9 +295,12 @@ VIEW = "live view (Rerun)"
 """The groups of a command's options in its --help, in this order (options.group)."""
 
 
-def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> None:
-    """The options of every command that estimates, grouped as --help lists them."""
-    for title in (AIRCRAFT, RECORDINGS, OUTPUTS, FRAMES, FIT, CHECKS, PROCESSES, VIEW):
+def _common(
+    p: argparse.ArgumentParser, config_default: str | None = None, reading: str = READING
+) -> None:
+    """The options of every command that estimates, grouped as --help lists them (the
+    command's own options about what it reads under `reading`)."""
+    for title in (AIRCRAFT, reading, OUTPUTS, FRAMES, FIT, CHECKS, PROCESSES, VIEW):
         options.group(p, title)
     a = options.group(p, AIRCRAFT)
     _config_arg(a, config_default)
@@ -408,6 +413,13 @@ def run_end(args: argparse.Namespace) -> RunEnd:
     end = RunEnd(_refiner(args), _new_checks(args), args.history)
     args.run_end_made = end
     return end
+
+
+def _hold(args: argparse.Namespace) -> Hold | None:
+    """What keeps the frames of the window --validate holds out as they come (None: no
+    window held out)."""
+    checks = run_end(args).checks
+    return None if checks.window is None else checks.hold
 
 
 def _held_window(args: argparse.Namespace) -> Window | None:
@@ -679,6 +691,7 @@ def _recording_session(
 ) -> int:
     stop = PROCESS_STOP.install()
     session = Session(config, backend=args.backend)
+    source.hold = _hold(args)  # the held-out window, whether the plan takes it or not
     view = _view_sink(config, args, session)
     if sys.stderr.isatty():
         session.add_sink(ProgressSink(source.progress, label, unit="frames"))
@@ -843,7 +856,13 @@ def _link_session(
         )
     else:
         warm_up(config, args.backend)
-        session = Session(config, backend=args.backend, truths=truths, gate=_limits(args, config))
+        session = Session(
+            config,
+            backend=args.backend,
+            truths=truths,
+            gate=_limits(args, config),
+            hold=_hold(args),  # the held-out window, which the gate leaves out
+        )
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record and recorder else None,
@@ -1119,7 +1138,7 @@ def _add_simulated(sub: Any) -> None:
         "simulate",
         help="fly the simulated aircraft and estimate from its data in this process (seconds)",
     )
-    _common(p, DEFAULT_CONFIG)
+    _common(p, DEFAULT_CONFIG, SIMULATED_FLIGHT)
     _seed_option(p)
     p.set_defaults(func=cmd_simulate)
 
@@ -1128,9 +1147,9 @@ def _add_simulated(sub: Any) -> None:
         help="the whole chain: the simulated UAV sends MAVLink over UDP to a ground station "
         "that runs both filters live (view, table, JSON)",
     )
-    _common(p, DEFAULT_CONFIG)
+    _common(p, DEFAULT_CONFIG, SIMULATED_FLIGHT)
     _seed_option(p)
-    options.group(p, RECORDINGS).add_argument(
+    options.group(p, SIMULATED_FLIGHT).add_argument(
         "--speed",
         type=float,
         default=1.0,
@@ -1140,11 +1159,15 @@ def _add_simulated(sub: Any) -> None:
     p.set_defaults(func=cmd_demo)
 
 
+SIMULATED_FLIGHT = "the simulated flight"
+
+
 def _seed_option(p: argparse.ArgumentParser) -> None:
-    options.group(p, RECORDINGS).add_argument(
+    options.group(p, SIMULATED_FLIGHT).add_argument(
         "--seed",
         type=int,
         default=None,
+        metavar="N",
         help="the simulated flight's noise and turbulence seed (default: the config's)",
     )
 
@@ -1155,8 +1178,8 @@ def _add_listen(sub: Any) -> None:
         help="estimate live from a vehicle's (or several vehicles') MAVLink telemetry: UDP, "
         "TCP or a serial port; every packet recorded to a .tlog",
     )
-    _common(p)
-    r = options.group(p, RECORDINGS)
+    _common(p, reading="the link, and for how long")
+    r = options.group(p, "the link, and for how long")
     p.add_argument(
         "endpoint",
         nargs="?",
@@ -1198,8 +1221,8 @@ def _add_replay(sub: Any) -> None:
         help="estimate from recorded .tlog files (one flight, several flights of one "
         "aircraft, or each on its own) or one ArduPilot/PX4 log",
     )
-    _common(p)
-    r = options.group(p, RECORDINGS)
+    _common(p, reading="the recordings")
+    r = options.group(p, "the recordings")
     p.add_argument(
         "tlogs",
         nargs="+",
@@ -1270,10 +1293,10 @@ def _add_recorded(sub: Any) -> None:
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
-        help="auto (default: filter error where the filters found turbulence over their "
-        "final pass, else output error), output-error (calm air) or "
+        help="the fit's method: auto (default: filter error where the filters found "
+        "turbulence over their final pass, else output error), output-error (calm air) or "
         "filter-error (turbulence: a steady-state Kalman filter inside the fit, the "
-        "process noise estimated too)",
+        "process noise estimated too); --refine METHOD, where given, is taken instead",
     )
     p.set_defaults(func=cmd_refine)
 

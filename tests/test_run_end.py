@@ -109,22 +109,39 @@ def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 def test_replay_each_ends_every_file_as_its_single_replay(
     tmp_path: Path, flights: list[Path]
 ) -> None:
-    """`replay --each`: every file's results have the advice (and the held-out check, or
-    none) its single replay gives, value for value, and its table in its folder's log
-    says what to fly next as the single replay's does."""
+    """`replay --each --validate 2:6`: every file's results have the held-out check (out
+    of sample: the filters left the window out, its frames were kept aside) and the
+    advice its single replay with the same options gives, value for value, and its table
+    in its folder's log says what to fly next as the single replay's does."""
     out = tmp_path / "each"
     done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), "--config", "noc_uav",
-                "--out", str(out), *QUICK)  # fmt: skip
+                "--validate", HELD, "--out", str(out), *QUICK)  # fmt: skip
     assert done.returncode == 0, done.stderr
     files = json.loads((out / "replays.json").read_text())["files"]
     for f, path in zip(files, flights, strict=True):
-        assert f["vehicles"][0]["advice"] is not None
+        holdout, advice = _ending(f["vehicles"][0])
+        assert holdout is not None and not holdout["in_sample"], f["vehicles"][0]["holdout"]
+        assert all(c["samples"] > 150 for c in holdout["channels"].values())  # 4 s at 50 Hz
+        assert advice is not None
         alone = tmp_path / f"alone_{path.stem}"
-        single = _gcs("replay", str(path), "--config", "noc_uav", "--out", str(alone), *QUICK)
+        single = _gcs("replay", str(path), "--config", "noc_uav", "--validate", HELD,
+                      "--out", str(alone), *QUICK)  # fmt: skip
         assert single.returncode == 0, single.stderr
         assert _ending(f["vehicles"][0]) == _ending(_results(alone))
         log = (Path(f["folder"]) / "replay.log").read_text()
         assert "what to fly next" in log and "what to fly next" in single.stdout
+
+
+def test_offline_checks_a_window_its_segments_left_out(tmp_path: Path) -> None:
+    """`offline hfb320 --validate 10:20`: the segments leave the window out of the
+    filters; its frames, kept aside as the recording is read, are what the check flies."""
+    out = tmp_path / "run"
+    done = _gcs("offline", "hfb320", "--validate", "10:20", "--out", str(out), *QUICK)
+    assert done.returncode == 0, done.stderr
+    holdout = _results(out)["holdout"]
+    assert holdout is not None and not holdout["in_sample"]
+    assert holdout["segment"] == "the window 10 s to 20 s of the record"
+    assert all(c["samples"] > 0 for c in holdout["channels"].values())
 
 
 def test_each_files_replay_is_given_the_checks_options(tmp_path: Path) -> None:

@@ -552,7 +552,11 @@ def run_trend(args: argparse.Namespace) -> int:
 def add_trend_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("table", help=f"a batch's {COEFFICIENTS_FILE} (or its folder)")
     p.add_argument(
-        "--out", dest="trend_out", default=None, help="where to write (default: beside the table)"
+        "--out",
+        dest="trend_out",
+        default=None,
+        metavar="FOLDER",
+        help="where to write the report, its figures and trend.rrd (default: beside the table)",
     )
     p.add_argument(
         "--filter",
