@@ -12,11 +12,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from gcs_estimator.cli import build_parser
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.runtime.batch import child_command
 from sim.cli import command as vehicle_command
 from sim.truth import simulate
@@ -151,3 +153,16 @@ def test_each_files_replay_is_given_the_checks_options(tmp_path: Path) -> None:
     cmd = child_command(args, Path("a.tlog"), tmp_path / "a")
     assert cmd[cmd.index("--validate") + 1] == HELD
     assert "--no-advice" in cmd
+
+
+def test_the_frames_kept_aside_are_the_held_out_window_of_the_first_flight() -> None:
+    """Two flights of one aircraft, 4 s each at 10 Hz: the held-out window 1 s to 2 s is
+    the first flight's (seconds after its first frame), every frame of it, in order."""
+    checks = Checks(window=(1.0, 2.0))
+    for start in (0.0, 100.0):
+        for k in range(40):
+            t_rel = k / 10
+            checks.hold(1, t_rel, start + t_rel, np.full(2, float(k)), np.zeros(7))
+    t, u, _y = checks.held[1].arrays()
+    assert list(t) == [k / 10 for k in range(10, 21)]
+    assert list(u[:, 0]) == list(range(10, 21))

@@ -47,6 +47,9 @@ class HeldFrames:
     t: list[float] = field(default_factory=list)
     u: list[FloatArray] = field(default_factory=list)
     y: list[FloatArray] = field(default_factory=list)
+    t_rel: float = -np.inf
+    """The last frame's time after its flight's first frame: one not after it is a later
+    flight's (several of one aircraft), whose window is not the one held out."""
 
     def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         return np.array(self.t, float), np.array(self.u, float), np.array(self.y, float)
@@ -74,12 +77,16 @@ class Checks:
         self, system_id: int, t_rel: float, t: float, inputs: FloatArray, y: FloatArray
     ) -> None:
         """Keep a frame that is in the held-out window (t_rel: seconds after the flight's
-        first frame), whether the filters take it or not: with --window or the segments'
-        gate, they leave the held-out window out, and their history has none of it."""
+        first frame; the first flight's, where a run has several), whether the filters
+        take it or not: with --window or the segments' gate, they leave the held-out window
+        out, and their history has none of it."""
         w = self.window
         if w is None or (w[0] is not None and t_rel < w[0]) or (w[1] is not None and t_rel > w[1]):
             return
         kept = self.held.setdefault(system_id, HeldFrames())
+        if t_rel <= kept.t_rel:
+            return
+        kept.t_rel = t_rel
         kept.t.append(t)
         kept.u.append(np.array(inputs, float))
         kept.y.append(np.array(y, float))
