@@ -38,7 +38,7 @@ def _gcs(*args: str) -> subprocess.CompletedProcess[str]:
         cwd=ROOT,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=900,
     )
 
 
@@ -73,10 +73,10 @@ def test_listen_with_filter_workers_ends_each_vehicle_as_a_single_replay(tmp_pat
     flown = subprocess.run(
         vehicle_command(ROOT / "configs/noc_uav.toml", f"127.0.0.1:{bound_port(line)}", 4.0,
                         SHORT, vehicles=2),
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
     )  # fmt: skip
     assert flown.returncode == 0, flown.stderr
-    out, err = station.communicate(timeout=300)
+    out, err = station.communicate(timeout=900)
     assert station.returncode == 0, err
     for sid in (1, 2):
         holdout, advice = _ending(_results(live, sid))
