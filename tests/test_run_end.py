@@ -16,14 +16,11 @@ import numpy as np
 import pytest
 
 from gcs_estimator.cli import build_parser
-from gcs_estimator.config import load_config
-from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.runtime.batch import child_command
 from sim.cli import command as vehicle_command
-from sim.truth import simulate
-from sim.vehicle import SimulatedVehicle
 from tests.telemetry.station import bound_port, start_listen
+from tests.test_batch import _tlog
 
 ROOT = Path(__file__).resolve().parent.parent
 SHORT = ["simulation.manoeuvre.duration_s=12"]
@@ -50,14 +47,6 @@ def _results(folder: Path, sid: int = 1) -> dict[str, Any]:
 def _ending(result: dict[str, Any]) -> tuple[Any, Any]:
     """What the end of the run added to a vehicle's JSON: the held-out check, the advice."""
     return result["holdout"], result["advice"]
-
-
-def _tlog(path: Path, seed: int) -> Path:
-    config = load_config(ROOT / "configs/noc_uav.toml", SHORT)
-    fl = simulate(config, seed=seed)
-    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
-    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
-    return path
 
 
 def test_listen_with_filter_workers_ends_each_vehicle_as_a_single_replay(tmp_path: Path) -> None:
