@@ -68,13 +68,13 @@ from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
     ResultsSink,
+    RunEnd,
     StatusSink,
-    results_stem,
     vehicle_heading,
 )
 from gcs_estimator.outputs.table import LiveEstimate, live_table
-from gcs_estimator.outputs.tables import HISTORY_FORMATS
 from gcs_estimator.outputs.view.live import RerunView, ViewSink, open_outlets, resolve_outputs
+from gcs_estimator.runtime import options
 from gcs_estimator.runtime.decode_worker import LinkArgs, tlog_source
 from gcs_estimator.runtime.filter_worker import ShardedSession, TablesSink
 from gcs_estimator.runtime.flights import (
@@ -86,7 +86,7 @@ from gcs_estimator.runtime.flights import (
     what_flew,
 )
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import RecordingSource, Session, Source, warm_up
+from gcs_estimator.runtime.session import Hold, RecordingSource, Session, Source, warm_up
 from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -150,17 +150,12 @@ def run_info(
     return info
 
 
-def _config_arg(p: argparse.ArgumentParser, default: str | None) -> None:
-    p.add_argument(
-        "--config",
-        default=default,
-        help="the airframe file: a TOML path or a shipped name (noc_uav, hfb320); "
-        + (
-            "default: %(default)s"
-            if default
-            else "a log needs one, unless it is the simulator's (its truth file beside it "
-            "names the airframe) or the bundled HFB-320 record"
-        ),
+def _config_arg(p: options.Parser, default: str | None) -> None:
+    options.config_option(
+        p,
+        default,
+        "a log needs one, unless it is the simulator's (its truth file beside it names the "
+        "airframe) or the bundled HFB-320 record",
     )
 
 
@@ -287,60 +282,70 @@ def _write_flight_file(
         return  # nor can the recording be written there: opening it says why, and stops
 
 
-def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> None:
-    _config_arg(p, config_default)
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value, e.g. --set filter.iterations=3 (repeatable)",
-    )
-    p.add_argument(
-        "--out",
-        default=None,
-        help="this run's folder (default: out/COMMAND_UTCTIME); one that holds a run's "
-        "outputs already is refused unless --force",
-    )
-    p.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
-    p.add_argument(
-        "--history",
-        choices=HISTORY_FORMATS,
-        default=HISTORY_FORMATS[0],
-        help="each vehicle's per-frame history file: parquet (default) or csv",
-    )
-    p.add_argument(
-        "--refine",
-        choices=REFINE_METHODS,
-        default=None,
-        help="at the end, also fit the whole record by maximum likelihood from the IEKF's "
-        "estimate: auto (filter error where the filters found turbulence, else output "
-        "error), output-error or filter-error (with process noise); see `refine`",
-    )
-    p.add_argument(
-        "--window",
-        action="append",
-        default=[],
-        metavar="FROM:TO",
-        help="only these seconds after the (each) flight's first frame go to the filters and "
-        "the refinement (either side may be empty; repeatable)",
-    )
-    p.add_argument(
-        "--hold-noise",
-        action="store_true",
-        help="the refinement keeps the noise levels the filters used (measurement sigmas; "
-        "filter error: the config's process noise) instead of estimating them: for sensors "
-        "and air whose noise you know",
-    )
-    p.add_argument(
+AIRCRAFT = "the aircraft"
+READING = "what is read"
+"""Its title differs by command (_common's `reading`): the simulated flight, the link,
+the recordings."""
+OUTPUTS = "where the results go"
+FRAMES = "which frames the filters take"
+FIT = "the whole-record fit (maximum likelihood, after the filters)"
+CHECKS = "the model checked, and what to fly next"
+PROCESSES = "more than one core"
+VIEW = "live view (Rerun)"
+"""The groups of a command's options in its --help, in this order (options.group)."""
+
+
+def _common(
+    p: argparse.ArgumentParser, config_default: str | None = None, reading: str = READING
+) -> None:
+    """The options of every command that estimates, grouped as --help lists them (the
+    command's own options about what it reads under `reading`)."""
+    for title in (AIRCRAFT, reading, OUTPUTS, FRAMES, FIT, CHECKS, PROCESSES, VIEW):
+        options.group(p, title)
+    a = options.group(p, AIRCRAFT)
+    _config_arg(a, config_default)
+    options.set_option(a)
+    a.add_argument(
         "--reference",
         default=None,
         metavar="TOML",
         help="reference coefficient values to show and compare against (a [truth] table, "
         "e.g. a textbook's); replaces the config's [truth]",
     )
+    o = options.group(p, OUTPUTS)
+    options.out_options(
+        o,
+        "this run's folder (default: out/COMMAND_UTCTIME); one that holds a run's outputs "
+        "already is refused unless --force",
+        "overwrite the outputs in --out",
+    )
+    options.history_option(o, "each vehicle's")
+    options.group(p, FRAMES).add_argument(
+        "--window",
+        action="append",
+        default=[],
+        metavar="FROM:TO",
+        help="only these seconds after the (each) flight's first frame go to the filters and "
+        "the fit, e.g. 60:300 or 60: (either side may be empty; repeatable)",
+    )
+    f = options.group(p, FIT)
+    f.add_argument(
+        "--refine",
+        choices=REFINE_METHODS,
+        default=None,
+        help="at the end, also fit the whole record by maximum likelihood from the IEKF's "
+        "estimate: auto (filter error where the filters found turbulence, else output "
+        "error), output-error (calm air) or filter-error (with process noise); see `refine`",
+    )
+    f.add_argument(
+        "--hold-noise",
+        action="store_true",
+        help="the fit keeps the noise levels the filters used (measurement sigmas; filter "
+        "error: the config's process noise) instead of estimating them: for sensors and air "
+        "whose noise you know",
+    )
     _checks_options(p)
-    v = p.add_argument_group("live view (Rerun)")
+    v = options.group(p, VIEW)
     v.add_argument(
         "--view",
         default=None,
@@ -349,9 +354,15 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
         "local viewer), connect (a running viewer), off, auto (spawn+save with a display, "
         "else save). Default: [view] outputs of the config, normally auto",
     )
-    v.add_argument("--rrd", default=None, help=f"the .rrd to save (default: OUT/{VIEW_FILE})")
     v.add_argument(
-        "--serve-port", type=int, default=None, help="port of the served view (default 9877)"
+        "--rrd", default=None, metavar="FILE", help=f"the .rrd to save (default: OUT/{VIEW_FILE})"
+    )
+    v.add_argument(
+        "--serve-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="port of the served view (default 9877)",
     )
     v.add_argument(
         "--connect",
@@ -364,7 +375,7 @@ def _common(p: argparse.ArgumentParser, config_default: str | None = None) -> No
 
 def _checks_options(p: argparse.ArgumentParser) -> None:
     """The held-out check and the advice (decisions 0051, 0052)."""
-    c = p.add_argument_group("the model checked, and what to fly next")
+    c = options.group(p, CHECKS)
     c.add_argument(
         "--validate",
         default=None,
@@ -391,15 +402,24 @@ def _live_advice(
     return lambda sid, airspeed: live_advice_text(session.estimator(sid), airspeed)
 
 
-def _checks(args: argparse.Namespace) -> Checks:
-    """The checks the command line asked for (outputs.checks), one object per run: the
-    view's final panels read what the results sink checked."""
-    made = getattr(args, "checks_made", None)
-    if isinstance(made, Checks):
+def run_end(args: argparse.Namespace) -> RunEnd:
+    """The end of the run the command line asked for (outputs.sinks.RunEnd: --refine,
+    --validate, --no-advice, --history), one value per run whichever path ends it: the
+    results sink in this process, or the filter workers (--filter-workers); the view's
+    final panels read what its checks checked."""
+    made = getattr(args, "run_end_made", None)
+    if isinstance(made, RunEnd):
         return made
-    checks = _new_checks(args)
-    args.checks_made = checks
-    return checks
+    end = RunEnd(_refiner(args), _new_checks(args), args.history)
+    args.run_end_made = end
+    return end
+
+
+def _hold(args: argparse.Namespace) -> Hold | None:
+    """What keeps the frames of the window --validate holds out as they come (None: no
+    window held out)."""
+    checks = run_end(args).checks
+    return None if checks.window is None else checks.hold
 
 
 def _held_window(args: argparse.Namespace) -> Window | None:
@@ -440,8 +460,10 @@ def _new_checks(args: argparse.Namespace) -> Checks:
     return Checks(window=_held_window(args), advise=advise, fitted=fitted)
 
 
-def _truth_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
+def _station_options(p: argparse.ArgumentParser) -> None:
+    """What a station over a MAVLink link takes besides _common (listen, replay): each
+    vehicle's truth, and its vehicles' filters in worker processes."""
+    options.group(p, AIRCRAFT).add_argument(
         "--truth",
         default=None,
         metavar="FILE",
@@ -449,10 +471,7 @@ def _truth_option(p: argparse.ArgumentParser) -> None:
         "without it only the first vehicle heard is scored, against --reference or the "
         "[truth] of the airframe file given with --config",
     )
-
-
-def _filter_workers_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
+    options.group(p, PROCESSES).add_argument(
         "--filter-workers",
         type=_positive_int,
         default=None,
@@ -518,7 +537,7 @@ def _view_sink(
         truth_of=session.truth_of,
         advice_source=_live_advice(args, session),
     )
-    checks = _checks(args)
+    checks = run_end(args).checks
     return ViewSink(
         view,
         None if link is None else (lambda: link.t_first_recv),
@@ -652,17 +671,14 @@ def _results_sink(
     heading: Callable[[VehicleResult, float], str],
     origin: str | None,
 ) -> ResultsSink:
-    """The table on stdout and the result files in the run's folder, with the run's record."""
-    return ResultsSink(
+    """The end of the run (run_end) as this process's results sink: the table on stdout
+    and the result files in the run's folder, with the run's record."""
+    return run_end(args).sink(
         Path(args.out),
         heading,
-        results_stem,
         lambda: session.elapsed_s,
-        refine=_refiner(args),
         run=lambda: run_info(args, config, origin),
         estimators=lambda: session.estimators,
-        history_format=args.history,
-        checks=_checks(args),
     )
 
 
@@ -675,6 +691,7 @@ def _recording_session(
 ) -> int:
     stop = PROCESS_STOP.install()
     session = Session(config, backend=args.backend)
+    source.hold = _hold(args)  # the held-out window, whether the plan takes it or not
     view = _view_sink(config, args, session)
     if sys.stderr.isatty():
         session.add_sink(ProgressSink(source.progress, label, unit="frames"))
@@ -834,13 +851,18 @@ def _link_session(
             args.out,
             backend=args.backend,
             truths=truths,
-            refine=_refiner(args),
+            end=run_end(args),
             run_info=lambda: run_info(args, config, origin),
-            history_format=args.history,
         )
     else:
         warm_up(config, args.backend)
-        session = Session(config, backend=args.backend, truths=truths, gate=_limits(args, config))
+        session = Session(
+            config,
+            backend=args.backend,
+            truths=truths,
+            gate=_limits(args, config),
+            hold=_hold(args),  # the held-out window, which the gate leaves out
+        )
     link = MavlinkLink(
         config.link,
         recorder=TlogWriter(record) if record and recorder else None,
@@ -1075,31 +1097,89 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="gcs-estimator",
         description="Identify a fixed-wing aircraft's longitudinal aerodynamic coefficients "
-        "from flight data with an EKF and an iterated EKF side by side.",
+        "(lift, drag, pitching moment) from flight data, with an EKF and an iterated EKF "
+        "side by side, live or from recordings; each run ends with a table of the "
+        "estimates, how far to trust each, and what to fly next.",
+        epilog="Start with `demo` (no aircraft needed). For your own aircraft: `airframe "
+        "my_plane.toml`, fill it in, then `replay`/`offline`/`listen --config my_plane.toml`. "
+        "`gcs-estimator COMMAND --help` lists a command's options.",
     )
     ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulated(sub)
+    _add_listen(sub)
+    _add_replay(sub)
+    _add_recorded(sub)
 
-    p = sub.add_parser("simulate", help="fly the simulated aircraft and estimate offline")
-    _common(p, DEFAULT_CONFIG)
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
+    p = sub.add_parser(
+        "airframe",
+        help="write a starter airframe file to fill in from the aircraft's spec sheet "
+        "(each key with what it means and where to find it)",
+    )
+    p.add_argument("file", help="the TOML file to write, e.g. my_plane.toml")
+    p.add_argument("--force", action="store_true", help="overwrite the file if it exists")
+    p.set_defaults(func=cmd_airframe)
+
+    p = sub.add_parser(
+        "keys", help="list every config key: its default, unit, allowed values and meaning"
+    )
+    _config_arg(p, DEFAULT_CONFIG)
+    p.set_defaults(func=cmd_keys)
+
+    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
+
+    add_commands(sub)
+    return ap
+
+
+def _add_simulated(sub: Any) -> None:
+    """`simulate` and `demo`: the simulator's aircraft, no data needed."""
+    p = sub.add_parser(
+        "simulate",
+        help="fly the simulated aircraft and estimate from its data in this process (seconds)",
+    )
+    _common(p, DEFAULT_CONFIG, SIMULATED_FLIGHT)
+    _seed_option(p)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser(
-        "demo", help="the main job: simulated UAV -> MAVLink over UDP -> both filters -> table"
+        "demo",
+        help="the whole chain: the simulated UAV sends MAVLink over UDP to a ground station "
+        "that runs both filters live (view, table, JSON)",
     )
-    _common(p, DEFAULT_CONFIG)
-    p.add_argument("--seed", type=int, default=None, help="noise seed (default: config)")
-    p.add_argument(
+    _common(p, DEFAULT_CONFIG, SIMULATED_FLIGHT)
+    _seed_option(p)
+    options.group(p, SIMULATED_FLIGHT).add_argument(
         "--speed",
         type=float,
         default=1.0,
-        help="flight speed, multiple of real time (0 = as fast as possible)",
+        metavar="X",
+        help="the flight at X times real time (default 1; 0 = as fast as possible)",
     )
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("listen", help="estimate live from MAVLink telemetry on UDP")
-    _common(p)
+
+SIMULATED_FLIGHT = "the simulated flight"
+
+
+def _seed_option(p: argparse.ArgumentParser) -> None:
+    options.group(p, SIMULATED_FLIGHT).add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the simulated flight's noise and turbulence seed (default: the config's)",
+    )
+
+
+def _add_listen(sub: Any) -> None:
+    p = sub.add_parser(
+        "listen",
+        help="estimate live from a vehicle's (or several vehicles') MAVLink telemetry: UDP, "
+        "TCP or a serial port; every packet recorded to a .tlog",
+    )
+    _common(p, reading="the link, and for how long")
+    r = options.group(p, "the link, and for how long")
     p.add_argument(
         "endpoint",
         nargs="?",
@@ -1110,70 +1190,82 @@ def build_parser() -> argparse.ArgumentParser:
         "[ADDR]:PORT (default: %(default)s, this machine only; udpin:0.0.0.0:14550 for a "
         "vehicle on the network)",
     )
-    p.add_argument(
+    r.add_argument(
         "--record",
         default=None,
+        metavar="FILE",
         help=f".tlog to record every packet to (default: OUT/{TLOG_FILE}; an existing file "
-        "only with --force)",
+        "only with --force); replay it later for the same estimates",
     )
-    p.add_argument(
+    r.add_argument(
         "--idle-exit",
         type=float,
         default=None,
-        help="stop after this many seconds without data (once data came)",
+        metavar="S",
+        help="stop after S seconds without data (once data came); default: run until Ctrl-C",
     )
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument(
+    r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    options.group(p, PROCESSES).add_argument(
         "--link-worker",
         action="store_true",
         help="UDP only: receive, decode and record in a second process while this one runs "
         "the filters (two cores; the same frames and estimates)",
     )
-    _filter_workers_option(p)
-    _truth_option(p)
+    _station_options(p)
     p.set_defaults(func=cmd_listen)
 
+
+def _add_replay(sub: Any) -> None:
     p = sub.add_parser(
-        "replay", help="estimate from recorded .tlog files (or one ArduPilot/PX4 log)"
+        "replay",
+        help="estimate from recorded .tlog files (one flight, several flights of one "
+        "aircraft, or each on its own) or one ArduPilot/PX4 log",
     )
-    _common(p)
+    _common(p, reading="the recordings")
+    r = options.group(p, "the recordings")
     p.add_argument(
         "tlogs",
         nargs="+",
         help=".tlog files, in order (one flight); a folder stands for the .tlog files in it; "
         "or one autopilot log (.bin, .log, .ulg)",
     )
-    p.add_argument(
-        "--each",
-        action="store_true",
-        help="every file is a flight of its own: replayed in parallel processes, each into "
-        "a folder of its own under --out, the results merged in replays.json and replays.md",
-    )
-    p.add_argument(
+    r.add_argument(
         "--flights",
         action="store_true",
         help="every .tlog file is a flight of one aircraft: one set of coefficients from all "
         "of them, each flight's flight states its own, each flight's part reported",
     )
-    p.add_argument(
-        "--jobs",
-        type=int,
-        default=None,
-        help="with --each: files replayed at a time (default: the machine's cores)",
+    r.add_argument(
+        "--each",
+        action="store_true",
+        help="every file is a flight of its own: each replayed in a process of its own, into "
+        "a folder of its own under --out, the results merged in replays.json and replays.md",
     )
-    p.add_argument(
+    r.add_argument(
         "--speed",
         type=float,
         default=0.0,
-        help="0 = as fast as possible (default), else a multiple of real time",
+        metavar="X",
+        help="replay at X times real time, as the live run saw it (default 0: as fast as possible)",
     )
-    p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
-    _filter_workers_option(p)
-    _truth_option(p)
+    r.add_argument("--progress", action="store_true", help="a progress bar even when not a tty")
+    options.group(p, PROCESSES).add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --each: N files replayed at a time (default: the machine's cores)",
+    )
+    _station_options(p)
     p.set_defaults(func=cmd_replay)
 
+
+def _add_recorded(sub: Any) -> None:
+    """`offline` and `refine`: a recorded flight read whole."""
     p = sub.add_parser(
-        "offline", help="estimate from a log or data file (ArduPilot, PX4, CSV, HFB-320)"
+        "offline",
+        help="estimate from an autopilot's log or a data file (ArduPilot .bin/.log, PX4 .ulg, "
+        "CSV, the HFB-320 record); several: flights of one aircraft",
     )
     _common(p)
     p.add_argument(
@@ -1187,8 +1279,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "refine",
-        help="fit a recorded flight (a log, CSV, HFB-320 record or .tlog) by maximum likelihood "
-        "over the whole record, after both filters, with Cramer-Rao and corrected sigmas",
+        help="both filters over a recorded flight, then a maximum-likelihood fit of the whole "
+        "record from their estimate, with Cramer-Rao and corrected sigmas",
     )
     _common(p)
     p.add_argument(
@@ -1197,34 +1289,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="an ArduPilot/PX4 log, a CSV, the HFB-320 record (or 'hfb320'), or .tlog files; "
         "several logs or data files: flights of one aircraft, fitted together",
     )
-    p.add_argument(
+    options.group(p, FIT).add_argument(
         "--method",
         choices=REFINE_METHODS,
         default=REFINE_METHODS[0],
-        help="auto (default: filter error where the filters found turbulence over their "
-        "final pass, else output error), output-error (calm air) or "
+        help="the fit's method: auto (default: filter error where the filters found "
+        "turbulence over their final pass, else output error), output-error (calm air) or "
         "filter-error (turbulence: a steady-state Kalman filter inside the fit, the "
-        "process noise estimated too)",
+        "process noise estimated too); --refine METHOD, where given, is taken instead",
     )
     p.set_defaults(func=cmd_refine)
-
-    p = sub.add_parser(
-        "airframe",
-        help="write a starter airframe file (geometry, mass, inertia, propeller: each key "
-        "with what it means and where to find it) to fill in",
-    )
-    p.add_argument("file", help="the TOML file to write, e.g. my_plane.toml")
-    p.add_argument("--force", action="store_true", help="overwrite the file if it exists")
-    p.set_defaults(func=cmd_airframe)
-
-    p = sub.add_parser("keys", help="every config key: default, unit, allowed values, meaning")
-    _config_arg(p, DEFAULT_CONFIG)
-    p.set_defaults(func=cmd_keys)
-
-    from gcs_estimator.runtime.fleet import add_commands  # `batch` and `trend`
-
-    add_commands(sub, lambda p: _config_arg(p, None))
-    return ap
 
 
 BACKEND_VARIABLE = "GCS_ESTIMATOR_BACKEND"

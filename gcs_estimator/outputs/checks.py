@@ -34,6 +34,27 @@ def _overlap(a: Window, b: Window) -> bool:
     return bool(lo < hi)
 
 
+HELD_MIN_FRAMES = 10
+"""Frames of the held-out window the run's history must hold for the check to take them
+from it (refine.holdout.MIN_FRAMES); fewer: the frames kept aside (HeldFrames)."""
+
+
+@dataclass
+class HeldFrames:
+    """A vehicle's frames in the held-out window as they came, before the segments' gate
+    (which leaves the window out of the filters, and with it out of their history)."""
+
+    t: list[float] = field(default_factory=list)
+    u: list[FloatArray] = field(default_factory=list)
+    y: list[FloatArray] = field(default_factory=list)
+    t_rel: float = -np.inf
+    """The last frame's time after its flight's first frame: one not after it is a later
+    flight's (several of one aircraft), whose window is not the one held out."""
+
+    def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        return np.array(self.t, float), np.array(self.u, float), np.array(self.y, float)
+
+
 @dataclass(frozen=True)
 class Checks:
     """The held-out check and the advice, as a results sink's `checks` (a value, so a
@@ -49,6 +70,26 @@ class Checks:
     failures: list[str] = field(default_factory=list, compare=False, repr=False)
     done: dict[int, VehicleResult] = field(default_factory=dict, compare=False, repr=False)
     """Each vehicle as checked (the view's final panels read it)."""
+    held: dict[int, HeldFrames] = field(default_factory=dict, compare=False, repr=False)
+    """Each vehicle's frames of the held-out window, kept aside as they came (hold)."""
+
+    def hold(
+        self, system_id: int, t_rel: float, t: float, inputs: FloatArray, y: FloatArray
+    ) -> None:
+        """Keep a frame that is in the held-out window (t_rel: seconds after the flight's
+        first frame; the first flight's, where a run has several), whether the filters
+        take it or not: with --window or the segments' gate, they leave the held-out window
+        out, and their history has none of it."""
+        w = self.window
+        if w is None or (w[0] is not None and t_rel < w[0]) or (w[1] is not None and t_rel > w[1]):
+            return
+        kept = self.held.setdefault(system_id, HeldFrames())
+        if t_rel <= kept.t_rel:
+            return
+        kept.t_rel = t_rel
+        kept.t.append(t)
+        kept.u.append(np.array(inputs, float))
+        kept.y.append(np.array(y, float))
 
     def __call__(
         self, vehicle: VehicleResult, refined: Refined | None
@@ -108,6 +149,13 @@ class Checks:
         idx = np.flatnonzero((rel >= lo) & (rel <= hi))
         window = self.window
         in_sample = not self.fitted or any(_overlap(window, w) for w in self.fitted)
+        kept = self.held.get(vehicle.system_id)
+        if len(idx) < HELD_MIN_FRAMES and kept is not None:  # the filters left it out
+            t, u, y = kept.arrays()
+            return check(
+                config, coefficients, biases, t, u, y, noise, _window_text(window), whose,
+                in_sample=in_sample,
+            )  # fmt: skip
         return check(
             config,
             coefficients,

@@ -1,5 +1,5 @@
 """Sinks of a session besides the view: the results writer, the live status line and the
-progress bar (session.Sink)."""
+progress bar (session.Sink); RunEnd, the end of a run every command's vehicles get."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry.channel_sources import rates_line
+from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.outputs.history_csv import HistoryCsv
 from gcs_estimator.outputs.report import open_history, write_results
 from gcs_estimator.outputs.table import terminal_text
@@ -100,9 +101,12 @@ class ResultsSink:
         if link is not None:
             print(link_line(link), file=self.out)
 
-    def vehicle(self, vehicle: VehicleResult, link: Mapping[str, Any] | None, out: TextIO) -> None:
-        """One vehicle's end: its whole-record fit where one was asked for, its table on
-        `out`, its files (the rest of its history CSV)."""
+    def vehicle(
+        self, vehicle: VehicleResult, link: Mapping[str, Any] | None, out: TextIO
+    ) -> VehicleResult:
+        """One vehicle's end: its whole-record fit where one was asked for, its checks
+        (the held-out check, the advice), its table on `out`, its files (the rest of its
+        history); the vehicle as checked."""
         sid = vehicle.system_id
         heading = self.heading(vehicle, self.elapsed())
         refined = None if self.refine is None else self.refine(vehicle)
@@ -121,6 +125,7 @@ class ResultsSink:
         )
         written = "results: " + ", ".join(str(p) for p in paths.values())
         print(wrap(written), file=out)
+        return vehicle
 
 
 def link_line(link: Mapping[str, Any]) -> str:
@@ -331,6 +336,47 @@ class RefineAsk:
             return None
         finally:
             status.end()
+
+
+@dataclass(frozen=True)
+class RunEnd:
+    """The end of a run, the same for every command and every vehicle (decision 0063):
+    the whole-record fit where asked (refine), the held-out check and the advice
+    (checks), then the table, the JSON and Markdown and the rest of the history
+    (ResultsSink.vehicle, in this order). A value: the command line makes one
+    (cli.run_end), and a filter worker is given the same one for its vehicles."""
+
+    refine: RefineAsk | None = None
+    checks: Checks = field(default_factory=Checks)
+    history_format: str = "parquet"
+    """Each vehicle's history file: "parquet" or "csv" (tables.HISTORY_FORMATS)."""
+
+    def sink(
+        self,
+        out_dir: Path,
+        heading: Callable[[VehicleResult, float], str],
+        elapsed: Callable[[], float],
+        run: Callable[[], dict[str, Any]] | None,
+        estimators: Callable[[], Mapping[int, Estimator]] | None,
+        stem: Callable[[int], str] = results_stem,
+    ) -> ResultsSink:
+        """The results writer that ends the run so (stdout for the tables)."""
+        return ResultsSink(
+            out_dir,
+            heading,
+            stem,
+            elapsed,
+            refine=self.refine,
+            run=run,
+            estimators=estimators,
+            history_format=self.history_format,
+            checks=self.checks,
+        )
+
+    def failures(self) -> list[str]:
+        """Why the whole-record fit failed, a line per vehicle where it did (the run's
+        exit status)."""
+        return [] if self.refine is None else list(self.refine.failures)
 
 
 class RefineStatus:

@@ -98,6 +98,7 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
         ("--reference", args.reference),
         ("--truth", args.truth),
         ("--filter-workers", args.filter_workers),
+        ("--validate", args.validate),
     ):
         if value is not None:
             cmd += [option, str(value)]
@@ -106,6 +107,8 @@ def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[st
     cmd += ["--view", args.view or "save", "--history", args.history]
     if args.hold_noise:
         cmd.append("--hold-noise")
+    if args.no_advice:
+        cmd.append("--no-advice")
     if args.force:
         cmd.append("--force")
     return cmd

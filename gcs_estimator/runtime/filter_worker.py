@@ -16,13 +16,14 @@ over its share of the vehicles:
   and the same estimates and history, bit for bit.
 - **What a worker does** for its vehicles is what a station in one process does: both
   filters, restarts (with its idle time for their work ahead), the history CSV as the run
-  goes, and at the end the structure check, `--refine`, and the JSON, Markdown and CSV.
-  Restarts take turns among the vehicles of one worker (decision 0018), which share its
-  core.
+  goes, and at the end the structure check and the end of the run (outputs.sinks.RunEnd:
+  `--refine`, the held-out check, the advice, the table, JSON, Markdown and history),
+  the same value the station would have used in one process. Restarts take turns among
+  the vehicles of one worker (decision 0018), which share its core.
 - **What comes back:** every frame's outputs (both filters' state, sigmas, innovations and
   step report) as the rows of one float64 matrix per batch, for this process's sinks; at
-  the end each vehicle's table and its result without time histories (they are in the
-  CSV the worker wrote).
+  the end each vehicle's table and its result as checked, without time histories (they
+  are in the history the worker wrote).
 - **Bounded:** frames go down in batches; while more than MAX_PENDING_BYTES wait for a
   worker, this process stops reading its source and only moves frames and outputs, so the
   socket's buffer takes the backlog (and the kernel counts what it drops).
@@ -40,7 +41,7 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -55,13 +56,7 @@ from gcs_estimator.estimation.filters.fast import output_width as step_width
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import SourceError
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.outputs.sinks import (
-    RefineAsk,
-    ResultsSink,
-    link_line,
-    results_stem,
-    vehicle_heading,
-)
+from gcs_estimator.outputs.sinks import ResultsSink, RunEnd, link_line, vehicle_heading
 from gcs_estimator.runtime.decode_worker import (
     POLL_S,
     READ_BYTES,
@@ -95,9 +90,8 @@ class ShardJob:
     truths: dict[int, tuple[float, ...]] | None
     out_dir: str | None
     """Where the vehicles' result files go (None: none written, no tables: a benchmark's)."""
-    refine: RefineAsk | None
-    history_format: str = "parquet"
-    """The history's format: "parquet" or "csv" (outputs.tables.HISTORY_FORMATS)."""
+    end: RunEnd = field(default_factory=RunEnd)
+    """The end of the run for its vehicles: the station's, as in one process."""
 
 
 # ---- each frame's outputs as one row of floats ----------------------------------------
@@ -244,12 +238,14 @@ class OutputsSink:
 
 
 class EndSink:
-    """At the end, each vehicle's files and table (results.ResultsSink's), sent to the
-    station with the vehicle's result without its time histories."""
+    """At the end, each vehicle's end (ResultsSink.vehicle: fit, checks, files, table),
+    sent to the station with the vehicle's result as checked, without its time
+    histories, and why a fit or a check failed where one did."""
 
-    def __init__(self, writer: ResultsSink | None, send: Any) -> None:
+    def __init__(self, writer: ResultsSink | None, end: RunEnd, send: Any) -> None:
         self.writer = writer
         """None: no files and no tables (ShardJob.out_dir)."""
+        self.end = end
         self.send = send
         self.started_cpu_s = time.process_time()
         """The worker's CPU time [s] when it was ready (its start: imports, kernels)."""
@@ -263,17 +259,18 @@ class EndSink:
 
     def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
         texts = dict.fromkeys(results, "")
+        ended = dict(results)
         if self.writer is not None:
             for sid, vehicle in results.items():
                 out = io.StringIO()
-                self.writer.vehicle(vehicle, link, out)
+                ended[sid] = self.writer.vehicle(vehicle, link, out)
                 texts[sid] = out.getvalue()
             for csv in self.writer.histories.values():
                 csv.close()
-        ended = {sid: v.without_tracks() for sid, v in results.items()}
-        refine = None if self.writer is None else self.writer.refine
-        failures = list(refine.failures) if isinstance(refine, RefineAsk) else []
+        ended = {sid: v.without_tracks() for sid, v in ended.items()}
         cpu_s = time.process_time() - self.started_cpu_s
+        refine, checks = self.end.refine, self.end.checks
+        failures = ([] if refine is None else list(refine.failures), list(checks.failures))
         self.send(("end", ended, texts, cpu_s, failures))
 
 
@@ -293,18 +290,15 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
     source.busy = session.restart_under_way
     writer = None
     if job.out_dir is not None:
-        writer = ResultsSink(
+        writer = job.end.sink(
             Path(job.out_dir),
             vehicle_heading,
-            results_stem,
             lambda: session.elapsed_s,
-            refine=job.refine,
             run=lambda: source.run or {},
             estimators=lambda: session.estimators,
-            history_format=job.history_format,
         )
     session.add_sink(OutputsSink(source, session, build_model(config).n, send))
-    end = EndSink(writer, send)
+    end = EndSink(writer, job.end, send)
     session.add_sink(end)
     send(("ready", end.started_cpu_s))
     session.run(source, stop)
@@ -401,8 +395,9 @@ class FilterShard(WorkerProcess):
         self.next_seq = 0
         self.ready_seen = False
         self.end: tuple[Any, ...] | None = None
-        """("end", results without tracks, tables, CPU time [s], why --refine's fit failed
-        for its vehicles where it did) once the worker ended."""
+        """("end", results as checked without tracks, tables, CPU time [s], (why
+        --refine's fit failed, why a check failed, for its vehicles where one did)) once
+        the worker ended."""
         self.gone = False
         """The worker's output ended (after its end, or because it failed or died)."""
         self.lost = 0
@@ -481,22 +476,25 @@ class ShardedSession:
         backend: Backend = "fast",
         keep_history: bool = True,
         truths: Mapping[int, Sequence[float]] | None = None,
-        refine: RefineAsk | None = None,
+        end: RunEnd | None = None,
         run_info: Callable[[], dict[str, Any]] | None = None,
         log: TextIO | None = None,
-        history_format: str = "parquet",
     ) -> None:
         if workers < 1:
             raise ValueError(f"filter workers: {workers} (at least 1)")
         self.config = config
         self.sinks = list(sinks)
         self.truths = truths
+        self.end = RunEnd() if end is None else end
+        """The end of the run the workers give their vehicles; the vehicles as checked
+        and why a check failed come back into its checks (the view's final panels read
+        them there, as in one process)."""
         self.run_info = run_info
         """Called at the end: what each vehicle's JSON says of the run."""
         self.log = sys.stderr if log is None else log
         own = None if truths is None else {sid: tuple(v) for sid, v in truths.items()}
         self.jobs = [
-            ShardJob(i, config, backend, keep_history, own, out_dir, refine, history_format)
+            ShardJob(i, config, backend, keep_history, own, out_dir, self.end)
             for i in range(workers)
         ]
         model = build_model(config)
@@ -626,7 +624,10 @@ class ShardedSession:
             elif msg[0] == "end":
                 shard.end = msg
                 self.workers_cpu_s += float(msg[3])
-                self.refine_failures += msg[4]
+                refine_failures, check_failures = msg[4]
+                self.refine_failures += refine_failures
+                self.end.checks.failures.extend(check_failures)
+                self.end.checks.done.update(msg[1])
             elif msg[0] == "failed":
                 self._error(f"filter process {shard.index} failed: {msg[1]}")
 

@@ -36,13 +36,13 @@ from gcs_estimator import blas
 from gcs_estimator.config import AircraftConfig, ConfigError, load_config
 from gcs_estimator.outputs.tables import (
     COEFFICIENT_COLUMNS,
-    HISTORY_FORMATS,
     SUMMARY_COLUMNS,
     failed_row,
     read_rows,
     write_table,
 )
 from gcs_estimator.outputs.trend import write_trend
+from gcs_estimator.runtime import options
 from gcs_estimator.runtime.batch import folders
 from gcs_estimator.runtime.logs import (
     LOG_SUFFIXES,
@@ -469,22 +469,20 @@ def _finish(
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of `batch` (cli.build_parser adds the config's)."""
+    """The options of `batch` but --config (add_commands)."""
     p.add_argument(
         "logs",
         nargs="+",
         help="log files, folders (every log in them and below) or glob patterns "
         f"('logs/**/*.tlog'); formats: {', '.join(LOG_SUFFIXES)}",
     )
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config value (repeatable)",
+    options.set_option(p)
+    options.out_options(
+        p,
+        "the batch's folder (default: out/batch_UTCTIME): its tables, trend, and a folder of "
+        "results per log",
+        "start again in an --out that has a batch",
     )
-    p.add_argument("--out", default=None, help="the batch's folder (default: out/batch_UTCTIME)")
-    p.add_argument("--force", action="store_true", help="start again in an --out that has a batch")
     p.add_argument(
         "--resume",
         action="store_true",
@@ -498,11 +496,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"a running Dask scheduler (default: ${SCHEDULER_VARIABLE} if set, else a local "
         "cluster)",
     )
-    where.add_argument("--scheduler-file", default=None, help="a Dask scheduler file")
+    where.add_argument(
+        "--scheduler-file",
+        default=None,
+        metavar="FILE",
+        help="the scheduler a Dask scheduler file names (as dask-scheduler --scheduler-file "
+        "and dask-jobqueue write)",
+    )
     where.add_argument(
         "--workers",
         type=int,
         default=None,
+        metavar="N",
         help="worker processes of the local cluster (default: one per core)",
     )
     where.add_argument(
@@ -516,27 +521,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--retries",
         type=int,
         default=1,
+        metavar="N",
         help="times a log whose task raised is tried again (default: %(default)s)",
     )
-    p.add_argument(
-        "--history",
-        choices=HISTORY_FORMATS,
-        default=HISTORY_FORMATS[0],
-        help="each log's history file format (default: %(default)s)",
-    )
-    p.add_argument(
-        "--vehicle-map",
-        default=None,
-        metavar="TOML",
-        help='names of vehicles: [vehicles] "PATTERN or IDENTITY" = "NAME"',
-    )
-    p.add_argument("--no-trend", action="store_true", help="no trend report at the end")
-    p.add_argument(
-        "--view",
-        choices=("save", "off"),
-        default="save",
-        help="the trend's Rerun recording (trend.rrd): save (default) or off",
-    )
+    options.history_option(p, "each log's")
+    t = p.add_argument_group("the trend of each vehicle across its flights")
+    options.vehicle_map_option(t)
+    t.add_argument("--no-trend", action="store_true", help="no trend report at the end")
+    options.trend_view_option(t)
 
 
 def run_trend(args: argparse.Namespace) -> int:
@@ -560,29 +552,40 @@ def run_trend(args: argparse.Namespace) -> int:
 def add_trend_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("table", help=f"a batch's {COEFFICIENTS_FILE} (or its folder)")
     p.add_argument(
-        "--out", dest="trend_out", default=None, help="where to write (default: beside the table)"
-    )
-    p.add_argument("--filter", choices=("IEKF", "EKF"), default="IEKF", help="whose estimates")
-    p.add_argument(
-        "--vehicle-map",
+        "--out",
+        dest="trend_out",
         default=None,
-        metavar="TOML",
-        help='names of vehicles: [vehicles] "PATTERN or IDENTITY" = "NAME"',
+        metavar="FOLDER",
+        help="where to write the report, its figures and trend.rrd (default: beside the table)",
     )
-    p.add_argument("--view", choices=("save", "off"), default="save", help="trend.rrd: save or off")
+    p.add_argument(
+        "--filter",
+        choices=("IEKF", "EKF"),
+        default="IEKF",
+        help="whose estimates to chart (default: %(default)s)",
+    )
+    options.vehicle_map_option(p)
+    options.trend_view_option(p)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
     return run_batch(args, PROCESS_STOP.install())
 
 
-def add_commands(sub: Any, config_option: Any) -> None:
-    """`batch` and `trend` in the command line's subcommands (config_option: cli's
-    --config)."""
-    p = sub.add_parser("batch", help="estimate many logs (a fleet's) on Dask: tables, trends")
-    config_option(p)
+def add_commands(sub: Any) -> None:
+    """`batch` and `trend` in the command line's subcommands."""
+    p = sub.add_parser(
+        "batch",
+        help="estimate many logs (a fleet's) on a Dask cluster, local or remote: one table of "
+        "every log's coefficients, and each vehicle's trend",
+    )
+    options.config_option(p, None, "needed: the airframe of the aircraft whose logs these are")
     add_arguments(p)
     p.set_defaults(func=cmd_batch)
-    p = sub.add_parser("trend", help="each vehicle's coefficients across flights (a batch's table)")
+    p = sub.add_parser(
+        "trend",
+        help="chart each vehicle's coefficients across its flights from a batch's table, and "
+        "flag a shift beyond what their sigmas allow",
+    )
     add_trend_arguments(p)
     p.set_defaults(func=run_trend)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import gc
 import sys
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
@@ -51,6 +51,11 @@ class SegmentFrame(Frame):
     segment_start: bool = False
     flight: str | None = None
     """The flight this frame begins (its file's name), where a run holds several."""
+
+
+Hold = Callable[[int, float, float, FloatArray, FloatArray], None]
+"""Where a session or a recording gives each frame it is offered, before the gate: (system
+id, seconds since the flight's first frame, time, inputs, measurements)."""
 
 
 class Source(Protocol):
@@ -113,8 +118,13 @@ class Session:
         truths: Mapping[int, Sequence[float]] | None = None,
         truth_for_first: bool = True,
         gate: Limits | None = None,
+        hold: Hold | None = None,
     ) -> None:
         self.config = config
+        self.hold = hold
+        """Given every frame before the gate, with its time since its vehicle's first
+        frame (outputs.checks.Checks.hold: the held-out window's frames kept aside)."""
+        self._first_t: dict[int, float] = {}
         self.gate = gate
         """The segments' limits judged live, frame by frame (segments.Gate); None: every
         frame is used (a recording's segments are chosen before its frames come)."""
@@ -215,6 +225,11 @@ class Session:
 
     def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
         est = self.estimator(frame.system_id)
+        if self.hold is not None:
+            t0 = self._first_t.setdefault(frame.system_id, frame.t_vehicle_s)
+            self.hold(
+                frame.system_id, frame.t_vehicle_s - t0, frame.t_vehicle_s, frame.inputs, frame.y
+            )
         if frame.clock_reset:
             est.rebase(frame.t_vehicle_s, frame.y)
         if isinstance(frame, SegmentFrame):
@@ -299,6 +314,9 @@ class RecordingSource:
         self.plan = plan
         self.flights = list(flights)
         self.done = 0
+        self.hold: Hold | None = None
+        """Given every frame, the plan's or not, with its time since its flight's first
+        frame (Session.hold's, for a recording whose plan leaves frames out)."""
 
     def _marks(self) -> tuple[BoolArray, BoolArray, dict[int, str]]:
         """Which frames are used, which begin a segment, and which begin a flight (its
@@ -316,13 +334,17 @@ class RecordingSource:
 
     def frames(self, stop: Stop) -> Iterator[Frame | None]:
         use, starts, begins = self._marks()
+        firsts = self._flight_starts()
         for i in range(len(self.t_s)):
             if stop.requested:
                 return
             self.done = i + 1
+            t = float(self.t_s[i])
+            if self.hold is not None:
+                t_rel = t - float(self.t_s[firsts[i]])
+                self.hold(self.SYSTEM_ID, t_rel, t, self.inputs[i], self.measurements[i])
             if not use[i]:
                 continue
-            t = float(self.t_s[i])
             known = True if self.inputs_known is None else bool(self.inputs_known[i])
             yield SegmentFrame(
                 self.SYSTEM_ID,
@@ -334,6 +356,14 @@ class RecordingSource:
                 segment_start=bool(starts[i]),
                 flight=begins.get(i),
             )
+
+    def _flight_starts(self) -> list[int]:
+        """Each frame's flight's first frame."""
+        firsts = [0] * len(self.t_s)
+        bounds = [*(first for _, first in self.flights), len(self.t_s)]
+        for j in range(len(self.flights)):
+            firsts[bounds[j] : bounds[j + 1]] = [bounds[j]] * (bounds[j + 1] - bounds[j])
+        return firsts
 
     def progress(self) -> tuple[int, int]:
         """(frames done, frames in all)."""

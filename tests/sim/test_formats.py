@@ -8,10 +8,8 @@ from __future__ import annotations
 import csv
 import io
 import math
-import socket
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,18 +21,16 @@ from pyulog import ULog
 
 from gcs_estimator.config import AircraftConfig, load_config, load_truths
 from gcs_estimator.ingest.flightdata import Recording
-from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.model import atmosphere
 from sim.cli import main as sim_main
 from sim.formats import GRAVITY_MSS, FlightRecord, every, flight_record, truth_path
 from sim.formats.ardupilot import ArduPlaneVehicle
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
-from sim.ports import UdpOut
 from sim.truth import Flight, simulate
+from tests.udp import Ground, loopback, port_of
 
 SHORT = ["simulation.manoeuvre.duration_s=12"]
-DEADLINE_S = 10.0
 
 
 @pytest.fixture(scope="module")
@@ -211,12 +207,6 @@ def _read_tlog(path: Path) -> dict[str, list[Any]]:
     return out
 
 
-def _free_udp_port() -> tuple[socket.socket, int]:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    return sock, int(sock.getsockname()[1])
-
-
 def _sent(t_s: np.ndarray, hz: float) -> np.ndarray:
     """The samples a message at hz goes out with: each due 1/hz after the last due time
     (a scheduler on the vehicle's loop sends it at the first loop past that)."""
@@ -232,7 +222,8 @@ def _sent(t_s: np.ndarray, hz: float) -> np.ndarray:
 def test_arduplane_tlog_has_its_message_set_units_and_rates(
     tmp_path: Path, config: AircraftConfig, flight: Flight, asked: bool
 ) -> None:
-    sink, port = _free_udp_port()
+    sink = loopback()
+    port = port_of(sink)
     prefix = tmp_path / "ap"
     args = ["--set", SHORT[0], "--seed", "3", "--speed", "0", "--autopilot", "arduplane"]
     args += ["--tlog", str(prefix), "--target", f"127.0.0.1:{port}"]
@@ -288,33 +279,6 @@ def test_bin_and_ulg_options_write_the_logs_and_their_truth(
         for p in (tmp_path / f"f_{k}.bin", tmp_path / f"f_{k}.ulg"):
             assert set(load_truths(truth_path(p), config.coefficient_names)) == {k}
     assert {m.Name: m.Value for m in _read_bin(tmp_path / "f_2.bin")["PARM"]}["SYSID_THISMAV"] == 2
-
-
-class Ground:
-    """A ground station's socket, the ArduPlane vehicle's target."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.05)
-        self.codec = mavlink.Codec(255, 190)
-
-    def send(self, vehicle: ArduPlaneVehicle, msg: Any) -> None:
-        assert isinstance(vehicle.port, UdpOut)
-        self.sock.sendto(self.codec.pack(msg), vehicle.port.sock.getsockname())
-
-    def until(self, vehicle: ArduPlaneVehicle, want: Callable[[Any], bool]) -> list[Any]:
-        got: list[Any] = []
-        end = time.monotonic() + DEADLINE_S
-        while not any(want(m) for m in got):
-            assert time.monotonic() < end, [m.get_type() for m in got]
-            vehicle._serve()
-            try:
-                data = self.sock.recv(65535)
-            except TimeoutError:
-                continue
-            got += [m for m in self.codec.parse(data) if m.get_type() != "BAD_DATA"]
-        return got
 
 
 @pytest.fixture

@@ -16,6 +16,7 @@ from pathlib import Path
 from pymavlink import mavutil
 
 from sim.vehicle import STREAM_PARAMS
+from tests.udp import loopback, port_of
 
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"
 FLIGHT_S = 34.0
@@ -118,8 +119,5 @@ def test_mavproxy_sees_a_whole_vehicle(tmp_path: Path) -> None:
 
 
 def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    with loopback() as s:
+        return port_of(s)

@@ -5,8 +5,6 @@ that can be listed, read and set."""
 
 from __future__ import annotations
 
-import socket
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -19,40 +17,10 @@ from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.model.channels import Channel
-from sim.ports import UdpOut
 from sim.truth import simulate
 from sim.vehicle import STREAM_PARAMS, SimulatedVehicle
 from tests.telemetry.test_link import SHORT
-
-DEADLINE_S = 10.0
-
-
-class Ground:
-    """A ground station's socket, the simulated vehicle's target."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.05)
-        self.codec = mavlink.Codec(255, 190)
-
-    def send(self, vehicle: SimulatedVehicle, msg: Any) -> None:
-        assert isinstance(vehicle.port, UdpOut)
-        self.sock.sendto(self.codec.pack(msg), vehicle.port.sock.getsockname())
-
-    def until(self, vehicle: SimulatedVehicle, want: Callable[[Any], bool]) -> list[Any]:
-        """Let the vehicle answer until a message it sent satisfies want; all it sent."""
-        got: list[Any] = []
-        end = time.monotonic() + DEADLINE_S
-        while not any(want(m) for m in got):
-            assert time.monotonic() < end, [m.get_type() for m in got]
-            vehicle._serve()
-            try:
-                data = self.sock.recv(65535)
-            except TimeoutError:
-                continue
-            got += [m for m in self.codec.parse(data) if m.get_type() != "BAD_DATA"]
-        return got
+from tests.udp import Ground
 
 
 @pytest.fixture

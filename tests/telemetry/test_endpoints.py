@@ -29,6 +29,7 @@ from sim.cli import _target
 from sim.truth import simulate
 from sim.vehicle import SimulatedVehicle
 from tests.telemetry.test_link import SHORT
+from tests.udp import loopback, port_of
 
 DEADLINE_S = 30.0
 
@@ -69,9 +70,8 @@ def test_bad_endpoints_say_what_is_wrong(text: str, says: str) -> None:
 def test_a_busy_port_is_one_line_and_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    busy.bind(("127.0.0.1", 0))
-    port = busy.getsockname()[1]
+    busy = loopback()
+    port = port_of(busy)
     code = main(
         ["listen", f"udpin:127.0.0.1:{port}", "--view", "off", "--out", str(tmp_path / "o")]
     )
@@ -102,10 +102,8 @@ def test_a_vehicle_over_ipv6_loopback(tmp_path: Path) -> None:
 
 def test_udpout_speaks_first_then_takes_the_vehicle_that_answers() -> None:
     config = load_config("noc_uav")
-    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    vehicle.bind(("127.0.0.1", 0))
-    vehicle.settimeout(DEADLINE_S)
-    endpoint = endpoints.parse(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}", True)
+    vehicle = loopback(DEADLINE_S)
+    endpoint = endpoints.parse(f"udpout:127.0.0.1:{port_of(vehicle)}", True)
     station = endpoints.open_socket(endpoint, RCVBUF_BYTES)
     link = MavlinkLink(config.link, log=io.StringIO())
     frames = UdpSource(station, link, peer=endpoint.address).frames(Stop())

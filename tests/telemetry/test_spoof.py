@@ -22,16 +22,14 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.vehicles import PIN_MOVE_S, link_name
 from gcs_estimator.stop import Stop
 from tests.telemetry.test_link import recorded_flight
+from tests.udp import loopback
 
 DEADLINE_S = 30.0
 """Hang guard: every wait below ends when what it waits for happened."""
 
 
 def _peer() -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    s.setblocking(False)
-    return s
+    return loopback(0)
 
 
 def _received(sock: socket.socket) -> list[str]:

@@ -21,20 +21,11 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.ingest.telemetry.mavlink import Codec
 from tests.telemetry.station import start_listen
+from tests.telemetry.test_message_sets import ARDUPLANE_PARAMS
+from tests.udp import loopback, port_of
 
-PARAMS = {
-    **{f"SERVO{n}_FUNCTION": 0.0 for n in range(1, 17)},
-    "SERVO4_FUNCTION": 19.0,
-    "SERVO4_MIN": 1100.0,
-    "SERVO4_MAX": 1900.0,
-    "SERVO4_TRIM": 1450.0,
-    "SERVO4_REVERSED": 1.0,
-    "SERVO3_FUNCTION": 70.0,
-    "SERVO3_MIN": 1000.0,
-    "SERVO3_MAX": 2000.0,
-    "SERVO3_TRIM": 1000.0,
-    "SERVO3_REVERSED": 0.0,
-}
+PARAMS = ARDUPLANE_PARAMS
+"""The peer's servo parameters: the elevator on output 4, reversed, trimmed off centre."""
 SERVO4_US = 1700
 """(1700 - 1450) / (1900 - 1450) = 5/9 of full output, reversed: 5/9 nose down."""
 TRAVEL_DEG = 18.0
@@ -153,9 +144,8 @@ def _fly(peer: Peer) -> None:
 
 
 def test_listen_asks_for_rates_and_parameters_and_uses_them(tmp_path: Path) -> None:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
+    sock = loopback()
+    port = port_of(sock)
     out = tmp_path / "run"
     proc, _line = start_listen(
         f"udpout:127.0.0.1:{port}", "--view", "off", "--idle-exit", "2", "--out", str(out),
