@@ -122,10 +122,11 @@ def test_refine_fits_two_flights_jointly() -> None:
     """The whole-record fit over two flights, each flown from its own first frame: it
     converges, each flight's flight states its own (the second piece's start is fitted,
     not the first flight's end), its sigma no larger than either flight's alone, and the
-    truth within its sigmas."""
+    truth within its sigmas. 15 s each: the multisteps and the first pulse, which the
+    25 s flights added only a pulse's tail to (decision 0062)."""
     from gcs_estimator.refine import refine_run
 
-    (a, config), (b, _) = _flight(25.0, seed=5), _flight(25.0, seed=6)
+    (a, config), (b, _) = _flight(15.0, seed=5), _flight(15.0, seed=6)
     joint = refine_run(_run(config, [a, b], ["a", "b"]), "output-error", threads=1)
     alone = [
         refine_run(_run(config, [r], [n]), "output-error", threads=1)
