@@ -501,13 +501,15 @@ def advice_of(
     covariance, its marks and sigma to trust (summary), the channels the record observed
     at the run's measurement noise, its sample rate and the median airspeed of its flight
     (FLYING_SHARE: not the take-off or landing; the airspeed the next flight will fly;
-    the live view takes the latest instead). None: the run kept no history or has no
-    such filter."""
+    the live view takes the latest instead). None: the run kept no history, has no such
+    filter, or observed no channel at all."""
     fr = result.filters.get(kind)
     if fr is None or fr.track is None or len(fr.track.t) < 2 or summary is None:
         return None
     t, y = np.asarray(fr.track.t), np.asarray(fr.track.y)
     observed: BoolArray = np.asarray(np.isfinite(y).any(axis=0), dtype=bool)
+    if not observed.any():  # nothing measured: no manoeuvre's information to predict
+        return None
     flying = np.isfinite(y[:, 0]) & (
         y[:, 0] >= FLYING_SHARE * result.config.airframe.trim_airspeed_mps
     )

@@ -224,7 +224,9 @@ def read_records(path: str | Path, stats: TlogStats | None = None) -> Iterator[T
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernel now, for the types every read
     calls it with: a worker's first log then waits for nothing."""
-    tlog_kernel.run(np.zeros(0, np.uint8), 0, True, False, 0, FRAMING_ONLY, Output(1))
+    # A read-only buffer, as every read passes (np.frombuffer): numba compiles the
+    # writable array type apart, and warming that one left the first read compiling.
+    tlog_kernel.run(np.frombuffer(b"", np.uint8), 0, True, False, 0, FRAMING_ONLY, Output(1))
 
 
 READER_VARIABLE = "GCS_ESTIMATOR_TLOG_READER"
