@@ -209,3 +209,28 @@ def test_the_airframe_file_has_the_lateral_inertia_and_the_spec_sheet_only(
     assert "prop_coefficient" not in text or "prop_coefficient = 1.0 " in text
     assert "[filter]" not in text and "vane" not in text
     assert config.airframe.elevator_travel_deg > 0
+
+
+def test_the_clean_signals_are_the_flights_own(flight: jm.Flight, written: Path) -> None:
+    """NAME.clean.npz (the best fit's signals): the flown values without noise, the climb
+    rate the motion over the ground's."""
+    clean = np.load(written / f"{jm.record_name(MODEL, 'windy', 1)}.clean.npz")
+    assert set(clean.files) == set(jm.CLEAN_KEYS)
+    for key in ("t", "de", "thrust", "phi", "V", "alpha", "a_z", "gust_q"):
+        np.testing.assert_array_equal(clean[key], flight.values[key], err_msg=key)
+    np.testing.assert_array_equal(clean["h_dot"], -flight.values["v_down"])
+
+
+def test_a_jets_propulsion_is_its_rated_thrust_with_a_tolerance() -> None:
+    """No propeller: the propeller model whose full-throttle static thrust at sea level is
+    the engines' rated thrust, not taken as exact (JET_THRUST_TOLERANCE)."""
+    import tomllib
+
+    spec = jm.SPECS["T37"]
+    table = tomllib.loads("\n".join(jm.propulsion_lines(spec)))["propulsion"]
+    static = 0.5 * 1.225 * table["prop_area_m2"] * table["prop_coefficient"]
+    static *= table["motor_constant_mps"] ** 2
+    assert math.isclose(static, spec.engines * spec.static_thrust_n, rel_tol=1e-5)
+    assert table["thrust_tolerance"] == jm.JET_THRUST_TOLERANCE
+    c182 = tomllib.loads("\n".join(jm.propulsion_lines(jm.SPECS["c182"])))["propulsion"]
+    assert "thrust_tolerance" not in c182  # the spec sheet's keys bring their own
