@@ -86,7 +86,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 6
+VERSION = 5
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665
@@ -582,13 +582,6 @@ def keyed(table: type, key: str, value: float) -> str:
     return ("" if known(table, key) else "# ") + f"{key} = {value:.6g}"
 
 
-JET_THRUST_TOLERANCE = 0.2
-"""A jet's thrust tolerance (relative 1-sigma; decision 0061): the propeller model whose
-full-throttle static thrust is the rated one gave, over the first seed's calm missions
-at the throttles flown, 4-10 % (T-37), 4-27 % (737) and 8-20 % (A-4) less than JSBSim's
-engines; with the three exact keys alone the filters would take it as exact."""
-
-
 def propulsion_lines(spec: Spec) -> list[str]:
     """[propulsion] from the spec sheet alone. A propeller: its diameter and the engine's
     power (several engines as one propeller of their discs' area with their power), as
@@ -596,7 +589,7 @@ def propulsion_lines(spec: Spec) -> list[str]:
     no propeller) the exact propeller model's keys by the starter airframe file's rules:
     disc area from the diameter, prop_coefficient 1.0 (not fitted), the motor constant
     twice the top speed; a jet's disc the one whose full-throttle static thrust at sea
-    level is the rated one, with JET_THRUST_TOLERANCE."""
+    level is the rated one."""
     k = 2.0 * spec.top_speed_mps
     head = [
         f"# The spec sheet: {spec.engines} x {spec.note}; top speed {spec.top_speed_mps:.4g} m/s.",
@@ -620,18 +613,12 @@ def propulsion_lines(spec: Spec) -> list[str]:
         area = 2.0 * spec.engines * spec.static_thrust_n / (1.225 * k * k)
         head.append(f"# Rated static thrust {spec.static_thrust_n:.6g} N per engine.")
         lines = [*head, "[propulsion]", 'model = "propeller"']
-    out = [
+    return [
         *lines,
         f"prop_area_m2 = {area:.6g}",
         "prop_coefficient = 1.0  # the starter file's value: not fitted",
         f"motor_constant_mps = {k:.6g}  # twice the top speed",
     ]
-    if spec.diameter_m <= 0 and known(Propulsion, "thrust_tolerance"):
-        out.append(
-            f"thrust_tolerance = {JET_THRUST_TOLERANCE:g}  # a rated thrust and a guessed motor "
-            "constant, not a static thrust test"
-        )
-    return out
 
 
 def airframe_toml(flight: Flight, lk: LinkConfig, ref: dict[str, tuple[float, float]]) -> str:

@@ -437,9 +437,37 @@ def print_turns_against_level(outcomes: list[Outcome]) -> None:
         )
         zt = float(np.mean([np.square(t.z[k]) for t, _ in got]))
         zl = float(np.mean([np.square(lv.z[k]) for _, lv in got]))
-        for label, r in (("σ", sig), ("|error|", err)):
+        for label, r in (("σ", sig), ("abs. error", err)):
             cells = " | ".join(f"{x:.2f}" for x in np.median(r, axis=0))
             print(f"| {k} | {label} | {cells} | {np.median(r):.2f} | {zt:.3g} | {zl:.3g} |")
+
+
+def print_parts(outcomes: list[Outcome], k: str = "EKF") -> None:
+    """What filter k's shown sigma is made of, per case: each part over the shown sigma
+    (median over the records; the movement part as its factor)."""
+    if not outcomes:
+        return
+    names = outcomes[0].names
+    print(
+        f"\n## What the {k}'s sigma is made of\n\neach part of the shown sigma in its units "
+        "(median over the records; movement: the factor on the covariance's)\n"
+    )
+    print("| case | part | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for case in CASES:
+        group = [o for o in outcomes if o.job.condition.endswith(case) and k in o.parts]
+        labels = dict.fromkeys(label for o in group for label in o.parts[k])
+        for label in labels:
+            if label in ("shown", "estimate"):
+                continue
+            rows = [
+                np.array(o.parts[k][label])
+                / (1.0 if label == "movement" else np.array(o.parts[k]["shown"]))
+                for o in group
+                if label in o.parts[k]
+            ]
+            cells = " | ".join(f"{x:.2g}" for x in np.median(rows, axis=0))
+            print(f"| {case} | {label} | {cells} |")
 
 
 def print_misses(outcomes: list[Outcome]) -> None:
@@ -527,12 +555,20 @@ def _priority(job: Job) -> tuple[int, bool, int, bool]:
     return job.seed, air != "calm", PRIORITY.index(job.aircraft), job.condition.endswith("level")
 
 
-def estimate(todo: list[Job], pool: ProcessPoolExecutor, kept: Path) -> list[Outcome]:
-    """Run the jobs, each outcome kept in `kept` as it comes (the folder emptied first)."""
+def estimate(
+    todo: list[Job], pool: ProcessPoolExecutor, kept: Path, resume: bool = False
+) -> list[Outcome]:
+    """Run the jobs, each outcome kept in `kept` as it comes (the folder emptied first;
+    resume: the outcomes kept there stay, and their jobs are not run again)."""
     kept.mkdir(parents=True, exist_ok=True)
-    for old in kept.glob("*.pickle"):
-        old.unlink()
     outcomes = []
+    for old in kept.glob("*.pickle"):
+        if resume:
+            outcomes.append(pickle.loads(old.read_bytes()))
+        else:
+            old.unlink()
+    done_names = {o.job.name for o in outcomes}
+    todo = [j for j in todo if j.name not in done_names]
     for done in as_completed([pool.submit(run_job, job) for job in todo]):
         o = done.result()
         (kept / f"{o.job.name}.pickle").write_bytes(pickle.dumps(o))
@@ -553,7 +589,7 @@ def run(args: argparse.Namespace) -> int:
             prepared = time.perf_counter() - start
             print(f"({prepared:.0f} s flying or fitting the targets)", file=sys.stderr)
             todo = sorted(jobs_of(flights, args), key=_priority)
-            outcomes = estimate(todo, pool, kept)
+            outcomes = estimate(todo, pool, kept, args.resume)
     outcomes.sort(key=lambda o: o.job.name)
     tables = kept / "tables"
     tables.mkdir(parents=True, exist_ok=True)
@@ -568,6 +604,7 @@ def run(args: argparse.Namespace) -> int:
     print_targets(against_reference(outcomes, Path(args.out)), "the reference")
     print_by_aircraft(outcomes)
     print_turns_against_level(outcomes)
+    print_parts(outcomes)
     print_misses(outcomes)
     if fits:
         print_best_fits(fits)
@@ -612,6 +649,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--refine", choices=(*REFINE_METHODS, "none"), default="auto")
     ap.add_argument("--again", action="store_true", help="report the outcomes kept under --out")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the outcomes an earlier run kept under --out and run only the rest",
+    )
     record.add_argument(ap, "mission_accuracy")
     args = ap.parse_args(argv)
     with record.recorded("mission_accuracy", args.record, "The JSBSim mission set: accuracy"):

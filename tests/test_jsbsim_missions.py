@@ -219,18 +219,3 @@ def test_the_clean_signals_are_the_flights_own(flight: jm.Flight, written: Path)
     for key in ("t", "de", "thrust", "phi", "V", "alpha", "a_z", "gust_q"):
         np.testing.assert_array_equal(clean[key], flight.values[key], err_msg=key)
     np.testing.assert_array_equal(clean["h_dot"], -flight.values["v_down"])
-
-
-def test_a_jets_propulsion_is_its_rated_thrust_with_a_tolerance() -> None:
-    """No propeller: the propeller model whose full-throttle static thrust at sea level is
-    the engines' rated thrust, not taken as exact (JET_THRUST_TOLERANCE)."""
-    import tomllib
-
-    spec = jm.SPECS["T37"]
-    table = tomllib.loads("\n".join(jm.propulsion_lines(spec)))["propulsion"]
-    static = 0.5 * 1.225 * table["prop_area_m2"] * table["prop_coefficient"]
-    static *= table["motor_constant_mps"] ** 2
-    assert math.isclose(static, spec.engines * spec.static_thrust_n, rel_tol=1e-5)
-    assert table["thrust_tolerance"] == jm.JET_THRUST_TOLERANCE
-    c182 = tomllib.loads("\n".join(jm.propulsion_lines(jm.SPECS["c182"])))["propulsion"]
-    assert "thrust_tolerance" not in c182  # the spec sheet's keys bring their own
