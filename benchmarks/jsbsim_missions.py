@@ -732,7 +732,7 @@ def write_flight(flight: Flight, out: Path) -> dict[str, Any]:
     fr = flight_record(flight, lk)
     flown = FlightAirframe(airframe.name, (), True)
     clean = out / f"{name}.clean.npz"
-    np.savez_compressed(clean, **clean_values(flight))
+    np.savez_compressed(clean, allow_pickle=False, **clean_values(flight))
     files = [
         write_tlog(fr, out / f"{name}_asked.tlog", True),
         write_tlog(fr, out / f"{name}_default.tlog", False),

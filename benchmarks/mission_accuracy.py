@@ -111,7 +111,8 @@ def fit_in_pieces(
 ) -> tuple[FloatArray, FloatArray]:
     """The structure's best fit to a calm flight's noise-free observations `clean` [N x 8]
     (best_fit.best_fit's output error, each channel weighted by its sensor sigma) over
-    pieces of PIECE_S, each piece's initial state free: over the whole eight minutes the
+    pieces of PIECE_S (and apart where frames are left out between), each piece's
+    initial state free: over the whole eight minutes the
     open-loop model drifts from the flight the autopilot held (on the c182 a whole-flight
     fit left V and theta 1.2 and 1.6 sensor sigmas RMS and put CLa at 7.1, the pieces'
     fit 0.9 and 1.0 and 5.9, the sample-by-sample reference 5.4), and that drift says
@@ -121,7 +122,9 @@ def fit_in_pieces(
     model = build_model(config, gust_states=False)
     u = np.ascontiguousarray(np.array([model.inputs(row) for row in inputs]))
     g = np.zeros((len(t), 2))
-    firsts = np.flatnonzero(np.diff(np.floor((t - t[0]) / PIECE_S), prepend=-1.0) > 0)
+    step = np.diff(t, prepend=-np.inf)
+    gap = step > 1.5 * np.median(step[1:])  # frames left out between (a piece each side)
+    firsts = np.flatnonzero((np.diff(np.floor((t - t[0]) / PIECE_S), prepend=-1.0) > 0) | gap)
     bounds = [*firsts.tolist(), len(t)]
     pieces = list(itertools.pairwise(bounds))
     beta0 = np.asarray(start, float)
