@@ -2,7 +2,8 @@
 logged, airframe files of geometry and a spec-sheet propeller (issue 53's JSBSim targets).
 
     ./run bench mission_accuracy [--seeds 1] [--jobs 2] [--models ...] [--air windy calm]
-                                 [--log bin|ulg] [--level-bank-deg 5] [--again]
+                                 [--log bin|ulg] [--level-bank-deg 5] [--thrust spec|logged]
+                                 [--refine auto|none|...] [--resume] [--again]
 
 The flights are benchmarks/jsbsim_missions.py's (flown here where --out lacks them): six
 aircraft, windy and calm, each an 8-minute circuit of legs and turns of 20-35 degrees,
@@ -18,9 +19,11 @@ both filters and `refine` (auto), twice:
 
 Judged with the sigma and the marks the run shows its user against the structure's best
 fit (benchmarks/best_fit.py) to the calm flight's noise-free signals with JSBSim's thrust
-(NAME.clean.npz): output error over the whole calm flight, its inputs as flown, the
-windy flight judged against its calm twin's (the gusts are not in the structure). One
-target for both cases: what the structure holds over the mission. Per estimator and case:
+(NAME.clean.npz): output error over the calm flight in 60 s pieces, each from its own
+fitted state (fit_in_pieces), its inputs as flown, the windy flight judged against its
+calm twin's (the gusts are not in the structure). One target for both cases: what the
+structure holds over the mission. The same figures against the reference ([truth]:
+JSBSim's coefficients fitted sample by sample) follow. Per estimator and case:
 
 - within 3σ: the share of the coefficients whose error is within 3 of the sigma shown
   (all ten; and the well-excited ones, realdata.WELL_EXCITED, as the validation set);
@@ -34,7 +37,8 @@ target for both cases: what the structure holds over the mission. Per estimator 
 Targets (issue 53): within 3σ >= 90 %, mean z² <= 2, no identified coefficient beyond
 10 %; the turns at least as accurate as the level legs, with smaller sigma where they add
 information. Outcomes are kept in --out/accuracy_spec/ (accuracy_logged/ with --thrust
-logged) as they come; --again reports them.
+logged) as they come; --again reports them, --resume runs only the rest. Decision 0061
+has the figures and what the misses come from.
 """
 
 from __future__ import annotations
