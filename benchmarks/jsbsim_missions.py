@@ -22,6 +22,8 @@ Per flight (NAME = model_air_sSEED), in --out:
   the logger's default rates);
 - each with its truth side file (NAME.truth.toml, NAME_asked.truth.toml, ...): the
   airframe file and JSBSim's reference coefficients, which `replay FILE` finds by itself;
+- NAME.clean.npz: the noise-free signals the structure's best fit is fitted to (CLEAN_KEYS:
+  the inputs as flown, JSBSim's thrust, what sensors at the CG would read, the gusts);
 - NAME.toml: the airframe file (geometry, mass, inertia, the spec sheet's propulsion; no
   filter tuning, no vane) with [truth]; NAME.json: the references with their fit
   residuals, JSBSim's alpha-dot terms, how the flight went, how long it took to fly.
@@ -84,7 +86,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 4
+VERSION = 5
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665
@@ -729,6 +731,8 @@ def write_flight(flight: Flight, out: Path) -> dict[str, Any]:
     truth = {1: tuple(ref[n][0] for n in config.coefficient_names)}
     fr = flight_record(flight, lk)
     flown = FlightAirframe(airframe.name, (), True)
+    clean = out / f"{name}.clean.npz"
+    np.savez_compressed(clean, allow_pickle=False, **clean_values(flight))
     files = [
         write_tlog(fr, out / f"{name}_asked.tlog", True),
         write_tlog(fr, out / f"{name}_default.tlog", False),
@@ -739,7 +743,7 @@ def write_flight(flight: Flight, out: Path) -> dict[str, Any]:
         write_truth(path, truth, config.coefficient_names, flown)
     summary = {
         "name": name,
-        "files": [p.name for p in files],
+        "files": [p.name for p in (*files, clean)],
         "airframe": airframe.name,
         "reference": {n: {"value": x, "residual_rms": r} for n, (x, r) in ref.items()},
         "alpha_dot_terms": alpha_dot_terms(v),
@@ -748,6 +752,22 @@ def write_flight(flight: Flight, out: Path) -> dict[str, Any]:
     }
     (out / f"{name}.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
     return summary
+
+
+CLEAN_KEYS = (
+    *("t", "de", "thrust", "rho", "phi", "p", "r"),
+    *("V", "alpha", "theta", "q", "qdot", "a_x", "a_z", "h_dot"),
+    *("gust_u", "gust_w", "gust_q"),
+)
+"""NAME.clean.npz's arrays: time, the inputs (elevator as it moved, JSBSim's thrust [N],
+density, bank, roll and yaw rate), the eight observations without noise at the CG (the
+climb rate over the ground, up positive) and the gusts (jsbsim_flights._sample)."""
+
+
+def clean_values(flight: Flight) -> dict[str, FloatArray]:
+    """The flight's noise-free signals (CLEAN_KEYS) for the structure's best fit."""
+    v = {**flight.values, "h_dot": -flight.values["v_down"]}
+    return {k: np.asarray(v[k], float) for k in CLEAN_KEYS}
 
 
 def flown_summary(flight: Flight) -> dict[str, float]:

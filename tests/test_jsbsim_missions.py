@@ -209,3 +209,13 @@ def test_the_airframe_file_has_the_lateral_inertia_and_the_spec_sheet_only(
     assert "prop_coefficient" not in text or "prop_coefficient = 1.0 " in text
     assert "[filter]" not in text and "vane" not in text
     assert config.airframe.elevator_travel_deg > 0
+
+
+def test_the_clean_signals_are_the_flights_own(flight: jm.Flight, written: Path) -> None:
+    """NAME.clean.npz (the best fit's signals): the flown values without noise, the climb
+    rate the motion over the ground's."""
+    clean = np.load(written / f"{jm.record_name(MODEL, 'windy', 1)}.clean.npz")
+    assert set(clean.files) == set(jm.CLEAN_KEYS)
+    for key in ("t", "de", "thrust", "phi", "V", "alpha", "a_z", "gust_q"):
+        np.testing.assert_array_equal(clean[key], flight.values[key], err_msg=key)
+    np.testing.assert_array_equal(clean["h_dot"], -flight.values["v_down"])
