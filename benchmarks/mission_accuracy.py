@@ -62,7 +62,7 @@ import record
 from best_fit import _outputs
 from realdata import NEAR_ZERO, WELL_EXCITED
 from scipy.optimize import least_squares
-from validation import Job, Outcome, _table, sigma_parts
+from validation import Job, Outcome, _table, scored
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REFINE_METHODS, AircraftConfig, load_config
@@ -71,7 +71,6 @@ from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import N_FLIGHT, Channel
-from gcs_estimator.refine import RefineError, refine_run
 from gcs_estimator.runtime.flights import limits_of, source_of
 from gcs_estimator.runtime.session import Session
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
@@ -244,28 +243,7 @@ def run_job(job: Job) -> Outcome:
     names = vehicle.result.names
     assert job.goal is not None
     goal = np.array([job.goal[n] for n in names])
-    out = Outcome(job, names)
-    found: dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]] = {}
-    for k in FILTER_KINDS:
-        summary = vehicle.summaries[k].coefficients
-        found[k] = (
-            np.array([c.estimate for c in summary]),
-            np.array([c.sigma for c in summary]),
-            tuple(c.identifiability for c in summary),
-        )
-    try:
-        oe = refine_run(vehicle, job.refine) if job.refine != "none" else None
-    except RefineError as exc:
-        oe, out.failed = None, f"refine failed: {exc}"
-    if oe is not None:
-        found["refine"] = (oe.coefficients, oe.sigma, oe.identifiability)
-    for estimator, (est, sigma, marks) in found.items():
-        out.z[estimator] = ((est - goal) / sigma).tolist()
-        out.marks[estimator] = marks
-    out.parts = sigma_parts(vehicle, oe)
-    for estimator, (est, sigma, _) in found.items():
-        out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
-        out.parts[estimator]["estimate"] = est.tolist()
+    out, found, _ = scored(job, vehicle, goal)
     plan = source.plan
     note = "" if plan is None else plan.summary()
     out.table = note + "\n\n" + _table(names, goal, found)

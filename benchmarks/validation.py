@@ -111,6 +111,41 @@ class Outcome:
     """refine's fitted elevator delay and its sigma [ms] (NaN: none fitted)."""
 
 
+Found = dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]]
+"""Per estimator (the filters, refine): estimates, the sigmas shown, the marks."""
+
+
+def scored(
+    job: Job, vehicle: VehicleResult, goal: np.ndarray
+) -> tuple[Outcome, Found, Refined | None]:
+    """A record's run against goal: each filter's (and, as job asks, refine's)
+    estimates, sigmas shown and marks (a refine that fails is the outcome's failure), their
+    z, and the sigma parts with the sigma shown and the estimate."""
+    out = Outcome(job, vehicle.result.names)
+    found: Found = {}
+    for k in FILTER_KINDS:
+        summary = vehicle.summaries[k].coefficients
+        found[k] = (
+            np.array([c.estimate for c in summary]),
+            np.array([c.sigma for c in summary]),
+            tuple(c.identifiability for c in summary),
+        )
+    try:
+        oe = refine_run(vehicle, job.refine) if job.refine != "none" else None
+    except RefineError as exc:
+        oe, out.failed = None, f"refine failed: {exc}"
+    if oe is not None:
+        found["refine"] = (oe.coefficients, oe.sigma, oe.identifiability)
+    for estimator, (est, sigma, marks) in found.items():
+        out.z[estimator] = ((est - goal) / sigma).tolist()
+        out.marks[estimator] = marks
+    out.parts = sigma_parts(vehicle, oe)
+    for estimator, (est, sigma, _) in found.items():
+        out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
+        out.parts[estimator]["estimate"] = est.tolist()
+    return out, found, oe
+
+
 def run_job(job: Job) -> Outcome:
     """Run the estimator and `refine` on one record and judge them."""
     start, cpu = time.perf_counter(), time.process_time()
@@ -132,27 +167,7 @@ def run_job(job: Job) -> Outcome:
     vehicle = run_recording(config, t, u, y)
     names = vehicle.result.names
     goal = np.array(config.truth if job.goal is None else [job.goal[n] for n in names])
-    out = Outcome(job, names)
-    found: dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]] = {}
-    for k in FILTER_KINDS:
-        summary = vehicle.summaries[k].coefficients
-        found[k] = (
-            np.array([c.estimate for c in summary]),
-            np.array([c.sigma for c in summary]),
-            tuple(c.identifiability for c in summary),
-        )
-    try:
-        oe = refine_run(vehicle, job.refine) if job.refine != "none" else None
-    except RefineError as exc:
-        oe, out.failed = None, f"refine failed: {exc}"
-    if oe is not None:
-        found["refine"] = (oe.coefficients, oe.sigma, oe.identifiability)
-    for estimator, (est, sigma, marks) in found.items():
-        out.z[estimator] = ((est - goal) / sigma).tolist()
-        out.marks[estimator] = marks
-    out.parts = sigma_parts(vehicle, oe)
-    for estimator, (_, sigma, _) in found.items():
-        out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
+    out, found, oe = scored(job, vehicle, goal)
     if oe is not None and "elevator" in oe.delay_names:
         i = oe.delay_names.index("elevator")
         out.delay_ms = (1e3 * float(oe.delays_s[i]), 1e3 * float(oe.delay_sigma_s[i]))
