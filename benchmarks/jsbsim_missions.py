@@ -86,7 +86,7 @@ from sim.formats.ardupilot import ArduPlaneVehicle, parse_rates
 from sim.formats.dataflash import write_bin
 from sim.formats.ulog import write_ulg
 
-VERSION = 5
+VERSION = 6
 """Bump when the flights or the files change: the cache is keyed on it."""
 OUT = ROOT / "out" / "missions"
 GRAVITY = 9.80665
@@ -117,16 +117,27 @@ class Spec:
     """Each jet engine's rated static thrust (0: a propeller)."""
     top_speed_mps: float = 0.0
     note: str = ""
+    engine: str = "electric"
+    """What turns the propeller ([propulsion] engine): these are piston and turboprop."""
 
 
 HP, LBF, KT = 745.7, 4.44822, 0.514444
 SPECS = {
-    "c182": Spec(1, 230 * HP, 81 * 0.0254, top_speed_mps=145 * KT, note="IO-540, 81 in"),
+    "c182": Spec(
+        1, 230 * HP, 81 * 0.0254, top_speed_mps=145 * KT, note="IO-540, 81 in", engine="piston"
+    ),
     "A4": Spec(1, static_thrust_n=11200 * LBF, top_speed_mps=585 * KT, note="J52"),
     "t6texan2": Spec(
-        1, 1100 * HP, 97 * 0.0254, top_speed_mps=316 * KT, note="PT6A-68, 97 in four-blade"
+        1,
+        1100 * HP,
+        97 * 0.0254,
+        top_speed_mps=316 * KT,
+        note="PT6A-68, 97 in four-blade",
+        engine="turboprop",
     ),
-    "DHC6": Spec(2, 680 * HP, 94 * 0.0254, top_speed_mps=182 * KT, note="PT6A-27, 94 in"),
+    "DHC6": Spec(
+        2, 680 * HP, 94 * 0.0254, top_speed_mps=182 * KT, note="PT6A-27, 94 in", engine="turboprop"
+    ),
     "T37": Spec(2, static_thrust_n=1025 * LBF, top_speed_mps=360 * KT, note="J69-T25"),
     "737": Spec(2, static_thrust_n=20000 * LBF, top_speed_mps=470 * KT, note="CFM56"),
 }
@@ -605,6 +616,7 @@ def propulsion_lines(spec: Spec) -> list[str]:
             'model = "propeller"',
             keyed(Propulsion, "prop_diameter_m", diameter),
             keyed(Propulsion, "max_power_w", power),
+            f'engine = "{spec.engine}"',
         ]
         if known(Propulsion, "prop_diameter_m"):
             return lines

@@ -169,6 +169,12 @@ class Propulsion:
         doc="the propeller's rpm at full throttle (electric: about 0.8 x kv x battery volts); "
         "0: not given",
     )
+    engine: str = setting(
+        "electric",
+        choices=("electric", "piston", "turboprop"),
+        doc="what turns the propeller: an electric motor (the throttle sets its speed) "
+        "or an engine whose throttle sets its power (piston, turboprop); spec sheet only",
+    )
     thrust_tolerance: float | None = setting(
         None,
         gt=0,
@@ -191,7 +197,16 @@ class Propulsion:
     """A factor on the zero-thrust airspeed (the structure check's replays move it)."""
 
     def check(self) -> None:
-        if self.model != "propeller" or self.exact:
+        if self.model != "propeller":
+            return
+        if self.exact:
+            if self.engine != "electric":
+                raise Invalid(
+                    "engine",
+                    f"the exact keys ({', '.join(EXACT_PROPELLER_KEYS)}) describe an "
+                    'electric motor\'s propeller: leave engine = "electric", or give the '
+                    "spec sheet's keys instead of the exact ones",
+                )
             return
         exact = [k for k in EXACT_PROPELLER_KEYS if getattr(self, k) > 0]
         if exact:
@@ -222,6 +237,8 @@ class Propulsion:
             c = PropellerConstants(
                 self.prop_area_m2, self.prop_coefficient, self.motor_constant_mps, 0.0, 0.0
             )
+        elif self.engine != "electric":
+            c = propeller.from_engine(self.prop_diameter_m, self.max_power_w, rho)
         else:
             c = propeller.from_spec_sheet(
                 self.prop_diameter_m, self.max_power_w, rho, self.prop_pitch_m, self.max_rpm

@@ -137,8 +137,8 @@ def build_model(config: AircraftConfig, gust_states: bool | None = None) -> Mode
     k[eq.SPAN] = a.wing_span_m
     k[eq.IXX], k[eq.IZZ], k[eq.IXZ] = a.inertia_xx_kgm2, a.inertia_zz_kgm2, a.inertia_xz_kgm2
     if p.model == "propeller":
-        k[eq.PROP_KIND] = eq.PROP_PROPELLER
         c = p.constants(a.air_density_kgpm3)
+        k[eq.PROP_KIND] = eq.PROP_ENGINE if c.engine else eq.PROP_PROPELLER
         k[eq.PROP_AREA] = c.area_m2
         k[eq.PROP_COEF] = c.coefficient * p.thrust_scale
         k[eq.MOTOR_K] = c.zero_thrust_mps * p.speed_scale
@@ -198,7 +198,7 @@ def trim(model: Model, beta: FloatArray, airspeed_mps: float | None = None) -> T
     Solves Vdot = alphadot = qdot = 0 for alpha, elevator and throttle (or thrust).
     """
     V = float(model.k[eq.V0]) if airspeed_mps is None else airspeed_mps
-    propeller = model.k[eq.PROP_KIND] == eq.PROP_PROPELLER
+    propeller = eq.throttle_driven(model.k)
 
     def residual(z: FloatArray) -> FloatArray:
         alpha, de, power = z

@@ -42,7 +42,10 @@ IXX, IZZ, IXZ = 20, 21, 22
 """Roll and yaw inertia and their product [kg m^2] for q-dot's inertial coupling in turns
 (Ixx = Izz = 0: the coupling left out)."""
 N_CONST = 23
-PROP_MEASURED, PROP_PROPELLER = 0.0, 1.0
+PROP_MEASURED, PROP_PROPELLER, PROP_ENGINE = 0.0, 1.0, 2.0
+"""Thrust measured; a propeller whose speed the throttle sets (an electric motor: the
+paper's model); a propeller whose shaft power the throttle sets (a piston engine or a
+turboprop)."""
 
 N_STATE = N_FLIGHT
 """The flight states [V, alpha, theta, q] are x_a[0:4]."""
@@ -100,13 +103,27 @@ def thrust(V: float, u1: float, rho: float, k: FloatArray) -> tuple[float, float
     """Thrust Fe [N] and dFe/dV [N s/m] at air density rho [kg/m^3].
 
     Propeller model (docs/model.md): Fe = 0.5*rho*S_prop*C_prop*((k_motor*throttle)^2 - V^2).
+    Engine model (a piston engine or turboprop, model.propeller): the throttle sets the
+    thrust power, Fe = throttle * P_thrust / sqrt(V^2 + V_s^2), P_thrust = PROP_COEF [W]
+    and V_s = MOTOR_K [m/s] (the static thrust is P_thrust / V_s).
     Measured thrust: Fe = u1.
     """
     if k[PROP_KIND] == PROP_PROPELLER:
         c = 0.5 * rho * k[PROP_AREA] * k[PROP_COEF]
         vm = k[MOTOR_K] * u1
         return c * (vm * vm - V * V), -2.0 * c * V
+    if k[PROP_KIND] == PROP_ENGINE:
+        vs = k[MOTOR_K]
+        r2 = V * V + vs * vs
+        r = math.sqrt(r2)
+        f = u1 * k[PROP_COEF] / r
+        return f, -f * V / r2
     return u1, 0.0
+
+
+def throttle_driven(k: FloatArray) -> bool:
+    """Whether the second input is a throttle (a propeller or engine model), not thrust."""
+    return bool(k[PROP_KIND] != PROP_MEASURED)
 
 
 def aero_coefficients(

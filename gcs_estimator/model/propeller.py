@@ -17,6 +17,14 @@ engine's or motor's maximum power P (and its top rpm). At full throttle:
   k = 3 sqrt(3) ETA P / (2 T0);
 - C = 2 T0 / (rho S k^2), so that Fe(throttle 1, V 0) = T0.
 
+A piston engine or a turboprop ([propulsion] engine): its throttle sets the shaft power,
+not the propeller's speed, and at a part throttle the quadratic above would put the
+zero-thrust airspeed below the cruise speed. Its model (equations.thrust) is the thrust
+power over the airspeed, kept finite at rest: Fe = throttle ETA P / sqrt(V^2 + V_s^2),
+with V_s = ETA P / T0 so that the static thrust at full throttle is T0 (the same
+actuator-disc T0); PROP_COEF holds ETA P [W] and MOTOR_K V_s, so that the same two
+factors (the thrust and the speed) apply.
+
 Each is a guess within a tolerance: the static thrust's (through FM) is the prior sigma
 of a thrust scale (a factor on 0.5 rho S C), the zero-thrust airspeed's that of a factor
 on k. `refine` fits both with the coefficients, these sigmas its priors; the filters'
@@ -43,6 +51,11 @@ zero-lift angle puts real propellers' zero thrust 0-30 % above the geometric pit
 the model's quadratic falls off otherwise than a real propeller's thrust)."""
 POWER_SPEED_SIGMA = 0.3
 """Its relative 1-sigma where it comes from the power (ETA and T0's both enter)."""
+ENGINE_POWER_SIGMA = 0.15
+"""An engine's thrust power's relative 1-sigma: ETA between 0.7 and 0.85 in cruise, and
+the rated power a new engine's at sea level."""
+ENGINE_SPEED_SIGMA = 0.2
+"""V_s's relative 1-sigma (ETA P over the actuator-disc T0: both enter)."""
 
 
 class PropellerConstants(NamedTuple):
@@ -58,6 +71,9 @@ class PropellerConstants(NamedTuple):
     """Relative 1-sigma of the thrust (a factor on 0.5 rho S C); 0: exact."""
     speed_sigma: float
     """Relative 1-sigma of k; 0: exact."""
+    engine: bool = False
+    """The engine model: coefficient is the thrust power ETA P [W] at full throttle and
+    zero_thrust_mps its speed scale V_s [m/s] (area unused)."""
 
 
 def disc_area(diameter_m: float) -> float:
@@ -87,7 +103,20 @@ def from_spec_sheet(
     return PropellerConstants(area, coefficient, speed, STATIC_THRUST_SIGMA, speed_sigma)
 
 
+def from_engine(diameter_m: float, power_w: float, rho: float) -> PropellerConstants:
+    """A piston engine's or turboprop's constants (module docstring): its propeller's
+    diameter [m], the engine's maximum shaft power [W], the air density [kg/m^3]."""
+    area = disc_area(diameter_m)
+    thrust_power = PROPULSIVE_EFFICIENCY * power_w
+    speed = thrust_power / static_thrust(power_w, area, rho)
+    return PropellerConstants(
+        area, thrust_power, speed, ENGINE_POWER_SIGMA, ENGINE_SPEED_SIGMA, engine=True
+    )
+
+
 def full_throttle_thrust(c: PropellerConstants, rho: float, airspeed_mps: float = 0.0) -> float:
     """The model's thrust [N] at full throttle (equations.thrust)."""
     k = c.zero_thrust_mps
+    if c.engine:
+        return c.coefficient / math.sqrt(airspeed_mps * airspeed_mps + k * k)
     return 0.5 * rho * c.area_m2 * c.coefficient * (k * k - airspeed_mps * airspeed_mps)

@@ -195,7 +195,7 @@ def candidate_flights(
     if c.kind == "throttle step":
         t = np.arange(0.0, 2.0 * c.unit_s, dt)
         u = np.tile(u0, (t.shape[0], 1))
-        propeller = model.k[eq.PROP_KIND] == eq.PROP_PROPELLER
+        propeller = eq.throttle_driven(model.k)
         step = c.amplitude if propeller else c.amplitude * abs(float(u0[1]))
         u[t < c.unit_s, 1] = min(u0[1] + step, 1.0) if propeller else u0[1] + step
         return [Flight(x0, t, u)]
