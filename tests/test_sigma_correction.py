@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.outputs.diagnosis import DISAGREE_SIGMAS, GUST_BURSTS, trust_warnings
+from gcs_estimator.outputs.diagnosis import (
+    DISAGREE_SIGMAS,
+    GUST_BURSTS,
+    SIGN_SIGMAS,
+    trust_warnings,
+)
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED
@@ -290,22 +295,25 @@ def test_an_elevator_that_never_moves_is_named() -> None:
 
 def test_an_elevator_read_with_its_sign_reversed_is_named() -> None:
     """The elevator read with its sign reversed (a servo mounted the other way, a
-    calibration's sign): Cmde comes out positive and CLde negative, far from zero, which
-    no conventional aircraft has; the warnings name both and the likely cause. The same
-    flight read right raises no such warning."""
+    calibration's sign): Cmde comes out positive and CLde negative, which no conventional
+    aircraft has; the warnings name Cmde, far from zero in every filter, and CLde wherever
+    its sigma shown puts it SIGN_SIGMAS from zero (the structure check's parts may not),
+    and the likely cause. The same flight read right raises no such warning."""
     config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
     flight = simulate(config, seed=4)
     named = {}
+    runs = {}
     for sign in (1.0, -1.0):
         u = flight.inputs.copy()
         u[:, 0] *= sign
-        run = run_recording(config, flight.t_s, u, flight.measurements)
+        runs[sign] = run = run_recording(config, flight.t_s, u, flight.measurements)
         named[sign] = [w for w in trust_warnings(run) if "of the sign no conventional" in w]
     assert named[1.0] == []
-    assert {w.split(" came out")[0] for w in named[-1.0]} == {
-        "EKF: Cmde",
-        "IEKF: Cmde",
-        "EKF: CLde",
-        "IEKF: CLde",
-    }
+    expected = {"EKF: Cmde", "IEKF: Cmde"}
+    for kind, summary in runs[-1.0].summaries.items():
+        clde = next(c for c in summary.coefficients if c.name == "CLde")
+        assert clde.estimate < 0, (kind, clde.estimate)
+        if -clde.estimate > SIGN_SIGMAS * clde.sigma:
+            expected.add(f"{kind}: CLde")
+    assert {w.split(" came out")[0] for w in named[-1.0]} == expected
     assert all("sign reversed" in w for w in named[-1.0])

@@ -199,7 +199,9 @@ def test_the_dataflash_estimates_agree_with_the_native_stream_and_truth(
     stream's estimate but Cm0: the native stream's pitch acceleration halves Cm0's sigma
     (0.00067 against the .bin's 0.00127), and the two lie 1.1 of the .bin's sigma apart,
     1.3 of their difference's (the .bin's data are the native stream's, thinned: the
-    previous test). Cm0 is held to the difference's 1.5 sigma, the rest to 1 sigma."""
+    previous test). Cm0 is held to the difference's 1.5 sigma or, where the sigma shown is
+    the structure check's more than the covariance's (both runs then share it), to 1 sigma
+    as the rest."""
     names = runs["native"]["coefficients"]
     truth = load_truths(truth_path(logs["bin"]), names)[1]
     for kind in ("IEKF", "EKF"):
@@ -210,7 +212,7 @@ def test_the_dataflash_estimates_agree_with_the_native_stream_and_truth(
             apart = abs(est - theirs[name]["estimate"])
             if name == "Cm0":
                 difference_sigma = math.sqrt(max(sigma**2 - theirs[name]["sigma"] ** 2, 0.0))
-                assert apart <= 1.5 * difference_sigma, (kind, name, est, theirs[name])
+                assert apart <= max(1.5 * difference_sigma, sigma), (kind, name, est, theirs[name])
             else:
                 assert apart <= sigma, (kind, name, est, theirs[name])
             assert abs(est - truth[i]) <= 3 * sigma, (kind, name, est, truth[i], sigma)

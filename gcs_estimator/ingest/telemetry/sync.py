@@ -239,6 +239,9 @@ def _time_of(frame: _Open) -> float:
     return frame.t
 
 
+# Over 200 lines: one vehicle's samples to frames (clock anchoring, input tracks, open
+# frames, late samples) with the common cases' shortcuts (decision 0058) beside the rules
+# they skip, so that each shortcut is read next to what it must equal.
 @dataclass
 class Synchronizer:
     """Frames of one vehicle."""
