@@ -278,9 +278,27 @@ def cpu_per_log(args: argparse.Namespace, paths: list[Path], tmp: Path) -> None:
     written), by the CPU time charged to this process: the figure a loaded machine
     leaves meaningful (wall-clock ones count the other processes' turns). The median of
     --decode-rounds after one warm-up run; the parts' shares by the run's own clocks
-    (decode_s, filter_s, write_s: wall-clock, the load spread over all three alike)."""
-    config = load_config("noc_uav", _overrides(args.seconds))
-    path = paths[0]
+    (decode_s, filter_s, write_s: wall-clock, the load spread over all three alike).
+    Then the same log with the structure check off: a run of at most
+    filter.structure_check_max_frames frames replays its final pass once per channel and
+    per undecided quantity (decision 0047), which on a short log is most of its CPU."""
+    overrides = _overrides(args.seconds)
+    for label, extra in (("", []), (", structure check off", ["filter.structure_check=off"])):
+        config = load_config("noc_uav", overrides + extra)
+        cpu, shares = _median_cpu(args, config, paths[0], tmp)
+        print(
+            f"one log, CPU{label}: {args.seconds:g} s flight in {cpu:.2f} s CPU: "
+            f"{args.seconds / cpu:.0f} flight-hours per CPU-hour (target 200; median of "
+            f"{args.decode_rounds}); the parts' shares of its wall-clock time: decode "
+            f"{100 * shares['decode_s']:.0f} %, filter (the structure check's replays in it) "
+            f"{100 * shares['filter_s']:.0f} %, write {100 * shares['write_s']:.0f} %"
+        )
+
+
+def _median_cpu(
+    args: argparse.Namespace, config: Any, path: Path, tmp: Path
+) -> tuple[float, dict[str, float]]:
+    """The median CPU time of --decode-rounds estimates of one log, and its parts' shares."""
     estimate_file(path, config, tmp / "cpu_warm")  # kernels loaded, first-use costs paid
     runs = []
     for k in range(args.decode_rounds):
@@ -290,13 +308,7 @@ def cpu_per_log(args: argparse.Namespace, paths: list[Path], tmp: Path) -> None:
         row = out.summaries[0]
         wall = sum(row[p] for p in ("decode_s", "filter_s", "write_s")) or 1.0
         runs.append((cpu, {p: row[p] / wall for p in ("decode_s", "filter_s", "write_s")}))
-    cpu, shares = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
-    print(
-        f"one log, CPU: {args.seconds:g} s flight in {cpu:.2f} s CPU: {args.seconds / cpu:.0f} "
-        f"flight-hours per CPU-hour (target 200; median of {len(runs)}); the parts' shares of "
-        f"its wall-clock time: decode {100 * shares['decode_s']:.0f} %, filter "
-        f"{100 * shares['filter_s']:.0f} %, write {100 * shares['write_s']:.0f} %"
-    )
+    return sorted(runs, key=lambda r: r[0])[len(runs) // 2]
 
 
 def external(args: argparse.Namespace, logs: Path, tmp: Path) -> dict[str, Any]:
