@@ -29,7 +29,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry import tlog_kernel
-from gcs_estimator.ingest.telemetry.decode import DecodeStats, SampleReader
+from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, SampleReader
 from gcs_estimator.ingest.telemetry.mavlink import (
     _TIME_US,
     BACK_US,
@@ -70,10 +70,16 @@ class Run(NamedTuple):
     values: list[float]
     """The fields of the table messages (tlog_kernel.Output.values), `width` a record."""
     width: int
+    columns: np.ndarray[Any, np.dtype[np.float64]] | None = None
+    """The same fields as a record a row (a copy), for SampleReader.columns."""
 
 
 def _one(data: bytes, t: int, start: int, end: int) -> Run:
     return Run(data, [start], [end], [t], [OTHER], [0], [0], [0], [], 0)
+
+
+COLUMNS_MIN = 16
+"""Runs shorter than this are decoded record by record (columns would cost more)."""
 
 
 FRAMING_ONLY = tlog_kernel.field_table(())
@@ -141,6 +147,7 @@ class _Reader:
             compid,
             out.values[:taken, : self.width].ravel().tolist(),
             self.width,
+            out.values[:taken, : self.width].copy() if taken >= COLUMNS_MIN else None,
         )
         self.last_t = int(out.header[taken - 1, 0])
         self.i = end
@@ -268,16 +275,23 @@ class CompiledTlogSource(TlogSource):
         link = self.link
         packet_frames = link.packet
         decoded_frames = link.decoded_packet
+        sample_frames = link.sample_packet
         of_fields = link.samples.of_fields
         messages = table.messages
         data, values, width = run.data, run.values, run.width
         starts, ends, times = run.starts, run.ends, run.times
         seqs, sysids, compids = run.seq, run.system_id, run.component_id
         signed = link.signing is not None
+        columns = None if signed else _columns(run, table, link.samples)
+        which, row = columns or (_NO_COLUMNS, run.status)
         for j, status in enumerate(run.status):
             t = times[j] * 1e-6
             packet = data[starts[j] : ends[j]]
-            if status < 0 or signed:
+            got = which[j]
+            sample = None if got is None else got.sample(row[j])
+            if sample is not None:
+                out = sample_frames(packet, t, compids[j], seqs[j], sample)
+            elif status < 0 or signed:
                 out = packet_frames(packet, t)
             else:
                 msg = messages[status]
@@ -289,6 +303,45 @@ class CompiledTlogSource(TlogSource):
                 out = decoded_frames(packet, t, sample)
             if out:
                 yield from out
+
+
+class _NoColumns:
+    """No record of a run read from columns."""
+
+    def __getitem__(self, j: int) -> None:
+        return None
+
+
+_NO_COLUMNS = _NoColumns()
+
+
+def _columns(
+    run: Run, table: FieldTable, reader: SampleReader
+) -> tuple[list[Columns | None], list[int]] | None:
+    """Per record of a run: the Columns of its message where SampleReader.columns reads
+    that message (None: record by record), and its row there."""
+    cols = run.columns
+    if cols is None:
+        return None
+    status = np.asarray(run.status)
+    which: list[Columns | None] = [None] * len(run.status)
+    row = [0] * len(run.status)
+    sysids, times = run.system_id, run.times
+    for slot in np.unique(status[status >= 0]).tolist():
+        msg = table.messages[slot]
+        rows = np.flatnonzero(status == slot)
+        at = rows.tolist()
+        got = reader.columns(
+            msg.msgid,
+            tuple(cols[rows, : msg.count].T),
+            [sysids[r] for r in at],
+            [times[r] * 1e-6 for r in at],
+        )
+        if got is not None:
+            for k, r in enumerate(at):
+                which[r] = got
+                row[r] = k
+    return which, row
 
 
 def _with_text(packet: bytes, msg: tlog_kernel.Message, values: list[Any]) -> list[Any]:
