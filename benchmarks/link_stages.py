@@ -7,7 +7,9 @@ runs each part of the link alone over the same records in order, by the CPU time
 to this process (the machine's load does not count, other than through its caches) with
 the garbage collector off: the kernel reading (framing, CRC, fields, its columns as
 lists), the per-record loop, SampleReader.of_fields, LinkHealth.on_packet, the channel
-choice (VehicleSetup.prepare) and the vehicle and synchroniser; then the whole decoding
+choice (VehicleSetup.prepare) and the vehicle and synchroniser, and apart what of
+of_fields' work the run's columns do (SampleReader.columns, decision 0064: the replay
+takes it in of_fields' place wherever a sample is whole); then the whole decoding
 to frames (CompiledTlogSource) and one log estimated as a batch's task does it
 (estimate_file). The minimum of --rounds for each.
 """
@@ -34,6 +36,7 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogStats
 from gcs_estimator.ingest.telemetry.tlog_fast import (
     CompiledTlogSource,
+    _columns,
     _with_text,
     read_runs,
     table_of,
@@ -78,6 +81,26 @@ def _records(path: Path, config: Any) -> list[Item]:
     return items
 
 
+def _on_columns(path: Path, config: Any, rounds: int) -> tuple[float, int]:
+    """CPU seconds of SampleReader.columns over the log's runs, the samples made one by
+    one as the replay takes them, and how many it read whole."""
+    table = table_of(config.link)
+    runs = list(read_runs(path, TlogStats(), table))
+
+    def work() -> int:
+        reader = MavlinkLink(config.link, log=io.StringIO()).samples
+        n = 0
+        for run in runs:
+            got = _columns(run, table, reader)
+            if got is not None:
+                for c, k in zip(*got, strict=True):
+                    n += c is not None and c.sample(k) is not None
+        return n
+
+    t, n = _cpu(work, rounds)
+    return t, int(n)
+
+
 def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
     """CPU seconds of each part, run alone over the log's records in order."""
     out = []
@@ -93,6 +116,8 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
 
     t, decoded = _cpu(decode, rounds)
     out.append(("SampleReader.of_fields", t))
+
+    t_columns, n_columns = _on_columns(path, config, rounds)
     samples = [(p, d) for (p, _, _), d in zip(items, decoded, strict=True) if d is not None]
 
     def count() -> list[Sample]:
@@ -126,6 +151,7 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
         return sum(len(link.fleet.sample(v, s, 1)) for s in prepared if s is not None)
 
     out.append(("vehicle and synchroniser", _cpu(synchronise, rounds)[0]))
+    out.append((f"(of_fields' {n_columns} on columns)", t_columns))
     return out
 
 
@@ -148,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         gc.enable()
         for name, t in parts:
             print(f"  {name:<28} {t:6.2f}")
-        print(f"  {'sum of the parts':<28} {sum(t for _, t in parts):6.2f}")
+        print(f"  {'sum of the parts':<28} {sum(t for _, t in parts[:-1]):6.2f}")
 
         def frames() -> int:
             link = MavlinkLink(config.link, log=io.StringIO())
