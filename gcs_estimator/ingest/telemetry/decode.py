@@ -288,7 +288,7 @@ class Columns:
         self.good: list[bool] = good.tolist()
         self.system_ids = system_ids
         self.t_recv_s = t_recv_s
-        self.times: list[float] | None = None if t is None else t.tolist()
+        self.times: list[float] | None = None if t is None else np.asarray(t).tolist()
         self.values = _pairs(tuple(ch for ch, _ in vals), [np.asarray(v).tolist() for _, v in vals])
         self.aux = _pairs(tuple(k for k, _ in aux), [np.asarray(v).tolist() for _, v in aux])
         self.outputs = np.column_stack(outputs) if outputs else None
@@ -500,7 +500,13 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
     ) -> _Plan:
         """columns: True where make itself takes columns (and reads every row)."""
         if columns is True:
-            return _Plan(FieldReader(name, fields), make, lambda f: (make(f), None))
+
+            def whole(f: tuple[Any, ...]) -> tuple[Found, Any]:
+                found = make(f)
+                assert found is not None  # these makers always find
+                return found, None
+
+            return _Plan(FieldReader(name, fields), make, whole)
         return _Plan(FieldReader(name, fields), make, columns or None)
 
     imu = ("xacc", "zacc", "ygyro")

@@ -299,8 +299,8 @@ class CompiledTlogSource(TlogSource):
                 fields = values[at : at + msg.count]
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
-                sample = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
-                out = decoded_frames(packet, t, sample)
+                decoded = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
+                out = decoded_frames(packet, t, decoded)
             if out:
                 yield from out
 
