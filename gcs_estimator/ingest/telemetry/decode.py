@@ -231,17 +231,20 @@ class SampleReader:
     def columns(
         self,
         msgid: int,
-        fields: tuple[np.ndarray[Any, np.dtype[np.float64]], ...],
+        fields: tuple[Any, ...],
         system_ids: list[int],
         t_recv_s: list[float],
     ) -> Columns | None:
         """Many packets of one of these messages at once (tlog_kernel's columns, each
-        field a float64 column), as of_fields reads each (Columns.sample); None where
-        the message's plan reads no columns."""
+        field a float64 column, a char[] field the raw bytes all of them have), as
+        of_fields reads each (Columns.sample); None where the message's plan reads no
+        columns, or none of these packets."""
         plan = self._plans[msgid]
         if plan.columns is None:
             return None
         found, rows = plan.columns(fields)
+        if found is None:  # (a name no channel has): of_fields counts each
+            return None
         return Columns(plan.reader.msgname, found, rows, system_ids, t_recv_s, self._ranges)
 
     @property
@@ -397,10 +400,11 @@ class _Plan(NamedTuple):
 
     reader: FieldReader
     make: Callable[[tuple[Any, ...]], Found | None]
-    columns: Callable[[tuple[Any, ...]], tuple[Found, Any]] | None = None
-    """`make` on columns (each field an array of many packets' values), with the rows it
-    reads whole (a bool array; None: all): the same arithmetic, no branch on a value
-    (SampleReader.columns). None: this message is read packet by packet."""
+    columns: Callable[[tuple[Any, ...]], tuple[Found | None, Any]] | None = None
+    """`make` on columns (each field an array of many packets' values; a char[] field
+    one value for them all), with the rows it reads whole (a bool array; None: all): the
+    same arithmetic, no branch on a value (SampleReader.columns). None: this message is
+    read packet by packet."""
 
 
 DEG_TO_RAD = math.pi / 180.0
@@ -496,17 +500,11 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         name: str,
         fields: tuple[str, ...],
         make: Callable[[tuple[Any, ...]], Found | None],
-        columns: Callable[[tuple[Any, ...]], tuple[Found, Any]] | bool = True,
+        columns: Callable[[tuple[Any, ...]], tuple[Found | None, Any]] | bool = True,
     ) -> _Plan:
         """columns: True where make itself takes columns (and reads every row)."""
         if columns is True:
-
-            def whole(f: tuple[Any, ...]) -> tuple[Found, Any]:
-                found = make(f)
-                assert found is not None  # these makers always find
-                return found, None
-
-            return _Plan(FieldReader(name, fields), make, whole)
+            return _Plan(FieldReader(name, fields), make, lambda f: (make(f), None))
         return _Plan(FieldReader(name, fields), make, columns or None)
 
     imu = ("xacc", "zacc", "ygyro")
@@ -533,7 +531,7 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         ),
         plan("SERVO_OUTPUT_RAW", ("time_usec", "port", *SERVO_FIELDS), servo, servo_columns),
         plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure, False),
-        plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value, False),
+        plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value),
         plan(
             "GLOBAL_POSITION_INT",
             ("time_boot_ms", "vx", "vy", "vz"),

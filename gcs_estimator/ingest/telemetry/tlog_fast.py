@@ -329,28 +329,56 @@ def _columns(
     sysids, times = run.system_id, run.times
     for slot in np.unique(status[status >= 0]).tolist():
         msg = table.messages[slot]
-        rows = np.flatnonzero(status == slot)
-        at = rows.tolist()
-        got = reader.columns(
-            msg.msgid,
-            tuple(cols[rows, : msg.count].T),
-            [sysids[r] for r in at],
-            [times[r] * 1e-6 for r in at],
-        )
-        if got is not None:
-            for k, r in enumerate(at):
-                which[r] = got
-                row[r] = k
+        for rows, texts in _groups(run, msg, np.flatnonzero(status == slot)):
+            at = rows.tolist()
+            fields: list[Any] = list(cols[rows, : msg.count].T)
+            for k, raw in zip(msg.texts, texts, strict=True):
+                fields[k] = raw
+            got = reader.columns(
+                msg.msgid,
+                tuple(fields),
+                [sysids[r] for r in at],
+                [times[r] * 1e-6 for r in at],
+            )
+            if got is not None:
+                for k, r in enumerate(at):
+                    which[r] = got
+                    row[r] = k
     return which, row
+
+
+def _groups(
+    run: Run, msg: tlog_kernel.Message, rows: np.ndarray[Any, np.dtype[np.intp]]
+) -> Iterator[tuple[np.ndarray[Any, np.dtype[np.intp]], tuple[bytes, ...]]]:
+    """A message's records of a run, by the raw bytes of its char[] fields (one group
+    with none where it has none: NAMED_VALUE_FLOAT's name is a group's, read as
+    _with_text reads it)."""
+    if not msg.texts:
+        yield rows, ()
+        return
+    data, starts, ends = run.data, run.starts, run.ends
+    by: dict[tuple[bytes, ...], list[int]] = {}
+    for r in rows.tolist():
+        by.setdefault(_texts(data[starts[r] : ends[r]], msg), []).append(r)
+    for key, got in by.items():
+        yield np.array(got, np.intp), key
 
 
 def _with_text(packet: bytes, msg: tlog_kernel.Message, values: list[Any]) -> list[Any]:
     """The fields with each char[] one as struct reads it from the (zero-padded) payload."""
+    out = list(values)
+    for k, raw in zip(msg.texts, _texts(packet, msg), strict=True):
+        out[k] = raw
+    return out
+
+
+def _texts(packet: bytes, msg: tlog_kernel.Message) -> tuple[bytes, ...]:
+    """Each char[] field's raw bytes as struct reads them from the (zero-padded) payload."""
     head = 10 if packet[0] == 0xFD else 6
     payload = packet[head:-2]
-    out = list(values)
+    out = []
     for k in msg.texts:
         o, size = msg.offsets[k], msg.sizes[k]
         raw = payload[o : o + size]
-        out[k] = raw + bytes(size - len(raw))
-    return out
+        out.append(raw + bytes(size - len(raw)))
+    return tuple(out)
