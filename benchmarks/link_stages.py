@@ -1,6 +1,6 @@
 """Where a tlog's decoding spends its CPU, part by part (decision 0058).
 
-    python benchmarks/link_stages.py [--seconds 600] [--rounds 2]
+    python benchmarks/link_stages.py [--seconds 600] [--rounds 2] [--on-and-off N]
 
 Simulates one flight of the NOC UAV (.tlog, the simulator's native message set), then
 runs each part of the link alone over the same records in order, by the CPU time charged
@@ -11,7 +11,8 @@ choice (VehicleSetup.prepare) and the vehicle and synchroniser, and apart what o
 of_fields' work the run's columns do (SampleReader.columns, decision 0064: the replay
 takes it in of_fields' place wherever a sample is whole); then the whole decoding
 to frames (CompiledTlogSource) and one log estimated as a batch's task does it
-(estimate_file). The minimum of --rounds for each.
+(estimate_file). The minimum of --rounds for each. --on-and-off N: only decoding to
+frames and the estimate with decision 0064's paths off and on, alternately, N rounds.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ from fleet_dask import _overrides
 
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry import tlog_fast
+from gcs_estimator.ingest.telemetry.channel_sources import ChannelSources
+from gcs_estimator.ingest.telemetry.counters import LinkHealth
 from gcs_estimator.ingest.telemetry.decode import Sample
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogStats
@@ -155,10 +159,73 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
     return out
 
 
+def _switch(on: bool) -> None:
+    """Decision 0064's paths on (the columns, ATTITUDE's remembered values, the counters'
+    common case) or off (record by record, every value judged, the full judgement)."""
+    off: tuple[Any, ...] = (
+        lambda run, table, reader: None,
+        lambda self, shape, message: None,
+        LinkHealth._judged,
+    )
+    for (owner, name), path, plain in zip(_WHERE, _PATHS, off, strict=True):
+        setattr(owner, name, path if on else plain)
+
+
+_WHERE: tuple[tuple[Any, str], ...] = (
+    (tlog_fast, "_columns"),
+    (ChannelSources, "_remember"),
+    (LinkHealth, "_judge"),
+)
+_PATHS: tuple[Any, ...] = tuple(getattr(owner, name) for owner, name in _WHERE)
+
+
+def on_and_off(path: Path, config: Any, rounds: int, tmp_dir: str) -> None:
+    """Decoding to frames and the whole estimate with decision 0064's paths off and on,
+    alternately in this process (the load moves both alike); the frames and link
+    statistics asserted the same."""
+    got: dict[bool, Any] = {}
+    cpu: dict[str, dict[bool, list[float]]] = {"decoding": {}, "estimate": {}}
+
+    def frames() -> Any:
+        link = MavlinkLink(config.link, log=io.StringIO())
+        source = CompiledTlogSource([path], link, log=io.StringIO())
+        done = [
+            (f.t_vehicle_s, f.y.tobytes(), f.inputs.tobytes())
+            for f in source.frames(Stop())
+            if f is not None
+        ]
+        return done, source.link_stats()
+
+    for _ in range(rounds):
+        for on in (False, True):
+            _switch(on)
+            c0 = time.process_time()
+            got[on] = frames()
+            cpu["decoding"].setdefault(on, []).append(time.process_time() - c0)
+            c0 = time.process_time()
+            estimate_file(path, config, Path(tmp_dir) / f"ab{on}")
+            cpu["estimate"].setdefault(on, []).append(time.process_time() - c0)
+    _switch(True)
+    assert got[True] == got[False], "decision 0064's paths changed the frames or counters"
+    for part, runs in cpu.items():
+        t_off, t_on = min(runs[False]), min(runs[True])
+        print(
+            f"  {part}: off {t_off:.2f} s, on {t_on:.2f} s (min of {rounds}): {t_off / t_on:.2f}x"
+        )
+    print(f"  load average {os.getloadavg()[0]:.1f}; frames and counters the same")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=600.0)
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument(
+        "--on-and-off",
+        type=int,
+        default=0,
+        metavar="N",
+        help="only compare decision 0064's paths off and on, N rounds in this process",
+    )
     args = ap.parse_args(argv)
     config = load_config("noc_uav", _overrides(args.seconds))
     with tempfile.TemporaryDirectory() as tmp_dir:
@@ -169,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
         warm_up()
         estimate_file(path, config, Path(tmp_dir) / "warm")
         print(f"{args.seconds:g} s flight; load average {os.getloadavg()[0]:.1f}; CPU s:")
+        if args.on_and_off:
+            on_and_off(path, config, args.on_and_off, tmp_dir)
+            return 0
         gc.disable()
         parts = stages(path, config, args.rounds)
         gc.enable()
