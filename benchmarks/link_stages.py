@@ -1,15 +1,18 @@
 """Where a tlog's decoding spends its CPU, part by part (decision 0058).
 
-    python benchmarks/link_stages.py [--seconds 600] [--rounds 2]
+    python benchmarks/link_stages.py [--seconds 600] [--rounds 2] [--on-and-off N]
 
 Simulates one flight of the NOC UAV (.tlog, the simulator's native message set), then
 runs each part of the link alone over the same records in order, by the CPU time charged
 to this process (the machine's load does not count, other than through its caches) with
 the garbage collector off: the kernel reading (framing, CRC, fields, its columns as
 lists), the per-record loop, SampleReader.of_fields, LinkHealth.on_packet, the channel
-choice (VehicleSetup.prepare) and the vehicle and synchroniser; then the whole decoding
+choice (VehicleSetup.prepare) and the vehicle and synchroniser, and apart what of
+of_fields' work the run's columns do (SampleReader.columns, decision 0064: the replay
+takes it in of_fields' place wherever a sample is whole); then the whole decoding
 to frames (CompiledTlogSource) and one log estimated as a batch's task does it
-(estimate_file). The minimum of --rounds for each.
+(estimate_file). The minimum of --rounds for each. --on-and-off N: only decoding to
+frames and the estimate with decision 0064's paths off and on, alternately, N rounds.
 """
 
 from __future__ import annotations
@@ -29,11 +32,15 @@ from fleet_dask import _overrides
 
 from gcs_estimator.config import load_config
 from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.ingest.telemetry import tlog_fast
+from gcs_estimator.ingest.telemetry.channel_sources import ChannelSources
+from gcs_estimator.ingest.telemetry.counters import LinkHealth
 from gcs_estimator.ingest.telemetry.decode import Sample
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogStats
 from gcs_estimator.ingest.telemetry.tlog_fast import (
     CompiledTlogSource,
+    _columns,
     _with_text,
     read_runs,
     table_of,
@@ -78,6 +85,26 @@ def _records(path: Path, config: Any) -> list[Item]:
     return items
 
 
+def _on_columns(path: Path, config: Any, rounds: int) -> tuple[float, int]:
+    """CPU seconds of SampleReader.columns over the log's runs, the samples made one by
+    one as the replay takes them, and how many it read whole."""
+    table = table_of(config.link)
+    runs = list(read_runs(path, TlogStats(), table))
+
+    def work() -> int:
+        reader = MavlinkLink(config.link, log=io.StringIO()).samples
+        n = 0
+        for run in runs:
+            got = _columns(run, table, reader)
+            if got is not None:
+                for c, k in zip(*got, strict=True):
+                    n += c is not None and c.sample(k) is not None
+        return n
+
+    t, n = _cpu(work, rounds)
+    return t, int(n)
+
+
 def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
     """CPU seconds of each part, run alone over the log's records in order."""
     out = []
@@ -93,6 +120,8 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
 
     t, decoded = _cpu(decode, rounds)
     out.append(("SampleReader.of_fields", t))
+
+    t_columns, n_columns = _on_columns(path, config, rounds)
     samples = [(p, d) for (p, _, _), d in zip(items, decoded, strict=True) if d is not None]
 
     def count() -> list[Sample]:
@@ -126,13 +155,77 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
         return sum(len(link.fleet.sample(v, s, 1)) for s in prepared if s is not None)
 
     out.append(("vehicle and synchroniser", _cpu(synchronise, rounds)[0]))
+    out.append((f"(of_fields' {n_columns} on columns)", t_columns))
     return out
+
+
+def _switch(on: bool) -> None:
+    """Decision 0064's paths on (the columns, ATTITUDE's remembered values, the counters'
+    common case) or off (record by record, every value judged, the full judgement)."""
+    off: tuple[Any, ...] = (
+        lambda run, table, reader: None,
+        lambda self, shape, message: None,
+        LinkHealth._judged,
+    )
+    for (owner, name), path, plain in zip(_WHERE, _PATHS, off, strict=True):
+        setattr(owner, name, path if on else plain)
+
+
+_WHERE: tuple[tuple[Any, str], ...] = (
+    (tlog_fast, "_columns"),
+    (ChannelSources, "_remember"),
+    (LinkHealth, "_judge"),
+)
+_PATHS: tuple[Any, ...] = tuple(getattr(owner, name) for owner, name in _WHERE)
+
+
+def on_and_off(path: Path, config: Any, rounds: int, tmp_dir: str) -> None:
+    """Decoding to frames and the whole estimate with decision 0064's paths off and on,
+    alternately in this process (the load moves both alike); the frames and link
+    statistics asserted the same."""
+    got: dict[bool, Any] = {}
+    cpu: dict[str, dict[bool, list[float]]] = {"decoding": {}, "estimate": {}}
+
+    def frames() -> Any:
+        link = MavlinkLink(config.link, log=io.StringIO())
+        source = CompiledTlogSource([path], link, log=io.StringIO())
+        done = [
+            (f.t_vehicle_s, f.y.tobytes(), f.inputs.tobytes())
+            for f in source.frames(Stop())
+            if f is not None
+        ]
+        return done, source.link_stats()
+
+    for _ in range(rounds):
+        for on in (False, True):
+            _switch(on)
+            c0 = time.process_time()
+            got[on] = frames()
+            cpu["decoding"].setdefault(on, []).append(time.process_time() - c0)
+            c0 = time.process_time()
+            estimate_file(path, config, Path(tmp_dir) / f"ab{on}")
+            cpu["estimate"].setdefault(on, []).append(time.process_time() - c0)
+    _switch(True)
+    assert got[True] == got[False], "decision 0064's paths changed the frames or counters"
+    for part, runs in cpu.items():
+        t_off, t_on = min(runs[False]), min(runs[True])
+        print(
+            f"  {part}: off {t_off:.2f} s, on {t_on:.2f} s (min of {rounds}): {t_off / t_on:.2f}x"
+        )
+    print(f"  load average {os.getloadavg()[0]:.1f}; frames and counters the same")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=600.0)
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument(
+        "--on-and-off",
+        type=int,
+        default=0,
+        metavar="N",
+        help="only compare decision 0064's paths off and on, N rounds in this process",
+    )
     args = ap.parse_args(argv)
     config = load_config("noc_uav", _overrides(args.seconds))
     with tempfile.TemporaryDirectory() as tmp_dir:
@@ -143,12 +236,15 @@ def main(argv: list[str] | None = None) -> int:
         warm_up()
         estimate_file(path, config, Path(tmp_dir) / "warm")
         print(f"{args.seconds:g} s flight; load average {os.getloadavg()[0]:.1f}; CPU s:")
+        if args.on_and_off:
+            on_and_off(path, config, args.on_and_off, tmp_dir)
+            return 0
         gc.disable()
         parts = stages(path, config, args.rounds)
         gc.enable()
         for name, t in parts:
             print(f"  {name:<28} {t:6.2f}")
-        print(f"  {'sum of the parts':<28} {sum(t for _, t in parts):6.2f}")
+        print(f"  {'sum of the parts':<28} {sum(t for _, t in parts[:-1]):6.2f}")
 
         def frames() -> int:
             link = MavlinkLink(config.link, log=io.StringIO())

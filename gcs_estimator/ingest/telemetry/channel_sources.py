@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from gcs_estimator.ingest.telemetry.decode import Sample
 from gcs_estimator.model.channels import OBS_NAMES, Channel
@@ -128,6 +128,15 @@ class _Channel:
     """Per challenger: when its rate is weighed next [s of receive time]."""
 
 
+class _Kept(NamedTuple):
+    """Which values of a sample of one shape pass (ChannelSources._partly)."""
+
+    values: tuple[bool, ...]
+    aux: tuple[bool, ...]
+    until: float
+    """The receive time from which a dropped channel weighs this message again [s]."""
+
+
 NAMES: tuple[str, ...] = tuple(CHANNEL_NAMES[Channel(i)] for i in range(len(CHANNEL_NAMES)))
 """Channel names by channel number."""
 
@@ -148,6 +157,11 @@ class ChannelSources:
     _settled: set[tuple[str, int]] = field(default_factory=set)
     """(message, its first channel) whose every channel has settled on it: such a sample
     passes whole with no per-value work (forgotten at any change of source)."""
+    _partly: dict[tuple[str, tuple[int, ...], tuple[str, ...]], _Kept] = field(default_factory=dict)
+    """(message, its channels, its auxiliary names) whose every channel has settled, some
+    on another message (ATTITUDE, whose pitch rate comes from an IMU): which values pass,
+    until a dropped channel next weighs this message as a challenger (forgotten at any
+    change of source)."""
 
     def choose(self, sample: Sample) -> Sample | None:
         """The sample with only the values of channels that take it as their source
@@ -164,18 +178,41 @@ class ChannelSources:
         key = (message, values[0][0] if values else -1)
         if key in self._settled:
             return sample
-        take = self._take
-        kept = tuple(v for v in values if take(NAMES[v[0]], message, t))
         aux = sample.aux
-        kept_aux = tuple(a for a in aux if take(a[0], message, t)) if aux else aux
-        if len(kept) == len(values) and len(kept_aux) == len(aux):
-            if self._all_settled(sample):
-                self._settled.add(key)
-            return sample
+        shape = (message, tuple([v[0] for v in values]), tuple([a[0] for a in aux]))
+        known = self._partly.get(shape)
+        if known is not None and t < known.until:
+            kept = tuple([v for v, k in zip(values, known.values, strict=True) if k])
+            kept_aux = tuple([a for a, k in zip(aux, known.aux, strict=True) if k])
+        else:
+            take = self._take
+            kept = tuple(v for v in values if take(NAMES[v[0]], message, t))
+            kept_aux = tuple(a for a in aux if take(a[0], message, t)) if aux else aux
+            if len(kept) == len(values) and len(kept_aux) == len(aux):
+                if self._all_settled(sample):
+                    self._settled.add(key)
+                return sample
+            self._remember(shape, message)
         self.dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
         if not kept and not kept_aux:
             return None
         return sample._replace(values=kept, aux=kept_aux)
+
+    def _remember(self, shape: tuple[str, tuple[int, ...], tuple[str, ...]], message: str) -> None:
+        """After _take judged a sample of this shape value by value: if every one of its
+        channels has settled, what _take will say of each until a dropped channel next
+        weighs this message (its next_check), so that the values need not be judged."""
+        _, chans, aux = shape
+        keys = [NAMES[ch] for ch in chans] + list(aux)
+        channels = [self.channels[k] for k in keys]
+        if any(c.taken < MIN_SAMPLES for c in channels):
+            return
+        keep = [c.source == message for c in channels]
+        until = min(
+            (c.next_check.get(message, -math.inf) for c in channels if c.source != message),
+            default=math.inf,
+        )
+        self._partly[shape] = _Kept(tuple(keep[: len(chans)]), tuple(keep[len(chans) :]), until)
 
     def _all_settled(self, sample: Sample) -> bool:
         channels = self.channels
@@ -187,7 +224,7 @@ class ChannelSources:
         channel = self.channels.get(key)
         if channel is None:
             channel = self.channels[key] = _Channel(message, {message})
-            self._settled.clear()
+            self._forget()
         if channel.source == message:
             channel.taken += 1
             if channel.taken == MIN_SAMPLES and len(channel.heard) > 1:
@@ -224,8 +261,13 @@ class ChannelSources:
         channel.source = message
         channel.switches += 1
         channel.taken += 1
-        self._settled.clear()
+        self._forget()
         return True
+
+    def _forget(self) -> None:
+        """A channel's source changed (or a channel appeared): judge values afresh."""
+        self._settled.clear()
+        self._partly.clear()
 
     def source(self, key: str) -> str | None:
         channel = self.channels.get(key)

@@ -278,6 +278,25 @@ class LinkHealth:
         return False
 
     def _judge(self, s: _Stream, seq: int, t: float | None, kind: str, counts: LinkCounts) -> str:
+        if t is not None and not s.missing and (seq - s.last_seq) & 0xFF == 1:
+            newest = s.newest_t
+            if newest - STALE_S <= t <= newest + STALE_S:  # (False while newest is NaN)
+                return self._next(s, seq, t, kind, counts)
+        return self._judged(s, seq, t, kind, counts)
+
+    def _next(self, s: _Stream, seq: int, t: float, kind: str, counts: LinkCounts) -> str:
+        """The common case: the next sequence number, its time within STALE_S of the
+        newest, nothing counted lost; what _judged does then, without its tests (not
+        stale, none missing, the time believed, no gap)."""
+        s.behind = s.ahead = 0
+        s.index += 1
+        s.last_seq = seq
+        self._clock(s, kind, t, counts)
+        if t > s.newest_t:
+            s.newest_t = t
+        return Verdict.NEW
+
+    def _judged(self, s: _Stream, seq: int, t: float | None, kind: str, counts: LinkCounts) -> str:
         if t is not None and not math.isnan(s.newest_t) and t < s.newest_t - STALE_S:
             s.behind += 1
             if s.behind < CONFIRM_PACKETS:

@@ -17,6 +17,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from gcs_estimator.config import DataConfig, LinkConfig
 from gcs_estimator.ingest.telemetry import pwm
 from gcs_estimator.ingest.telemetry.mavlink import (
@@ -226,6 +228,25 @@ class SampleReader:
         reader, seq, sysid, compid, fields = got
         return self.of_fields(reader.msgid, seq, sysid, compid, fields, t_recv_s)
 
+    def columns(
+        self,
+        msgid: int,
+        fields: tuple[Any, ...],
+        system_ids: list[int],
+        t_recv_s: list[float],
+    ) -> Columns | None:
+        """Many packets of one of these messages at once (tlog_kernel's columns, each
+        field a float64 column, a char[] field the raw bytes all of them have), as
+        of_fields reads each (Columns.sample); None where the message's plan reads no
+        columns, or none of these packets."""
+        plan = self._plans[msgid]
+        if plan.columns is None:
+            return None
+        found, rows = plan.columns(fields)
+        if found is None:  # (a name no channel has): of_fields counts each
+            return None
+        return Columns(plan.reader.msgname, found, rows, system_ids, t_recv_s, self._ranges)
+
     @property
     def readers(self) -> dict[int, FieldReader]:
         """The messages read here, by id, with the fields each is read for."""
@@ -240,6 +261,79 @@ class SampleReader:
         found = plan.make(fields)
         sample = _sample(sysid, plan.reader.msgname, found, t_recv_s, self._stats, self._ranges)
         return Decoded(sysid, compid, seq, Ignored() if sample is None else sample)
+
+
+class Columns:
+    """The Found of many packets of one message type, each value a column: the Sample
+    that of_fields makes of packet k where all its values are finite and in range
+    (_sample's test, on the columns), else None (of_fields then counts what it drops).
+    Samples are made one at a time as the link takes them: made all at once, a run's
+    thousands of tuples would wake the garbage collector over the whole process."""
+
+    def __init__(
+        self,
+        kind: str,
+        found: Found,
+        rows: Any,
+        system_ids: list[int],
+        t_recv_s: list[float],
+        ranges: Ranges,
+    ) -> None:
+        t, vals, aux, outputs = found
+        good = np.ones(len(system_ids), np.bool_) if rows is None else np.array(rows, np.bool_)
+        for ch, v in vals:
+            lo, hi = ranges[ch]
+            good &= np.isfinite(v) & (v >= lo) & (v <= hi)
+        for _, v in aux:
+            good &= np.isfinite(v)
+        self.kind = kind
+        self.wrap = TIME_WRAP_S.get(kind)
+        self.good: list[bool] = good.tolist()
+        self.system_ids = system_ids
+        self.t_recv_s = t_recv_s
+        self.times: list[float] | None = None if t is None else np.asarray(t).tolist()
+        self.values = _pairs(tuple(ch for ch, _ in vals), [np.asarray(v).tolist() for _, v in vals])
+        self.aux = _pairs(tuple(k for k, _ in aux), [np.asarray(v).tolist() for _, v in aux])
+        self.outputs = np.column_stack(outputs) if outputs else None
+
+    def sample(self, k: int) -> Sample | None:
+        if not self.good[k]:
+            return None
+        times = self.times
+        return Sample(
+            self.system_ids[k],
+            self.kind,
+            None if times is None else times[k],
+            self.t_recv_s[k],
+            self.values(k),
+            self.wrap,
+            self.aux(k),
+            () if self.outputs is None else tuple(self.outputs[k].tolist()),
+        )
+
+
+def _pairs(keys: tuple[Any, ...], cols: list[list[float]]) -> Callable[[int], tuple[Any, ...]]:
+    """k -> ((keys[0], cols[0][k]), (keys[1], cols[1][k]), ...): written out for the
+    lengths the messages have (a quarter of a comprehension's cost, per packet)."""
+    n = len(keys)
+    if n == 0:
+        return lambda k: ()
+    if n == 1:
+        (a,), (x,) = keys, cols
+        return lambda k: ((a, x[k]),)
+    if n == 2:
+        (a, b), (x, y) = keys, cols
+        return lambda k: ((a, x[k]), (b, y[k]))
+    if n == 3:
+        (a, b, c), (x, y, z) = keys, cols
+        return lambda k: ((a, x[k]), (b, y[k]), (c, z[k]))
+    if n == 4:
+        (a, b, c, d), (x, y, z, w) = keys, cols
+        return lambda k: ((a, x[k]), (b, y[k]), (c, z[k]), (d, w[k]))
+    if n == 5:
+        (a, b, c, d, e), (x, y, z, w, v) = keys, cols
+        return lambda k: ((a, x[k]), (b, y[k]), (c, z[k]), (d, w[k]), (e, v[k]))
+    return lambda k: tuple([(key, col[k]) for key, col in zip(keys, cols, strict=True)])
 
 
 WRAP_US32_S = 2**32 * 1e-6
@@ -306,6 +400,16 @@ class _Plan(NamedTuple):
 
     reader: FieldReader
     make: Callable[[tuple[Any, ...]], Found | None]
+    columns: Callable[[tuple[Any, ...]], tuple[Found | None, Any]] | None = None
+    """`make` on columns (each field an array of many packets' values; a char[] field
+    one value for them all), with the rows it reads whole (a bool array; None: all): the
+    same arithmetic, no branch on a value (SampleReader.columns). None: this message is
+    read packet by packet."""
+
+
+DEG_TO_RAD = math.pi / 180.0
+"""math.radians(x) is x * DEG_TO_RAD (CPython's degToRad), bit for bit: the makers
+multiply by it so that one definition serves a value and a column."""
 
 
 def _name(raw: str | bytes) -> str:
@@ -321,9 +425,9 @@ def servo_values(link: LinkConfig, outputs: tuple[float, ...]) -> list[tuple[Cha
     SERVOn parameters, where known, replace these (params.ServoMap)."""
     if len(outputs) < link.elevator_servo:
         return []
-    vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, float(outputs[link.elevator_servo - 1])))]
+    vals = [(Channel.ELEVATOR, pwm.elevator_rad(link, outputs[link.elevator_servo - 1]))]
     if 0 < link.throttle_servo <= len(outputs):
-        vals.append((Channel.POWER, pwm.throttle(link, float(outputs[link.throttle_servo - 1]))))
+        vals.append((Channel.POWER, pwm.throttle(link, outputs[link.throttle_servo - 1])))
     return vals
 
 
@@ -360,7 +464,7 @@ def _attitude(f: tuple[Any, ...]) -> Found:
 
 def _wind(f: tuple[Any, ...]) -> Found:
     return Found(
-        None, [], (("wind_dir", math.radians(f[0])), ("wind_speed", f[1]), ("wind_vz", f[2]))
+        None, [], (("wind_dir", f[0] * DEG_TO_RAD), ("wind_speed", f[1]), ("wind_vz", f[2]))
     )
 
 
@@ -374,6 +478,10 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
             return None  # ports beyond the first (ArduPilot sends all 16 outputs on port 0)
         outputs = tuple(map(float, f[2:]))
         return Found(f[0] * 1e-6, servo_values(link, outputs), (), outputs)
+
+    def servo_columns(f: tuple[Any, ...]) -> tuple[Found, Any]:
+        outputs = f[2:]  # float64 columns: what float() makes of each value
+        return Found(f[0] * 1e-6, servo_values(link, outputs), (), outputs), f[1] == 0
 
     named = {link.qdot_name: Channel.QDOT, link.thrust_name: Channel.POWER}
 
@@ -389,9 +497,15 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         return Found(f[0] * 1e-3, [(Channel.DENSITY, rho)])
 
     def plan(
-        name: str, fields: tuple[str, ...], make: Callable[[tuple[Any, ...]], Found | None]
+        name: str,
+        fields: tuple[str, ...],
+        make: Callable[[tuple[Any, ...]], Found | None],
+        columns: Callable[[tuple[Any, ...]], tuple[Found | None, Any]] | bool = True,
     ) -> _Plan:
-        return _Plan(FieldReader(name, fields), make)
+        """columns: True where make itself takes columns (and reads every row)."""
+        if columns is True:
+            return _Plan(FieldReader(name, fields), make, lambda f: (make(f), None))
+        return _Plan(FieldReader(name, fields), make, columns or None)
 
     imu = ("xacc", "zacc", "ygyro")
     plans = (
@@ -408,15 +522,15 @@ def _plans(link: LinkConfig) -> dict[str, _Plan]:
         plan(
             "AOA_SSA",
             ("time_usec", "AOA"),
-            lambda f: Found(f[0] * 1e-6, [(Channel.ALPHA, math.radians(f[1]))]),
+            lambda f: Found(f[0] * 1e-6, [(Channel.ALPHA, f[1] * DEG_TO_RAD)]),
         ),
         plan(
             "VFR_HUD",
             ("airspeed", "climb"),
             lambda f: Found(None, [(Channel.V, f[0])], (("vz", -f[1]),)),
         ),
-        plan("SERVO_OUTPUT_RAW", ("time_usec", "port", *SERVO_FIELDS), servo),
-        plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure),
+        plan("SERVO_OUTPUT_RAW", ("time_usec", "port", *SERVO_FIELDS), servo, servo_columns),
+        plan("SCALED_PRESSURE", ("time_boot_ms", "press_abs"), pressure, False),
         plan("NAMED_VALUE_FLOAT", ("time_boot_ms", "value", "name"), named_value),
         plan(
             "GLOBAL_POSITION_INT",

@@ -37,6 +37,8 @@ from gcs_estimator.ingest.telemetry.signing import SigningGate, load_key, sign_o
 from gcs_estimator.ingest.telemetry.vehicle_setup import VehicleSetup
 from gcs_estimator.ingest.telemetry.vehicles import Address, VehicleLink, Vehicles, link_name
 
+RECORDING = link_name(None)
+"""The counters' name for a recording's packets."""
 COUNTER_TIME_WRAP_S = 86_400.0
 """Vehicle times that wrap sooner than this (32-bit microseconds) do not go to the
 sequence counters; time_boot_ms (49.7 days) does."""
@@ -208,6 +210,35 @@ class MavlinkLink:
         if self.signing is not None:
             return self.packet(packet, t_recv_s)
         return self._decoded(packet, None, t_recv_s, None, decoded)
+
+    def sample_packet(
+        self, packet: bytes, t_recv_s: float, compid: int, seq: int, sample: Sample
+    ) -> list[Frame]:
+        """As decoded_packet, for a recording's channel message that SampleReader.columns
+        read whole (every value finite and in range), without signing: _decoded's steps
+        for a Sample from no address, in its order (tests/telemetry/test_tlog_compiled.py
+        compares the two on every damage case)."""
+        if self.recorder is not None:
+            self.recorder.write(int(round(t_recv_s * 1e6)), packet)
+        if self.t_first_recv != self.t_first_recv:  # NaN: the first packet
+            self.t_first_recv = t_recv_s
+        self.t_last_recv = t_recv_s
+        sysid = sample.system_id
+        t_vehicle, kind = None, ""
+        if (sample.wrap_s or math.inf) > COUNTER_TIME_WRAP_S:
+            t_vehicle, kind = sample.t_vehicle_s, sample.message
+        ground = sysid == mavlink.GCS_SYSTEM_ID
+        if ground:
+            self.health.ground_station(sysid, compid)
+        if not self.health.on_packet(RECORDING, sysid, compid, seq, packet, t_vehicle, kind):
+            self.report_once(
+                "dup", "copies of packets, or packets long behind the vehicle's time: dropped"
+            )
+            return []
+        out = [] if ground else self._sample(sysid, compid, sample, None, t_recv_s)
+        if self.decode_stats.invalid_values:
+            self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
+        return out
 
     def _fast(self, packet: bytes, t_recv_s: float) -> Decoded | None:
         """The packet's meaning by decode.SampleReader where it can tell (a channel

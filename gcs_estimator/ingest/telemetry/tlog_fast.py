@@ -10,8 +10,11 @@ with the channel messages' fields already read (decision 0055).
 mavlink.read_tlog stays the reference (and reads live recordings); read_records is its
 loop with the plain records taken by the kernel, many at a time: where the kernel stops,
 the loop's own step (the same helpers) takes the next record, and the kernel goes on
-after it. A record of a channel message that passed its CRC goes to the link decoded
-(MavlinkLink.decoded_packet, SampleReader.of_fields); every other record goes to
+after it. A record of a channel message that passed its CRC goes to the link decoded:
+in a run of COLUMNS_MIN records or more, each message type's fields as columns
+(SampleReader.columns: units and ranges per column, decision 0064) and every whole
+sample to MavlinkLink.sample_packet; a sample with a value dropped, and shorter runs,
+by SampleReader.of_fields to MavlinkLink.decoded_packet. Every other record goes to
 MavlinkLink.packet (pymavlink's path for what the kernel does not read), as before.
 """
 
@@ -29,7 +32,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry import tlog_kernel
-from gcs_estimator.ingest.telemetry.decode import DecodeStats, SampleReader
+from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, SampleReader
 from gcs_estimator.ingest.telemetry.mavlink import (
     _TIME_US,
     BACK_US,
@@ -70,10 +73,16 @@ class Run(NamedTuple):
     values: list[float]
     """The fields of the table messages (tlog_kernel.Output.values), `width` a record."""
     width: int
+    columns: np.ndarray[Any, np.dtype[np.float64]] | None = None
+    """The same fields as a record a row (a copy), for SampleReader.columns."""
 
 
 def _one(data: bytes, t: int, start: int, end: int) -> Run:
     return Run(data, [start], [end], [t], [OTHER], [0], [0], [0], [], 0)
+
+
+COLUMNS_MIN = 16
+"""Runs shorter than this are decoded record by record (columns would cost more)."""
 
 
 FRAMING_ONLY = tlog_kernel.field_table(())
@@ -141,6 +150,7 @@ class _Reader:
             compid,
             out.values[:taken, : self.width].ravel().tolist(),
             self.width,
+            out.values[:taken, : self.width].copy() if taken >= COLUMNS_MIN else None,
         )
         self.last_t = int(out.header[taken - 1, 0])
         self.i = end
@@ -268,16 +278,23 @@ class CompiledTlogSource(TlogSource):
         link = self.link
         packet_frames = link.packet
         decoded_frames = link.decoded_packet
+        sample_frames = link.sample_packet
         of_fields = link.samples.of_fields
         messages = table.messages
         data, values, width = run.data, run.values, run.width
         starts, ends, times = run.starts, run.ends, run.times
         seqs, sysids, compids = run.seq, run.system_id, run.component_id
         signed = link.signing is not None
+        columns = None if signed else _columns(run, table, link.samples)
+        which, row = columns or (_NO_COLUMNS, run.status)
         for j, status in enumerate(run.status):
             t = times[j] * 1e-6
             packet = data[starts[j] : ends[j]]
-            if status < 0 or signed:
+            got = which[j]
+            sample = None if got is None else got.sample(row[j])
+            if sample is not None:
+                out = sample_frames(packet, t, compids[j], seqs[j], sample)
+            elif status < 0 or signed:
                 out = packet_frames(packet, t)
             else:
                 msg = messages[status]
@@ -285,19 +302,86 @@ class CompiledTlogSource(TlogSource):
                 fields = values[at : at + msg.count]
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
-                sample = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
-                out = decoded_frames(packet, t, sample)
+                decoded = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
+                out = decoded_frames(packet, t, decoded)
             if out:
                 yield from out
 
 
+class _NoColumns:
+    """No record of a run read from columns."""
+
+    def __getitem__(self, j: int) -> None:
+        return None
+
+
+_NO_COLUMNS = _NoColumns()
+
+
+def _columns(
+    run: Run, table: FieldTable, reader: SampleReader
+) -> tuple[list[Columns | None], list[int]] | None:
+    """Per record of a run: the Columns of its message where SampleReader.columns reads
+    that message (None: record by record), and its row there."""
+    cols = run.columns
+    if cols is None:
+        return None
+    status = np.asarray(run.status)
+    which: list[Columns | None] = [None] * len(run.status)
+    row = [0] * len(run.status)
+    sysids, times = run.system_id, run.times
+    for slot in np.unique(status[status >= 0]).tolist():
+        msg = table.messages[slot]
+        for rows, texts in _groups(run, msg, np.flatnonzero(status == slot)):
+            at = rows.tolist()
+            fields: list[Any] = list(cols[rows, : msg.count].T)
+            for k, raw in zip(msg.texts, texts, strict=True):
+                fields[k] = raw
+            got = reader.columns(
+                msg.msgid,
+                tuple(fields),
+                [sysids[r] for r in at],
+                [times[r] * 1e-6 for r in at],
+            )
+            if got is not None:
+                for k, r in enumerate(at):
+                    which[r] = got
+                    row[r] = k
+    return which, row
+
+
+def _groups(
+    run: Run, msg: tlog_kernel.Message, rows: np.ndarray[Any, np.dtype[np.intp]]
+) -> Iterator[tuple[np.ndarray[Any, np.dtype[np.intp]], tuple[bytes, ...]]]:
+    """A message's records of a run, by the raw bytes of its char[] fields (one group
+    with none where it has none: NAMED_VALUE_FLOAT's name is a group's, read as
+    _with_text reads it)."""
+    if not msg.texts:
+        yield rows, ()
+        return
+    data, starts, ends = run.data, run.starts, run.ends
+    by: dict[tuple[bytes, ...], list[int]] = {}
+    for r in rows.tolist():
+        by.setdefault(_texts(data[starts[r] : ends[r]], msg), []).append(r)
+    for key, got in by.items():
+        yield np.array(got, np.intp), key
+
+
 def _with_text(packet: bytes, msg: tlog_kernel.Message, values: list[Any]) -> list[Any]:
     """The fields with each char[] one as struct reads it from the (zero-padded) payload."""
+    out = list(values)
+    for k, raw in zip(msg.texts, _texts(packet, msg), strict=True):
+        out[k] = raw
+    return out
+
+
+def _texts(packet: bytes, msg: tlog_kernel.Message) -> tuple[bytes, ...]:
+    """Each char[] field's raw bytes as struct reads them from the (zero-padded) payload."""
     head = 10 if packet[0] == 0xFD else 6
     payload = packet[head:-2]
-    out = list(values)
+    out = []
     for k in msg.texts:
         o, size = msg.offsets[k], msg.sizes[k]
         raw = payload[o : o + size]
-        out[k] = raw + bytes(size - len(raw))
-    return out
+        out.append(raw + bytes(size - len(raw)))
+    return tuple(out)
