@@ -119,8 +119,16 @@ class Session:
         truth_for_first: bool = True,
         gate: Limits | None = None,
         hold: Hold | None = None,
+        block_frames: int = 0,
     ) -> None:
+        """block_frames: a batch's session (no live view) hands each vehicle's frames to
+        its estimator up to this many at a time (Estimator.steps: the same estimates, bit
+        for bit), and the sinks see each block's last frame only (on_frame); 0: frame by
+        frame."""
         self.config = config
+        self.block_frames = block_frames
+        self._block: list[Frame] = []
+        """Frames given to the session and not yet to the estimator (block_frames)."""
         self.hold = hold
         """Given every frame before the gate, with its time since its vehicle's first
         frame (outputs.checks.Checks.hold: the held-out window's frames kept aside)."""
@@ -182,13 +190,18 @@ class Session:
         plan: Plan | None = getattr(source, "plan", None)
         try:
             for frame in source.frames(stop):
-                if frame is not None:
+                if frame is None:
+                    self.flush()
+                    if getattr(source, "idle", False):
+                        self.work_ahead(WORK_AHEAD_S)
+                elif self.block_frames > 0:
+                    self.take(frame)
+                else:
                     self.process(frame)
-                elif getattr(source, "idle", False):
-                    self.work_ahead(WORK_AHEAD_S)
                 for sink in self.sinks:
                     sink.tick()
         finally:
+            self.flush()
             for est in self.estimators.values():
                 est.finish_restarts()
                 est.pieces.plan = plan if plan is not None else est.pieces.plan
@@ -223,13 +236,67 @@ class Session:
                 if time.perf_counter() >= end:
                     return
 
+    def take(self, frame: Frame) -> None:
+        """A frame of a session in blocks (block_frames): kept for its vehicle's block, or,
+        where it must be taken alone (a clock reset, a segment's or flight's start, a guessed
+        input, the live gate), processed after the block before it. A block holds one
+        vehicle's consecutive frames only: every estimator sees the same calls in the same
+        order as frame by frame (a restart's grace counts the other vehicles' restarts)."""
+        alone = (
+            frame.clock_reset
+            or not frame.inputs_known
+            or self.gate is not None
+            or (
+                isinstance(frame, SegmentFrame)
+                and (frame.segment_start or frame.flight is not None)
+            )
+        )
+        block = self._block
+        if block and (alone or block[0].system_id != frame.system_id):
+            self.flush()
+        if alone:
+            self.process(frame)
+            return
+        self._hold(frame)
+        block.append(frame)
+        if len(block) >= self.block_frames:
+            self.flush()
+
+    def flush(self) -> None:
+        """The frames kept for a block through their vehicle's estimator (Estimator.steps),
+        the sinks given the last of them with the outputs there."""
+        frames, self._block = self._block, []
+        if not frames:
+            return
+        est = self.estimator(frames[0].system_id)
+        t = np.array([f.t_vehicle_s for f in frames], float)
+        try:
+            u = np.array([f.inputs for f in frames], float)
+            y = np.array([f.y for f in frames], float)
+        except ValueError:  # frames of different widths (not one source's): one by one
+            for frame in frames:
+                self._step(est, frame)
+            return
+        outs = est.steps(t, u, y)
+        if outs:
+            for sink in self.sinks:
+                sink.on_frame(frames[-1], outs)
+
     def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
-        est = self.estimator(frame.system_id)
+        self._hold(frame)
+        return self._step(self.estimator(frame.system_id), frame)
+
+    def _hold(self, frame: Frame) -> None:
+        """The frame to hold (before the gate), with its time since its vehicle's first."""
         if self.hold is not None:
             t0 = self._first_t.setdefault(frame.system_id, frame.t_vehicle_s)
             self.hold(
                 frame.system_id, frame.t_vehicle_s - t0, frame.t_vehicle_s, frame.inputs, frame.y
             )
+
+    def _step(self, est: Estimator, frame: Frame) -> dict[FilterKind, StepOutput]:
+        """A frame through its vehicle's estimator (marks, the gate, the filters), and to
+        the sinks."""
         if frame.clock_reset:
             est.rebase(frame.t_vehicle_s, frame.y)
         if isinstance(frame, SegmentFrame):
