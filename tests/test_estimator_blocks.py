@@ -251,4 +251,4 @@ def test_inputs_of_a_frame_and_of_many(noc_config: AircraftConfig, width: int) -
     want = np.array([_inputs_before(float(model.k[RHO]), row) for row in u])
     np.testing.assert_array_equal(np.array([model.inputs(row) for row in u]), want)
     np.testing.assert_array_equal(model.inputs_of(u), want)
-    assert model.inputs(list(u[0])).tolist() == want[0].tolist()
+    np.testing.assert_array_equal(model.inputs(list(u[0])), want[0])

@@ -106,6 +106,9 @@ def truth_of(
     return config_truth(config) if system_id == first else None
 
 
+# Over 200 lines: the one loop (run, its shutdown and idle work) with what it hands each
+# frame to (process, or take and flush where a batch's frames go in blocks) and the run's
+# results; the estimation itself lives in Estimator, the sinks in outputs.
 class Session:
     """Estimators per vehicle between one source and its sinks."""
 
