@@ -14,10 +14,17 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig
-from gcs_estimator.estimation import history
+from gcs_estimator.estimation import history, passes
 from gcs_estimator.estimation.estimator import Estimator
 from gcs_estimator.estimation.filters import core
-from gcs_estimator.estimation.passes import Runner, _log_likelihood, _log_likelihoods
+from gcs_estimator.estimation.filters.core import FILTER_KINDS
+from gcs_estimator.estimation.passes import (
+    Lanes,
+    Runner,
+    Tunings,
+    _log_likelihood,
+    _log_likelihoods,
+)
 from gcs_estimator.estimation.segments import Limits, Plan, Segment
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import BANK_INPUT, N_INPUTS, N_OBS, REQUIRED_INPUTS
@@ -132,8 +139,9 @@ def test_blocks_under_the_live_gate(noc_config: AircraftConfig) -> None:
     gate = Limits(trim_airspeed_mps=noc_config.airframe.trim_airspeed_mps, min_segment_s=0.5)
     a, b = _run(noc_config, 0, gate=gate), _run(noc_config, 128, gate=gate)
     _assert_same(a, b)
-    assert a[1].result.segments is not None
-    assert a[1].result.segments["left_out_frames"] == b[1].result.segments["left_out_frames"]
+    left_a, left_b = a[1].result.segments, b[1].result.segments
+    assert left_a is not None and left_b is not None
+    assert left_a["left_out_frames"] == left_b["left_out_frames"]
 
 
 def test_estimator_steps_equal_admit_and_step(noc_config: AircraftConfig) -> None:
@@ -174,31 +182,36 @@ def test_the_structure_check_in_blocks(
     assert check is not None and not check.skipped
 
 
-def test_a_replays_likelihood_is_its_frames_sum(noc_config: AircraftConfig) -> None:
-    """Runner.replay with the likelihood summed (one compiled call for each run of
-    frames, every row kept) against the same frames stepped one at a time and each
-    step's -2 log likelihood added in order (_log_likelihood): the same sums and
+def test_a_replays_likelihood_is_its_frames_sum(
+    noc_config: AircraftConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Runner.replay with the likelihood summed (compiled calls of up to ROWS_FRAMES
+    frames, every row kept; 100 here) against the same frames stepped one at a time and
+    each step's -2 log likelihood added in order (_log_likelihood): the same sums and
     beliefs, bit for bit, a diverging step included."""
+    monkeypatch.setattr(passes, "ROWS_FRAMES", 100)
     model = build_model(noc_config)
     t, u, y, _ = _flight(noc_config)
     t, u, y = t[:800], model.inputs_of(u[:800]), y[:800]
-    tunings = {k: core.tuning_of(noc_config, model, k) for k in ("EKF", "IEKF")}
+    tunings: Tunings = {k: core.tuning_of(noc_config, model, k) for k in FILTER_KINDS}
     blocked = Runner(model, "fast")
     blocked.likelihood = {}
-    lanes_a: dict = dict.fromkeys(tunings)
+    lanes_a: Lanes = dict.fromkeys(FILTER_KINDS)
     blocked.replay(lanes_a, t, u, y, tunings, core.MAX_GAP_S)
     single = Runner(model, "fast")
-    lanes_b: dict = dict.fromkeys(tunings)
-    sums = dict.fromkeys(tunings, 0.0)
+    lanes_b: Lanes = dict.fromkeys(FILTER_KINDS)
+    sums = dict.fromkeys(FILTER_KINDS, 0.0)
     for k in range(len(t)):
-        for kind in tunings:
+        for kind in FILTER_KINDS:
             out = single.one(kind, lanes_b, float(t[k]), u[k], y[k], True, tunings[kind])
             sums[kind] = sums[kind] + _log_likelihood(out.row, out.n)
     assert blocked.likelihood == sums
-    for kind in tunings:
+    for kind in FILTER_KINDS:
         assert blocked.health[kind] == single.health[kind]
         assert blocked.health[kind].divergences >= 1
-        np.testing.assert_array_equal(lanes_a[kind].P, lanes_b[kind].P)
+        lane_a, lane_b = lanes_a[kind], lanes_b[kind]
+        assert lane_a is not None and lane_b is not None
+        np.testing.assert_array_equal(lane_a.P, lane_b.P)
 
 
 def test_each_rows_likelihood_as_alone() -> None:

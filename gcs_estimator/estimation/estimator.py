@@ -24,7 +24,7 @@ from gcs_estimator.estimation.filters import core
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, Backend, FilterKind
 from gcs_estimator.estimation.history import Histories, StepOutput, Track
 from gcs_estimator.estimation.noise import NoiseReading, scaled
-from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
+from gcs_estimator.estimation.passes import ROWS_FRAMES, Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.estimation.segments import Limits, Pieces
@@ -218,7 +218,7 @@ class Estimator:
         outs: dict[FilterKind, StepOutput] = {}
         i, m = 0, len(t)
         while i < m:
-            end = i + self.plain_run(t[i:])
+            end = i + self.plain_run(t[i : i + ROWS_FRAMES])
             if end > i:
                 outs = self._run(t[i:end], u[i:end], y[i:end])
                 i = end

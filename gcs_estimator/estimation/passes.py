@@ -25,6 +25,9 @@ from gcs_estimator.model.channels import N_OBS
 
 BLOCK_MIN_FRAMES = 4
 """Re-run frames worth one compiled call per filter (fewer: a call per frame)."""
+ROWS_FRAMES = 4096
+"""Most frames a compiled call that keeps every frame's row (Runner.rows) takes at once:
+a long replay's rows never all in memory (4096 rows of a few hundred bytes)."""
 
 Lanes = dict[FilterKind, Lane | None]
 Tunings = dict[FilterKind, Tuning]
@@ -262,10 +265,16 @@ class Runner:
             first = 1
         else:
             lane.load(core.rebase(lane.state, self.model, tuning, t0, y0))
-        rest = slice(first, len(t))
-        if self.backend == "fast" and (self.blocks or self.likelihood is not None):
+        lane = lanes[kind]
+        assert lane is not None
+        if self.backend != "fast" or not (self.blocks or self.likelihood is not None):
+            for j in range(first, len(t)):
+                self.one(kind, lanes, float(t[j]), u[j], y[j], True, tuning)
+        elif self.likelihood is None:  # only the last row is wanted
             if len(t) > first:
-                self.rows(kind, lanes, t[rest], u[rest], y[rest], tuning)
-            return
-        for j in range(first, len(t)):
-            self.one(kind, lanes, float(t[j]), u[j], y[j], True, tuning)
+                _, counts = lane.block(t[first:], u[first:], y[first:], tuning, self.model)
+                self.health[kind].add(*counts)
+        else:
+            for a in range(first, len(t), ROWS_FRAMES):
+                part = slice(a, min(a + ROWS_FRAMES, len(t)))
+                self.rows(kind, lanes, t[part], u[part], y[part], tuning)

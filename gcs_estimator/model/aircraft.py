@@ -97,7 +97,8 @@ class Model:
         an array operation per part.)"""
         values: list[float] = np.asarray(u, float).reshape(-1).tolist()
         if len(values) < REQUIRED_INPUTS:
-            return self.inputs_of(np.asarray(u, float).reshape(1, -1))[0]
+            row: FloatArray = self.inputs_of(np.asarray(u, float).reshape(1, -1))[0]
+            return row
         rho = values[2] if len(values) > 2 else math.nan
         if not (math.isfinite(rho) and rho > 0.0):
             rho = float(self.k[eq.RHO])

@@ -39,6 +39,10 @@ from gcs_estimator.uncertainty.weighting import StructureCheck
 WORK_AHEAD_S = 0.002
 """Restart work done each time the source had nothing ready [s]: small enough that a
 packet arriving meanwhile waits little for it."""
+BATCH_BLOCK_FRAMES = 256
+"""Frames a session without a live view hands an estimator at a time (Session's
+block_frames; decision 0065): a few seconds of flight, the Python around each compiled
+call shared by that many frames."""
 WORK_AHEAD_FRAMES = 5
 """Frames of one vehicle's re-run at a time before the next vehicle's turn."""
 
@@ -456,7 +460,9 @@ def run_recording(
 ) -> VehicleResult:
     """Both filters over a whole recording (frames in time order): the result and its
     summaries against the config's truth."""
-    session = Session(config, backend=backend, keep_history=keep_history)
+    session = Session(
+        config, backend=backend, keep_history=keep_history, block_frames=BATCH_BLOCK_FRAMES
+    )
     session.run(RecordingSource(np.asarray(t_s, float), inputs, measurements))
     return session.results()[RecordingSource.SYSTEM_ID]
 

@@ -186,7 +186,7 @@ class Lane:
 
     def _width_of(self) -> int:
         """Floats of a step's output row (filters.fast.output_width, without the compiler)."""
-        return 2 * self.n + 4 + 2 * N_OBS + 4
+        return int(2 * self.n + 4 + 2 * N_OBS + 4)
 
     def _recover(
         self, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model, row: FloatArray
