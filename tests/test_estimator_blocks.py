@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import math
 import pickle
+from collections.abc import Iterator, Mapping
 from dataclasses import fields, replace
+from typing import Any
 
 import numpy as np
 import pytest
 
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation import history, passes
-from gcs_estimator.estimation.estimator import Estimator
+from gcs_estimator.estimation.estimator import Estimator, FilterKind, StepOutput
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.estimation.filters.core import FILTER_KINDS
 from gcs_estimator.estimation.passes import (
@@ -26,10 +28,12 @@ from gcs_estimator.estimation.passes import (
     _log_likelihoods,
 )
 from gcs_estimator.estimation.segments import Limits, Plan, Segment
+from gcs_estimator.frames import Frame
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import BANK_INPUT, N_INPUTS, N_OBS, REQUIRED_INPUTS
 from gcs_estimator.model.equations import RHO
 from gcs_estimator.runtime.session import RecordingSource, Session
+from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 
@@ -265,3 +269,59 @@ def test_inputs_of_a_frame_and_of_many(noc_config: AircraftConfig, width: int) -
     np.testing.assert_array_equal(np.array([model.inputs(row) for row in u]), want)
     np.testing.assert_array_equal(model.inputs_of(u), want)
     np.testing.assert_array_equal(model.inputs(list(u[0])), want[0])
+
+
+class _Broken:
+    """A source whose frames stop with an error after `n` (a link lost mid-run)."""
+
+    def __init__(self, config: AircraftConfig, n: int) -> None:
+        t, u, y, known = _flight(config)
+        self.recording = RecordingSource(t, u, y, known)
+        self.n = n
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        for k, frame in enumerate(self.recording.frames(stop)):
+            if k == self.n:
+                raise RuntimeError("the link went away")
+            yield frame
+
+    def link_stats(self) -> dict[str, Any] | None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+class _Finished:
+    """A sink that keeps what the run finished with."""
+
+    def __init__(self) -> None:
+        self.results: Mapping[int, VehicleResult] | None = None
+
+    def on_frame(self, frame: Frame, outs: Mapping[FilterKind, StepOutput]) -> None:
+        pass
+
+    def tick(self) -> None:
+        pass
+
+    def finish(self, results: Mapping[int, VehicleResult], link: Mapping[str, Any] | None) -> None:
+        self.results = results
+
+
+def test_an_error_in_the_source_still_steps_the_frames_kept(noc_config: AircraftConfig) -> None:
+    """The source fails in the middle of a block: the frames kept for it are stepped and
+    the sinks finished with them, as frame by frame had."""
+    config = replace(noc_config, filter=replace(noc_config.filter, structure_check="off"))
+    frames: list[int | bytes] = []
+    for block in (0, 256):
+        sink = _Finished()
+        session = Session(config, sinks=[sink], block_frames=block)
+        with pytest.raises(RuntimeError, match="link went away"):
+            session.run(_Broken(config, 700))
+        assert sink.results is not None
+        frames.append(sink.results[1].result.frames)
+        track = sink.results[1].result.filters["IEKF"].track
+        assert track is not None
+        frames.append(track.x.tobytes())
+    assert frames[0] == frames[2] == 700
+    assert frames[1] == frames[3]

@@ -196,19 +196,11 @@ class Session:
         self._results = None
         plan: Plan | None = getattr(source, "plan", None)
         try:
-            for frame in source.frames(stop):
-                if frame is None:
-                    self.flush()
-                    if getattr(source, "idle", False):
-                        self.work_ahead(WORK_AHEAD_S)
-                elif self.block_frames > 0:
-                    self.take(frame)
-                else:
-                    self.process(frame)
-                for sink in self.sinks:
-                    sink.tick()
+            try:
+                self._frames_of(source, stop)
+            finally:
+                self.flush()  # the frames kept for a block: processed as frame by frame had
         finally:
-            self.flush()
             for est in self.estimators.values():
                 est.finish_restarts()
                 est.pieces.plan = plan if plan is not None else est.pieces.plan
@@ -221,6 +213,21 @@ class Session:
             finally:
                 source.close()
         return results
+
+    def _frames_of(self, source: Source, stop: Stop) -> None:
+        """Every frame of the source to the estimators (frame by frame, or kept for
+        blocks), idle time to the restarts' work, a tick to the sinks after each."""
+        for frame in source.frames(stop):
+            if frame is None:
+                self.flush()
+                if getattr(source, "idle", False):
+                    self.work_ahead(WORK_AHEAD_S)
+            elif self.block_frames > 0:
+                self.take(frame)
+            else:
+                self.process(frame)
+            for sink in self.sinks:
+                sink.tick()
 
     def work_ahead(self, budget_s: float) -> None:
         """Restart work from idle time (the source had nothing ready): the vehicles'
