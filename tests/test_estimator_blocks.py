@@ -148,13 +148,15 @@ def test_blocks_under_the_live_gate(noc_config: AircraftConfig) -> None:
     assert left_a["left_out_frames"] == left_b["left_out_frames"]
 
 
-def test_estimator_steps_equal_admit_and_step(noc_config: AircraftConfig) -> None:
+@pytest.mark.parametrize("delay_s", [0.0, 0.05])
+def test_estimator_steps_equal_admit_and_step(noc_config: AircraftConfig, delay_s: float) -> None:
     """Estimator.steps over the whole record (known inputs) against admit and step frame
-    by frame, with and without the gate."""
-    t, u, y, _ = _flight(noc_config)
-    gate = Limits(trim_airspeed_mps=noc_config.airframe.trim_airspeed_mps)
+    by frame, with and without the gate, with and without an input delay."""
+    config = replace(noc_config, data=replace(noc_config.data, input_delay_s=delay_s))
+    t, u, y, _ = _flight(config)
+    gate = Limits(trim_airspeed_mps=config.airframe.trim_airspeed_mps)
     for g in (None, gate):
-        a, b = Estimator(noc_config, gate=g), Estimator(noc_config, gate=g)
+        a, b = Estimator(config, gate=g), Estimator(config, gate=g)
         for k in range(len(t)):
             if a.admit(float(t[k]), y[k], float(u[k, BANK_INPUT])):
                 a.step(float(t[k]), u[k], y[k])
