@@ -327,3 +327,51 @@ def test_an_error_in_the_source_still_steps_the_frames_kept(noc_config: Aircraft
         frames.append(track.x.tobytes())
     assert frames[0] == frames[2] == 700
     assert frames[1] == frames[3]
+
+
+class _TwoVehicles:
+    """Two vehicles' frames interleaved in runs of 37 (one link, two system ids), their
+    restarts under way together at times (each one's grace counts the other's)."""
+
+    def __init__(self, config: AircraftConfig) -> None:
+        self.t, self.u, self.y, self.known = _flight(config)
+
+    def frames(self, stop: Stop) -> Iterator[Frame | None]:
+        n = 1600
+        for a in range(0, n, 37):
+            for sid, lag in ((1, 0), (2, 11)):
+                for k in range(a + lag, min(a + lag + 37, n)):
+                    t = float(self.t[k])
+                    yield Frame(sid, t, t, self.u[k], self.y[k], inputs_known=bool(self.known[k]))
+            yield None  # the link idle between runs
+
+    def link_stats(self) -> dict[str, Any] | None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+def test_two_vehicles_in_blocks(noc_config: AircraftConfig) -> None:
+    """Two vehicles on one link: each block holds one vehicle's consecutive frames, so each
+    estimator's calls come in the order frame by frame gives, restarts included."""
+    config = replace(noc_config, filter=replace(noc_config.filter, structure_check="off"))
+    runs = []
+    for block in (0, 256):
+        session = Session(config, block_frames=block)
+        session.run(_TwoVehicles(config))
+        runs.append(session)
+    a, b = runs
+    assert list(a.estimators) == list(b.estimators) == [1, 2]
+    for sid in (1, 2):
+        ea, eb = a.estimators[sid], b.estimators[sid]
+        assert (ea.frames, ea.out_of_order, ea.restarts.done) == (
+            eb.frames,
+            eb.out_of_order,
+            eb.restarts.done,
+        )
+        assert ea.restarts.done == 2
+        for kind in FILTER_KINDS:
+            ta, tb = ea.tracks()[kind], eb.tracks()[kind]
+            for field in fields(ta):
+                np.testing.assert_array_equal(getattr(ta, field.name), getattr(tb, field.name))

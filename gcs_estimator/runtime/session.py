@@ -265,15 +265,14 @@ class Session:
                 and (frame.segment_start or frame.flight is not None)
             )
         )
-        block = self._block
-        if block and (alone or block[0].system_id != frame.system_id):
+        if self._block and (alone or self._block[0].system_id != frame.system_id):
             self.flush()
         if alone:
             self.process(frame)
             return
         self._hold(frame)
-        block.append(frame)
-        if len(block) >= self.block_frames:
+        self._block.append(frame)
+        if len(self._block) >= self.block_frames:
             self.flush()
 
     def flush(self) -> None:
