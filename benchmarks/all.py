@@ -108,6 +108,8 @@ NOT_IN_PLAN = {
     "(docs/decisions/0058); no record",
     "jsbsim_missions": "writes the validation set flown as a mission (turns, wind, no vane) "
     "in the autopilots' formats, not a record (docs/decisions/0053)",
+    "filter_blocks": "prints the filters' CPU per log frame by frame and in blocks "
+    "(docs/decisions/0065); no record",
 }
 """Benchmark scripts `all` does not run, and why."""
 

@@ -17,19 +17,19 @@ from typing import Any
 
 import numpy as np
 
-from gcs_estimator.arrays import FloatArray
+from gcs_estimator.arrays import BoolArray, FloatArray
 from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.delay import InputDelay
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, Backend, FilterKind
 from gcs_estimator.estimation.history import Histories, StepOutput, Track
 from gcs_estimator.estimation.noise import NoiseReading, scaled
-from gcs_estimator.estimation.passes import Lanes, Runner, Tunings
+from gcs_estimator.estimation.passes import ROWS_FRAMES, Lanes, Runner, Tunings
 from gcs_estimator.estimation.restarts import Restarts, Swap
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult, Snapshot
 from gcs_estimator.estimation.segments import Limits, Pieces
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.model.channels import BANK_INPUT, pad_observations
+from gcs_estimator.model.channels import BANK_INPUT, bank_of, pad_observations
 
 __all__ = [
     "FILTER_KINDS",
@@ -54,6 +54,17 @@ def observed(u: FloatArray, y: FloatArray, bank_limit_deg: float) -> tuple[Float
     if beyond:
         y[:] = np.nan
     return y, bool(beyond)
+
+
+def observed_rows(
+    u: FloatArray, y: FloatArray, bank_limit_deg: float
+) -> tuple[FloatArray, BoolArray]:
+    """observed() of each frame (rows of u and y) at once: the observations, and which
+    frames were beyond the bank limit."""
+    y = pad_observations(np.array(y, float))
+    beyond = np.abs(u[:, BANK_INPUT]) > math.radians(bank_limit_deg)
+    y[beyond] = np.nan
+    return y, beyond
 
 
 # Over 200 lines: the estimation package's one face to the session (admit, step, the
@@ -196,6 +207,73 @@ class Estimator:
         if swap is not None:
             outs = self._take(swap)
         return outs
+
+    def steps(self, t: FloatArray, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+        """Frames in order (t [m], u [m x k] as a frame's inputs, y [m x 7]), each with its
+        inputs known and none a clock reset or a segment's or flight's start (a session's
+        frames between such marks), as admit and step would take them one by one: each
+        run of frames at which those would do nothing but step the filters (plain_run) in
+        one compiled call per filter, every other frame through admit and step. The
+        outputs at the last frame stepped (empty if none)."""
+        outs: dict[FilterKind, StepOutput] = {}
+        i, m = 0, len(t)
+        while i < m:
+            end = i + self.plain_run(t[i : i + ROWS_FRAMES])
+            if end > i:
+                outs = self._run(t[i:end], u[i:end], y[i:end])
+                i = end
+                continue
+            ti = float(t[i])
+            if self.admit(ti, y[i], bank_of(u[i])):
+                outs = self.step(ti, u[i], y[i])
+            i += 1
+        return outs
+
+    def plain_run(self, t: FloatArray) -> int:
+        """How many of the frames at times t, from the first, admit and step would take
+        with nothing to do but step the filters: the live gate off, no segment pending, both
+        lanes begun, no restart under way or due at them, each frame after the one before
+        and within core.MAX_GAP_S of it (admit's and after_frame's own tests, on the same
+        values)."""
+        if self.pieces.gate is not None or self.pieces.pending or self.restarts.under_way:
+            return 0
+        if any(lane is None for lane in self.states.values()):
+            return 0
+        before = np.empty(len(t))
+        before[0] = self._t_last
+        before[1:] = t[:-1]
+        plain = (t > before) & ~(t - before > core.MAX_GAP_S)
+        if self.restarts.pending:
+            due = self.config.filter.restart_times_s[self.restarts.done]
+            plain &= ~(t - self._t0 >= due)
+        if plain.all():
+            return len(t)
+        return int(np.argmin(plain))
+
+    def _run(self, t: FloatArray, u: FloatArray, y: FloatArray) -> dict[FilterKind, StepOutput]:
+        """A plain run of frames (plain_run) through both filters: what step does frame by
+        frame, on all of them at once (the inputs and observations as the filters take
+        them, the restarts' buffer, each filter's steps in one compiled call keeping every
+        frame's outputs, the history)."""
+        inputs = self.model.inputs_of(u)
+        if self.delay.delay_s > 0.0:
+            inputs = np.array(
+                [self.delay.at(float(tk), uk) for tk, uk in zip(t, inputs, strict=True)]
+            )
+        obs, beyond = observed_rows(inputs, y, self.config.filter.bank_limit_deg)
+        self.banked_out += int(np.count_nonzero(beyond))
+        if self.restarts.pending:
+            times = t.tolist()
+            for k in range(len(times)):
+                self.restarts.keep((times[k], inputs[k], obs[k], True))
+        rows = {
+            kind: self.runner.rows(kind, self.states, t, inputs, obs, self.tunings[kind])
+            for kind in FILTER_KINDS
+        }
+        self.frames += len(t)
+        self._t_last = float(t[-1])
+        self.history.extend(t, inputs, obs, rows)
+        return {kind: StepOutput(r[-1].copy(), self.model.n) for kind, r in rows.items()}
 
     def finish_restarts(self) -> None:
         """Complete a re-run still under way (the end of the data came first)."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import BinaryIO
 
@@ -89,6 +89,20 @@ class Rows:
         row: np.ndarray = self._buf[self._nbuf - 1]
         return row
 
+    def claim_many(self, m: int) -> Iterator[np.ndarray]:
+        """m new rows at the end, as blocks of consecutive rows in memory, each to be
+        filled in place before the next is asked for (a block ends where claim() would
+        write the rows before it to disk: the files hold the same rows either way)."""
+        while m > 0:
+            if self._nbuf == HISTORY_CHUNK:
+                self._write(self._nbuf)
+                self._flushed += self._nbuf
+                self._nbuf = 0
+            k = min(m, HISTORY_CHUNK - self._nbuf)
+            self._nbuf += k
+            m -= k
+            yield self._buf[self._nbuf - k : self._nbuf]
+
     def last(self) -> np.ndarray:
         """The newest row (always still in memory), to be replaced in place."""
         row: np.ndarray = self._buf[self._nbuf - 1]
@@ -139,6 +153,16 @@ class FrameHistory:
         row[1 : 1 + N_INPUTS] = u
         row[1 + N_INPUTS :] = y
 
+    def extend(self, t: FloatArray, u: FloatArray, y: FloatArray) -> None:
+        """append() of each frame (rows of t, u, y) at once."""
+        done = 0
+        for block in self.rows.claim_many(len(t)):
+            part = slice(done, done + block.shape[0])
+            block[:, 0] = t[part]
+            block[:, 1 : 1 + N_INPUTS] = u[part]
+            block[:, 1 + N_INPUTS :] = y[part]
+            done += block.shape[0]
+
     def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(t [N], u [N x N_INPUTS], y [N x N_OBS])."""
         t, u, y = self.rows.arrays()
@@ -164,6 +188,13 @@ class History:
 
     def set_last(self, out: StepOutput) -> None:
         self._fill(self.rows.last(), out)
+
+    def extend(self, rows: FloatArray) -> None:
+        """append() of each step's output row (rows of `rows`) at once."""
+        done = 0
+        for block in self.rows.claim_many(rows.shape[0]):
+            block[:] = rows[done : done + block.shape[0], : block.shape[1]]
+            done += block.shape[0]
 
     def columns(self) -> dict[str, np.ndarray]:
         """The rows so far as named views: x, sigma, nis, n_used, gust_sigma,
@@ -202,6 +233,16 @@ class Histories:
             self.frames.append(t, u, y)
             for kind, out in outs.items():
                 self.filters[kind].append(out)
+
+    def extend(
+        self, t: FloatArray, u: FloatArray, y: FloatArray, rows: dict[FilterKind, FloatArray]
+    ) -> None:
+        """append() of each frame at once: its time, inputs and observations (rows of t,
+        u, y) and each filter's output rows (rows[kind])."""
+        if self.keep:
+            self.frames.extend(t, u, y)
+            for kind, out in rows.items():
+                self.filters[kind].extend(out)
 
     def set_last(self, outs: dict[FilterKind, StepOutput]) -> None:
         """The newest frame's rows replaced (a re-run took over there)."""

@@ -21,9 +21,13 @@ from gcs_estimator.estimation.filters.lane import Lane
 from gcs_estimator.estimation.history import StepOutput
 from gcs_estimator.estimation.results import Health
 from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.channels import N_OBS
 
 BLOCK_MIN_FRAMES = 4
 """Re-run frames worth one compiled call per filter (fewer: a call per frame)."""
+ROWS_FRAMES = 4096
+"""Most frames a compiled call that keeps every frame's row (Runner.rows) takes at once:
+a long replay's rows never all in memory (4096 rows of a few hundred bytes)."""
 
 Lanes = dict[FilterKind, Lane | None]
 Tunings = dict[FilterKind, Tuning]
@@ -44,6 +48,30 @@ NO_UPDATE_PENALTY = 1e3
 data adds it to every replay alike, a filter that failed or diverged on replayed inputs
 many times (far beyond a chi-square's spread), so it is not the likelier for having
 skipped its data."""
+
+
+def _log_likelihoods(rows: FloatArray, n: int) -> list[float]:
+    """_log_likelihood of each row, by the same numpy operations on the same values: the
+    rows grouped by the channels they used, each group's logs taken and summed over
+    those channels as one array (a row's sum in the same order as its own)."""
+    o = 2 * n
+    nis = rows[:, o]
+    sigma = rows[:, o + 4 + N_OBS : o + 4 + 2 * N_OBS]
+    used = np.isfinite(sigma) & (sigma > 0.0)
+    logs = np.zeros(rows.shape[0])
+    patterns, which = np.unique(used, axis=0, return_inverse=True)
+    which = which.reshape(-1)
+    for j, mask in enumerate(patterns):
+        if mask.any():
+            group = which == j
+            # C-contiguous: numpy sums each row with the loop it sums one row's array with
+            # (a strided view takes another order: the last bit differs).
+            logs[group] = np.sum(np.ascontiguousarray(np.log(sigma[group][:, mask])), axis=1)
+    out = nis + 2.0 * logs
+    penalty = ~np.isfinite(nis) | ~used.any(axis=1)
+    out[penalty] = NO_UPDATE_PENALTY
+    values: list[float] = out.tolist()
+    return values
 
 
 def _log_likelihood(row: FloatArray, n: int) -> float:
@@ -145,6 +173,30 @@ class Runner:
             i += 1
         return out
 
+    def rows(
+        self,
+        kind: FilterKind,
+        lanes: Lanes,
+        ts: FloatArray,
+        us: FloatArray,
+        ys: FloatArray,
+        tuning: Tuning,
+    ) -> FloatArray:
+        """Frames whose inputs are known through one filter of a pass under way (its lane
+        begun), every frame's outputs kept: a row each (Lane.rows: the same steps as
+        one()'s, bit for bit), the health counted and the likelihood summed as one()
+        does frame by frame."""
+        lane = lanes[kind]
+        assert lane is not None
+        rows, counts = lane.rows(ts, us, ys, tuning, self.model)
+        self.health[kind].add(*counts)
+        if self.likelihood is not None:
+            total = self.likelihood.get(kind, 0.0)
+            for value in _log_likelihoods(rows, lane.n):
+                total = total + value
+            self.likelihood[kind] = total
+        return rows
+
     def frames(
         self, lanes: Lanes, frames: Sequence[Frame], tunings: Tunings
     ) -> dict[FilterKind, StepOutput]:
@@ -177,23 +229,52 @@ class Runner:
         frame whose input is a guess: afresh, no update; segments.py), each run of frames
         in one compiled call per filter where the backend has blocks."""
         starts = set(fresh)
+        u = self.model.inputs_of(u)
+        y = np.asarray(y, float)
         i, n = 0, len(t)
         while i < n:
             end = i + 1
             while end < n and t[end] - t[end - 1] <= max_gap_s and end not in starts:
                 end += 1
-            frames = [
-                (float(t[j]), self.model.inputs(u[j]), np.array(y[j], float), j not in starts)
-                for j in range(i, end)
-            ]
             for kind in FILTER_KINDS:
-                lane = lanes[kind]
-                if lane is not None and i not in starts:
-                    t0, _, y0, _ = frames[0]
-                    lane.load(core.rebase(lane.state, self.model, tunings[kind], t0, y0))
-                if not self.blocks:  # a backend without blocks: frame by frame
-                    for frame in frames:
-                        self.one(kind, lanes, *frame, tunings[kind])
-                else:
-                    self.block(kind, lanes, frames, tunings[kind])
+                self._replay_run(
+                    kind, lanes, t[i:end], u[i:end], y[i:end], tunings[kind], i in starts
+                )
             i = end
+
+    def _replay_run(
+        self,
+        kind: FilterKind,
+        lanes: Lanes,
+        t: FloatArray,
+        u: FloatArray,
+        y: FloatArray,
+        tuning: Tuning,
+        fresh: bool,
+    ) -> None:
+        """One run of a replay (no gap, no segment's start after its first frame) through
+        one filter: its first frame begins the lane, or starts afresh (fresh: as a frame
+        whose input is a guess), or the flight states are rebased there (after a gap);
+        then the rest in one compiled call where the backend has them (every frame's
+        row kept where the likelihood is summed), else frame by frame."""
+        lane = lanes[kind]
+        t0, y0 = float(t[0]), y[0]
+        first = 0
+        if lane is None or fresh:
+            self.one(kind, lanes, t0, u[0], y0, not fresh, tuning)
+            first = 1
+        else:
+            lane.load(core.rebase(lane.state, self.model, tuning, t0, y0))
+        lane = lanes[kind]
+        assert lane is not None
+        if self.backend != "fast" or not (self.blocks or self.likelihood is not None):
+            for j in range(first, len(t)):
+                self.one(kind, lanes, float(t[j]), u[j], y[j], True, tuning)
+        elif self.likelihood is None:  # only the last row is wanted
+            if len(t) > first:
+                _, counts = lane.block(t[first:], u[first:], y[first:], tuning, self.model)
+                self.health[kind].add(*counts)
+        else:
+            for a in range(first, len(t), ROWS_FRAMES):
+                part = slice(a, min(a + ROWS_FRAMES, len(t)))
+                self.rows(kind, lanes, t[part], u[part], y[part], tuning)

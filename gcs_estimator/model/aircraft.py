@@ -92,14 +92,31 @@ class Model:
     def inputs(self, u: FloatArray | Sequence[float]) -> FloatArray:
         """u as the equations take it: [elevator, throttle or thrust, air density, phi, p,
         r], the density being the airframe's wherever u has none (absent, NaN or not
-        positive), the bank and the roll and yaw rates 0 (wings level) where absent or NaN."""
+        positive), the bank and the roll and yaw rates 0 (wings level) where absent or NaN.
+        (A frame's few values as Python floats: the same values as inputs_of's row, without
+        an array operation per part.)"""
+        values: list[float] = np.asarray(u, float).reshape(-1).tolist()
+        if len(values) < REQUIRED_INPUTS:
+            row: FloatArray = self.inputs_of(np.asarray(u, float).reshape(1, -1))[0]
+            return row
+        rho = values[2] if len(values) > 2 else math.nan
+        if not (math.isfinite(rho) and rho > 0.0):
+            rho = float(self.k[eq.RHO])
+        out = [*values[:REQUIRED_INPUTS], rho]
+        out += [v if math.isfinite(v) else 0.0 for v in values[3:N_INPUTS]]
+        out += [0.0] * (N_INPUTS - len(out))
+        return np.array(out)
+
+    def inputs_of(self, u: FloatArray) -> FloatArray:
+        """inputs() of each row of u [N x m], all rows at once: [N x N_INPUTS]."""
         u = np.asarray(u, float)
-        out = np.zeros(N_INPUTS)
-        out[:REQUIRED_INPUTS] = u[:REQUIRED_INPUTS]
-        rho = float(u[2]) if u.shape[0] > 2 else math.nan
-        out[2] = rho if math.isfinite(rho) and rho > 0.0 else float(self.k[eq.RHO])
-        lateral = np.asarray(u[3:N_INPUTS], float)
-        out[3 : 3 + lateral.shape[0]] = np.where(np.isfinite(lateral), lateral, 0.0)
+        out = np.zeros((u.shape[0], N_INPUTS))
+        out[:, :REQUIRED_INPUTS] = u[:, :REQUIRED_INPUTS]
+        rho = u[:, 2] if u.shape[1] > 2 else np.full(u.shape[0], math.nan)
+        ok = np.isfinite(rho) & (rho > 0.0)
+        out[:, 2] = np.where(ok, rho, float(self.k[eq.RHO]))
+        lateral = u[:, 3:N_INPUTS]
+        out[:, 3 : 3 + lateral.shape[1]] = np.where(np.isfinite(lateral), lateral, 0.0)
         return out
 
     def augment(self, state: FloatArray, beta: FloatArray) -> FloatArray:

@@ -39,6 +39,10 @@ from gcs_estimator.uncertainty.weighting import StructureCheck
 WORK_AHEAD_S = 0.002
 """Restart work done each time the source had nothing ready [s]: small enough that a
 packet arriving meanwhile waits little for it."""
+BATCH_BLOCK_FRAMES = 256
+"""Frames a session without a live view hands an estimator at a time (Session's
+block_frames; decision 0065): a few seconds of flight, the Python around each compiled
+call shared by that many frames."""
 WORK_AHEAD_FRAMES = 5
 """Frames of one vehicle's re-run at a time before the next vehicle's turn."""
 
@@ -106,6 +110,9 @@ def truth_of(
     return config_truth(config) if system_id == first else None
 
 
+# Over 200 lines: the one loop (run, its shutdown and idle work) with what it hands each
+# frame to (process, or take and flush where a batch's frames go in blocks) and the run's
+# results; the estimation itself lives in Estimator, the sinks in outputs.
 class Session:
     """Estimators per vehicle between one source and its sinks."""
 
@@ -119,8 +126,16 @@ class Session:
         truth_for_first: bool = True,
         gate: Limits | None = None,
         hold: Hold | None = None,
+        block_frames: int = 0,
     ) -> None:
+        """block_frames: a batch's session (no live view) hands each vehicle's frames to
+        its estimator up to this many at a time (Estimator.steps: the same estimates, bit
+        for bit), and the sinks see each block's last frame only (on_frame); 0: frame by
+        frame."""
         self.config = config
+        self.block_frames = block_frames
+        self._block: list[Frame] = []
+        """Frames given to the session and not yet to the estimator (block_frames)."""
         self.hold = hold
         """Given every frame before the gate, with its time since its vehicle's first
         frame (outputs.checks.Checks.hold: the held-out window's frames kept aside)."""
@@ -181,13 +196,10 @@ class Session:
         self._results = None
         plan: Plan | None = getattr(source, "plan", None)
         try:
-            for frame in source.frames(stop):
-                if frame is not None:
-                    self.process(frame)
-                elif getattr(source, "idle", False):
-                    self.work_ahead(WORK_AHEAD_S)
-                for sink in self.sinks:
-                    sink.tick()
+            try:
+                self._frames_of(source, stop)
+            finally:
+                self.flush()  # the frames kept for a block: processed as frame by frame had
         finally:
             for est in self.estimators.values():
                 est.finish_restarts()
@@ -201,6 +213,21 @@ class Session:
             finally:
                 source.close()
         return results
+
+    def _frames_of(self, source: Source, stop: Stop) -> None:
+        """Every frame of the source to the estimators (frame by frame, or kept for
+        blocks), idle time to the restarts' work, a tick to the sinks after each."""
+        for frame in source.frames(stop):
+            if frame is None:
+                self.flush()
+                if getattr(source, "idle", False):
+                    self.work_ahead(WORK_AHEAD_S)
+            elif self.block_frames > 0:
+                self.take(frame)
+            else:
+                self.process(frame)
+            for sink in self.sinks:
+                sink.tick()
 
     def work_ahead(self, budget_s: float) -> None:
         """Restart work from idle time (the source had nothing ready): the vehicles'
@@ -223,13 +250,66 @@ class Session:
                 if time.perf_counter() >= end:
                     return
 
+    def take(self, frame: Frame) -> None:
+        """A frame of a session in blocks (block_frames): kept for its vehicle's block, or,
+        where it must be taken alone (a clock reset, a segment's or flight's start, a guessed
+        input, the live gate), processed after the block before it. A block holds one
+        vehicle's consecutive frames only: every estimator sees the same calls in the same
+        order as frame by frame (a restart's grace counts the other vehicles' restarts)."""
+        alone = (
+            frame.clock_reset
+            or not frame.inputs_known
+            or self.gate is not None
+            or (
+                isinstance(frame, SegmentFrame)
+                and (frame.segment_start or frame.flight is not None)
+            )
+        )
+        if self._block and (alone or self._block[0].system_id != frame.system_id):
+            self.flush()
+        if alone:
+            self.process(frame)
+            return
+        self._hold(frame)
+        self._block.append(frame)
+        if len(self._block) >= self.block_frames:
+            self.flush()
+
+    def flush(self) -> None:
+        """The frames kept for a block through their vehicle's estimator (Estimator.steps),
+        the sinks given the last of them with the outputs there."""
+        frames, self._block = self._block, []
+        if not frames:
+            return
+        est = self.estimator(frames[0].system_id)
+        t = np.array([f.t_vehicle_s for f in frames], float)
+        try:
+            u = np.array([f.inputs for f in frames], float)
+            y = np.array([f.y for f in frames], float)
+        except ValueError:  # frames of different widths (not one source's): one by one
+            for frame in frames:
+                self._step(est, frame)
+            return
+        outs = est.steps(t, u, y)
+        if outs:
+            for sink in self.sinks:
+                sink.on_frame(frames[-1], outs)
+
     def process(self, frame: Frame) -> dict[FilterKind, StepOutput]:
-        est = self.estimator(frame.system_id)
+        self._hold(frame)
+        return self._step(self.estimator(frame.system_id), frame)
+
+    def _hold(self, frame: Frame) -> None:
+        """The frame to hold (before the gate), with its time since its vehicle's first."""
         if self.hold is not None:
             t0 = self._first_t.setdefault(frame.system_id, frame.t_vehicle_s)
             self.hold(
                 frame.system_id, frame.t_vehicle_s - t0, frame.t_vehicle_s, frame.inputs, frame.y
             )
+
+    def _step(self, est: Estimator, frame: Frame) -> dict[FilterKind, StepOutput]:
+        """A frame through its vehicle's estimator (marks, the gate, the filters), and to
+        the sinks."""
         if frame.clock_reset:
             est.rebase(frame.t_vehicle_s, frame.y)
         if isinstance(frame, SegmentFrame):
@@ -386,7 +466,9 @@ def run_recording(
 ) -> VehicleResult:
     """Both filters over a whole recording (frames in time order): the result and its
     summaries against the config's truth."""
-    session = Session(config, backend=backend, keep_history=keep_history)
+    session = Session(
+        config, backend=backend, keep_history=keep_history, block_frames=BATCH_BLOCK_FRAMES
+    )
     session.run(RecordingSource(np.asarray(t_s, float), inputs, measurements))
     return session.results()[RecordingSource.SYSTEM_ID]
 

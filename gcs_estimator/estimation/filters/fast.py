@@ -714,6 +714,28 @@ def lane_block_kernel(
     return ts.shape[0], failed, True
 
 
+@njit(cache=True, nogil=True)
+def lane_rows_kernel(
+    buf: FloatArray,
+    ts: FloatArray,
+    us: FloatArray,
+    ys: FloatArray,
+    tf: FloatArray,
+    ti: IntArray,
+    out: FloatArray,
+) -> tuple[int, int, bool]:  # pragma: no cover
+    """lane_block_kernel keeping every step's report: out[i] is frame i's row (out has a
+    row per frame), up to and including the first step that leaves an unhealthy belief."""
+    tun, m = _unpack(tf, ti)
+    failed = 0
+    for i in range(ts.shape[0]):
+        status = _lane_step(buf, ts[i], us[i], ys[i], tun, m, out[i])
+        if status == 2:
+            return i + 1, failed, False
+        failed += status
+    return ts.shape[0], failed, True
+
+
 def kernel_step(
     state: FilterState, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model
 ) -> tuple[FilterState, StepInfo, bool]:

@@ -21,6 +21,7 @@ from gcs_estimator.estimation.filters.core import (
     recover,
 )
 from gcs_estimator.model.aircraft import Model
+from gcs_estimator.model.channels import N_OBS
 
 
 class Lane:
@@ -149,6 +150,43 @@ class Lane:
                 row = self._recover(float(ts[j]), us[j], ys[j], tuning, model, row)
                 counts += flags_of_row(row, self.n)
         return row, (int(counts[0]), int(counts[1]), int(counts[2]))
+
+    def rows(
+        self, ts: FloatArray, us: FloatArray, ys: FloatArray, tuning: Tuning, model: Model
+    ) -> tuple[FloatArray, tuple[int, int, int]]:
+        """`block` keeping every frame's outputs: (a row per frame, output_row's layout;
+        the failed updates, covariance repairs and restarts among the steps); the same
+        steps as `step` frame by frame, bit for bit."""
+        counts = np.zeros(3, dtype=np.int64)
+        m = ts.shape[0]
+        if not self._compiled:
+            out = np.empty((m, self._width_of()))
+            for i in range(m):
+                out[i], status = self.step(float(ts[i]), us[i], ys[i], tuning, model)
+                if status:
+                    counts += flags_of_row(out[i], self.n)
+            return out, (int(counts[0]), int(counts[1]), int(counts[2]))
+        tf, ti = self._pack(tuning, model)
+        ts = np.ascontiguousarray(ts, dtype=np.float64)
+        us = np.ascontiguousarray(us, dtype=np.float64)
+        ys = np.ascontiguousarray(ys, dtype=np.float64)
+        out = np.empty((m, self._width))
+        i = 0
+        while i < m:
+            done, failed, healthy = self._fast.lane_rows_kernel(
+                self._buf, ts[i:], us[i:], ys[i:], tf, ti, out[i:]
+            )
+            counts[0] += failed
+            i += done
+            if not healthy:
+                j = i - 1
+                out[j] = self._recover(float(ts[j]), us[j], ys[j], tuning, model, out[j])
+                counts += flags_of_row(out[j], self.n)
+        return out, (int(counts[0]), int(counts[1]), int(counts[2]))
+
+    def _width_of(self) -> int:
+        """Floats of a step's output row (filters.fast.output_width, without the compiler)."""
+        return int(2 * self.n + 4 + 2 * N_OBS + 4)
 
     def _recover(
         self, t: float, u: FloatArray, y: FloatArray, tuning: Tuning, model: Model, row: FloatArray
