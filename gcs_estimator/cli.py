@@ -86,7 +86,14 @@ from gcs_estimator.runtime.flights import (
     what_flew,
 )
 from gcs_estimator.runtime.link_worker import LiveJob, WorkerUdpSource
-from gcs_estimator.runtime.session import Hold, RecordingSource, Session, Source, warm_up
+from gcs_estimator.runtime.session import (
+    BATCH_BLOCK_FRAMES,
+    Hold,
+    RecordingSource,
+    Session,
+    Source,
+    warm_up,
+)
 from gcs_estimator.stop import PROCESS_STOP, Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -706,6 +713,8 @@ def _recording_session(
     session.add_sink(_results_sink(args, config, session, heading, origin))
     if view is not None:  # after the results: its final panels show their checks
         session.add_sink(view)
+    else:  # nothing needs every frame: the filters take them in blocks (decision 0065)
+        session.block_frames = BATCH_BLOCK_FRAMES
     return _run(session, source, stop)
 
 
@@ -828,11 +837,14 @@ def _link_session(
     record: Path | None = None,
     status: bool = True,
     recorder: bool = True,
+    blocks: bool = False,
 ) -> tuple[Session | ShardedSession, MavlinkLink]:
     """A session over a MAVLink link, with its view and result sinks (and, live, its
     status line); recorder False: the link records nothing here (a link worker records
-    `record`). With --filter-workers the vehicles' filters run in worker processes
-    (filter_worker.py), which write their results. Alpha from AOA_SSA is weighed as
+    `record`); blocks: a recording read as fast as it goes, whose frames the filters
+    take in blocks where no view needs every frame (decision 0065). With
+    --filter-workers the vehicles' filters run in worker processes (filter_worker.py),
+    which write their results. Alpha from AOA_SSA is weighed as
     [link] aoa_ssa says (vehicle_setup.weigh_alpha)."""
     config = weigh_alpha(config)
     workers = getattr(args, "filter_workers", None)
@@ -880,6 +892,8 @@ def _link_session(
         session.add_sink(_results_sink(args, config, session, vehicle_heading, origin))
     if view is not None:  # after the results: its final panels show their checks
         session.add_sink(view)
+    elif blocks and isinstance(session, Session):
+        session.block_frames = BATCH_BLOCK_FRAMES
     return session, link
 
 
@@ -995,7 +1009,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return _tlog_flights(args)
     config = _config(args)
     origin = args.tlogs[0] if len(args.tlogs) == 1 else ", ".join(args.tlogs)
-    session, link = _link_session(config, args, origin, status=False)
+    session, link = _link_session(config, args, origin, status=False, blocks=args.speed == 0)
     source = tlog_source(args.tlogs, link, speed=args.speed)
     if sys.stderr.isatty() or args.progress:
         session.add_sink(ProgressSink(source.progress, "replay"))

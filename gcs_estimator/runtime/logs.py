@@ -36,7 +36,7 @@ from gcs_estimator.ingest.telemetry.tlog_fast import read_records, tlog_source_c
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.sinks import ResultsSink, results_stem
 from gcs_estimator.outputs.tables import coefficient_rows, failed_row, summary_row
-from gcs_estimator.runtime.session import RecordingSource, Session, Source
+from gcs_estimator.runtime.session import BATCH_BLOCK_FRAMES, RecordingSource, Session, Source
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -351,7 +351,7 @@ def _estimate(
     source, facts = reader_of(path)(path, config, log)
     read_s = time.perf_counter() - t0  # a data file read whole, a .tlog's uid looked for
     timed = _TimedSource(source)
-    session = Session(config)
+    session = Session(config, block_frames=BATCH_BLOCK_FRAMES)  # no view: blocks (0065)
     writer = None
     if out_dir is not None:
         sink = ResultsSink(
