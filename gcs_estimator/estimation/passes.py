@@ -95,8 +95,9 @@ class Runner:
         self.blocks = backend == "fast"
         self.likelihood: dict[FilterKind, float] | None = None
         """Where a dict (the structure check's profile replays): each filter's -2 log
-        likelihood of its innovations summed over the frames stepped one at a time (NIS
-        plus the log of the innovations' variances; blocks then are not used)."""
+        likelihood of its innovations summed frame by frame (NIS plus the log of the
+        innovations' variances), from the rows of compiled blocks (Runner.rows) where the
+        backend has them."""
         """Many frames of a re-run in one compiled call (Lane.block); else one at a
         time (the reference backend has no compiled calls)."""
         self.health = {k: Health() for k in FILTER_KINDS}

@@ -172,7 +172,6 @@ def _final(est: Estimator, t: FloatArray, y: FloatArray, replay: Replay) -> Fina
     config = est.config if replay.config is None else replay.config
     again = Estimator(config, backend=est.backend, keep_history=False, noise_scale=scale)
     if replay.profile:
-        again.runner.blocks = False
         again.runner.likelihood = {}
     source = est
     if replay.linear_inputs is not None:  # the run's pass under the other hold
