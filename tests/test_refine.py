@@ -27,7 +27,7 @@ from gcs_estimator.refine import (
     choose_method,
     refine_run,
 )
-from gcs_estimator.refine.run import Refined as RefinedFit
+from gcs_estimator.refine.result import Refined as RefinedFit
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from sim.reference import output_error
