@@ -529,6 +529,7 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
             f"simulation.turbulence.sigma_w_mps={sigma_w}",
             "simulation.turbulence.length_w_m=530",
             "simulation.turbulence.length_u_m=530",
+            "filter.structure_check=off",  # the level alone: no sigma read (decision 0066)
         ]
         config = load_config("noc_uav", over)
         flight = simulate(config, seed=1)
