@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import resource
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -35,3 +39,28 @@ def no_viewer_windows(monkeypatch: pytest.MonkeyPatch) -> None:
     (it saves an .rrd into the test's output directory instead)."""
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+
+
+CPU_TSV = "GCS_TEST_CPU_TSV"
+"""Where to append each test's CPU time (decision 0066): `GCS_TEST_CPU_TSV=cpu.tsv pytest
+tests/test_x.py` adds a line per test, its id, CPU seconds (this process and the child
+processes it waited for) and wall seconds. CPU, not wall: on a shared machine the wall
+time says more about the other processes than about the tests."""
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Iterator[None]:
+    path = os.environ.get(CPU_TSV)
+    if not path:
+        yield
+        return
+    cpu, wall = _cpu_s(), time.perf_counter()
+    yield
+    with open(path, "a", encoding="utf-8") as out:
+        out.write(f"{item.nodeid}\t{_cpu_s() - cpu:.2f}\t{time.perf_counter() - wall:.2f}\n")

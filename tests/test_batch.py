@@ -62,25 +62,35 @@ def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return [_tlog(d / "a" / "flight.tlog", 3), _tlog(d / "b" / "flight.tlog", 4)]
 
 
-def test_each_file_is_replayed_on_its_own_and_the_results_merged(
+def test_each_file_is_replayed_on_its_own_the_results_merged_and_a_bad_file_fails_alone(
     tmp_path: Path, flights: list[Path]
 ) -> None:
+    """One batch of two flights and a file of junk (decision 0066: one batch run serves
+    what two did): each flight's results are its replay's alone, the junk's replay fails
+    alone and says why."""
+    junk = tmp_path / "junk.tlog"
+    junk.write_bytes(os.urandom(4000))
     out = tmp_path / "batch"
-    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), *NOC, "--out", str(out),
-                "--view", "off")  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    assert "replaying 2 files as separate flights, 2 at a time" in done.stderr
+    done = _gcs("replay", "--each", "--jobs", "2", *map(str, flights), str(junk), *NOC,
+                "--out", str(out), "--view", "off")  # fmt: skip
+    assert done.returncode != 0
+    assert "replaying 3 files as separate flights, 2 at a time" in done.stderr
     assert f"started {flights[1]} -> {out / 'flight_2'}" in done.stderr
     summary = json.loads((out / "replays.json").read_text())
-    files = summary["files"]
+    *files, bad = summary["files"]
     assert [f["file"] for f in files] == [str(p) for p in flights]
     assert [Path(f["folder"]).name for f in files] == ["flight", "flight_2"]
     assert all(f["exit_status"] == 0 and len(f["vehicles"]) == 1 for f in files)
-    # Each file's results are exactly those of a replay of that file alone.
+    assert bad["file"] == str(junk) and bad["exit_status"] == done.returncode
+    assert bad["vehicles"] == []
+    # The failing replay's own message, from its log, in the batch's output.
+    assert f"{junk}: exit {done.returncode}" in done.stderr
+    assert "no usable frame" in done.stderr or "error:" in done.stderr
+    # Each file's results are exactly those of a replay of that file alone (here, in
+    # this process: the batch's replays are processes of their own).
     for f, path in zip(files, flights, strict=True):
         alone = tmp_path / f"alone_{Path(f['folder']).name}"
-        single = _gcs("replay", str(path), *NOC, "--out", str(alone), "--view", "off")
-        assert single.returncode == 0, single.stderr
+        assert main(["replay", str(path), *NOC, "--out", str(alone), "--view", "off"]) == 0
         own = json.loads((alone / "results_sys1.json").read_text())
         assert _estimates(f["vehicles"][0]) == _estimates(own)
         assert (Path(f["folder"]) / "results_sys1_history.parquet").is_file()
@@ -91,23 +101,6 @@ def test_each_file_is_replayed_on_its_own_and_the_results_merged(
     assert (
         "| file | exit | s | vehicle | frames | CLa | Cma | Cmq | Cmde | warnings |" in done.stdout
     )
-
-
-def test_a_bad_file_fails_alone_and_says_why(tmp_path: Path, flights: list[Path]) -> None:
-    junk = tmp_path / "junk.tlog"
-    junk.write_bytes(os.urandom(4000))
-    out = tmp_path / "batch"
-    done = _gcs(
-        "replay", "--each", str(flights[0]), str(junk), *NOC, "--out", str(out), "--view", "off"
-    )
-    assert done.returncode != 0
-    summary = json.loads((out / "replays.json").read_text())
-    good, bad = summary["files"]
-    assert good["exit_status"] == 0 and len(good["vehicles"]) == 1
-    assert bad["exit_status"] == done.returncode and bad["vehicles"] == []
-    # The failing replay's own message, from its log, in the batch's output.
-    assert f"{junk}: exit {done.returncode}" in done.stderr
-    assert "no usable frame" in done.stderr or "error:" in done.stderr
 
 
 def test_each_files_replay_gets_the_batchs_options(tmp_path: Path) -> None:

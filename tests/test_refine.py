@@ -27,6 +27,7 @@ from gcs_estimator.refine import (
     choose_method,
     refine_run,
 )
+from gcs_estimator.refine.result import Refined as RefinedFit
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK, identifiability
 from sim.reference import output_error
@@ -422,15 +423,51 @@ def test_a_filter_that_ran_away_starts_again_and_is_named() -> None:
     assert np.all(np.abs(iekf[well] / truth[well] - 1) < 0.05)
 
 
-def test_refine_reports_each_iteration(noc_config: AircraftConfig) -> None:
+@dataclass
+class ThreadedFits:
+    """The fits of one short flight by each method in one thread and in three, each with
+    the progress reports it gave and the BLAS thread counts seen at each report."""
+
+    fits: dict[tuple[str, int], RefinedFit]
+    reports: dict[tuple[str, int], list[RefineProgress]]
+    blas_before: list[int]
+    blas_during: list[list[int]]
+    blas_after: list[int]
+
+
+def _blas_threads() -> list[int]:
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+@pytest.fixture(scope="module")
+def threaded_fits() -> ThreadedFits:
+    """One 10 s flight fitted by output error and filter error, in one thread and in
+    three: the runs the thread test and the progress test look at (decision 0066: the
+    progress test flew a 20 s flight of its own for a filter-error fit)."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=10"])
+    flight = simulate(config, seed=3)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    fits = ThreadedFits({}, {}, _blas_threads(), [], [])
+    for method in ("output-error", "filter-error"):
+        for n in (1, 3):
+            heard: list[RefineProgress] = []
+
+            def look(p: RefineProgress, heard: list[RefineProgress] = heard) -> None:
+                heard.append(p)
+                fits.blas_during.append(_blas_threads())
+
+            fits.fits[method, n] = refine_run(run.result, method, progress=look, threads=n)
+            fits.reports[method, n] = heard
+    fits.blas_after = _blas_threads()
+    return fits
+
+
+def test_refine_reports_each_iteration(threaded_fits: ThreadedFits) -> None:
     """The progress callback hears every Gauss-Newton iteration with the filter runs so
     far; the last report is the fit's own count; and the status line draws it in place
     on a terminal and as plain lines elsewhere."""
-    config = load_config(noc_config.source, ["simulation.manoeuvre.duration_s=20"])
-    flight = simulate(config, seed=5)
-    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
-    reports: list[RefineProgress] = []
-    refined = refine_run(run.result, "filter-error", progress=reports.append)
+    refined = threaded_fits.fits["filter-error", 1]
+    reports = threaded_fits.reports["filter-error", 1]
     assert [p.iterations for p in reports] == list(range(1, refined.iterations + 1))
     assert all(np.isfinite(p.cost) for p in reports)
     runs = [p.runs for p in reports]
@@ -459,24 +496,13 @@ def test_refine_reports_each_iteration(noc_config: AircraftConfig) -> None:
             assert len(lines) == (len(reports) + 19) // 20 + 1 and last in lines[-1]
 
 
-def test_the_fit_is_the_same_in_any_number_of_threads(noc_config: AircraftConfig) -> None:
+def test_the_fit_is_the_same_in_any_number_of_threads(threaded_fits: ThreadedFits) -> None:
     """The sensitivities' columns run in threads: one thread or three give the same fit to
     the bit, with the same filter runs, for output error and filter error. While refine
     runs, every BLAS library of the process has one thread (their spinning threads would
     take the cores the fit's threads need); afterwards each has what it had before."""
-    config = load_config(noc_config.source, ["simulation.manoeuvre.duration_s=10"])
-    flight = simulate(config, seed=3)
-    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
-    before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-    during: list[list[int]] = []
-
-    def look(_: RefineProgress) -> None:
-        during.append(
-            [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-        )
-
     for method in ("output-error", "filter-error"):
-        one, three = (refine_run(run.result, method, progress=look, threads=n) for n in (1, 3))
+        one, three = (threaded_fits.fits[method, n] for n in (1, 3))
         assert one.converged and three.converged, method
         assert one.message == three.message, method  # the same filter runs
         for field in ("coefficients", "crb_sigma", "sigma", "biases", "process_noise"):
@@ -484,9 +510,9 @@ def test_the_fit_is_the_same_in_any_number_of_threads(noc_config: AircraftConfig
                 method,
                 field,
             )
+    before, during = threaded_fits.blas_before, threaded_fits.blas_during
     assert before and during and all(counts == [1] * len(before) for counts in during)
-    after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-    assert after == before
+    assert threaded_fits.blas_after == before
 
 
 def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
@@ -503,6 +529,7 @@ def test_turbulence_the_running_level_misses_is_found_over_the_pass() -> None:
             f"simulation.turbulence.sigma_w_mps={sigma_w}",
             "simulation.turbulence.length_w_m=530",
             "simulation.turbulence.length_u_m=530",
+            "filter.structure_check=off",  # the level alone: no sigma read (decision 0066)
         ]
         config = load_config("noc_uav", over)
         flight = simulate(config, seed=1)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gcs_estimator.cli import build_parser
+from gcs_estimator.cli import build_parser, main
 from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.runtime.batch import child_command
 from sim.cli import command as vehicle_command
@@ -80,11 +80,10 @@ def test_listen_with_filter_workers_ends_each_vehicle_as_a_single_replay(tmp_pat
     tlog = str(live / "telemetry.tlog")
     alone = tmp_path / "alone"
     workers = tmp_path / "workers"
-    single = _gcs("replay", tlog, "--config", "noc_uav", "--out", str(alone), *QUICK)
-    assert single.returncode == 0, single.stderr
-    sharded = _gcs("replay", tlog, "--config", "noc_uav", "--filter-workers", "2",
-                   "--out", str(workers), *QUICK)  # fmt: skip
-    assert sharded.returncode == 0, sharded.stderr
+    # Both replays in this process (decision 0066): the station's run was its own.
+    assert main(["replay", tlog, "--config", "noc_uav", "--out", str(alone), *QUICK]) == 0
+    assert main(["replay", tlog, "--config", "noc_uav", "--filter-workers", "2",
+                 "--out", str(workers), *QUICK]) == 0  # fmt: skip
     for sid in (1, 2):
         one, two = _results(alone, sid), _results(workers, sid)
         assert two["holdout"] is None and one["holdout"] is None
@@ -98,7 +97,7 @@ def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 
 
 def test_replay_each_ends_every_file_as_its_single_replay(
-    tmp_path: Path, flights: list[Path]
+    tmp_path: Path, flights: list[Path], capsys: pytest.CaptureFixture[str]
 ) -> None:
     """`replay --each --validate 2:6`: every file's results have the held-out check (out
     of sample: the filters left the window out, its frames were kept aside) and the
@@ -115,12 +114,13 @@ def test_replay_each_ends_every_file_as_its_single_replay(
         assert all(c["samples"] > 150 for c in holdout["channels"].values())  # 4 s at 50 Hz
         assert advice is not None
         alone = tmp_path / f"alone_{path.stem}"
-        single = _gcs("replay", str(path), "--config", "noc_uav", "--validate", HELD,
-                      "--out", str(alone), *QUICK)  # fmt: skip
-        assert single.returncode == 0, single.stderr
+        # The single replay in this process (decision 0066): the batch's are their own.
+        capsys.readouterr()
+        assert main(["replay", str(path), "--config", "noc_uav", "--validate", HELD,
+                     "--out", str(alone), *QUICK]) == 0  # fmt: skip
         assert _ending(f["vehicles"][0]) == _ending(_results(alone))
         log = (Path(f["folder"]) / "replay.log").read_text()
-        assert "what to fly next" in log and "what to fly next" in single.stdout
+        assert "what to fly next" in log and "what to fly next" in capsys.readouterr().out
 
 
 def test_offline_checks_a_window_its_segments_left_out(tmp_path: Path) -> None:

@@ -30,6 +30,7 @@ from gcs_estimator.uncertainty.sigma import (
 from sim.truth import Flight, simulate
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
+NO_CHECK = "filter.structure_check=off"
 
 
 def _martingale(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -192,25 +193,26 @@ def test_a_turbulence_level_switched_on_and_off_by_what_the_model_misses_is_name
     (filter.turbulence.settle_s), so it stays off. Estimated on every frame (settle_s = 0)
     they read as bursts of turbulence, and the warnings say so and what to compare. The
     same structure on a flight it fits, calm or in steady light turbulence, raises
-    nothing."""
+    nothing. The turbulence level's track alone: no structure check, which widens only
+    the sigmas and runs after the pass (decision 0066)."""
     flown = load_config(
         "noc_uav",
         ['coefficients.Cm=["1", "alpha", "qhat", "elevator", "adhat"]', "truth.Cmadot=-150"],
     )
     flight = simulate(flown, seed=1)
-    config = load_config("noc_uav")
+    config = load_config("noc_uav", [NO_CHECK])
     vehicle = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
     for kind, s in vehicle.summaries.items():
         assert s.gust_on_share < GUST_BURSTS[0], (kind, s.gust_on_share)
     assert not any("on and off" in w for w in trust_warnings(vehicle))
-    every_frame = load_config("noc_uav", ["filter.turbulence.settle_s=0"])
+    every_frame = load_config("noc_uav", ["filter.turbulence.settle_s=0", NO_CHECK])
     vehicle = run_recording(every_frame, flight.t_s, flight.inputs, flight.measurements)
     for kind, s in vehicle.summaries.items():
         assert GUST_BURSTS[0] < s.gust_on_share < GUST_BURSTS[1], (kind, s.gust_on_share)
     named = [w for w in trust_warnings(vehicle) if "on and off" in w]
     assert len(named) == 2 and all("adaptive = false" in w for w in named), named
     for preset in ("none", "light"):
-        air = load_config("noc_uav", [f'simulation.turbulence.preset="{preset}"'])
+        air = load_config("noc_uav", [f'simulation.turbulence.preset="{preset}"', NO_CHECK])
         fitted = simulate(air, seed=1)
         run = run_recording(air, fitted.t_s, fitted.inputs, fitted.measurements)
         assert not any("on and off" in w for w in trust_warnings(run)), preset
