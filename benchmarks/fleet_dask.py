@@ -104,6 +104,15 @@ def main(argv: list[str] | None = None) -> int:
         help="the batches' tlog reader (GCS_ESTIMATOR_TLOG_READER)",
     )
     ap.add_argument("--decode-rounds", type=int, default=3, help="interleaved runs of each reader")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override for the batches and their replays (e.g. "
+        "filter.structure_check=off: the check's replays run in threads, so one worker "
+        "already uses every core, decision 0067)",
+    )
     record.add_argument(ap, "fleet_dask")
     args = ap.parse_args(argv)
     os.environ[READER_VARIABLE] = args.reader  # the batches' and estimate_file's
@@ -221,7 +230,7 @@ def batch(args: argparse.Namespace, logs: Path, out: Path, where: list[str]) -> 
     """One `batch` run: its wall-clock time over the tasks and its tables."""
     cmd = [sys.executable, "-m", "gcs_estimator", "batch", str(logs), "--config", "noc_uav",
            "--out", str(out), "--view", "off", "--no-trend", *where]  # fmt: skip
-    for item in _overrides(args.seconds):
+    for item in _overrides(args.seconds) + args.set:
         cmd += ["--set", item]
     t0, cpu0 = time.perf_counter(), _children_cpu()
     done = subprocess.run(cmd, env=_env(), capture_output=True, text=True)
@@ -360,7 +369,7 @@ def same_as_replay(
         out = tmp / f"replay_{path.stem}"
         cmd = [sys.executable, "-m", "gcs_estimator", "replay", str(path), "--config", "noc_uav",
                "--out", str(out), "--view", "off"]  # fmt: skip
-        for item in _overrides(args.seconds):
+        for item in _overrides(args.seconds) + args.set:
             cmd += ["--set", item]
         subprocess.run(cmd, env=_env(), capture_output=True, check=True)
         own = json.loads((out / "results_sys1.json").read_text())
