@@ -24,17 +24,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from fleet_dask import _overrides
+from fleet_dask import _overrides, write_flight
 
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.frames import Frame
-from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.runtime.logs import reader_of
 from gcs_estimator.runtime.session import Session
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty.weighting import StructureCheck
-from sim.truth import simulate
-from sim.vehicle import SimulatedVehicle
 
 
 class Frames:
@@ -83,9 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config("noc_uav", _overrides(args.seconds))
     with tempfile.TemporaryDirectory() as tmp_dir:
         path = Path(tmp_dir) / "flight.tlog"
-        fl = simulate(config, seed=100)
-        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
-        SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+        write_flight(config, path, 100)
         source, _ = reader_of(path)(path, config, io.StringIO())
         frames = [f for f in source.frames(Stop()) if f is not None]
     print(f"{args.seconds:g} s flight, {len(frames)} frames; load average {os.getloadavg()[0]:.1f}")

@@ -201,13 +201,19 @@ def make_flights(args: argparse.Namespace, folder: Path) -> list[Path]:
             share = per_vehicle[v] / max(flights_of[v] - 1, 1)
             truth[names.index("CD0")] *= 1 + args.drift * share
         per_vehicle[v] += 1
-        fl = simulate(config, seed=100 + k, truth=truth)
-        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
         path = folder / f"v{v + 1}_{per_vehicle[v]:03d}.tlog"
-        SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+        write_flight(config, path, 100 + k, truth)
         _with_uid(path, UID_BASE + v + 1)
         paths.append(path)
     return paths
+
+
+def write_flight(config: Any, path: Path, seed: int, truth: Any = None) -> None:
+    """One simulated flight of the config's aircraft written as a .tlog (the simulator's
+    own message set, as fast as it goes): the log the fleet and speed benchmarks read."""
+    fl = simulate(config, seed=seed, truth=truth)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
 
 
 def _vehicle_of(k: int, vehicles: int) -> int:

@@ -28,10 +28,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from fleet_dask import _overrides
+from fleet_dask import _overrides, write_flight
 
 from gcs_estimator.config import load_config
-from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry import tlog_fast
 from gcs_estimator.ingest.telemetry.channel_sources import ChannelSources
 from gcs_estimator.ingest.telemetry.counters import LinkHealth
@@ -48,8 +47,6 @@ from gcs_estimator.ingest.telemetry.tlog_fast import (
 )
 from gcs_estimator.runtime.logs import estimate_file
 from gcs_estimator.stop import Stop
-from sim.truth import simulate
-from sim.vehicle import SimulatedVehicle
 
 Item = tuple[bytes, float, Any]
 
@@ -230,9 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config("noc_uav", _overrides(args.seconds))
     with tempfile.TemporaryDirectory() as tmp_dir:
         path = Path(tmp_dir) / "flight.tlog"
-        fl = simulate(config, seed=100)
-        rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
-        SimulatedVehicle(rec, config.link, ("127.0.0.1", 9), speed=0.0, tlog=path).run()
+        write_flight(config, path, 100)
         warm_up()
         estimate_file(path, config, Path(tmp_dir) / "warm")
         print(f"{args.seconds:g} s flight; load average {os.getloadavg()[0]:.1f}; CPU s:")
