@@ -95,6 +95,7 @@ from gcs_estimator.runtime.session import (
     warm_up,
 )
 from gcs_estimator.stop import PROCESS_STOP, Stop
+from gcs_estimator.uncertainty import weighting
 from gcs_estimator.uncertainty.result import VehicleResult
 
 DEFAULT_CONFIG = "noc_uav"
@@ -1270,6 +1271,14 @@ def _add_replay(sub: Any) -> None:
         metavar="N",
         help="with --each: N files replayed at a time (default: the machine's cores)",
     )
+    options.group(p, PROCESSES).add_argument(
+        "--check-threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the structure check's replays in at most N threads (default: the machine's "
+        "cores; with --each, each replay gets the cores over --jobs)",
+    )
     _station_options(p)
     p.set_defaults(func=cmd_replay)
 
@@ -1328,6 +1337,16 @@ def backend_of(environ: Mapping[str, str]) -> Backend:
     return "reference" if value == "reference" else "fast"
 
 
+def _cap_check_threads(args: argparse.Namespace) -> None:
+    """--check-threads: the process's cap on the structure check's threads."""
+    count = getattr(args, "check_threads", None)
+    if count is None:
+        return
+    if count < 1:
+        raise ConfigError(f"--check-threads {count}: at least 1")
+    weighting.set_process_threads(count)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     blas.one_thread()
     args = build_parser().parse_args(argv)
@@ -1335,6 +1354,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = datetime.now(UTC)
     try:
         args.backend = backend_of(os.environ)
+        _cap_check_threads(args)
         if getattr(args, "hold_noise", False) and args.func is not cmd_refine and not args.refine:
             raise ConfigError("--hold-noise is for the refinement: add --refine METHOD")
         parse_windows(getattr(args, "window", None))  # a bad --window: refused before any work

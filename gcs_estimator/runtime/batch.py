@@ -86,9 +86,13 @@ def folders(paths: Sequence[Path], out: Path) -> list[Path]:
     return result
 
 
-def child_command(args: argparse.Namespace, path: Path, folder: Path) -> list[str]:
-    """The `replay` command of one file: the batch's options, its own folder."""
+def child_command(args: argparse.Namespace, path: Path, folder: Path, width: int = 1) -> list[str]:
+    """The `replay` command of one file: the batch's options, its own folder; with
+    `width` replays at a time, each replay's structure check in its share of the cores
+    (--check-threads, where not given: the replays already use the cores between them)."""
     cmd = [sys.executable, "-m", "gcs_estimator", "replay", str(path), "--out", str(folder)]
+    threads = args.check_threads or max(1, (os.cpu_count() or 1) // max(width, 1))
+    cmd += ["--check-threads", str(threads)]
     if args.config is not None:
         cmd += ["--config", args.config]
     for item in args.set:
@@ -157,7 +161,7 @@ def _drive(args: argparse.Namespace, jobs: list[Job], width: int, stop: Stop, lo
     while waiting or running:
         while waiting and len(running) < width and not stop.requested:
             job = waiting.pop(0)
-            _start(args, job)
+            _start(args, job, min(width, len(jobs)))
             running.append(job)
             print(f"started {job.path} -> {job.folder}", file=log, flush=True)
         if stop.requested:
@@ -179,7 +183,7 @@ def _drive(args: argparse.Namespace, jobs: list[Job], width: int, stop: Stop, lo
             _said(job, done, len(jobs), log)
 
 
-def _start(args: argparse.Namespace, job: Job) -> None:
+def _start(args: argparse.Namespace, job: Job, width: int) -> None:
     job.folder.mkdir(parents=True, exist_ok=True)
     with open(job.folder / LOG_FILE, "wb") as out:
         job.started = time.perf_counter()
@@ -187,7 +191,7 @@ def _start(args: argparse.Namespace, job: Job) -> None:
         # SIGINT ignored until the replay installs its handler (first thing it does): a
         # stop forwarded during its start never kills it with a traceback.
         job.proc = subprocess.Popen(
-            child_command(args, job.path, job.folder),
+            child_command(args, job.path, job.folder, width),
             stdout=out,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,

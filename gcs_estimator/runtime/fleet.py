@@ -53,6 +53,7 @@ from gcs_estimator.runtime.logs import (
     version,
 )
 from gcs_estimator.stop import PROCESS_STOP, Stop
+from gcs_estimator.uncertainty import weighting
 
 DONE_FILE = "done.jsonl"
 COEFFICIENTS_FILE = "coefficients.parquet"
@@ -134,7 +135,10 @@ def run_log(
     timeout_s: float | None,
     history_format: str,
 ) -> LogOutcome:
-    """The task of one log on a worker: logs.estimate_file, with the worker's address."""
+    """The task of one log on a worker: logs.estimate_file, with the worker's address.
+    Its structure check replays in the task's one thread: a worker runs as many tasks
+    at once as it has threads, so the cores are the workers' to share out (decision
+    0070)."""
     blas.one_thread()
     try:
         from distributed import get_worker
@@ -142,7 +146,8 @@ def run_log(
         base = {**base, "worker": get_worker().address}
     except ValueError:  # not on a worker
         pass
-    return estimate_file(path, config, folder, base, timeout_s, history_format)
+    with weighting.replay_threads(1):
+        return estimate_file(path, config, folder, base, timeout_s, history_format)
 
 
 @dataclass

@@ -48,11 +48,13 @@ replay's, so the move beyond what the two covariances allow gives the variance d
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextvars import ContextVar
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -92,6 +94,41 @@ halved)."""
 WEIGHT_SHARE = 1.0 / 3.0
 """Var(ln w) / (ln VARIANCE_FACTOR)^2 for a weight known within VARIANCE_FACTOR either
 way (log-uniform)."""
+_THREADS: ContextVar[int | None] = ContextVar("check_threads", default=None)
+_PROCESS_THREADS: list[int] = []
+"""The process's cap on the check's threads, where one is set (set_process_threads)."""
+
+
+@contextlib.contextmanager
+def replay_threads(count: int) -> Iterator[None]:
+    """The check's replays in at most `count` threads while the block runs, in this
+    thread (a batch's task: its worker runs as many tasks at once as it has threads, so
+    each task's replays take one; decision 0070)."""
+    token = _THREADS.set(max(1, count))
+    try:
+        yield
+    finally:
+        _THREADS.reset(token)
+
+
+def set_process_threads(count: int) -> None:
+    """Cap the check's threads in every thread of this process (a process one of several
+    sharing the machine's cores: each of `replay --each`'s replays)."""
+    _PROCESS_THREADS[:] = [max(1, count)]
+
+
+def check_threads() -> int:
+    """The threads the check's replays may use here: replay_threads' count, else the
+    process's cap, else the cores this process may run on."""
+    count = _THREADS.get()
+    if count is not None:
+        return count
+    if _PROCESS_THREADS:
+        return _PROCESS_THREADS[0]
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
 
 
 class StructureCheck(NamedTuple):
@@ -211,8 +248,11 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
 
     def again(batch: list[Replay]) -> list[Final]:
         # The replays are independent and spend most of their time in compiled steps
-        # that release the GIL: threads run them side by side on the machine's cores.
-        with ThreadPoolExecutor(max_workers=min(len(batch), os.cpu_count() or 1)) as pool:
+        # that release the GIL: threads run them side by side on the cores allowed.
+        threads = min(len(batch), check_threads())
+        if threads < 2:
+            return [_final(est, t, y, r) for r in batch]
+        with ThreadPoolExecutor(max_workers=threads) as pool:
             return list(pool.map(lambda r: _final(est, t, y, r), batch))
 
     base, *finals = again(replays)
