@@ -77,6 +77,14 @@ PLACEMENT_MIN_M = 0.01
 PLACEMENT_KEYS: tuple[str, ...] = ("vane_x_m", "accel_x_m", "accel_z_m")
 """The [sensors] positions whose tolerance enters the sigma (the vane's height moves
 alpha by q times it over V only in its cosine: negligible)."""
+PLACEMENT_CHANNELS: dict[str, tuple[str, ...]] = {
+    "vane_x_m": ("alpha",),
+    "accel_x_m": ("a_x", "a_z"),
+    "accel_z_m": ("a_x", "a_z"),
+}
+"""The channels each position moves (equations.sensor_placement, turn_placement): on a
+record where none of them has data the position moves nothing, so its replays are not
+run (decision 0070: a record without a vane saves four)."""
 PROFILE_WIDE = 4.0
 """Where the likelihood over +-tolerance has no least between (the quantity lies beyond),
 the pair is replayed again this many tolerances out."""
@@ -236,15 +244,8 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     channels = _with_data(y)
     if not channels:
         return skipped("no channel has data")
-    replays = [Replay(None, u, profile=True)]
-    for ch in channels:
-        scale = np.ones(N_OBS)
-        scale[ch] = VARIANCE_FACTOR
-        replays.append(Replay(scale, u))
-    undecided, tolerances = _undecided(est, t, u)
-    for label, _, make in undecided:
-        tol = tolerances.get(label, 0.0)
-        replays += [make(tol), make(-tol)] if tol > 0.0 else [make(0.0)]
+    undecided, tolerances = _undecided(est, t, u, channels)
+    replays = _replays(u, channels, undecided, tolerances)
 
     def again(batch: list[Replay]) -> list[Final]:
         # The replays are independent and spend most of their time in compiled steps
@@ -275,15 +276,36 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
 
 
+def _replays(
+    u: FloatArray, channels: list[int], undecided: Undecided, tolerances: dict[str, float]
+) -> list[Replay]:
+    """The check's replays in order: the final pass as it ran, each channel's weight
+    halved, then each undecided quantity's (a pair at +-tol, or one)."""
+    replays = [Replay(None, u, profile=True)]
+    for ch in channels:
+        scale = np.ones(N_OBS)
+        scale[ch] = VARIANCE_FACTOR
+        replays.append(Replay(scale, u))
+    for label, _, make in undecided:
+        if make is None:
+            continue
+        tol = tolerances.get(label, 0.0)
+        replays += [make(tol), make(-tol)] if tol > 0.0 else [make(0.0)]
+    return replays
+
+
 Maker = Callable[[float], Replay]
 """The replay of the final pass with a quantity moved by an offset from the configured."""
+Undecided = list[tuple[str, str, Maker | None]]
+"""Each quantity the data cannot decide for sure: its part's name, its key and its
+replay (None: it moves no channel with data, and is not replayed)."""
 
 
 def _undecided_parts(
     parts: dict[str, dict[FilterKind, FloatArray]],
     base: Final,
     rest: list[Final],
-    undecided: list[tuple[str, str, Maker]],
+    undecided: Undecided,
     tolerances: dict[str, float],
     again: Callable[[list[Replay]], list[Final]],
 ) -> dict[str, tuple[float, float]]:
@@ -298,6 +320,9 @@ def _undecided_parts(
     j = 0
     for label, key, make in undecided:
         part = parts.setdefault(label, {k: np.zeros(p) for k in FILTER_KINDS})
+        if make is None:  # moves nothing measured: its part 0, where it lies not decided
+            found[key] = (math.nan, math.nan)
+            continue
         tol = tolerances.get(label, 0.0)
         if tol <= 0.0:  # one replay: the noise floor's or the other hold's
             moved = parts.setdefault(
@@ -394,11 +419,12 @@ def placement_tolerance(config: AircraftConfig) -> float:
 
 
 def _undecided(
-    est: Estimator, t: FloatArray, u: FloatArray
-) -> tuple[list[tuple[str, str, Maker]], dict[str, float]]:
+    est: Estimator, t: FloatArray, u: FloatArray, channels: list[int]
+) -> tuple[Undecided, dict[str, float]]:
     """What the data cannot decide for sure: each quantity with its part's name, its
-    key and the replay with it moved by an offset; then the noise floor's (an offset of
-    0: the replay at the configured noise); and the tolerances taken."""
+    key and the replay with it moved by an offset (None for a sensor position that moves
+    none of the `channels` with data); then the noise floor's (an offset of 0: the
+    replay at the configured noise); and the tolerances taken."""
     config = est.config
 
     def timing(offset: float) -> Replay:
@@ -412,8 +438,11 @@ def _undecided(
 
         return make
 
-    out: list[tuple[str, str, Maker]] = [("timing", "input_delay_s", timing)]
-    out += [("placement", key, placement(key)) for key in PLACEMENT_KEYS]
+    out: Undecided = [("timing", "input_delay_s", timing)]
+    out += [
+        ("placement", key, placement(key) if _moves_data(key, channels) else None)
+        for key in PLACEMENT_KEYS
+    ]
     tolerances = {"timing": timing_tolerance(t), "placement": placement_tolerance(config)}
     for label, key, tol, make in _propulsion(config, u):
         out.append((label, key, make))
@@ -477,8 +506,15 @@ def _with_data(y: FloatArray) -> list[int]:
     return [i for i in range(N_OBS) if np.isfinite(y[:, i]).any()]
 
 
+def _moves_data(key: str, channels: list[int]) -> bool:
+    """Whether the sensor position `key` moves a channel among `channels` (with data)."""
+    return any(OBS_NAMES.index(name) in channels for name in PLACEMENT_CHANNELS[key])
+
+
 def runs(y: FloatArray, config: AircraftConfig | None = None) -> int:
     """How many replays of the final pass the check takes (but the noise floor's): with
     the config, its propeller's guesses' too."""
+    channels = _with_data(y)
     thrust = 0 if config is None else 2 * len(_propulsion(config, y))
-    return 4 + 2 * len(PLACEMENT_KEYS) + len(_with_data(y)) + thrust
+    placed = sum(_moves_data(key, channels) for key in PLACEMENT_KEYS)
+    return 4 + 2 * placed + len(channels) + thrust
