@@ -17,7 +17,10 @@ Then `gcs-estimator batch` over them (both filters, no refine):
 - by CPU time (decision 0058: on a loaded machine the wall-clock figures count other
   processes' turns): each batch's flight-hours per CPU-hour charged to all its processes
   (start-up included), and one log estimated in this process as a task does it (the
-  target's figure, the steady state);
+  target's figure, the steady state), with and without the structure check;
+- logs past filter.structure_check_max_frames (--long-seconds, 600: ten minutes at
+  50 Hz), as most of a fleet's logs are, where the check is not made: one by CPU, and
+  --long-flights of them through a batch on 2 workers (decision 0070);
 - the scheduler's overhead per task: (workers x wall - the tasks' own time) / logs
   (target <= 0.3 s; the tail, one worker finishing while the other waits, included);
 - identical estimates: --check logs replayed alone (`gcs-estimator replay`) against
@@ -105,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the batches' tlog reader (GCS_ESTIMATOR_TLOG_READER)",
     )
     ap.add_argument("--decode-rounds", type=int, default=3, help="interleaved runs of each reader")
+    ap.add_argument(
+        "--long-flights",
+        type=int,
+        default=6,
+        help="a batch of this many --long-seconds logs on 2 workers as well (0: not)",
+    )
     ap.add_argument(
         "--long-seconds",
         type=float,
@@ -241,11 +250,14 @@ def _with_uid(path: Path, uid: int) -> None:
     path.write_bytes(tlog_record(int.from_bytes(data[:8], "big"), codec.pack(msg)) + data)
 
 
-def batch(args: argparse.Namespace, logs: Path, out: Path, where: list[str]) -> dict[str, Any]:
-    """One `batch` run: its wall-clock time over the tasks and its tables."""
+def batch(
+    args: argparse.Namespace, logs: Path, out: Path, where: list[str], seconds: float = 0.0
+) -> dict[str, Any]:
+    """One `batch` run (of flights `seconds` long; default --seconds): its wall-clock
+    time over the tasks and its tables."""
     cmd = [sys.executable, "-m", "gcs_estimator", "batch", str(logs), "--config", "noc_uav",
            "--out", str(out), "--view", "off", "--no-trend", *where]  # fmt: skip
-    for item in _overrides(args.seconds) + args.set:
+    for item in _overrides(seconds or args.seconds) + args.set:
         cmd += ["--set", item]
     t0, cpu0 = time.perf_counter(), _children_cpu()
     done = subprocess.run(cmd, env=_env(), capture_output=True, text=True)
@@ -316,6 +328,21 @@ def cpu_per_log(args: argparse.Namespace, paths: list[Path], tmp: Path) -> None:
         write_flight(config, path, 99)
         cpu, shares, checked = _median_cpu(args, config, path, tmp)
         _print_cpu(args, ", a long log", args.long_seconds, cpu, shares, checked)
+
+
+def long_batch(args: argparse.Namespace, tmp: Path) -> None:
+    """--long-flights logs of --long-seconds through `batch` on 2 workers: the batch's
+    figures where, as in most of a fleet's logs, the structure check is not made."""
+    if args.long_seconds <= 0 or args.long_flights <= 0:
+        return
+    config = load_config("noc_uav", _overrides(args.long_seconds))
+    logs = tmp / "long_logs"
+    logs.mkdir()
+    for k in range(args.long_flights):
+        write_flight(config, logs / f"long_{k + 1:02d}.tlog", 200 + k)
+    run = batch(args, logs, tmp / "long_batch", ["--workers", "2"], args.long_seconds)
+    label = "long logs, 2 workers"
+    figures(label, 2, run)
 
 
 def _print_cpu(
@@ -496,6 +523,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"speed-up    : 2 workers {rate2 / rate1:.2f}x 1 worker (target >= 1.8)")
             same = [r["estimate"] for r in one["rows"]] == [r["estimate"] for r in two["rows"]]
             print(f"estimates   : 1 and 2 workers {'identical' if same else 'DIFFER'}")
+        if not args.trend_only:
+            long_batch(args, tmp)
         if not (args.no_external or args.trend_only):
             ext = external(args, logs, tmp)
             figures("scheduler process, 2 w.", 2, ext)
