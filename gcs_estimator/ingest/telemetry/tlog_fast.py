@@ -32,7 +32,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry import tlog_kernel
-from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, SampleReader
+from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, Sample, SampleReader
 from gcs_estimator.ingest.telemetry.mavlink import (
     _TIME_US,
     BACK_US,
@@ -83,6 +83,11 @@ def _one(data: bytes, t: int, start: int, end: int) -> Run:
 
 COLUMNS_MIN = 16
 """Runs shorter than this are decoded record by record (columns would cost more)."""
+
+
+COMMON_MIN = 16
+"""Where MavlinkLink.samples_common took fewer of a stretch of samples than this, the
+rest of the stretch goes packet by packet (trying it again would cost more)."""
 
 
 FRAMING_ONLY = tlog_kernel.field_table(())
@@ -274,11 +279,12 @@ class CompiledTlogSource(TlogSource):
 
     def _run_frames(self, run: Run, table: FieldTable) -> Iterator[Frame]:
         """The frames a run's records let go, record by record as MavlinkLink.packet
-        would (a channel message read by the kernel: MavlinkLink.decoded_packet)."""
+        would (a channel message read by the kernel: MavlinkLink.decoded_packet; one
+        read whole from columns: sample_packet, or with the records after it that are
+        too, MavlinkLink.samples_common)."""
         link = self.link
         packet_frames = link.packet
         decoded_frames = link.decoded_packet
-        sample_frames = link.sample_packet
         of_fields = link.samples.of_fields
         messages = table.messages
         data, values, width = run.data, run.values, run.width
@@ -287,17 +293,22 @@ class CompiledTlogSource(TlogSource):
         signed = link.signing is not None
         columns = None if signed else _columns(run, table, link.samples)
         which, row = columns or (_NO_COLUMNS, run.status)
-        for j, status in enumerate(run.status):
-            t = times[j] * 1e-6
-            packet = data[starts[j] : ends[j]]
+        status = run.status
+        j, n = 0, len(status)
+        while j < n:
             got = which[j]
             sample = None if got is None else got.sample(row[j])
             if sample is not None:
-                out = sample_frames(packet, t, compids[j], seqs[j], sample)
-            elif status < 0 or signed:
+                samples = _whole(which, row, j + 1, n, sample)
+                yield from self._samples(run, j, samples)
+                j += len(samples)
+                continue
+            t = times[j] * 1e-6
+            packet = data[starts[j] : ends[j]]
+            if status[j] < 0 or signed:
                 out = packet_frames(packet, t)
             else:
-                msg = messages[status]
+                msg = messages[status[j]]
                 at = j * width
                 fields = values[at : at + msg.count]
                 if msg.texts:
@@ -306,6 +317,30 @@ class CompiledTlogSource(TlogSource):
                 out = decoded_frames(packet, t, decoded)
             if out:
                 yield from out
+            j += 1
+
+    def _samples(self, run: Run, j: int, samples: list[Sample]) -> Iterator[Frame]:
+        """The frames of a run's records j, j + 1, ... read whole from columns (samples):
+        MavlinkLink.samples_common for as many as it takes, sample_packet for the first
+        it does not, and so on; the rest by sample_packet once samples_common takes none."""
+        link = self.link
+        data, starts, ends = run.data, run.starts, run.ends
+        e = j + len(samples)
+        packets = [data[starts[k] : ends[k]] for k in range(j, e)]
+        t = [run.times[k] * 1e-6 for k in range(j, e)]
+        compids, seqs = run.component_id[j:e], run.seq[j:e]
+        k, m = 0, len(samples)
+        while k < m:
+            taken, out = link.samples_common(packets[k:], t[k:], compids[k:], seqs[k:], samples[k:])
+            if out:
+                yield from out
+            k += taken
+            end = m if taken < COMMON_MIN else min(k + 1, m)  # (few taken: not worth a retry)
+            while k < end:
+                out = link.sample_packet(packets[k], t[k], compids[k], seqs[k], samples[k])
+                if out:
+                    yield from out
+                k += 1
 
 
 class _NoColumns:
@@ -316,6 +351,19 @@ class _NoColumns:
 
 
 _NO_COLUMNS = _NoColumns()
+
+
+def _whole(which: Any, row: list[int], j: int, n: int, first: Sample) -> list[Sample]:
+    """first and the samples of the records from j on read whole from columns, up to the
+    first record that is not."""
+    out = [first]
+    for k in range(j, n):
+        got = which[k]
+        sample = None if got is None else got.sample(row[k])
+        if sample is None:
+            break
+        out.append(sample)
+    return out
 
 
 def _columns(
