@@ -74,7 +74,7 @@ def _records(path: Path, config: Any) -> list[Item]:
                 items.append((packet, t, None))
                 continue
             msg = table.messages[status]
-            fields = run.values[j * run.width : j * run.width + msg.count]
+            fields = run.fields(j, msg.count)
             if msg.texts:
                 fields = _with_text(packet, msg, fields)
             head = (msg.msgid, run.seq[j], run.system_id[j], run.component_id[j])

@@ -71,10 +71,19 @@ class Run(NamedTuple):
     system_id: list[int]
     component_id: list[int]
     values: list[float]
-    """The fields of the table messages (tlog_kernel.Output.values), `width` a record."""
+    """The fields of the table messages (tlog_kernel.Output.values), `width` a record,
+    in a run without columns (empty in one with them: see fields)."""
     width: int
     columns: np.ndarray[Any, np.dtype[np.float64]] | None = None
     """The same fields as a record a row (a copy), for SampleReader.columns."""
+
+    def fields(self, j: int, count: int) -> list[float]:
+        """The first `count` fields of record j (as floats: a list of the table's
+        numbers is made only for the records that go one by one)."""
+        if self.columns is not None:
+            values: list[float] = self.columns[j, :count].tolist()
+            return values
+        return self.values[j * self.width : j * self.width + count]
 
 
 def _one(data: bytes, t: int, start: int, end: int) -> Run:
@@ -144,6 +153,8 @@ class _Reader:
         self.first = False
         self.st.records += taken
         t, status, seq, sysid, compid = out.header[:taken].T.tolist()
+        values = out.values[:taken, : self.width]
+        columns = taken >= COLUMNS_MIN
         yield Run(
             self.data,
             out.bounds[:taken, 0].tolist(),
@@ -153,9 +164,9 @@ class _Reader:
             seq,
             sysid,
             compid,
-            out.values[:taken, : self.width].ravel().tolist(),
+            [] if columns else values.ravel().tolist(),
             self.width,
-            out.values[:taken, : self.width].copy() if taken >= COLUMNS_MIN else None,
+            values.copy() if columns else None,
         )
         self.last_t = int(out.header[taken - 1, 0])
         self.i = end
@@ -287,7 +298,7 @@ class CompiledTlogSource(TlogSource):
         decoded_frames = link.decoded_packet
         of_fields = link.samples.of_fields
         messages = table.messages
-        data, values, width = run.data, run.values, run.width
+        data = run.data
         starts, ends, times = run.starts, run.ends, run.times
         seqs, sysids, compids = run.seq, run.system_id, run.component_id
         signed = link.signing is not None
@@ -309,8 +320,7 @@ class CompiledTlogSource(TlogSource):
                 out = packet_frames(packet, t)
             else:
                 msg = messages[status[j]]
-                at = j * width
-                fields = values[at : at + msg.count]
+                fields = run.fields(j, msg.count)
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
                 decoded = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
