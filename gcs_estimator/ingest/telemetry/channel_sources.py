@@ -21,7 +21,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from gcs_estimator.ingest.telemetry.decode import Sample
+from gcs_estimator.ingest.telemetry.decode import Sample, with_values
 from gcs_estimator.model.channels import OBS_NAMES, Channel
 
 IMU_SOURCES = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
@@ -204,7 +204,7 @@ class ChannelSources:
         self.dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
         if not kept and not kept_aux:
             return None
-        return sample._replace(values=kept, aux=kept_aux)
+        return with_values(sample, kept, kept_aux)
 
     def choose_common(self, samples: list[Sample]) -> list[Sample | None]:
         """choose over samples one after the other, for as many from the first as take
@@ -229,7 +229,7 @@ class ChannelSources:
                 kept = tuple([v for v, k in zip(values, known.values, strict=True) if k])
                 kept_aux = tuple([a for a, k in zip(aux, known.aux, strict=True) if k])
                 dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
-                sample = sample._replace(values=kept, aux=kept_aux) if kept or kept_aux else None
+                sample = with_values(sample, kept, kept_aux) if kept or kept_aux else None
             got = arrivals.get(message)
             if got is None:
                 got = arrivals[message] = []
