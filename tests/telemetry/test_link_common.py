@@ -43,7 +43,7 @@ def _stream(steps: list[tuple[int, int, str, str, int]]) -> list[tuple[Any, ...]
     """on_packet's arguments for each step (as test_counters_next makes them)."""
     seq: dict[tuple[int, int], int] = {}
     t: dict[tuple[int, int], float] = {}
-    out = []
+    out: list[tuple[Any, ...]] = []
     for n, (sender, comp, what, kind, k) in enumerate(steps):
         key = (sender, comp)
         seq.setdefault(key, 0)

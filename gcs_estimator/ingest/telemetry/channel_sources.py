@@ -220,6 +220,7 @@ class ChannelSources:
         for sample in samples:
             values = sample.values
             message = sample.message
+            chosen: Sample | None = sample
             if (message, values[0][0] if values else -1) not in settled:
                 aux = sample.aux
                 shape = (message, tuple([v[0] for v in values]), tuple([a[0] for a in aux]))
@@ -229,12 +230,12 @@ class ChannelSources:
                 kept = tuple([v for v, k in zip(values, known.values, strict=True) if k])
                 kept_aux = tuple([a for a, k in zip(aux, known.aux, strict=True) if k])
                 dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
-                sample = with_values(sample, kept, kept_aux) if kept or kept_aux else None
+                chosen = with_values(sample, kept, kept_aux) if kept or kept_aux else None
             got = arrivals.get(message)
             if got is None:
                 got = arrivals[message] = []
-            got.append(samples[len(out)].t_recv_s)
-            out.append(sample)
+            got.append(sample.t_recv_s)
+            out.append(chosen)
         self.dropped += dropped
         for message, times in arrivals.items():
             self.meters[message].extend(times)
