@@ -302,14 +302,15 @@ class MavlinkLink:
         """samples_common's samples, counted, into the vehicle's synchroniser: chosen as
         a run as far as VehicleSetup.prepare_common takes them, the rest by _sample."""
         chosen = setup.prepare_common(samples)
-        out: list[Frame] = []
         stats = self.decode_stats
-        fleet = self.fleet
-        for sample, compid in zip(chosen, compids, strict=False):
-            if sample is not None:
-                out += fleet.sample(v, sample, compid)
-            if stats.invalid_values:
+        if stats.invalid_values:  # sample_packet's note, said at its first packet
+            out: list[Frame] = []
+            for sample, compid in zip(chosen, compids, strict=False):
+                if sample is not None:
+                    out += self.fleet.sample(v, sample, compid)
                 self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
+        else:  # (none can come of these: the values counted are of_fields')
+            out = self.fleet.samples(v, chosen, compids)
         for k in range(len(chosen), len(samples)):
             out += self._sample(v.system_id, compids[k], samples[k], None, t_recv_s[k])
             if stats.invalid_values:

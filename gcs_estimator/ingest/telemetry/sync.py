@@ -66,6 +66,9 @@ PERIOD_SPACINGS = 15
 EXPECT_PRESENCE = 0.75
 """A channel is expected in every frame when it was in this share of recent frames."""
 PRESENCE_GAIN = 0.1
+FIRST_INPUT = int(Channel.ELEVATOR)
+"""The first input's channel number (an int: an IntEnum member's look-up costs more than
+the subtraction it is for)."""
 FIRST_EXPECTED: tuple[int, ...] = tuple(range(Channel.HDOT))
 """The channels expected before any frame has gone: V .. a_z. The climb rate (h_dot, the
 last channel), which many vehicles send slower or not at all, becomes expected once it is
@@ -280,17 +283,20 @@ class Synchronizer:
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it lets go (in time order)."""
-        if sample.t_vehicle_s is None:
+        t0 = sample.t_vehicle_s
+        if t0 is None:
             if self._pending:
                 self._pending.append((None, sample))
                 return []
             return self._add_untimed(sample)
         if self.anchor.anchored:  # the common case: ClockAnchor.take would give [sample]
-            return self._timed(sample)
+            return self._timed(sample, t0)
         return [f for s in self.anchor.take(sample) for f in self._timed(s)]
 
-    def _timed(self, sample: Sample) -> list[Frame]:
-        t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor takes timed ones)
+    def _timed(self, sample: Sample, t0: float | None = None) -> list[Frame]:
+        """A timed sample (t0: its time, where the caller has it)."""
+        if t0 is None:
+            t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor: timed ones)
         newest = self._newest
         if sample.wrap_s is None:  # VehicleClock.unwrap would give t0 and count no wrap
             t = t0
@@ -352,9 +358,10 @@ class Synchronizer:
             self._newest = t
         window = FRAME_WINDOW_S
         obs = []
+        inputs = self._inputs
         for ch, v in sample.values:
             if ch >= N_OBS:
-                self._inputs[ch - Channel.ELEVATOR].add(t, v)
+                inputs[ch - FIRST_INPUT].add(t, v)
             else:
                 obs.append((ch, v))
         if obs:
