@@ -82,11 +82,10 @@ def _by_run(health: LinkHealth, packets: list[tuple[Any, ...]], cuts: list[int])
             piece = packets[k:b]
             taken = health.on_common(
                 "recording",
-                [p[4] for p in piece],
-                [p[3] for p in piece],
-                [(p[1], p[2]) for p in piece],
-                [p[5] for p in piece],
-                [p[6] for p in piece],
+                [p[4] for p in packets],
+                [p[3] for p in packets],
+                (((p[1], p[2]), p[5], p[6]) for p in piece),
+                k,
             )
             verdicts += [True] * taken
             k += taken

@@ -22,7 +22,9 @@ from __future__ import annotations
 import math
 import statistics
 from collections import OrderedDict, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from itertools import islice
 from typing import Any
 
 STALE_S = 1.0
@@ -248,18 +250,19 @@ class LinkHealth:
         link: str,
         packets: list[bytes],
         seqs: list[int],
-        keys: list[tuple[int, int]],
-        times: list[float | None],
-        kinds: list[str],
+        counted: Iterable[tuple[tuple[int, int], float | None, str]],
+        start: int = 0,
     ) -> int:
-        """on_packet over packets one after the other (each of a (system, component)
-        already heard on this link, not a ground station's), for as many from the first
-        as are the common case: no copy (bytes not among the recent ones), the next
+        """on_packet over packets[start:] one after the other (each of a (system,
+        component) already heard on this link, not a ground station's), for as many as
+        are the common case: no copy (bytes not among the recent ones), the next
         sequence number and not one counted lost, and a time within STALE_S of the
-        stream's newest (or none). Those are counted as on_packet counts them (its
-        _is_copy and _next, written out: tests/telemetry/test_counters_common.py
-        compares the two on random streams); the count taken is returned, and on_packet
-        takes the rest from the first not taken."""
+        stream's newest (or none). `counted`: what on_packet takes of each beside its
+        bytes and number, (system, component), vehicle time, message type (read only as
+        far as taken). Those are counted as on_packet counts them (its _is_copy and
+        _next, written out: tests/telemetry/test_link_common.py compares the two on
+        random streams); the count taken is returned, and on_packet takes the rest from
+        the first not taken."""
         counts = self.links.get(link)
         if counts is None:
             return 0
@@ -268,7 +271,8 @@ class LinkHealth:
         last_key: tuple[int, int] | None = None
         s: _Stream | None = None
         c: _Copies | None = None
-        for packet, seq, key, t, kind in zip(packets, seqs, keys, times, kinds, strict=True):
+        each = zip(islice(packets, start, None), islice(seqs, start, None), counted, strict=False)
+        for packet, seq, (key, t, kind) in each:
             if key != last_key:  # (one sender's packets mostly follow each other)
                 last_key, s, c = key, streams.get((link, *key)), copies.get(key)
             if s is None or c is None or (seq - s.last_seq) & 0xFF != 1 or seq in s.missing:

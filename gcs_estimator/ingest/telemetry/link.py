@@ -45,22 +45,18 @@ sequence counters; time_boot_ms (49.7 days) does."""
 
 
 def _counted(
-    sysid: int, compids: list[int], samples: list[Sample]
-) -> tuple[list[tuple[int, int]], list[float | None], list[str]]:
-    """What the counters take of each sample, up to the first of another system id: its
-    (system, component), its vehicle time where its clock wraps no sooner than
-    COUNTER_TIME_WRAP_S (else None), its message (as sample_packet gives them)."""
-    keys: list[tuple[int, int]] = []
-    times: list[float | None] = []
-    kinds: list[str] = []
-    for compid, sample in zip(compids, samples, strict=True):
+    sysid: int, compids: list[int], samples: list[Sample], start: int
+) -> Iterator[tuple[tuple[int, int], float | None, str]]:
+    """What the counters take of each sample from `start` on, up to the first of another
+    system id: its (system, component), its vehicle time where its clock wraps no sooner
+    than COUNTER_TIME_WRAP_S (else None), its message (as sample_packet gives them)."""
+    inf = math.inf
+    for k in range(start, len(samples)):
+        sample = samples[k]
         if sample.system_id != sysid:
-            break
-        keys.append((sysid, compid))
-        counted = (sample.wrap_s or math.inf) > COUNTER_TIME_WRAP_S
-        times.append(sample.t_vehicle_s if counted else None)
-        kinds.append(sample.message)
-    return keys, times, kinds
+            return
+        counted = (sample.wrap_s or inf) > COUNTER_TIME_WRAP_S
+        yield (sysid, compids[k]), sample.t_vehicle_s if counted else None, sample.message
 
 
 # Over 200 lines: one packet's path from bytes to frames (framing, CRC, signing, pinning,
@@ -266,30 +262,34 @@ class MavlinkLink:
         compids: list[int],
         seqs: list[int],
         samples: list[Sample],
+        start: int = 0,
     ) -> tuple[int, list[Frame]]:
-        """sample_packet over packets one after the other, for as many from the first as
+        """sample_packet over packets one after the other from `start`, for as many as
         are a vehicle's already heard (its channel sources set up), not a ground
         station's, and the common case of the counters (LinkHealth.on_common): counted
         as a run, their channels chosen as a run where the sources have settled
         (VehicleSetup.prepare_common), then each into the vehicle's synchroniser. Returns
         how many were taken and the frames they let go; sample_packet takes the rest
         (tests/telemetry/test_link_common.py compares the two on every damage case)."""
-        if self.recorder is not None or self.signing is not None or not samples:
+        if self.recorder is not None or self.signing is not None or start >= len(samples):
             return 0, []
         if self.t_first_recv != self.t_first_recv:  # NaN: no packet yet
             return 0, []
-        sysid = samples[0].system_id
+        sysid = samples[start].system_id
         v = self.fleet.vehicles.get(sysid)
         setup = self.setups.get(sysid)
         if v is None or setup is None or sysid == mavlink.GCS_SYSTEM_ID:
             return 0, []
-        keys, times, kinds = _counted(sysid, compids, samples)
-        m = len(keys)
-        n = self.health.on_common(RECORDING, packets[:m], seqs[:m], keys, times, kinds)
+        counted = _counted(sysid, compids, samples, start)
+        n = self.health.on_common(RECORDING, packets, seqs, counted, start)
         if not n:
             return 0, []
-        self.t_last_recv = t_recv_s[n - 1]
-        return n, self._synchronised(v, setup, compids[:n], samples[:n], t_recv_s)
+        end = start + n
+        self.t_last_recv = t_recv_s[end - 1]
+        frames = self._synchronised(
+            v, setup, compids[start:end], samples[start:end], t_recv_s[start:end]
+        )
+        return n, frames
 
     def _synchronised(
         self,

@@ -94,9 +94,9 @@ COLUMNS_MIN = 16
 """Runs shorter than this are decoded record by record (columns would cost more)."""
 
 
-COMMON_MIN = 16
-"""Where MavlinkLink.samples_common took fewer of a stretch of samples than this, the
-rest of the stretch goes packet by packet (trying it again would cost more)."""
+COMMON_RETRY = 16
+"""Where MavlinkLink.samples_common took none of the samples from a record on, that many
+go by sample_packet before it is asked again (after one it took some of, one goes)."""
 
 
 FRAMING_ONLY = tlog_kernel.field_table(())
@@ -332,7 +332,7 @@ class CompiledTlogSource(TlogSource):
     def _samples(self, run: Run, j: int, samples: list[Sample]) -> Iterator[Frame]:
         """The frames of a run's records j, j + 1, ... read whole from columns (samples):
         MavlinkLink.samples_common for as many as it takes, sample_packet for the first
-        it does not, and so on; the rest by sample_packet once samples_common takes none."""
+        it does not (COMMON_RETRY where it took none), and so on."""
         link = self.link
         data, starts, ends = run.data, run.starts, run.ends
         e = j + len(samples)
@@ -341,11 +341,11 @@ class CompiledTlogSource(TlogSource):
         compids, seqs = run.component_id[j:e], run.seq[j:e]
         k, m = 0, len(samples)
         while k < m:
-            taken, out = link.samples_common(packets[k:], t[k:], compids[k:], seqs[k:], samples[k:])
+            taken, out = link.samples_common(packets, t, compids, seqs, samples, k)
             if out:
                 yield from out
             k += taken
-            end = m if taken < COMMON_MIN else min(k + 1, m)  # (few taken: not worth a retry)
+            end = min(k + (1 if taken else COMMON_RETRY), m)
             while k < end:
                 out = link.sample_packet(packets[k], t[k], compids[k], seqs[k], samples[k])
                 if out:
