@@ -12,10 +12,12 @@ loop with the plain records taken by the kernel, many at a time: where the kerne
 the loop's own step (the same helpers) takes the next record, and the kernel goes on
 after it. A record of a channel message that passed its CRC goes to the link decoded:
 in a run of COLUMNS_MIN records or more, each message type's fields as columns
-(SampleReader.columns: units and ranges per column, decision 0064) and every whole
-sample to MavlinkLink.sample_packet; a sample with a value dropped, and shorter runs,
-by SampleReader.of_fields to MavlinkLink.decoded_packet. Every other record goes to
-MavlinkLink.packet (pymavlink's path for what the kernel does not read), as before.
+(SampleReader.columns: units and ranges per column, decision 0064), and each stretch
+of whole samples to MavlinkLink.samples_common (counted and chosen as a run, decision
+0069), which leaves what is anything else to MavlinkLink.sample_packet; a sample with a
+value dropped, and shorter runs, by SampleReader.of_fields to
+MavlinkLink.decoded_packet. Every other record goes to MavlinkLink.packet (pymavlink's
+path for what the kernel does not read), as before.
 """
 
 from __future__ import annotations
