@@ -181,6 +181,9 @@ class _Copies:
     """The newest vehicle time among them [s]."""
 
 
+# Over 200 lines: the counting rules (copies, sequence, stale, whole wraps) and their
+# common case over a run (on_common, decision 0069) beside the rules it writes out, so
+# that each shortcut is read next to what it must equal.
 @dataclass
 class LinkHealth:
     """Counters per link, and the copies seen per vehicle stream across links."""

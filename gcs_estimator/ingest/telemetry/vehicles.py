@@ -58,6 +58,9 @@ def link_name(address: Address | None) -> str:
     return "recording" if address is None else f"{address[0]}:{address[1]}"
 
 
+# Over 200 lines: a link's vehicles (the cap, each one's address, its acknowledgements,
+# heartbeats and sources per message) and a run's samples (samples) beside the rule per
+# sample they take the common case of.
 class Vehicles:
     """The vehicles of one link, by system id."""
 
