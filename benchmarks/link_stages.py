@@ -12,7 +12,9 @@ of_fields' work the run's columns do (SampleReader.columns, decision 0064: the r
 takes it in of_fields' place wherever a sample is whole); then the whole decoding
 to frames (CompiledTlogSource) and one log estimated as a batch's task does it
 (estimate_file). The minimum of --rounds for each. --on-and-off N: only decoding to
-frames and the estimate with decision 0064's paths off and on, alternately, N rounds.
+frames and the estimate with the run paths off, with decision 0064's and with 0069's
+too, alternately, N rounds. --tlog PATH: that log (simulated as above, same --seconds)
+instead of simulating one.
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ def _records(path: Path, config: Any) -> list[Item]:
                 items.append((packet, t, None))
                 continue
             msg = table.messages[status]
-            fields = run.values[j * run.width : j * run.width + msg.count]
+            fields = run.fields(j, msg.count)
             if msg.texts:
                 fields = _with_text(packet, msg, fields)
             head = (msg.msgid, run.seq[j], run.system_id[j], run.component_id[j])
@@ -156,32 +158,38 @@ def stages(path: Path, config: Any, rounds: int) -> list[tuple[str, float]]:
     return out
 
 
-def _switch(on: bool) -> None:
-    """Decision 0064's paths on (the columns, ATTITUDE's remembered values, the counters'
-    common case) or off (record by record, every value judged, the full judgement)."""
+def _switch(setting: str) -> None:
+    """The link's run paths by setting: "off", record by record as before decision 0064
+    (every value judged, the counters' full judgement); "0064", that decision's paths
+    on (the columns, ATTITUDE's remembered values, the counters' common case); "on",
+    decision 0069's too (a stretch of whole samples through the link as a run)."""
     off: tuple[Any, ...] = (
         lambda run, table, reader: None,
         lambda self, shape, message: None,
         LinkHealth._judged,
+        lambda self, *args: (0, []),
     )
-    for (owner, name), path, plain in zip(_WHERE, _PATHS, off, strict=True):
-        setattr(owner, name, path if on else plain)
+    first = {"off": 0, "0064": 3, "on": 4}[setting]
+    for k, ((owner, name), path, plain) in enumerate(zip(_WHERE, _PATHS, off, strict=True)):
+        setattr(owner, name, path if k < first else plain)
 
 
 _WHERE: tuple[tuple[Any, str], ...] = (
     (tlog_fast, "_columns"),
     (ChannelSources, "_remember"),
     (LinkHealth, "_judge"),
+    (MavlinkLink, "samples_common"),
 )
 _PATHS: tuple[Any, ...] = tuple(getattr(owner, name) for owner, name in _WHERE)
+SETTINGS = ("off", "0064", "on")
 
 
-def on_and_off(path: Path, config: Any, rounds: int, tmp_dir: str) -> None:
-    """Decoding to frames and the whole estimate with decision 0064's paths off and on,
-    alternately in this process (the load moves both alike); the frames and link
-    statistics asserted the same."""
-    got: dict[bool, Any] = {}
-    cpu: dict[str, dict[bool, list[float]]] = {"decoding": {}, "estimate": {}}
+def on_and_off(path: Path, config: Any, rounds: int, tmp_dir: str, seconds: float) -> None:
+    """Decoding to frames and the whole estimate with the run paths off, with decision
+    0064's on, and with 0069's too, alternately in this process (the load moves all
+    alike); the frames and link statistics asserted the same."""
+    got: dict[str, Any] = {}
+    cpu: dict[str, dict[str, list[float]]] = {"decoding": {}, "estimate": {}}
 
     def frames() -> Any:
         link = MavlinkLink(config.link, log=io.StringIO())
@@ -194,21 +202,23 @@ def on_and_off(path: Path, config: Any, rounds: int, tmp_dir: str) -> None:
         return done, source.link_stats()
 
     for _ in range(rounds):
-        for on in (False, True):
-            _switch(on)
+        for setting in SETTINGS:
+            _switch(setting)
             c0 = time.process_time()
-            got[on] = frames()
-            cpu["decoding"].setdefault(on, []).append(time.process_time() - c0)
+            got[setting] = frames()
+            cpu["decoding"].setdefault(setting, []).append(time.process_time() - c0)
             c0 = time.process_time()
-            estimate_file(path, config, Path(tmp_dir) / f"ab{on}")
-            cpu["estimate"].setdefault(on, []).append(time.process_time() - c0)
-    _switch(True)
-    assert got[True] == got[False], "decision 0064's paths changed the frames or counters"
+            estimate_file(path, config, Path(tmp_dir) / f"ab{setting}")
+            cpu["estimate"].setdefault(setting, []).append(time.process_time() - c0)
+    _switch("on")
+    assert all(v == got["off"] for v in got.values()), "a run path changed the frames or counters"
     for part, runs in cpu.items():
-        t_off, t_on = min(runs[False]), min(runs[True])
-        print(
-            f"  {part}: off {t_off:.2f} s, on {t_on:.2f} s (min of {rounds}): {t_off / t_on:.2f}x"
-        )
+        least = {k: min(v) for k, v in runs.items()}
+        line = ", ".join(f"{k} {t:.2f} s" for k, t in least.items())
+        print(f"  {part} (min of {rounds}): {line}; off/on {least['off'] / least['on']:.2f}x")
+        if part == "estimate":
+            rates = ", ".join(f"{k} {seconds / t:.0f}" for k, t in least.items())
+            print(f"  flight-hours per CPU-hour: {rates}")
     print(f"  load average {os.getloadavg()[0]:.1f}; frames and counters the same")
 
 
@@ -221,18 +231,20 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         metavar="N",
-        help="only compare decision 0064's paths off and on, N rounds in this process",
+        help="only compare the run paths off, decision 0064's, and 0069's too (N rounds)",
     )
+    ap.add_argument("--tlog", type=Path, help="a log this script simulated before")
     args = ap.parse_args(argv)
     config = load_config("noc_uav", _overrides(args.seconds))
     with tempfile.TemporaryDirectory() as tmp_dir:
-        path = Path(tmp_dir) / "flight.tlog"
-        write_flight(config, path, 100)
+        path = args.tlog or Path(tmp_dir) / "flight.tlog"
+        if args.tlog is None:
+            write_flight(config, path, 100)
         warm_up()
         estimate_file(path, config, Path(tmp_dir) / "warm")
         print(f"{args.seconds:g} s flight; load average {os.getloadavg()[0]:.1f}; CPU s:")
         if args.on_and_off:
-            on_and_off(path, config, args.on_and_off, tmp_dir)
+            on_and_off(path, config, args.on_and_off, tmp_dir, args.seconds)
             return 0
         gc.disable()
         parts = stages(path, config, args.rounds)

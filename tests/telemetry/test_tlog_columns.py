@@ -81,7 +81,7 @@ def test_columns_give_of_fields_samples_bit_for_bit(tmp_path: Path) -> None:
                     assert which[j] is None
                     continue
                 packet = run.data[run.starts[j] : run.ends[j]]
-                fields: Any = run.values[j * run.width : j * run.width + msg.count]
+                fields: Any = run.fields(j, msg.count)
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
                 stats = DecodeStats()

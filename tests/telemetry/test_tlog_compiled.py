@@ -257,7 +257,7 @@ def _decoded(reader: SampleReader, run: Run, table: Any) -> Decoded | bool | Non
         return None
     msg = table.messages[status]
     packet = run.data[run.starts[0] : run.ends[0]]
-    fields: Any = run.values[: msg.count]
+    fields: Any = run.fields(0, msg.count)
     if msg.texts:
         fields = _with_text(packet, msg, fields)
     return reader.of_fields(

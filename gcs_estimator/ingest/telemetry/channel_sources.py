@@ -21,7 +21,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from gcs_estimator.ingest.telemetry.decode import Sample
+from gcs_estimator.ingest.telemetry.decode import Sample, with_values
 from gcs_estimator.model.channels import OBS_NAMES, Channel
 
 IMU_SOURCES = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
@@ -97,6 +97,14 @@ class _Meter:
         if t > self.last:
             self.last = t
         self.recent.append(t)
+
+    def extend(self, times: list[float]) -> None:
+        """add() of each of these times in turn."""
+        self.count += len(times)
+        newest = max(times)
+        if newest > self.last:
+            self.last = newest
+        self.recent.extend(times)
 
     def rate(self, now: float) -> float:
         """Arrivals per second over the last RATE_WINDOW_S before now [Hz]."""
@@ -196,7 +204,45 @@ class ChannelSources:
         self.dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
         if not kept and not kept_aux:
             return None
-        return sample._replace(values=kept, aux=kept_aux)
+        return with_values(sample, kept, kept_aux)
+
+    def choose_common(self, samples: list[Sample]) -> list[Sample | None]:
+        """choose over samples one after the other, for as many from the first as take
+        its remembered paths (every channel settled: _settled, or _partly before its
+        `until`): those read no meter, so each message's meter takes its arrivals once
+        for all (_Meter.extend). What choose gives each of them is returned; choose takes
+        the rest from the first not taken (tests/telemetry/test_link_common.py compares
+        the two)."""
+        out: list[Sample | None] = []
+        settled, partly = self._settled, self._partly
+        arrivals: dict[str, list[float]] = {}
+        dropped = 0
+        for sample in samples:
+            values = sample.values
+            message = sample.message
+            chosen: Sample | None = sample
+            if (message, values[0][0] if values else -1) not in settled:
+                aux = sample.aux
+                shape = (message, tuple([v[0] for v in values]), tuple([a[0] for a in aux]))
+                known = partly.get(shape)
+                if known is None or message not in self.meters or sample.t_recv_s >= known.until:
+                    break
+                kept = tuple([v for v, k in zip(values, known.values, strict=True) if k])
+                kept_aux = tuple([a for a, k in zip(aux, known.aux, strict=True) if k])
+                dropped += len(values) - len(kept) + len(aux) - len(kept_aux)
+                chosen = with_values(sample, kept, kept_aux) if kept or kept_aux else None
+            got = arrivals.get(message)
+            if got is None:
+                got = arrivals[message] = []
+            got.append(sample.t_recv_s)
+            out.append(chosen)
+        self.dropped += dropped
+        for message, times in arrivals.items():
+            self.meters[message].extend(times)
+            newest = max(times)
+            if newest > self.t_last:
+                self.t_last = newest
+        return out
 
     def _remember(self, shape: tuple[str, tuple[int, ...], tuple[str, ...]], message: str) -> None:
         """After _take judged a sample of this shape value by value: if every one of its

@@ -89,6 +89,22 @@ class Sample(NamedTuple):
     vehicle's own servo parameters map to the elevator and throttle (params.ServoMap)."""
 
 
+_new_tuple = tuple.__new__
+"""A named tuple made from its fields in order, without its __new__'s argument handling
+(a third of the cost: Columns.sample and with_values run once per packet)."""
+
+
+def with_values(
+    sample: Sample, values: tuple[tuple[Channel, float], ...], aux: tuple[tuple[str, float], ...]
+) -> Sample:
+    """sample._replace(values=values, aux=aux), at a fifth of its cost."""
+    system_id, message, t_vehicle_s, t_recv_s, _, wrap_s, _, outputs = sample
+    made: Sample = _new_tuple(
+        Sample, (system_id, message, t_vehicle_s, t_recv_s, values, wrap_s, aux, outputs)
+    )
+    return made
+
+
 @dataclass(frozen=True)
 class Heartbeat:
     """A HEARTBEAT: presence of a vehicle (or of another ground station)."""
@@ -300,16 +316,20 @@ class Columns:
         if not self.good[k]:
             return None
         times = self.times
-        return Sample(
-            self.system_ids[k],
-            self.kind,
-            None if times is None else times[k],
-            self.t_recv_s[k],
-            self.values(k),
-            self.wrap,
-            self.aux(k),
-            () if self.outputs is None else tuple(self.outputs[k].tolist()),
+        made: Sample = _new_tuple(
+            Sample,
+            (
+                self.system_ids[k],
+                self.kind,
+                None if times is None else times[k],
+                self.t_recv_s[k],
+                self.values(k),
+                self.wrap,
+                self.aux(k),
+                () if self.outputs is None else tuple(self.outputs[k].tolist()),
+            ),
         )
+        return made
 
 
 def _pairs(keys: tuple[Any, ...], cols: list[list[float]]) -> Callable[[int], tuple[Any, ...]]:

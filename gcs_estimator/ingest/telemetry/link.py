@@ -44,6 +44,21 @@ COUNTER_TIME_WRAP_S = 86_400.0
 sequence counters; time_boot_ms (49.7 days) does."""
 
 
+def _counted(
+    sysid: int, compids: list[int], samples: list[Sample], start: int
+) -> Iterator[tuple[tuple[int, int], float | None, str]]:
+    """What the counters take of each sample from `start` on, up to the first of another
+    system id: its (system, component), its vehicle time where its clock wraps no sooner
+    than COUNTER_TIME_WRAP_S (else None), its message (as sample_packet gives them)."""
+    inf = math.inf
+    for k in range(start, len(samples)):
+        sample = samples[k]
+        if sample.system_id != sysid:
+            return
+        counted = (sample.wrap_s or inf) > COUNTER_TIME_WRAP_S
+        yield (sysid, compids[k]), sample.t_vehicle_s if counted else None, sample.message
+
+
 # Over 200 lines: one packet's path from bytes to frames (framing, CRC, signing, pinning,
 # counting, decoding, routing) reads best in one place; the parts with state of their own,
 # the vehicles and the signing gate, are classes apart.
@@ -238,6 +253,68 @@ class MavlinkLink:
         out = [] if ground else self._sample(sysid, compid, sample, None, t_recv_s)
         if self.decode_stats.invalid_values:
             self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
+        return out
+
+    def samples_common(
+        self,
+        packets: list[bytes],
+        t_recv_s: list[float],
+        compids: list[int],
+        seqs: list[int],
+        samples: list[Sample],
+        start: int = 0,
+    ) -> tuple[int, list[Frame]]:
+        """sample_packet over packets one after the other from `start`, for as many as
+        are a vehicle's already heard (its channel sources set up), not a ground
+        station's, and the common case of the counters (LinkHealth.on_common): counted
+        as a run, their channels chosen as a run where the sources have settled
+        (VehicleSetup.prepare_common), then each into the vehicle's synchroniser. Returns
+        how many were taken and the frames they let go; sample_packet takes the rest
+        (tests/telemetry/test_link_common.py compares the two on every damage case)."""
+        if self.recorder is not None or self.signing is not None or start >= len(samples):
+            return 0, []
+        if self.t_first_recv != self.t_first_recv:  # NaN: no packet yet
+            return 0, []
+        sysid = samples[start].system_id
+        v = self.fleet.vehicles.get(sysid)
+        setup = self.setups.get(sysid)
+        if v is None or setup is None or sysid == mavlink.GCS_SYSTEM_ID:
+            return 0, []
+        counted = _counted(sysid, compids, samples, start)
+        n = self.health.on_common(RECORDING, packets, seqs, counted, start)
+        if not n:
+            return 0, []
+        end = start + n
+        self.t_last_recv = t_recv_s[end - 1]
+        frames = self._synchronised(
+            v, setup, compids[start:end], samples[start:end], t_recv_s[start:end]
+        )
+        return n, frames
+
+    def _synchronised(
+        self,
+        v: VehicleLink,
+        setup: VehicleSetup,
+        compids: list[int],
+        samples: list[Sample],
+        t_recv_s: list[float],
+    ) -> list[Frame]:
+        """samples_common's samples, counted, into the vehicle's synchroniser: chosen as
+        a run as far as VehicleSetup.prepare_common takes them, the rest by _sample."""
+        chosen = setup.prepare_common(samples)
+        stats = self.decode_stats
+        if stats.invalid_values:  # sample_packet's note, said at its first packet
+            out: list[Frame] = []
+            for sample, compid in zip(chosen, compids, strict=False):
+                if sample is not None:
+                    out += self.fleet.sample(v, sample, compid)
+                self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
+        else:  # (none can come of these: the values counted are of_fields')
+            out = self.fleet.samples(v, chosen, compids)
+        for k in range(len(chosen), len(samples)):
+            out += self._sample(v.system_id, compids[k], samples[k], None, t_recv_s[k])
+            if stats.invalid_values:
+                self.report_once("invalid", "NaN or absurd field value(s): counted, dropped")
         return out
 
     def _fast(self, packet: bytes, t_recv_s: float) -> Decoded | None:

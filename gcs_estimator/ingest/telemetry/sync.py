@@ -66,6 +66,9 @@ PERIOD_SPACINGS = 15
 EXPECT_PRESENCE = 0.75
 """A channel is expected in every frame when it was in this share of recent frames."""
 PRESENCE_GAIN = 0.1
+FIRST_INPUT = int(Channel.ELEVATOR)
+"""The first input's channel number (an int: an IntEnum member's look-up costs more than
+the subtraction it is for)."""
 FIRST_EXPECTED: tuple[int, ...] = tuple(range(Channel.HDOT))
 """The channels expected before any frame has gone: V .. a_z. The climb rate (h_dot, the
 last channel), which many vehicles send slower or not at all, becomes expected once it is
@@ -193,26 +196,33 @@ class InputTrack:
     def at(self, t: float, window: float, linear: bool) -> float:
         """The value at t: the sample at t, else interpolated between the samples around
         it (or the earlier held), else the last before it held; NaN before any."""
-        if not self.t:
-            return math.nan
-        i = bisect.bisect_left(self.t, t - window)
-        if i < len(self.t) and self.t[i] <= t + window:
-            return self.v[i]
-        if i == 0:
-            return math.nan
-        if i == len(self.t) or not linear:
-            return self.v[i - 1]
-        t0, t1 = self.t[i - 1], self.t[i]
-        w = (t - t0) / (t1 - t0)
-        return self.v[i - 1] + w * (self.v[i] - self.v[i - 1])
+        return self.read(t, window, linear)[0]
 
     def uncertain_at(self, t: float, window: float) -> bool:
         """Whether no sample at t arrived and the samples around it differ (the value at
         t is then a guess: a step may lie anywhere between them)."""
-        i = bisect.bisect_left(self.t, t - window)
-        if i < len(self.t) and self.t[i] <= t + window:
-            return False
-        return 0 < i < len(self.t) and self.v[i - 1] != self.v[i]
+        return self.read(t, window, True)[1]
+
+    def read(self, t: float, window: float, linear: bool) -> tuple[float, bool]:
+        """at() and uncertain_at() by one search (a frame asks both of each input)."""
+        times = self.t
+        if not times:
+            return math.nan, False
+        i = bisect.bisect_left(times, t - window)
+        n = len(times)
+        v = self.v
+        if i < n and times[i] <= t + window:
+            return v[i], False
+        if i == 0:
+            return math.nan, False
+        if i == n:
+            return v[i - 1], False
+        before, after = v[i - 1], v[i]
+        if not linear:
+            return before, before != after
+        t0, t1 = times[i - 1], times[i]
+        w = (t - t0) / (t1 - t0)
+        return before + w * (after - before), before != after
 
     def prune(self, before: float) -> None:
         """Forget samples before `before` but the last one (the hold needs it)."""
@@ -273,20 +283,26 @@ class Synchronizer:
 
     def add(self, sample: Sample) -> list[Frame]:
         """Take one sample; return the frames it lets go (in time order)."""
-        if sample.t_vehicle_s is None:
+        t0 = sample.t_vehicle_s
+        if t0 is None:
             if self._pending:
                 self._pending.append((None, sample))
                 return []
             return self._add_untimed(sample)
         if self.anchor.anchored:  # the common case: ClockAnchor.take would give [sample]
-            return self._timed(sample)
+            return self._timed(sample, t0)
         return [f for s in self.anchor.take(sample) for f in self._timed(s)]
 
-    def _timed(self, sample: Sample) -> list[Frame]:
-        t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor takes timed ones)
+    def _timed(self, sample: Sample, t0: float | None = None) -> list[Frame]:
+        """A timed sample (t0: its time, where the caller has it)."""
+        if t0 is None:
+            t0 = sample.t_vehicle_s or 0.0  # always a time here (ClockAnchor: timed ones)
         newest = self._newest
-        t = self.clock.unwrap(sample.message, t0, sample.wrap_s, newest)
-        self.stats.clock_wraps = self.clock.wraps
+        if sample.wrap_s is None:  # VehicleClock.unwrap would give t0 and count no wrap
+            t = t0
+        else:
+            t = self.clock.unwrap(sample.message, t0, sample.wrap_s, newest)
+            self.stats.clock_wraps = self.clock.wraps
         if newest == -math.inf or newest - CLOCK_RESET_S <= t <= newest + JUMP_S:  # on base
             if not self._pending:
                 return self._accept(t, sample)
@@ -342,9 +358,10 @@ class Synchronizer:
             self._newest = t
         window = FRAME_WINDOW_S
         obs = []
+        inputs = self._inputs
         for ch, v in sample.values:
             if ch >= N_OBS:
-                self._inputs[ch - Channel.ELEVATOR].add(t, v)
+                inputs[ch - FIRST_INPUT].add(t, v)
             else:
                 obs.append((ch, v))
         if obs:
@@ -420,24 +437,29 @@ class Synchronizer:
         return out + self.flush()
 
     def _emit(self, op: _Open) -> list[Frame]:
+        t = op.t
         if math.isfinite(self._last_emitted):
-            self._spacings.append(op.t - self._last_emitted)
+            self._spacings.append(t - self._last_emitted)
             if len(self._spacings) >= 3:
                 ordered = sorted(self._spacings)
                 self._period = ordered[len(ordered) // 2]
-        self._last_emitted = op.t
-        have = [math.isfinite(v) for v in op.y]
-        complete = all(have[c] for c in self._expected)
+        self._last_emitted = t
+        have = list(map(math.isfinite, op.y))
+        complete = all([have[c] for c in self._expected])
         presence = self._presence
+        expected = []
         for c in range(N_OBS):
-            presence[c] += PRESENCE_GAIN * (have[c] - presence[c])
-        self._expected = [c for c in range(N_OBS) if presence[c] >= EXPECT_PRESENCE]
+            p = presence[c] = presence[c] + PRESENCE_GAIN * (have[c] - presence[c])
+            if p >= EXPECT_PRESENCE:
+                expected.append(c)
+        self._expected = expected
         window = FRAME_WINDOW_S
-        u = [tr.at(op.t, window, self.linear_inputs) for tr in self._inputs]
-        guessed = any(tr.uncertain_at(op.t, window) for tr in self._inputs[:REQUIRED_INPUTS])
+        reads = [tr.read(t, window, self.linear_inputs) for tr in self._inputs]
+        u = [value for value, _ in reads]
+        guessed = any([guess for _, guess in reads[:REQUIRED_INPUTS]])
         for tr in self._inputs:
-            tr.prune(op.t - window)
-        if not all(math.isfinite(v) for v in u[:REQUIRED_INPUTS]):
+            tr.prune(t - window)
+        if not all(map(math.isfinite, u[:REQUIRED_INPUTS])):
             self.stats.waiting_for_inputs += 1
             return []
         self.stats.frames += 1
@@ -448,4 +470,4 @@ class Synchronizer:
         if guessed:
             self.stats.inputs_guessed += 1
         y = np.array(op.y)
-        return [Frame(self.system_id, op.t, op.t_last_recv, np.array(u), y, reset, not guessed)]
+        return [Frame(self.system_id, t, op.t_last_recv, np.array(u), y, reset, not guessed)]

@@ -12,10 +12,12 @@ loop with the plain records taken by the kernel, many at a time: where the kerne
 the loop's own step (the same helpers) takes the next record, and the kernel goes on
 after it. A record of a channel message that passed its CRC goes to the link decoded:
 in a run of COLUMNS_MIN records or more, each message type's fields as columns
-(SampleReader.columns: units and ranges per column, decision 0064) and every whole
-sample to MavlinkLink.sample_packet; a sample with a value dropped, and shorter runs,
-by SampleReader.of_fields to MavlinkLink.decoded_packet. Every other record goes to
-MavlinkLink.packet (pymavlink's path for what the kernel does not read), as before.
+(SampleReader.columns: units and ranges per column, decision 0064), and each stretch
+of whole samples to MavlinkLink.samples_common (counted and chosen as a run, decision
+0069), which leaves what is anything else to MavlinkLink.sample_packet; a sample with a
+value dropped, and shorter runs, by SampleReader.of_fields to
+MavlinkLink.decoded_packet. Every other record goes to MavlinkLink.packet (pymavlink's
+path for what the kernel does not read), as before.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from gcs_estimator.config import LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.sources import SourceError, TlogSource
 from gcs_estimator.ingest.telemetry import tlog_kernel
-from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, SampleReader
+from gcs_estimator.ingest.telemetry.decode import Columns, DecodeStats, Sample, SampleReader
 from gcs_estimator.ingest.telemetry.mavlink import (
     _TIME_US,
     BACK_US,
@@ -71,10 +73,19 @@ class Run(NamedTuple):
     system_id: list[int]
     component_id: list[int]
     values: list[float]
-    """The fields of the table messages (tlog_kernel.Output.values), `width` a record."""
+    """The fields of the table messages (tlog_kernel.Output.values), `width` a record,
+    in a run without columns (empty in one with them: see fields)."""
     width: int
     columns: np.ndarray[Any, np.dtype[np.float64]] | None = None
     """The same fields as a record a row (a copy), for SampleReader.columns."""
+
+    def fields(self, j: int, count: int) -> list[float]:
+        """The first `count` fields of record j (as floats: a list of the table's
+        numbers is made only for the records that go one by one)."""
+        if self.columns is not None:
+            values: list[float] = self.columns[j, :count].tolist()
+            return values
+        return self.values[j * self.width : j * self.width + count]
 
 
 def _one(data: bytes, t: int, start: int, end: int) -> Run:
@@ -83,6 +94,11 @@ def _one(data: bytes, t: int, start: int, end: int) -> Run:
 
 COLUMNS_MIN = 16
 """Runs shorter than this are decoded record by record (columns would cost more)."""
+
+
+COMMON_RETRY = 16
+"""Where MavlinkLink.samples_common took none of the samples from a record on, that many
+go by sample_packet before it is asked again (after one it took some of, one goes)."""
 
 
 FRAMING_ONLY = tlog_kernel.field_table(())
@@ -139,6 +155,8 @@ class _Reader:
         self.first = False
         self.st.records += taken
         t, status, seq, sysid, compid = out.header[:taken].T.tolist()
+        values = out.values[:taken, : self.width]
+        columns = taken >= COLUMNS_MIN
         yield Run(
             self.data,
             out.bounds[:taken, 0].tolist(),
@@ -148,9 +166,9 @@ class _Reader:
             seq,
             sysid,
             compid,
-            out.values[:taken, : self.width].ravel().tolist(),
+            [] if columns else values.ravel().tolist(),
             self.width,
-            out.values[:taken, : self.width].copy() if taken >= COLUMNS_MIN else None,
+            values.copy() if columns else None,
         )
         self.last_t = int(out.header[taken - 1, 0])
         self.i = end
@@ -274,38 +292,67 @@ class CompiledTlogSource(TlogSource):
 
     def _run_frames(self, run: Run, table: FieldTable) -> Iterator[Frame]:
         """The frames a run's records let go, record by record as MavlinkLink.packet
-        would (a channel message read by the kernel: MavlinkLink.decoded_packet)."""
+        would (a channel message read by the kernel: MavlinkLink.decoded_packet; one
+        read whole from columns: sample_packet, or with the records after it that are
+        too, MavlinkLink.samples_common)."""
         link = self.link
         packet_frames = link.packet
         decoded_frames = link.decoded_packet
-        sample_frames = link.sample_packet
         of_fields = link.samples.of_fields
         messages = table.messages
-        data, values, width = run.data, run.values, run.width
+        data = run.data
         starts, ends, times = run.starts, run.ends, run.times
         seqs, sysids, compids = run.seq, run.system_id, run.component_id
         signed = link.signing is not None
         columns = None if signed else _columns(run, table, link.samples)
         which, row = columns or (_NO_COLUMNS, run.status)
-        for j, status in enumerate(run.status):
-            t = times[j] * 1e-6
-            packet = data[starts[j] : ends[j]]
+        status = run.status
+        j, n = 0, len(status)
+        while j < n:
             got = which[j]
             sample = None if got is None else got.sample(row[j])
             if sample is not None:
-                out = sample_frames(packet, t, compids[j], seqs[j], sample)
-            elif status < 0 or signed:
+                samples = _whole(which, row, j + 1, n, sample)
+                yield from self._samples(run, j, samples)
+                j += len(samples)
+                continue
+            t = times[j] * 1e-6
+            packet = data[starts[j] : ends[j]]
+            if status[j] < 0 or signed:
                 out = packet_frames(packet, t)
             else:
-                msg = messages[status]
-                at = j * width
-                fields = values[at : at + msg.count]
+                msg = messages[status[j]]
+                fields = run.fields(j, msg.count)
                 if msg.texts:
                     fields = _with_text(packet, msg, fields)
                 decoded = of_fields(msg.msgid, seqs[j], sysids[j], compids[j], fields, t)
                 out = decoded_frames(packet, t, decoded)
             if out:
                 yield from out
+            j += 1
+
+    def _samples(self, run: Run, j: int, samples: list[Sample]) -> Iterator[Frame]:
+        """The frames of a run's records j, j + 1, ... read whole from columns (samples):
+        MavlinkLink.samples_common for as many as it takes, sample_packet for the first
+        it does not (COMMON_RETRY where it took none), and so on."""
+        link = self.link
+        data, starts, ends = run.data, run.starts, run.ends
+        e = j + len(samples)
+        packets = [data[starts[k] : ends[k]] for k in range(j, e)]
+        t = [run.times[k] * 1e-6 for k in range(j, e)]
+        compids, seqs = run.component_id[j:e], run.seq[j:e]
+        k, m = 0, len(samples)
+        while k < m:
+            taken, out = link.samples_common(packets, t, compids, seqs, samples, k)
+            if out:
+                yield from out
+            k += taken
+            end = min(k + (1 if taken else COMMON_RETRY), m)
+            while k < end:
+                out = link.sample_packet(packets[k], t[k], compids[k], seqs[k], samples[k])
+                if out:
+                    yield from out
+                k += 1
 
 
 class _NoColumns:
@@ -316,6 +363,19 @@ class _NoColumns:
 
 
 _NO_COLUMNS = _NoColumns()
+
+
+def _whole(which: Any, row: list[int], j: int, n: int, first: Sample) -> list[Sample]:
+    """first and the samples of the records from j on read whole from columns, up to the
+    first record that is not."""
+    out = [first]
+    for k in range(j, n):
+        got = which[k]
+        sample = None if got is None else got.sample(row[k])
+        if sample is None:
+            break
+        out.append(sample)
+    return out
 
 
 def _columns(

@@ -129,6 +129,23 @@ class VehicleSetup:
             return None  # auxiliary values only: measured, not for the synchroniser
         return chosen
 
+    def prepare_common(self, samples: list[Sample]) -> list[Sample | None]:
+        """prepare over samples one after the other, for as many from the first as need
+        neither the vehicle's servo map nor the RAW_IMU rule and whose channels take
+        ChannelSources' remembered paths (choose_common): what prepare gives each (no
+        note can come of them); prepare takes the rest from the first not taken."""
+        refuse_raw = self.autopilot_kind not in (None, ARDUPILOT)
+        mapped = self.servo_map is not None
+        if refuse_raw or mapped:
+            n = 0
+            for sample in samples:
+                if (refuse_raw and sample.message == "RAW_IMU") or (mapped and sample.outputs):
+                    break
+                n += 1
+            samples = samples[:n]
+        chosen = self.sources.choose_common(samples)
+        return [None if c is None or not c.values else c for c in chosen]
+
     def _in_range(self, vals: list[tuple[Channel, float]]) -> tuple[tuple[Channel, float], ...]:
         """The values the vehicle's servo map gives that are finite and in range (others
         counted, as decode counts its own)."""

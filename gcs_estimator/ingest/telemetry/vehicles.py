@@ -16,7 +16,7 @@ from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.ingest.telemetry.counters import LinkHealth
 from gcs_estimator.ingest.telemetry.decode import CommandAck, Heartbeat, Sample
 from gcs_estimator.ingest.telemetry.mavlink import Codec
-from gcs_estimator.ingest.telemetry.sync import Synchronizer
+from gcs_estimator.ingest.telemetry.sync import Synchronizer, SyncStats
 
 Address = tuple[str, int]
 
@@ -58,6 +58,9 @@ def link_name(address: Address | None) -> str:
     return "recording" if address is None else f"{address[0]}:{address[1]}"
 
 
+# Over 200 lines: a link's vehicles (the cap, each one's address, its acknowledgements,
+# heartbeats and sources per message) and a run's samples (samples) beside the rule per
+# sample they take the common case of.
 class Vehicles:
     """The vehicles of one link, by system id."""
 
@@ -224,13 +227,37 @@ class Vehicles:
         if sample.t_vehicle_s is not None:
             v.last_telemetry = sample.t_recv_s  # from its pinned address (Vehicles.pinned)
         out = v.sync.add(sample)
-        if v.sync.stats.late_samples:
+        self._sync_notes(v.sync.stats)
+        return out
+
+    def samples(
+        self, v: VehicleLink, samples: list[Sample | None], compids: list[int]
+    ) -> list[Frame]:
+        """sample() of each sample (None: none) in turn: one of a message taken from the
+        component that sent it goes straight to the synchroniser."""
+        out: list[Frame] = []
+        sources, sync = v.sources, v.sync
+        stats = sync.stats
+        for sample, compid in zip(samples, compids, strict=False):
+            if sample is None:
+                continue
+            if sources.get(sample.message) != compid or sample.message == "NAMED_VALUE_FLOAT":
+                out += self.sample(v, sample, compid)  # its source to be set, or checked
+                continue
+            if sample.t_vehicle_s is not None:
+                v.last_telemetry = sample.t_recv_s
+            out += sync.add(sample)
+            if stats.late_samples or stats.implausible_times:
+                self._sync_notes(stats)
+        return out
+
+    def _sync_notes(self, stats: SyncStats) -> None:
+        if stats.late_samples:
             self.report_once("late", "sample(s) for a frame already processed: counted, dropped")
-        if v.sync.stats.implausible_times:
+        if stats.implausible_times:
             self.report_once(
                 "time", "sample(s) with a vehicle time no later sample confirmed: dropped"
             )
-        return out
 
     def ground_messages(self, codec: Codec, now: float) -> Iterator[tuple[bytes, Address]]:
         """What the ground station sends each second: a heartbeat to every vehicle, and
