@@ -20,7 +20,7 @@ Then `gcs-estimator batch` over them (both filters, no refine):
   target's figure, the steady state), with and without the structure check;
 - logs past filter.structure_check_max_frames (--long-seconds, 600: ten minutes at
   50 Hz), as most of a fleet's logs are, where the check is not made: one by CPU, and
-  --long-flights of them through a batch on 2 workers (decision 0070);
+  --long-flights (20) of them through a batch on 2 workers (decision 0070);
 - the scheduler's overhead per task: (workers x wall - the tasks' own time) / logs
   (target <= 0.3 s; the tail, one worker finishing while the other waits, included);
 - identical estimates: --check logs replayed alone (`gcs-estimator replay`) against
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--long-flights",
         type=int,
-        default=6,
+        default=20,
         help="a batch of this many --long-seconds logs on 2 workers as well (0: not)",
     )
     ap.add_argument(
