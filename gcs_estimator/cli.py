@@ -1273,7 +1273,7 @@ def _add_replay(sub: Any) -> None:
     )
     options.group(p, PROCESSES).add_argument(
         "--check-threads",
-        type=int,
+        type=_positive_int,
         default=None,
         metavar="N",
         help="the structure check's replays in at most N threads (default: the machine's "
@@ -1340,11 +1340,8 @@ def backend_of(environ: Mapping[str, str]) -> Backend:
 def _cap_check_threads(args: argparse.Namespace) -> None:
     """--check-threads: the process's cap on the structure check's threads."""
     count = getattr(args, "check_threads", None)
-    if count is None:
-        return
-    if count < 1:
-        raise ConfigError(f"--check-threads {count}: at least 1")
-    weighting.set_process_threads(count)
+    if count is not None:
+        weighting.set_process_threads(count)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

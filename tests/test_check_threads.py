@@ -91,5 +91,7 @@ def test_each_replay_of_a_batch_gets_its_share_of_the_cores(tmp_path: Path) -> N
 
 
 def test_no_threads_is_refused_naming_the_option(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["replay", "missing.tlog", "--check-threads", "0"]) == 2
-    assert "--check-threads 0: at least 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stopped:
+        main(["replay", "missing.tlog", "--check-threads", "0"])
+    assert stopped.value.code == 2
+    assert "--check-threads: 0: at least 1" in capsys.readouterr().err
