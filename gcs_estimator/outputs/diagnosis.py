@@ -103,6 +103,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
         out += _sign_warnings(kind, s)
     out += _disagreement_warning(vehicle)
     out += thrust_warnings(vehicle)
+    out += hold_warnings(vehicle)
     out += _noise_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
@@ -359,6 +360,28 @@ def thrust_warnings(vehicle: VehicleResult) -> list[str]:
         "throttle steps or a glide "
         "(the thrust is the airframe file's guess within its tolerance, which their σ "
         "includes)"
+    ]
+
+
+def hold_warnings(vehicle: VehicleResult) -> list[str]:
+    """Where the data fit the inputs held the other way between samples decisively better
+    than the run's [data] input_hold (decision 0071): the run's estimates sit at the end
+    the data reject, which their σ includes; the setting to change."""
+    check = vehicle.structure
+    if check is None or check.skipped:
+        return []
+    preferred = check.hold_preferred
+    ran = "linear" if check.linear_inputs else "previous"
+    if not preferred or preferred == ran:
+        return []
+    how = {
+        "previous": "held at each sample until the next (the commands change at the samples)",
+        "linear": "moving linearly from sample to sample",
+    }
+    return [
+        f"the data fit the inputs {how[preferred]} better than [data] input_hold = "
+        f'"{ran}" (-2 log likelihood {check.hold_change:+.0f}): the σ shown includes the whole '
+        f'move between the two; set [data] input_hold = "{preferred}" for this vehicle'
     ]
 
 

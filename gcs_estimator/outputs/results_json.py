@@ -152,6 +152,11 @@ def _structure_dict(vehicle: VehicleResult) -> dict[str, Any] | None:
             part: {kind: dict(zip(names, map(float, v), strict=True)) for kind, v in by.items()}
             for part, by in check.parts.items()
         },
+        "hold": {
+            "input_hold": "linear" if check.linear_inputs else "previous",
+            "likelihood_change": _num(check.hold_change),
+            "preferred": check.hold_preferred or None,
+        },
     }
 
 

@@ -44,6 +44,11 @@ steps between two samples lies somewhere between the two), and the estimates' mo
 noise replay ("noise_level": the noise of a record read as clean lies between the level
 read and the configured). Each is a quantity uniform between the run's value and the
 replay's, so the move beyond what the two covariances allow gives the variance d^2 / 3.
+The hold's replay sums its likelihood, which decides only between the two ends
+(docs/decisions/0071): where the other hold fits decisively better the whole move counts
+(d^2), and where the run holds each input until the next frame and fits decisively
+better, nothing (the inputs change at the frames; how far from them, the timing part's
+profile places).
 """
 
 from __future__ import annotations
@@ -165,6 +170,21 @@ class StructureCheck(NamedTuple):
     """Per quantity ("input_delay_s", "vane_x_m", ...), where the first filter's
     likelihood puts it from the configured value, and its sigma (NaN: not decided):
     the inputs' delay beyond [data] input_delay_s, each position's offset [SI]."""
+    linear_inputs: bool = True
+    """The run's hold between frames ([data] input_hold: linear, or held at the earlier)."""
+    hold_change: float = math.nan
+    """The first filter's -2 log likelihood over the final pass with the inputs held the
+    other way, minus the run's (NaN: not replayed): below -LIKELIHOOD_TIE the other hold
+    fits decisively better (decision 0071)."""
+
+    @property
+    def hold_preferred(self) -> str:
+        """The hold the likelihood prefers decisively ("linear" or "previous", the
+        [data] input_hold names), or "" where it does not."""
+        if not math.isfinite(self.hold_change) or abs(self.hold_change) <= LIKELIHOOD_TIE:
+            return ""
+        linear = self.linear_inputs if self.hold_change > 0.0 else not self.linear_inputs
+        return "linear" if linear else "previous"
 
 
 def skipped(reason: str) -> StructureCheck:
@@ -270,10 +290,12 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
             excess[kind] += np.maximum(0.0, d * d - np.abs(vs * vs - s * s))
     parts = {"weights": {k: np.sqrt(WEIGHT_SHARE * excess[k]) for k in FILTER_KINDS}}
     rest = finals[len(channels) :]
-    found = _undecided_parts(parts, base, rest, undecided, tolerances, again)
+    linear = est.tunings[FILTER_KINDS[0]].linear_inputs
+    found = _undecided_parts(parts, base, rest, undecided, tolerances, again, linear)
+    hold = found.pop(HOLD_KEY, (math.nan, math.nan))[0]
     sigma = {k: np.sqrt(sum(part[k] ** 2 for part in parts.values())) for k in FILTER_KINDS}
     names = tuple(OBS_NAMES[i] for i in channels)
-    return StructureCheck(sigma, moves, names, "", parts, tolerances, found)
+    return StructureCheck(sigma, moves, names, "", parts, tolerances, found, linear, hold)
 
 
 def _replays(
@@ -308,13 +330,15 @@ def _undecided_parts(
     undecided: Undecided,
     tolerances: dict[str, float],
     again: Callable[[list[Replay]], list[Final]],
+    linear: bool,
 ) -> dict[str, tuple[float, float]]:
     """Add the undecided quantities' parts to `parts` from their replays `rest` (in
     _undecided's order: a pair at +tol and -tol per quantity, one each for the noise
-    floor and the other hold);
+    floor and the other hold, `linear` the run's hold);
     where the likelihood has no curvature over a pair, the pair again at PROFILE_WIDE
     tolerances (`again` replays them). Returns where the first filter's likelihood puts
-    each quantity (_profile)."""
+    each quantity (_profile), and under HOLD_KEY its likelihood change with the other
+    hold (_hold_part)."""
     found: dict[str, tuple[float, float]] = {}
     p = base[FILTER_KINDS[0]][0].shape[0]
     j = 0
@@ -328,11 +352,9 @@ def _undecided_parts(
             moved = parts.setdefault(
                 ONE_REPLAY_MOVES[label], {k: np.zeros(p) for k in FILTER_KINDS}
             )
-            for kind in FILTER_KINDS:
-                floor, move = _one_replay(base[kind], rest[j][kind])
-                moved[kind] = move
-                if label == "noise_floor":
-                    part[kind] = floor
+            decided = _one_replay_parts(label, part, moved, base, rest[j], linear)
+            if decided is not None:
+                found[key] = decided
             j += 1
             continue
         up, down, step = rest[j], rest[j + 1], tol
@@ -348,6 +370,31 @@ def _undecided_parts(
     return found
 
 
+def _one_replay_parts(
+    label: str,
+    part: dict[FilterKind, FloatArray],
+    moved: dict[FilterKind, FloatArray],
+    base: Final,
+    run: Final,
+    linear: bool,
+) -> tuple[float, float] | None:
+    """Fill a one-replay quantity's parts from its replay `run`: the noise floor's
+    (`part`) and the move (`moved`: "noise_level", or "hold" as the likelihood decides
+    it, _hold_part); returns the hold's likelihood change as `found` keeps it (None for
+    the noise floor)."""
+    decided = None
+    for kind in FILTER_KINDS:
+        floor, move = _one_replay(base[kind], run[kind])
+        if label == "hold":
+            move, where = _hold_part(base[kind], run[kind], move, linear)
+            if kind == FILTER_KINDS[0]:
+                decided = where
+        moved[kind] = move
+        if label == "noise_floor":
+            part[kind] = floor
+    return decided
+
+
 def _one_replay(
     base: tuple[FloatArray, FloatArray, float], run: tuple[FloatArray, FloatArray, float]
 ) -> tuple[FloatArray, FloatArray]:
@@ -361,6 +408,37 @@ def _one_replay(
     floor = np.sqrt(np.maximum(0.0, vs * vs - s * s))
     moved = np.sqrt(UNIFORM_SHARE * np.maximum(0.0, d * d - np.abs(vs * vs - s * s)))
     return np.asarray(floor), np.asarray(moved)
+
+
+def _hold_part(
+    base: tuple[FloatArray, FloatArray, float],
+    run: tuple[FloatArray, FloatArray, float],
+    uniform: FloatArray,
+    linear: bool,
+) -> tuple[FloatArray, tuple[float, float]]:
+    """The hold's part where the pass's likelihood decides between the two holds
+    (docs/decisions/0071): `uniform` is the part as a quantity uniform between the run's
+    estimates and the replay's (_one_replay); `linear` the run's hold. With L the pass's
+    -2 log likelihood, the replay's minus the run's:
+
+    - L < -LIKELIHOOD_TIE (the other hold fits decisively better): the run's estimates
+      sit at the end the data reject, so the whole move counts (sqrt(3) times uniform);
+    - L > LIKELIHOOD_TIE and the run holds each input until the next frame: the inputs
+      change at the frames, where the held inputs put them (a change elsewhere shows as a
+      delay, which the timing part's likelihood profile places): no part;
+    - otherwise, uniform (the linear hold that fits better is not where a step between
+      two samples was: decision 0059's records).
+
+    Returns the part and (L, NaN) as `found` keeps it (NaN where no likelihood was
+    summed)."""
+    change = run[2] - base[2]
+    if not math.isfinite(change):
+        return uniform, (math.nan, math.nan)
+    if change < -LIKELIHOOD_TIE:
+        return uniform / math.sqrt(UNIFORM_SHARE), (change, math.nan)
+    if change > LIKELIHOOD_TIE and not linear:
+        return np.zeros_like(uniform), (change, math.nan)
+    return uniform, (change, math.nan)
 
 
 def _curved(
@@ -451,10 +529,13 @@ def _undecided(
     if floor is not None:
         out.append(("noise_floor", "", lambda _: Replay(floor, u)))
     held = not est.tunings[FILTER_KINDS[0]].linear_inputs
-    out.append(("hold", "", lambda _: Replay(None, u, linear_inputs=held)))
+    out.append(("hold", HOLD_KEY, lambda _: Replay(None, u, linear_inputs=held, profile=True)))
     return out, tolerances
 
 
+HOLD_KEY = "input_hold"
+"""The hold replay's key in _undecided (its likelihood change is kept apart from `found`:
+StructureCheck.hold_change)."""
 ONE_REPLAY_MOVES = {"noise_floor": "noise_level", "hold": "hold"}
 """The part that holds how far the estimates moved in each one-replay quantity's replay:
 with the noise at the configured level rather than the level read (the noise floor's
