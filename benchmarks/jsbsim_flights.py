@@ -189,10 +189,16 @@ def _fly(
     trim_cmd = fdm["fcs/elevator-cmd-norm"]
     # Normalised command per degree of elevator, from the surface's mapping at trim.
     de0 = fdm["fcs/elevator-pos-rad"]
-    fdm["fcs/elevator-cmd-norm"] = trim_cmd + 0.05
-    for _ in range(STEPS_PER_SAMPLE * 25):
-        fdm.run()
-    per_norm = (fdm["fcs/elevator-pos-rad"] - de0) / 0.05
+    per_norm = 0.0
+    # A surface with hysteresis (the c172x's actuator: 0.05 rad) ignores the small step;
+    # the larger one is taken only there, so the other models' flights are as before.
+    for probe in (0.05, 0.25):
+        fdm["fcs/elevator-cmd-norm"] = trim_cmd + probe
+        for _ in range(STEPS_PER_SAMPLE * 25):
+            fdm.run()
+        per_norm = (fdm["fcs/elevator-pos-rad"] - de0) / probe
+        if per_norm != 0.0:
+            break
     # Back to the trimmed command before trimming again: a model that trims with its
     # pitch trim (the c172p) would otherwise trim against the calibration's offset.
     fdm["fcs/elevator-cmd-norm"] = trim_cmd

@@ -109,6 +109,9 @@ class Outcome:
     Morelli-Klein, its structure, the filter's structure floor, the difference)."""
     delay_ms: tuple[float, float] = (math.nan, math.nan)
     """refine's fitted elevator delay and its sigma [ms] (NaN: none fitted)."""
+    hold: tuple[str, float] = ("", math.nan)
+    """The run's hold between samples and the structure check's -2 log likelihood change
+    with the other (NaN: no check)."""
 
 
 Found = dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]]
@@ -140,6 +143,9 @@ def scored(
         out.z[estimator] = ((est - goal) / sigma).tolist()
         out.marks[estimator] = marks
     out.parts = sigma_parts(vehicle, oe)
+    check = vehicle.structure
+    if check is not None and not check.skipped:
+        out.hold = ("linear" if check.linear_inputs else "previous", check.hold_change)
     for estimator, (est, sigma, _) in found.items():
         out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
         out.parts[estimator]["estimate"] = est.tolist()
@@ -273,7 +279,7 @@ def jobs(args: argparse.Namespace) -> list[Job]:
 
 def chosen(args: argparse.Namespace) -> list[str]:
     """The members to run: those of --half, narrowed to --aircraft where given."""
-    members = [m for m in ORDER if args.half == "all" or membership(m)[2] == args.half]
+    members = [m for m in ORDER if membership(m)[2] == args.half] if args.half != "all" else SET
     unknown = set(args.aircraft) - set(ORDER)
     if unknown:
         raise SystemExit(f"--aircraft: no member {sorted(unknown)}; the set: {ORDER}")
@@ -350,8 +356,11 @@ def print_halves(outcomes: list[Outcome]) -> None:
     groups = {
         "held-out half": [o for o in outcomes if membership(o.job.aircraft)[2] == vf.HELD_OUT],
         "tuning half": [o for o in outcomes if membership(o.job.aircraft)[2] == vf.TUNING],
-        "whole set": outcomes,
+        "whole set": [o for o in outcomes if o.job.aircraft in SET],
     }
+    independent = [o for o in outcomes if membership(o.job.aircraft)[2] == vf.INDEPENDENT]
+    if independent:
+        groups["independent check (not in the set)"] = independent
     print(
         "\n## The halves and the whole set\n\nwell-excited coefficients within 3 shown σ, "
         "their mean z² (pooled; and the median of the records' own), coefficients marked "
@@ -445,9 +454,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refine", choices=(*REFINE_METHODS, "none"), default="auto")
     ap.add_argument(
         "--half",
-        choices=(vf.TUNING, vf.HELD_OUT, "all"),
+        choices=(vf.TUNING, vf.HELD_OUT, "all", vf.INDEPENDENT),
         default="all",
-        help="run one half only (defaults are chosen on the tuning half alone)",
+        help="run one half only (defaults are chosen on the tuning half alone); "
+        f"'{vf.INDEPENDENT}': the aircraft held out of the set for independent checks "
+        "(pa28, c172x, J3Cub; never in 'all')",
     )
     ap.add_argument(
         "--aircraft",
@@ -514,6 +525,11 @@ def run(args: argparse.Namespace) -> int:
     print_misses(outcomes)
     delays = [f"{o.job.name} {o.delay_ms[0]:.1f}±{o.delay_ms[1]:.1f}" for o in outcomes]
     print("\nrefine's elevator delay [ms]: " + "; ".join(delays))
+    holds = [f"{o.job.name} {o.hold[0]} {o.hold[1]:+.0f}" for o in outcomes]
+    print(
+        "\nthe hold between samples (the run's, and the -2 log likelihood change with the "
+        "other; below -4 the other fits better, decision 0071): " + "; ".join(holds)
+    )
     if failed:
         print("\n" + "\n".join(failed))
     print(
@@ -525,7 +541,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-ORDER = [m.aircraft.model for m in vf.SET] + list(OTHERS)
+SET = [m.aircraft.model for m in vf.SET] + list(OTHERS)
+"""The set's members, in the order reports list them."""
+ORDER = SET + [m.aircraft.model for m in vf.INDEPENDENT_SET]
 """The aircraft in the order the tables list them."""
 
 
