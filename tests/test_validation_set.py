@@ -4,6 +4,7 @@ glides."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import sys
@@ -38,6 +39,24 @@ def test_the_set_is_wide_installed_and_leaves_out_the_independent_checks() -> No
     assert set(models) <= installed
     assert not set(models) & HELD_FOR_INDEPENDENT_CHECKS
     assert len({m.aircraft.kind for m in vf.SET}) >= 6
+
+
+def test_the_independent_checks_fly_apart_from_the_set() -> None:
+    """The aircraft held for independent checks are flown only when asked for by name
+    (--half independent), are installed, and never count in the set's halves or its
+    whole (decision 0071)."""
+    installed = set(os.listdir(Path(jsbsim.get_default_root_dir()) / "aircraft"))
+    independent = {m.aircraft.model for m in vf.INDEPENDENT_SET}
+    assert independent == HELD_FOR_INDEPENDENT_CHECKS <= installed
+    assert all(m.half == vf.INDEPENDENT for m in vf.INDEPENDENT_SET)
+    assert not independent & set(validation.SET)
+    assert set(validation.ORDER) == set(validation.SET) | independent
+    for model in independent:
+        assert vf.member(model).half == vf.INDEPENDENT
+    args = argparse.Namespace(half="all", aircraft=[])
+    assert validation.chosen(args) == validation.SET
+    args = argparse.Namespace(half=vf.INDEPENDENT, aircraft=[])
+    assert set(validation.chosen(args)) == independent
 
 
 def test_the_halves_split_the_records_about_evenly_and_hold_out_several_classes() -> None:
