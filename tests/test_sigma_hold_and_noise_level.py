@@ -12,6 +12,7 @@ from gcs_estimator.config import load_config
 from gcs_estimator.estimation.estimator import FILTER_KINDS
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.results_json import results_dict
+from gcs_estimator.outputs.table import final_table
 from gcs_estimator.runtime.session import RecordingSource, Session, run_recording
 from gcs_estimator.uncertainty import weighting
 from gcs_estimator.uncertainty.result import VehicleResult
@@ -123,12 +124,14 @@ def test_inputs_that_change_at_the_samples_decide_the_hold() -> None:
     for kind in FILTER_KINDS:
         np.testing.assert_array_equal(check.parts["hold"][kind], 0.0)
     assert not [w for w in trust_warnings(held) if "input_hold" in w]
+    assert "the likelihood prefers the run's: the move does not count" in final_table(held)
     linear = run_recording_short(['data.input_hold="linear"'])
     other = linear.structure
     assert other is not None and other.linear_inputs
     assert other.hold_preferred == "previous" and other.hold_change < -weighting.LIKELIHOOD_TIE
     assert np.all(other.parts["hold"][FILTER_KINDS[0]] >= 0.0)
     assert np.any(other.parts["hold"][FILTER_KINDS[0]] > 0.0)
+    assert "the likelihood prefers previous: the whole move counts" in final_table(linear)
     warned = [w for w in trust_warnings(linear) if "input_hold" in w]
     assert len(warned) == 1 and 'input_hold = "previous"' in warned[0], warned
     data = results_dict(linear)["diagnostics"]["structure_check"]["hold"]

@@ -365,7 +365,27 @@ def _undecided_text(check: StructureCheck) -> str:
             f"; the inputs' timing the likelihood prefers: {1e3 * delay[0]:+.1f} ± "
             f"{1e3 * delay[1]:.1f} ms from [data] input_delay_s"
         )
-    return text
+    return text + _hold_text(check)
+
+
+def _hold_text(check: StructureCheck) -> str:
+    """The inputs held the other way between samples, and what the likelihood said of the
+    two holds (decision 0071)."""
+    if not math.isfinite(check.hold_change):
+        return ""
+    ran = "linear" if check.linear_inputs else "previous"
+    preferred = check.hold_preferred
+    if preferred and preferred != ran:
+        verdict = f"the likelihood prefers {preferred}: the whole move counts"
+    elif preferred == "previous":
+        verdict = "the likelihood prefers the run's: the move does not count"
+    else:
+        said = "prefers the run's" if preferred else "does not tell the two apart"
+        verdict = f"the likelihood {said}: the move counts as lying anywhere between"
+    return (
+        f"; with the inputs held the other way between samples ([data] input_hold "
+        f'"{ran}"; -2 log likelihood {check.hold_change:+.0f}), {verdict} (sigma_parts.hold)'
+    )
 
 
 def final_table(vehicle: VehicleResult, refined: Refined | None = None) -> str:
