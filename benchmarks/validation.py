@@ -145,7 +145,7 @@ def scored(
     out.parts = sigma_parts(vehicle, oe)
     check = vehicle.structure
     if check is not None and not check.skipped:
-        out.hold = ("linear" if check.linear_inputs else "previous", check.hold_change)
+        out.hold = (check.input_hold, check.hold_change)
     for estimator, (est, sigma, _) in found.items():
         out.parts.setdefault(estimator, {})["shown"] = sigma.tolist()
         out.parts[estimator]["estimate"] = est.tolist()

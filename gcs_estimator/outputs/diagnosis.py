@@ -371,7 +371,7 @@ def hold_warnings(vehicle: VehicleResult) -> list[str]:
     if check is None or check.skipped:
         return []
     preferred = check.hold_preferred
-    ran = "linear" if check.linear_inputs else "previous"
+    ran = check.input_hold
     if not preferred or preferred == ran:
         return []
     how = {

@@ -153,7 +153,7 @@ def _structure_dict(vehicle: VehicleResult) -> dict[str, Any] | None:
             for part, by in check.parts.items()
         },
         "hold": {
-            "input_hold": "linear" if check.linear_inputs else "previous",
+            "input_hold": check.input_hold,
             "likelihood_change": _num(check.hold_change),
             "preferred": check.hold_preferred or None,
         },

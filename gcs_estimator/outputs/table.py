@@ -373,7 +373,7 @@ def _hold_text(check: StructureCheck) -> str:
     two holds (decision 0071)."""
     if not math.isfinite(check.hold_change):
         return ""
-    ran = "linear" if check.linear_inputs else "previous"
+    ran = check.input_hold
     preferred = check.hold_preferred
     if preferred and preferred != ran:
         verdict = f"the likelihood prefers {preferred}: the whole move counts"

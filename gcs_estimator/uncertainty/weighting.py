@@ -178,6 +178,11 @@ class StructureCheck(NamedTuple):
     fits decisively better (decision 0071)."""
 
     @property
+    def input_hold(self) -> str:
+        """The run's hold by its [data] input_hold name."""
+        return "linear" if self.linear_inputs else "previous"
+
+    @property
     def hold_preferred(self) -> str:
         """The hold the likelihood prefers decisively ("linear" or "previous", the
         [data] input_hold names), or "" where it does not."""
