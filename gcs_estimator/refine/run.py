@@ -21,7 +21,7 @@ from gcs_estimator.model.aircraft import Model, build_model
 from gcs_estimator.model.channels import N_FLIGHT
 from gcs_estimator.refine.fit import refine
 from gcs_estimator.refine.result import Refined, RefineError, RefineProgress
-from gcs_estimator.uncertainty.sigma import FilterEstimate
+from gcs_estimator.uncertainty.sigma import FilterEstimate, trusted_sigma
 from gcs_estimator.uncertainty.weighting import THRUST_PARTS
 
 if TYPE_CHECKING:
@@ -152,9 +152,12 @@ def refine_run(
     factors = thrust_factors(result.config)
     filter_structure = None
     propeller = None
+    left_out = False
     check = None if isinstance(run, EstimatorResult) else run.structure
     if check is not None and not check.skipped:
-        filter_structure = _filter_structure(check, kind, estimate_delays, bool(factors))
+        left = _left_parts(estimate_delays, bool(factors))
+        left_out = bool(left & set(check.parts))
+        filter_structure = _filter_structure(check, kind, left)
         propeller = _propeller_part(check, kind) if factors else None
     if method not in REFINE_METHODS:
         raise ValueError(f"refine method {method!r}: allowed {list(REFINE_METHODS)}")
@@ -184,7 +187,7 @@ def refine_run(
             fr.coefficients,
             fr.sigma if propeller is None else np.hypot(fr.sigma, propeller),
             filter_structure,
-            _filter_trusted(run, kind, window_s),
+            _filter_trusted(run, kind, window_s, filter_structure if left_out else None),
         ),
         delayed=delayed_inputs(track.u[idx]) if estimate_delays else (),
         factors=factors,
@@ -212,25 +215,35 @@ def _filter_trusted(
     run: EstimatorResult | VehicleResult,
     kind: FilterKind,
     window_s: tuple[float | None, float | None],
+    structure: FloatArray | None = None,
 ) -> FloatArray | None:
     """Filter `kind`'s sigma to trust, the floor of the fit's sigma (decision 0057), where
     the fit reads the frames the filter was judged over (no window) and the run was
-    summarised (a vehicle's)."""
+    summarised (a vehicle's). `structure`: the filter's structure sigma without the parts
+    the fit decides itself (_filter_structure), which then takes the place of the whole
+    in the sigma to trust (decision 0072); None: the sigma to trust as the table shows
+    it."""
     if isinstance(run, EstimatorResult) or window_s != (None, None):
         return None
     summary = run.summaries.get(kind)
     if summary is None:
         return None
-    return np.array([c.sigma for c in summary.coefficients])
+    if structure is None:
+        return np.array([c.sigma for c in summary.coefficients])
+    covariance = np.array([c.sigma_parts.covariance for c in summary.coefficients])
+    factor = np.array([c.sigma_parts.movement_factor for c in summary.coefficients])
+    return trusted_sigma(covariance, factor * factor, structure).sigma
 
 
-def _filter_structure(
-    check: StructureCheck, kind: FilterKind, estimate_delays: bool, factors: bool
-) -> FloatArray | None:
-    """Filter `kind`'s structure sigma, the floor of the fit's (decision 0031): without its
-    timing part where the fit estimates the inputs' delay itself (decision 0044), nor
-    its propeller parts where it fits the propeller's factors (decision 0054)."""
-    left = ({"timing"} if estimate_delays else set()) | (set(THRUST_PARTS) if factors else set())
+def _left_parts(estimate_delays: bool, factors: bool) -> set[str]:
+    """The structure check's parts a fit decides itself: the timing where it estimates
+    the inputs' delay (decision 0044), the propeller's where it fits its factors (0054)."""
+    return ({"timing"} if estimate_delays else set()) | (set(THRUST_PARTS) if factors else set())
+
+
+def _filter_structure(check: StructureCheck, kind: FilterKind, left: set[str]) -> FloatArray | None:
+    """Filter `kind`'s structure sigma, the floor of the fit's (decision 0031): without the
+    parts `left` the fit decides itself (_left_parts)."""
     if not left & set(check.parts):
         return check.sigma.get(kind)
     kept = [part[kind] for name, part in check.parts.items() if name not in left]
