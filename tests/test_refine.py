@@ -141,7 +141,9 @@ def test_the_fit_keeps_at_least_the_structure_sigma_the_filters_check_found() ->
     moved = cov * np.array([c.sigma_parts.movement_factor for c in coefficients])
     trusted = np.hypot(moved, filters)
     assert alone.sigma_parts.filter_trusted is None
-    np.testing.assert_allclose(kept.sigma_parts.filter_trusted, trusted, rtol=1e-12)
+    floor = kept.sigma_parts.filter_trusted
+    assert floor is not None
+    np.testing.assert_allclose(floor, trusted, rtol=1e-12)
     assert np.all(trusted <= shown * (1.0 + 1e-12))
     assert np.any(trusted < shown)  # the timing part left out
     assert np.all(kept.sigma >= trusted)
