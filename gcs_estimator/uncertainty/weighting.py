@@ -96,6 +96,11 @@ the pair is replayed again this many tolerances out."""
 LIKELIHOOD_TIE = 4.0
 """Two replays whose -2 log likelihoods differ by less than this (two standard
 deviations of one parameter's chi-square) do not say which side is likelier."""
+PROFILE_LOCAL = 10.0
+"""Where a filter's likelihood over a pair is a parabola at least this many times narrower
+than the pair's step, the pair is replayed again LOCAL_SPREADS of that width either side
+of the configured value (decision 0073)."""
+LOCAL_SPREADS = 3.0
 PROFILE_REACH = 10.0
 """How many tolerances from the configured value a quantity's likelihood parabola may
 place its least (beyond, three replays cannot tell)."""
@@ -362,17 +367,60 @@ def _undecided_parts(
                 found[key] = decided
             j += 1
             continue
-        up, down, step = rest[j], rest[j + 1], tol
+        profiles = _pair_profiles(base, rest[j], rest[j + 1], tol, make, again)
         j += 2
-        if not all(_curved(base[k], up[k], down[k]) for k in FILTER_KINDS):
-            step = PROFILE_WIDE * tol
-            up, down = again([make(step), make(-step)])
         for kind in FILTER_KINDS:
-            extra, where = _profile(base[kind], up[kind], down[kind], step, tol)
+            extra, where = profiles[kind]
             part[kind] = np.hypot(part[kind], extra)
             if kind == FILTER_KINDS[0]:
                 found[key] = where
     return found
+
+
+Profile = tuple[FloatArray, tuple[float, float]]
+"""A quantity's part of the coefficients' sigma, and where the likelihood puts it
+(_profile)."""
+
+
+def _pair_profiles(
+    base: Final,
+    up: Final,
+    down: Final,
+    tol: float,
+    make: Maker,
+    again: Callable[[list[Replay]], list[Final]],
+) -> dict[FilterKind, Profile]:
+    """Each filter's profile of a quantity from its pair of replays at +-tol (up, down):
+    where some filter's likelihood has no curvature over it, from the pair again at
+    PROFILE_WIDE tolerances; where some filter's is far narrower than the pair's step,
+    each filter's from a close pair (_local_step) where its least lies between that
+    pair's ends (`make` makes, `again` replays)."""
+    step = tol
+    if not all(_curved(base[k], up[k], down[k]) for k in FILTER_KINDS):
+        step = PROFILE_WIDE * tol
+        up, down = again([make(step), make(-step)])
+    profiles = {k: _profile(base[k], up[k], down[k], step, tol) for k in FILTER_KINDS}
+    near = _local_step(profiles, step)
+    if near > 0.0:
+        close_up, close_down = again([make(near), make(-near)])
+        for kind in FILTER_KINDS:
+            local = _profile(base[kind], close_up[kind], close_down[kind], near, tol)
+            if abs(local[1][0]) <= near:  # the least between the close pair's ends
+                profiles[kind] = local
+    return profiles
+
+
+def _local_step(profiles: dict[FilterKind, Profile], step: float) -> float:
+    """The step of a close pair (decision 0073): LOCAL_SPREADS times the narrowest of the
+    filters' likelihood parabolas over a pair `step` either side, where that is at least
+    PROFILE_LOCAL times narrower than the step; else 0 (no close pair). Over a pair
+    that far out, a likelihood that narrow is a parabola through the ends of a curve
+    that is not one (the inputs' timing bends at the samples): its least, and the
+    coefficients' slope between the ends, say little of where the quantity lies."""
+    spreads = [where[1] for _, where in profiles.values() if math.isfinite(where[1])]
+    if not spreads or min(spreads) * PROFILE_LOCAL > step:
+        return 0.0
+    return LOCAL_SPREADS * min(spreads)
 
 
 def _one_replay_parts(
