@@ -31,10 +31,11 @@ samples, a servo's lag, a skewed log), with each sensor position moved by the pl
 tolerance (the vane's and the accelerometers' place, from an airframe file's measurement
 or guess), and, where the run read a channel's noise below the configured sigma
 (measurement_noise = "auto" on a record with almost no noise), at the configured noise.
-Each tolerance is taken as uniform, so a move d gives the variance d^2 / 3; the noise
-replay's covariance sigma is a floor under the run's (a record read as clean is trusted
-no further than one at the sensors' nominal noise: what the model misses stays as the
-noise goes). These parts are added to the structure sigma in quadrature (the floor as
+Where the likelihood over a pair is far narrower than the pair, a close pair places the
+quantity (docs/decisions/0073). Each tolerance is taken as uniform, so a move d gives
+the variance d^2 / 3; the noise replay's covariance sigma is a floor under the run's (a
+record read as clean is trusted no further than one at the sensors' nominal noise: what
+the model misses stays as the noise goes). These parts are added to the structure sigma in quadrature (the floor as
 its excess over the run's covariance), and kept apart in `parts`.
 
 Two more replays carry what the data cannot decide and no likelihood sharpens
@@ -414,9 +415,9 @@ def _local_step(profiles: dict[FilterKind, Profile], step: float) -> float:
     """The step of a close pair (decision 0073): LOCAL_SPREADS times the narrowest of the
     filters' likelihood parabolas over a pair `step` either side, where that is at least
     PROFILE_LOCAL times narrower than the step; else 0 (no close pair). Over a pair
-    that far out, a likelihood that narrow is a parabola through the ends of a curve
-    that is not one (the inputs' timing bends at the samples): its least, and the
-    coefficients' slope between the ends, say little of where the quantity lies."""
+    that far out, a likelihood that narrow is not a parabola: the one through its three
+    points puts the least where the two ends' difference sets it, which can be many of
+    its widths from where the likelihood is least."""
     spreads = [where[1] for _, where in profiles.values() if math.isfinite(where[1])]
     if not spreads or min(spreads) * PROFILE_LOCAL > step:
         return 0.0
