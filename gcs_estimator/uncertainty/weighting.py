@@ -35,8 +35,9 @@ Where the likelihood over a pair is far narrower than the pair, a close pair pla
 quantity (docs/decisions/0073). Each tolerance is taken as uniform, so a move d gives
 the variance d^2 / 3; the noise replay's covariance sigma is a floor under the run's (a
 record read as clean is trusted no further than one at the sensors' nominal noise: what
-the model misses stays as the noise goes). These parts are added to the structure sigma in quadrature (the floor as
-its excess over the run's covariance), and kept apart in `parts`.
+the model misses stays as the noise goes). These parts are added to the structure sigma
+in quadrature (the floor as its excess over the run's covariance), and kept apart in
+`parts`.
 
 Two more replays carry what the data cannot decide and no likelihood sharpens
 (docs/decisions/0059): the final pass with the inputs held the other way between frames
