@@ -230,3 +230,18 @@ def test_the_frame_budget_is_shared_by_the_vehicles_of_a_run() -> None:
         second.skipped
     )
     assert np.isnan(results[5].summaries["EKF"].coefficients[0].sigma_parts.structure)
+
+
+def test_a_close_pair_places_a_quantity_only_in_one_valley() -> None:
+    """Decision 0073: a close pair's parabola is taken where it predicts the wide pair's
+    rises (one valley), not where the likelihood is rugged and least elsewhere. The
+    figures are of two replays measured: the NOC mission's timing (wide ends +426,077 and
+    +458,312 at +-10 ms; the close pair's least -7 us, width 18.5 us) and a JSBSim
+    mission's thrust factor (wide ends +5,969 and -3,749 at +-0.26; the close pair's least
+    +0.011, width 0.0002)."""
+    assert weighting._one_valley((-7.09e-6, 1.85e-5), (426_077.0, 458_312.0), 0.01, 4.3e-5)
+    assert not weighting._one_valley((0.0105, 2.1e-4), (5_969.0, -3_749.0), 0.26, 0.023)
+    # both ends rising, but far less than the close parabola says: a dip, not the valley
+    assert not weighting._one_valley((-5.6e-4, 1.24e-5), (16_181.0, 3_740.0), 0.04, 1.2e-3)
+    # a least beyond the close pair's ends is not placed by it
+    assert not weighting._one_valley((1e-4, 1.85e-5), (426_077.0, 458_312.0), 0.01, 4.3e-5)

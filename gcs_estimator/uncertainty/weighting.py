@@ -103,6 +103,10 @@ PROFILE_LOCAL = 10.0
 than the pair's step, the pair is replayed again LOCAL_SPREADS of that width either side
 of the configured value (decision 0073)."""
 LOCAL_SPREADS = 3.0
+LOCAL_AGREE = 4.0
+"""A close pair's parabola is taken only where it predicts the rise of the pair's ends
+within this factor either way: one valley, not a dip in a rugged likelihood whose least
+lies elsewhere (decision 0073)."""
 PROFILE_REACH = 10.0
 """How many tolerances from the configured value a quantity's likelihood parabola may
 place its least (beyond, three replays cannot tell)."""
@@ -407,9 +411,29 @@ def _pair_profiles(
         close_up, close_down = again([make(near), make(-near)])
         for kind in FILTER_KINDS:
             local = _profile(base[kind], close_up[kind], close_down[kind], near, tol)
-            if abs(local[1][0]) <= near:  # the least between the close pair's ends
+            ends = (up[kind][2] - base[kind][2], down[kind][2] - base[kind][2])
+            if _one_valley(local[1], ends, step, near):
                 profiles[kind] = local
     return profiles
+
+
+def _one_valley(
+    where: tuple[float, float], rises: tuple[float, float], step: float, near: float
+) -> bool:
+    """Whether a close pair's parabola (least, spread: `where`) places the quantity: its
+    least between the close pair's ends (+-near), and the -2 log likelihood's rises at
+    the wide pair's ends (+-step: `rises`) within LOCAL_AGREE either way of what that
+    parabola predicts there."""
+    least, spread = where
+    if not (math.isfinite(least) and math.isfinite(spread)) or abs(least) > near:
+        return False
+    for end, rise in zip((step, -step), rises, strict=True):
+        predicted = ((end - least) ** 2 - least**2) / spread**2
+        if not (predicted > 0.0 and rise > 0.0):
+            return False
+        if not 1.0 / LOCAL_AGREE <= rise / predicted <= LOCAL_AGREE:
+            return False
+    return True
 
 
 def _local_step(profiles: dict[FilterKind, Profile], step: float) -> float:
