@@ -283,16 +283,32 @@ def structure_check(est: Estimator, t: FloatArray, u: FloatArray, y: FloatArray)
     undecided, tolerances = _undecided(est, t, u, channels)
     replays = _replays(u, channels, undecided, tolerances)
 
-    def again(batch: list[Replay]) -> list[Final]:
-        # The replays are independent and spend most of their time in compiled steps
-        # that release the GIL: threads run them side by side on the cores allowed.
-        threads = min(len(batch), check_threads())
-        if threads < 2:
-            return [_final(est, t, y, r) for r in batch]
-        with ThreadPoolExecutor(max_workers=threads) as pool:
+    # The replays are independent and spend most of their time in compiled steps that
+    # release the GIL: threads run them side by side on the cores allowed, one pool for
+    # every batch the check replays (the pairs it adds later too).
+    threads = min(len(replays), check_threads())
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
+
+        def again(batch: list[Replay]) -> list[Final]:
+            if pool is None:
+                return [_final(est, t, y, r) for r in batch]
             return list(pool.map(lambda r: _final(est, t, y, r), batch))
 
-    base, *finals = again(replays)
+        return _checked(est, again(replays), channels, undecided, tolerances, again)
+
+
+def _checked(
+    est: Estimator,
+    finals: list[Final],
+    channels: list[int],
+    undecided: Undecided,
+    tolerances: dict[str, float],
+    again: Callable[[list[Replay]], list[Final]],
+) -> StructureCheck:
+    """The check from its replays' finals (in _replays' order), `again` replaying any
+    pair it adds."""
+    base, *finals = finals
     if set(base) != set(FILTER_KINDS):
         return skipped("no frame reached the filters")
     p = base[FILTER_KINDS[0]][0].shape[0]
