@@ -415,8 +415,8 @@ def _pair_profiles(
     """Each filter's profile of a quantity from its pair of replays at +-tol (up, down):
     where some filter's likelihood has no curvature over it, from the pair again at
     PROFILE_WIDE tolerances; where some filter's is far narrower than the pair's step,
-    each filter's from a close pair (_local_step) where its least lies between that
-    pair's ends (`make` makes, `again` replays)."""
+    each filter's from a close pair (_local_step) where that pair's parabola describes
+    the one valley the wide pair shows (_one_valley; `make` makes, `again` replays)."""
     step = tol
     if not all(_curved(base[k], up[k], down[k]) for k in FILTER_KINDS):
         step = PROFILE_WIDE * tol
