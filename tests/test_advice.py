@@ -13,16 +13,26 @@ import pytest
 
 from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
+from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.refine.holdout import check
 from gcs_estimator.runtime.session import run_recording
-from gcs_estimator.uncertainty.advice import Advice, advice_of
+from gcs_estimator.uncertainty.advice import (
+    ENVELOPE_PITCH_DEG,
+    ENVELOPE_SPEED,
+    Advice,
+    Candidate,
+    advice_of,
+    candidate_flights,
+    in_envelope,
+    short_period,
+)
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, WEAK
 from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-from advice import FLOWN_AT_S, NO_MULTISTEP, SHORT_PERIOD, manoeuvre_overrides
+from advice import FLOWN_AT_S, NO_MULTISTEP, SHORT_PERIOD, manoeuvre_overrides, throttle_step
 
 SEED = 1
 MULTISTEPS = ("3-2-1-1", "doublet")
@@ -86,6 +96,55 @@ def test_advice_names_the_short_period_and_a_multistep(flown: Flown) -> None:
         assert a.predicted_trusted_sigma <= a.trusted_sigma
     text = "\n".join(flown.advice.lines())
     assert "3-2-1-1" in text or "doublet" in text
+
+
+def test_a_manoeuvre_that_leaves_the_envelope_is_not_advised(flown: Flown) -> None:
+    """The NOC UAV's propeller is strong: a 20 % throttle step held 6 s open loop, flown
+    through the true model, gains over 15 % of airspeed and pitches up past 15 degrees
+    (the simulator loops it), so the envelope refuses it, while a 1 degree doublet stays
+    inside; no manoeuvre the run's advice names leaves it at the run's estimate."""
+    config = flown.after_config
+    model = build_model(config, gust_states=False)
+    truth = np.array(config.truth, float)
+    V = config.airframe.trim_airspeed_mps
+    omega = short_period(model, truth, V)
+    (step,) = candidate_flights(model, truth, Candidate("throttle step", 0.2, 6.0, V), 50.0, omega)
+    (doublet,) = candidate_flights(model, truth, Candidate("doublet", 1.0, 0.3, V), 50.0, omega)
+    assert not in_envelope(model, step)
+    assert in_envelope(model, doublet)
+    simulated = simulate(load_config("noc_uav", NO_MULTISTEP + _step_at(0.2)), seed=SEED)
+    moved = np.abs(simulated.states[:, :3] - simulated.states[0, :3]).max(axis=0)
+    assert moved[0] > ENVELOPE_SPEED * simulated.states[0, 0]
+    assert moved[2] > np.radians(ENVELOPE_PITCH_DEG)
+    beta = flown.first.result.filters["IEKF"].coefficients
+    for a in flown.advice.advised:
+        for f in candidate_flights(model, beta, a.candidate, 50.0, flown.advice.short_period_rad_s):
+            assert in_envelope(model, f)
+
+
+def _step_at(amplitude: float) -> list[str]:
+    """The benchmark's overrides that add a throttle step of this amplitude at
+    FLOWN_AT_S to the NOC flight."""
+    config = load_config("noc_uav", NO_MULTISTEP)
+    trim = simulate(config, seed=SEED).trim.inputs[1]
+    c = Candidate("throttle step", amplitude, 6.0, config.airframe.trim_airspeed_mps)
+    return manoeuvre_overrides(c, throttle_step(config, c, float(trim)))
+
+
+def test_the_benchmark_flies_a_throttle_step_as_the_advice_does() -> None:
+    """benchmarks/advice.py adds a throttle step as advice.candidate_flights flies it:
+    the throttle up by the candidate's share of full throttle for its hold, then back to
+    trim."""
+    config = load_config("noc_uav", NO_MULTISTEP + _step_at(0.05))
+    f = simulate(config, seed=SEED)
+    throttle = f.inputs[:, 1]
+    t = np.asarray(f.t_s)
+    during = (t >= FLOWN_AT_S + 0.1) & (t < FLOWN_AT_S + 5.9)
+    before, after = t < FLOWN_AT_S - 0.1, t > FLOWN_AT_S + 6.1
+    trim = throttle[before].mean()
+    assert np.ptp(throttle[before]) == 0.0
+    assert throttle[during] == pytest.approx(trim + 0.05, abs=1e-3)
+    assert throttle[after] == pytest.approx(trim, abs=1e-3)
 
 
 def test_the_advised_multistep_flown_gives_the_sigma_predicted(flown: Flown) -> None:

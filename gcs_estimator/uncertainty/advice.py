@@ -14,8 +14,11 @@ the manoeuvre.
 
 The candidate is flown open loop with no process noise: the output-error (calm air)
 information. In turbulence a fit learns less from the same manoeuvre, so the prediction
-is then a lower bound; the manoeuvres are short (a few short periods plus a settling
-time), well inside the time an unstable phugoid takes to diverge.
+is then a lower bound. A candidate whose flight at the estimate leaves the envelope
+about its trim (in_envelope: airspeed, pitch attitude, angle of attack) is not advised
+(decision 0074): a manoeuvre a pilot flies to identify the aircraft stays near the trim
+the coefficients describe, and a flight that loops or dives learns "much" only by
+leaving the model's range.
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ DOUBLET_TUNING = 2.3
 its spectrum peaks there (Jategaonkar 2015, ch. 2; Morelli and Klein 2016, ch. 9)."""
 MULTISTEP_TUNING = 1.6
 """A 3-2-1-1's unit step [s] is this over the short period's natural frequency [rad/s]."""
-THROTTLE_STEPS = (0.1, 0.2)
+THROTTLE_STEPS = (0.05, 0.1, 0.2)
 """Throttle step candidates (share of full throttle; a thrust model: of the trim thrust)."""
 THROTTLE_HOLD_S = 6.0
 """A throttle step holds this long, then returns to trim for as long."""
@@ -79,6 +82,16 @@ prediction is for the step as advised."""
 MIN_SAMPLES_PER_STEP = 3
 """A unit step must span at least this many samples of the fastest channel the short
 period shows in (theta, q, a_z, alpha), or no channel of the record sees its edges."""
+ENVELOPE_SPEED = 0.15
+"""A candidate's airspeed stays within this share of its trim airspeed (the speed
+sweep's own points: SWEEP_SPEEDS)."""
+ENVELOPE_PITCH_DEG = 15.0
+"""Its pitch attitude within this of trim [deg]: a climb or descent a pilot holds by
+hand, not a zoom or a loop."""
+ENVELOPE_ALPHA_DEG = 5.0
+"""Its angle of attack within this of trim [deg]: the range where the coefficients' terms,
+linear in alpha, describe the aircraft (a 3-2-1-1 of a few degrees moves it two or
+three)."""
 FD_STEP = 1e-5
 """Central-difference step, relative to a parameter's magnitude (at least 1e-3)."""
 
@@ -205,6 +218,26 @@ def candidate_flights(
     u = np.tile(u0, (t.shape[0], 1))
     u[:, 0] += elevator_offsets(c.kind, math.radians(c.amplitude), c.unit_s, t)
     return [Flight(x0, t, u)]
+
+
+def in_envelope(model: Model, f: Flight, max_step: float = MAX_STEP_S) -> bool:
+    """Whether candidate flight f, flown at the estimate, stays within the envelope about
+    its start (ENVELOPE_SPEED, ENVELOPE_PITCH_DEG, ENVELOPE_ALPHA_DEG; the model's own
+    flight states, whatever the sensors)."""
+    m = model.arrays
+    x = f.x0.copy()
+    V0, a0, th0 = float(x[0]), float(x[1]), float(x[2])
+    alpha_band, pitch_band = math.radians(ENVELOPE_ALPHA_DEG), math.radians(ENVELOPE_PITCH_DEG)
+    for i in range(1, f.t.shape[0]):
+        x = fly(x, f.u[i - 1], f.u[i], float(f.t[i] - f.t[i - 1]), max_step, m)
+        if not (
+            np.all(np.isfinite(x[:N_FLIGHT]))
+            and abs(x[0] - V0) <= ENVELOPE_SPEED * V0
+            and abs(x[1] - a0) <= alpha_band
+            and abs(x[2] - th0) <= pitch_band
+        ):
+            return False
+    return True
 
 
 def flight_information(
@@ -371,9 +404,11 @@ def predict(
     omega_sp: float,
 ) -> FloatArray | None:
     """The coefficients' covariance after candidate c, from the information `info` now
-    (None: the candidate left the model's range)."""
+    (None: the candidate left the envelope or the model's range)."""
     total = info.copy()
     for f in candidate_flights(model, beta, c, rate_hz, omega_sp):
+        if not in_envelope(model, f):
+            return None
         more = flight_information(model, f, weights)
         if more is None:
             return None
