@@ -1,5 +1,5 @@
 """Why the NOC mission in light turbulence without a vane is not identified: what the data
-hold against what the filters' passes find (issue 53's NOC target, decision 0074).
+hold against what the filters' passes find (issue 53's NOC target, decision 0075).
 
     ./run bench vertical_wind [--seeds 3] [--minutes 8] [--record NAME|none]
 
