@@ -244,6 +244,9 @@ class Replay(NamedTuple):
 Final = dict[FilterKind, tuple[FloatArray, FloatArray, float]]
 """Per filter: final coefficients, their covariance sigma, -2 log likelihood (NaN where
 not summed)."""
+Replayer = Callable[[list[Replay]], list[Final]]
+"""Runs a batch of replays (on the check's one thread pool) and gives their finals in
+order."""
 
 
 def _final(est: Estimator, t: FloatArray, y: FloatArray, replay: Replay) -> Final:
@@ -304,7 +307,7 @@ def _checked(
     channels: list[int],
     undecided: Undecided,
     tolerances: dict[str, float],
-    again: Callable[[list[Replay]], list[Final]],
+    again: Replayer,
 ) -> StructureCheck:
     """The check from its replays' finals (in _replays' order), `again` replaying any
     pair it adds."""
@@ -361,7 +364,7 @@ def _undecided_parts(
     rest: list[Final],
     undecided: Undecided,
     tolerances: dict[str, float],
-    again: Callable[[list[Replay]], list[Final]],
+    again: Replayer,
     linear: bool,
 ) -> dict[str, tuple[float, float]]:
     """Add the undecided quantities' parts to `parts` from their replays `rest` (in
@@ -410,7 +413,7 @@ def _pair_profiles(
     down: Final,
     tol: float,
     make: Maker,
-    again: Callable[[list[Replay]], list[Final]],
+    again: Replayer,
 ) -> dict[FilterKind, Profile]:
     """Each filter's profile of a quantity from its pair of replays at +-tol (up, down):
     where some filter's likelihood has no curvature over it, from the pair again at
