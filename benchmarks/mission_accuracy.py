@@ -368,6 +368,46 @@ def print_targets(outcomes: list[Outcome], target: str = "the best fit") -> None
                 )
 
 
+STRICTER = (0.10, 0.05, 0.10 / 3.0)
+"""sigma / |estimate| an "identified" mark could require: the mark's own (a tenth), two
+sigma within a tenth, three sigma within a tenth (decision 0076)."""
+
+
+def print_stricter_marks(outcomes: list[Outcome]) -> None:
+    """Against the best fit, per case and filter: the coefficients marked identified, and
+    those of them beyond TARGET_CLOSE_PCT or beyond 3 sigma, had "identified" required
+    each of STRICTER (a mark identified now, with its shown sigma within the share: the
+    other conditions of the mark are the same)."""
+    print(
+        '\n## Had "identified" asked for a smaller sigma\n\nagainst the best fit: of the '
+        "coefficients marked identified whose shown σ is at most the share of the estimate "
+        f"named, how many lie beyond {TARGET_CLOSE_PCT:g} % of it and how many beyond 3σ "
+        "(beyond 10 % / beyond 3σ / identified)\n"
+    )
+    heads = " | ".join(f"σ ≤ {100 * th:.3g} %" for th in STRICTER)
+    print(f"| case | estimator | {heads} |")
+    print("|---|---|" + "---|" * len(STRICTER))
+    for case in CASES:
+        group = [o for o in outcomes if o.job.condition.endswith(case)]
+        for k in ESTIMATORS:
+            cells = []
+            for th in STRICTER:
+                n = far = wide = 0
+                for o in group:
+                    if k not in o.z:
+                        continue
+                    est = np.asarray(o.parts[k]["estimate"])
+                    shown = np.asarray(o.parts[k]["shown"])
+                    for i, mark in enumerate(o.marks[k]):
+                        if mark == IDENTIFIED and shown[i] <= th * abs(est[i]):
+                            n += 1
+                            far += _far(o, k, i)
+                            wide += abs(o.z[k][i]) > 3.0
+                cells.append(f"{far} / {wide} / {n}")
+            if any(k in o.z for o in group):
+                print(f"| {case} | {k} | " + " | ".join(cells) + " |")
+
+
 def print_by_aircraft(outcomes: list[Outcome]) -> None:
     print("\n## By aircraft (turns case)\n")
     head = ["aircraft", "records"]
@@ -587,6 +627,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print_targets(outcomes)
     print_targets(against_reference(outcomes, Path(args.out)), "the reference")
+    print_stricter_marks(outcomes)
     print_by_aircraft(outcomes)
     print_turns_against_level(outcomes)
     print_parts(outcomes)
