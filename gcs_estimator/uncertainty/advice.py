@@ -491,7 +491,8 @@ def advise(
         marks_after[c.label()] = after if ok[ALPHA] else without_alpha(names, after)
         by[c.label()] = c
     if not predicted:
-        return Advice(names, V, omega, (), note="every candidate left the model's range", slow=slow)
+        note = "every candidate left the envelope about trim or the model's range"
+        return Advice(names, V, omega, (), note=note, slow=slow)
     advised = []
     for i, (name, mark) in enumerate(zip(names, marks, strict=True)):
         if mark == IDENTIFIED:
