@@ -79,12 +79,19 @@ def _figures(run: VehicleResult, kind: str) -> Figures:
     return float(np.mean(np.abs(z) < 3.0)), within5, nees, float(s.mean_nis), sig, own
 
 
-def run(seeds: int, minutes: float, cases: tuple[str, ...] = ()) -> None:
-    print(f"NOC mission of {minutes:g} min, {seeds} seed(s), both filters; vane vs no vane\n")
+def run(
+    seeds: int, minutes: float, cases: tuple[str, ...] = (), overrides: tuple[str, ...] = ()
+) -> None:
+    """The cases' tables; overrides: config `--set` values on every flight (after the
+    mission's and the case's)."""
+    shown = f"; overrides: {' '.join(overrides)}" if overrides else ""
+    print(
+        f"NOC mission of {minutes:g} min, {seeds} seed(s), both filters; vane vs no vane{shown}\n"
+    )
     for key, label, turbulence, extra in CASES:
         if cases and key not in cases:
             continue
-        config = load_config("noc_uav", [*mission(turbulence, 60.0 * minutes), *extra])
+        config = load_config("noc_uav", [*mission(turbulence, 60.0 * minutes), *extra, *overrides])
         rows: dict[tuple[str, str], list[Figures]] = {}
         names: tuple[str, ...] = ()
         start = time.perf_counter()
@@ -134,12 +141,20 @@ def main(argv: list[str] | None = None) -> int:
         default="calm,light,light-horizontal",
         help="which air (default %(default)s; light-horizontal: without the vertical wind)",
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override on every flight (repeatable), e.g. the mission without its "
+        "turns: --set simulation.turns.starts_s=[] (and its durations_s and banks_deg)",
+    )
     add_argument(ap, "noc_mission")
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.minutes <= 0:
         raise SystemExit("noc_mission: --seeds must be 1 or more, --minutes positive")
     with recorded("noc_mission", args.record, "NOC mission: turns, wind, vane and no vane"):
-        run(args.seeds, args.minutes, tuple(args.cases.split(",")))
+        run(args.seeds, args.minutes, tuple(args.cases.split(",")), tuple(args.set))
     return 0
 
 
