@@ -224,7 +224,8 @@ def simulate(
     )
     if sim.banked or sim.throttle.starts_s:
         turn = TurnFeed(model, truth, trimmed, sim, config.airframe.air_density_kgpm3)
-        u_steps = turn.inputs(u_steps, np.asarray(t_mid, np.float64))
+        held = (np.arange(n_steps) // per_sample) / sim.sample_rate_hz
+        u_steps = turn.inputs(u_steps, np.asarray(t_mid, np.float64), held)
         u_samples = turn.inputs(u_samples, t_samples)
     if sim.actuator_time_constant_s > 0.0:
         # The servo lags its command: the elevator moves between samples, flown as it
@@ -341,12 +342,19 @@ class TurnFeed:
             out[(t >= start - 1e-9) & (t < start + length - 1e-9)] = amount
         return out
 
-    def inputs(self, u: FloatArray, t: FloatArray) -> FloatArray:
+    def inputs(
+        self, u: FloatArray, t: FloatArray, t_commands: FloatArray | None = None
+    ) -> FloatArray:
         """u [N x 2] with the turns' and steps' elevator and throttle added, and the
-        density, phi, p, r columns."""
-        phi, p, de, dp = self.bank(t)
+        density, phi, p, r columns; t_commands (default t): the times the elevator and
+        throttle are commanded at. An autopilot's commands hold from one output to the
+        next, while the bank moves between them: flown between samples, the commands are
+        those of the sample before (decision 0077)."""
+        phi, p, _, _ = self.bank(t)
+        tc = t if t_commands is None else t_commands
+        _, _, de, dp = self.bank(tc)
         r = self.g * np.sin(phi) / self.V
-        out = np.column_stack([u[:, 0] + de, u[:, 1] + dp + self.throttle(t)])
+        out = np.column_stack([u[:, 0] + de, u[:, 1] + dp + self.throttle(tc)])
         if self.sim.banked:
             out = np.column_stack([out, np.full(len(t), self.rho), phi, p, r])
         return out

@@ -448,6 +448,12 @@ def plausible(x: FloatArray, state_max: FloatArray) -> bool:
     return True
 
 
+MOTION_INPUTS = 3
+"""Inputs from this one on (bank angle, roll and yaw rate) are samples of the lateral
+motion, which moves between them: they go linearly from one to the next whatever the
+hold of the commands (elevator, throttle, density: [data] input_hold)."""
+
+
 def input_path(u_prev: FloatArray, u: FloatArray, linear: bool) -> tuple[FloatArray, FloatArray]:
     """The inputs at the start and the end of a prediction interval: from the earlier
     sample to this one (first-order hold), or the earlier sample held (zero-order hold).
@@ -457,10 +463,9 @@ def input_path(u_prev: FloatArray, u: FloatArray, linear: bool) -> tuple[FloatAr
         if not math.isfinite(start[i]):
             start[i] = u[i]
     end = start.copy()
-    if linear:
-        for i in range(u.shape[0]):
-            if math.isfinite(u[i]):
-                end[i] = u[i]
+    for i in range(u.shape[0]):
+        if (linear or i >= MOTION_INPUTS) and math.isfinite(u[i]):
+            end[i] = u[i]
     return start, end
 
 
