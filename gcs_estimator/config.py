@@ -619,8 +619,9 @@ class DataConfig:
     input_hold: str = setting(
         "linear",
         choices=("linear", "previous"),
-        doc="inputs between samples: linear (first-order hold) or held at the earlier "
-        "sample; a CSV's empty input cells are filled the same way",
+        doc="the commands (elevator, throttle) between samples: linear (first-order hold) "
+        "or held at the earlier sample (the bank and its rates go linearly either way); "
+        "a CSV's empty input cells are filled the same way",
     )
     input_delay_s: float = setting(
         0.0,
