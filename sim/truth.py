@@ -350,9 +350,11 @@ class TurnFeed:
         throttle are commanded at. An autopilot's commands hold from one output to the
         next, while the bank moves between them: flown between samples, the commands are
         those of the sample before (decision 0077)."""
-        phi, p, _, _ = self.bank(t)
-        tc = t if t_commands is None else t_commands
-        _, _, de, dp = self.bank(tc)
+        phi, p, de, dp = self.bank(t)
+        tc = t
+        if t_commands is not None:
+            tc = t_commands
+            _, _, de, dp = self.bank(tc)
         r = self.g * np.sin(phi) / self.V
         out = np.column_stack([u[:, 0] + de, u[:, 1] + dp + self.throttle(tc)])
         if self.sim.banked:
