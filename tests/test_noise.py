@@ -17,6 +17,7 @@ from gcs_estimator.estimation.noise import (
     FLOOR_RATIO,
     MIN_DIFFERENCES,
     READING_SPREAD,
+    divided_differences,
     noise_from_differences,
     reading_z,
 )
@@ -110,24 +111,49 @@ def test_auto_takes_the_reading_only_where_the_sensor_is_clearly_better() -> Non
 
 
 def test_gaps_uneven_samples_and_empty_channels() -> None:
-    """Only evenly spaced runs of present samples give differences; a channel without
-    enough keeps its fallback, and a constant one gets the floor, never zero."""
+    """Each channel is read from its own samples: a sample missing now and then, or an
+    uneven interval, still gives differences (divided ones); five samples across a lost
+    stretch give none; a channel without enough keeps its fallback, and a constant one
+    gets the floor, never zero."""
     rng = np.random.default_rng(4)
     t = np.arange(0.0, 50.0, 0.02)  # 2500 samples: the estimate within about 4 %
-    t[1250:] += 0.013  # one uneven interval: the differences across it are skipped
+    t[1250:] += 0.013  # one uneven interval
     y = np.zeros((t.shape[0], 3))
     y[:, 0] = _signal(t) + 0.3 * rng.standard_normal(t.shape[0])
     y[::20, 0] = np.nan  # a sample missing now and then
+    y[600:700, 0] = np.nan  # a lost stretch of 2 s
     y[:, 1] = np.nan
     y[: MIN_DIFFERENCES + 3, 1] = 0.2 * rng.standard_normal(MIN_DIFFERENCES + 3)
     y[:, 2] = 1.5  # a channel that never moves
     fallback = np.array([1.0, 0.7, 0.4])
     got, used = noise_from_differences(t, y, fallback)
     assert abs(got[0] / 0.3 - 1.0) < 0.15
-    runs = [np.isfinite(y[k : k + 5, 0]).all() for k in range(t.shape[0] - 4)]
-    assert used[0] == sum(runs) - 4  # the four differences across the uneven interval
+    present = int(np.isfinite(y[:, 0]).sum())
+    assert used[0] == present - 4 - 4  # all fives but the four across the lost stretch
     assert used[1] == MIN_DIFFERENCES - 1 and got[1] == fallback[1]
     assert got[2] == FLOOR_RATIO * fallback[2]
+
+
+def test_each_channel_at_its_own_rate_and_jitter_is_read() -> None:
+    """Frames as a link or a log brings them: the pitch rate at 10 Hz and the pitch angle
+    at 2.5 Hz, each sample a few milliseconds off its grid, each in frames of its own
+    (NaN in the other's column), a time sent twice. Both readings within 15 % of the noise
+    drawn; white noise on a grid this uneven gives differences of its own sigma."""
+    rng = np.random.default_rng(8)
+    t_q = np.arange(0.0, 300.0, 0.1) + rng.uniform(-0.01, 0.01, 3000)
+    t_th = np.arange(0.0, 300.0, 0.4) + 0.05 + rng.uniform(-0.02, 0.02, 750)
+    t = np.concatenate([t_q, t_th, t_q[100:101]])
+    y = np.full((t.shape[0], 2), np.nan)
+    y[:3000, 0] = 0.02 * np.sin(0.7 * t_q) + 0.004 * rng.standard_normal(3000)
+    y[3000:3750, 1] = 0.05 * np.sin(0.2 * t_th) + 0.002 * rng.standard_normal(750)
+    y[3750, 0] = y[100, 0]
+    order = np.argsort(t, kind="stable")
+    got, used = noise_from_differences(t[order], y[order], np.array([0.01, 0.01]))
+    np.testing.assert_allclose(got, [0.004, 0.002], rtol=0.15)
+    assert used[0] == 3000 - 4 and used[1] == 750 - 4
+    grid = np.sort(t_q)
+    white = [divided_differences(grid, rng.standard_normal(3000)) for _ in range(20)]
+    assert abs(float(np.mean(np.square(white))) - 1.0) < 0.03
 
 
 def test_each_channels_reading_is_reported_and_config_reads_none(tmp_path: Path) -> None:

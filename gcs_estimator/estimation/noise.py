@@ -11,6 +11,14 @@ Gasser, Sroka and Jennen-Steinmetz 1986). The fourth order, not the second, beca
 simulator's short-period pitch response at 50 Hz is not smooth enough for the second: it
 read the pitch-rate noise 1.5 times too high over the first 10 s, the fourth 1.17 times.
 
+A log or a link sends each channel at its own rate and with its own jitter, so each
+channel is read from its own samples, five in a row, with the weights of the fourth
+divided difference at their times (w_i = 1 / prod_{j != i} (t_i - t_j), which take a
+cubic to zero at any spacing) scaled to unit length, so that white noise of sigma s
+gives s whatever the spacing; on an even grid they are the weights above over sqrt(70).
+Five samples that span more than GAP_RATIO times the channel's usual span (a lost
+stretch, a pause) give none (decision 0078).
+
 What it cannot tell from noise is motion that is itself rough at the sample rate:
 turbulence with a short scale length moves pitch acceleration (and so qdot and q) sample
 to sample, and that motion is counted as noise. docs/decisions/0011 says what it gives on
@@ -24,7 +32,6 @@ keeps the configured sigma elsewhere (docs/decisions/0014); "config" reads nothi
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -34,10 +41,11 @@ from gcs_estimator.estimation.filters.core import FilterKind, Tuning
 
 MIN_DIFFERENCES = 30
 """Differences a channel needs for its own estimate (fewer: the fallback)."""
-DIFFERENCE = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
-"""The fourth difference's weights (their squares sum to 70)."""
-EVEN_SPACING = 0.01
-"""The intervals within one difference may differ by this share (else it is skipped)."""
+ORDER = 4
+"""The differences' order: each takes ORDER + 1 samples of one channel."""
+GAP_RATIO = 2.0
+"""Five samples of a channel give a difference only where they span at most this times
+the median span of the channel's fives (a sample lost here and there still does)."""
 FLOOR_RATIO = 0.1
 """An estimate never goes below this share of the fallback (a quantised or constant
 channel would otherwise get no noise at all, and a filter that trusts it without bound)."""
@@ -54,33 +62,50 @@ CLEARLY = 3.0
 thousand channels."""
 
 
+def divided_differences(t: FloatArray, y: FloatArray) -> FloatArray:
+    """The fourth divided differences of one channel's samples y at strictly increasing
+    times t, each scaled to unit weight length (white noise of sigma s gives differences
+    of sigma s), from every ORDER + 1 consecutive samples whose span is at most GAP_RATIO
+    times the median span."""
+    k = ORDER + 1
+    if t.shape[0] < k:
+        return np.empty(0)
+    tw = np.lib.stride_tricks.sliding_window_view(t, k)
+    yw = np.lib.stride_tricks.sliding_window_view(y, k)
+    gaps = tw[:, :, None] - tw[:, None, :]  # t_i - t_j
+    np.einsum("nii->ni", gaps)[:] = 1.0
+    w = 1.0 / np.prod(gaps, axis=2)
+    w /= np.sqrt(np.sum(w * w, axis=1, keepdims=True))
+    span = tw[:, -1] - tw[:, 0]
+    near = span <= GAP_RATIO * float(np.median(span))
+    d: FloatArray = np.sum(w * yw, axis=1)
+    return d[near]
+
+
 def noise_from_differences(
     t: FloatArray, y: FloatArray, fallback: FloatArray
 ) -> tuple[FloatArray, np.ndarray]:
     """(sigma per channel [c], differences used per channel [c]) of observations y
-    [N x c] at times t [N], NaN where missing: only consecutive samples all present and
-    evenly spaced give a difference. A channel with fewer than MIN_DIFFERENCES keeps its
-    fallback sigma; none goes below FLOOR_RATIO of it."""
+    [N x c] at times t [N], NaN where missing: each channel from its own samples
+    (divided_differences; a time that does not follow the one before it is dropped). A
+    channel with fewer than MIN_DIFFERENCES keeps its fallback sigma; none goes below
+    FLOOR_RATIO of it."""
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     fallback = np.asarray(fallback, float)
     sigma = fallback.copy()
-    k = DIFFERENCE.shape[0]
     used = np.zeros(y.shape[1], dtype=int)
-    if y.shape[0] < k:
-        return sigma, used
-    windows = np.lib.stride_tricks.sliding_window_view(np.diff(t), k - 1)
-    shortest, longest = windows.min(axis=1), windows.max(axis=1)
-    even = (shortest > 0) & (longest - shortest <= EVEN_SPACING * shortest)
-    scale = math.sqrt(float(DIFFERENCE @ DIFFERENCE))
     for c in range(y.shape[1]):
-        d = np.convolve(y[:, c], DIFFERENCE[::-1], mode="valid")
-        d = d[even & np.isfinite(d)]
+        present = np.isfinite(y[:, c]) & np.isfinite(t)
+        tc, yc = t[present], y[present, c]
+        later = np.concatenate(([True], np.diff(tc) > 0.0)) if tc.shape[0] else present[:0]
+        d = divided_differences(tc[later], yc[later])
+        d = d[np.isfinite(d)]
         used[c] = d.shape[0]
         if used[c] < MIN_DIFFERENCES:
             continue
         mad = float(np.median(np.abs(d - np.median(d))))
-        sigma[c] = max(MAD_TO_SIGMA * mad / scale, FLOOR_RATIO * fallback[c])
+        sigma[c] = max(MAD_TO_SIGMA * mad, FLOOR_RATIO * fallback[c])
     return sigma, used
 
 
