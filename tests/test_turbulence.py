@@ -16,6 +16,7 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.estimator import Estimator, EstimatorResult
 from gcs_estimator.estimation.filters import core
 from gcs_estimator.model.aircraft import build_model, trim
+from gcs_estimator.model.turbulence import SIGMA_W_PRESETS
 from gcs_estimator.runtime.session import run_recording
 from sim.scenario import Turbulence, scenario_of
 from sim.truth import perturbed, simulate
@@ -23,6 +24,7 @@ from tests.conftest import CONFIGS
 
 WELL_EXCITED = ("CL0", "CLa", "CLde", "Cm0", "Cma", "Cmq", "Cmde")
 NO_CHECK = "filter.structure_check=off"
+SIGMA_W_LIGHT = SIGMA_W_PRESETS["light"]
 
 
 def _fly(config: AircraftConfig, sigma_w: float, seed: int) -> tuple[EstimatorResult, np.ndarray]:
@@ -299,3 +301,37 @@ def test_the_level_applied_is_the_running_one_where_it_passes_its_test(
     assert quiet[1] == kept[1] == 0.0 and applied[1] == pytest.approx(0.04)
     np.testing.assert_array_equal(kept[0], quiet[0])
     np.testing.assert_allclose(applied[0], quiet[0] + applied[1] * tuning.gust_unit)
+
+
+def test_a_frame_the_gusts_hardly_move_hardly_moves_the_level() -> None:
+    """Frames as a link brings them (decision 0079): every other frame carries all the
+    channels, their innovations as large as predicted; the frames between carry theta
+    alone (its own message), three times its sigma, a channel the gusts hardly move (its
+    white process noise per unit gust variance, THETA_DENSITY, is tiny), so each of those
+    frames alone asks for a level of thousands of m^2/s^2. The running level moves with
+    each frame's information: it stays within a few times the pass's information-weighted
+    average, below light turbulence, where it had run away to tens of m/s."""
+    config = load_config(CONFIGS / "noc_uav.toml", ["filter.turbulence.detection_sigma=1e6"])
+    model = build_model(config)
+    tuning = core.tuning_of(config, model, "EKF")
+    truth = np.array(config.truth)
+    tr = trim(model, truth)
+    x = model.augment(tr.state, truth)
+    u = tr.inputs.copy()
+    s = np.sqrt(np.diag(tuning.R))
+    theta = 2  # V, alpha, theta, ...
+    alone = np.full_like(s, np.nan)
+    alone[theta] = 3.0 * s[theta]
+    gust = core.GustState.start(0.0)
+    asked = []
+    for k, t in enumerate(np.arange(0.0, 60.0, 0.01)):
+        e = s.copy() if k % 2 == 0 else alone
+        before = gust
+        gust = core.adapt_gust(gust, tuning, model.arrays, float(t), 0.01, x, u, e, s, 0.0)
+        if k % 2 and gust.pass_den > before.pass_den:
+            d_num = gust.pass_num - before.pass_num
+            asked.append(d_num / (gust.pass_den - before.pass_den))
+    assert len(asked) > 1000 and min(asked) > 1000.0  # what one theta frame asks for
+    average = gust.pass_average()
+    assert 0.0 < gust.var < 3.0 * average + 1e-3, (gust.var, average)
+    assert np.sqrt(max(gust.var, 0.0)) < SIGMA_W_LIGHT

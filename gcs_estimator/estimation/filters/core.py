@@ -113,8 +113,9 @@ class GustState(NamedTuple):
     large as predicted, from (e_c^2 - S_c) / G_c per channel, G_c = dt sum_j H_cj^2 unit_j
     the change of S_c per unit gust variance, weighted by G_c^2 / (2 S_c^2) (their Fisher
     information). The running estimate is an exponential average with gain
-    g = dt / GUST_ADAPT_TIME_S; the pass sums give the average over the whole pass. Which
-    steps inform it: adapt_gust.
+    g = dt / GUST_ADAPT_TIME_S, each step's share scaled by its information over the
+    running information (g itself where every frame carries the same channels); the pass
+    sums give the average over the whole pass. Which steps inform it: adapt_gust.
     """
 
     var: float
@@ -547,7 +548,12 @@ def adapt_gust(
     estimate = applied + num / den
     gain = min(1.0, dt / GUST_ADAPT_TIME_S)
     info = g.info + gain * (den - g.info) if g.info > 0.0 else den
-    var = max(g.var + gain * (estimate - g.var), GUST_VAR_FLOOR)
+    # Each step moves the running level by its share of the running information: on
+    # frames that all carry the same channels this is the gain itself; a frame of a
+    # link or log that carries only a channel the gusts hardly move (den small, its
+    # one-step estimate num / den wild) moves it little (decision 0079).
+    step = min(1.0, gain * den / info)
+    var = max(g.var + step * (estimate - g.var), GUST_VAR_FLOOR)
     return GustState(
         var,
         info,
