@@ -201,10 +201,13 @@ def test_the_first_re_run_starts_at_the_level_the_zero_start_pass_ended_with() -
 def test_a_model_error_in_the_manoeuvres_is_not_read_as_turbulence() -> None:
     """Calm air, the vane 1 m ahead of the CG and the airframe file not saying so: the
     vane reads alpha + q x / V, an error of the filters' model that shows while the
-    aircraft pitches. The level is estimated only where the inputs are still
-    (filter.turbulence.settle_s), so it stays off and the pitch damping stays near
-    truth; estimated on every frame (settle_s = 0, the earlier behaviour) the error is
-    read as turbulence in the manoeuvres and drags Cmq."""
+    aircraft pitches. The level stays off (applied on under 2 % of the final pass) and
+    the pitch damping stays near truth, both where it is estimated only once the inputs
+    are still (filter.turbulence.settle_s, the default) and where every frame informs it
+    (settle_s = 0): a frame in a manoeuvre, whose predicted innovations are large while
+    the coefficients are uncertain, counts by its information (decision 0079). With a
+    fixed share per frame, settle_s = 0 had read the error as turbulence on over 10 % of
+    the pass and dragged Cmq (decision 0015)."""
     flight = simulate(load_config("noc_uav", ["sensors.vane_x_m=1.0"]), seed=2)
 
     def run(settle_s: float) -> tuple[float, float]:
@@ -219,11 +222,10 @@ def test_a_model_error_in_the_manoeuvres_is_not_read_as_turbulence() -> None:
         i = res.names.index("Cmq")
         return on, 100.0 * abs(f.coefficients[i] / flight.truth[i] - 1.0)
 
-    on, cmq_err = run(3.0)
-    on_every_frame, cmq_err_every_frame = run(0.0)
-    assert on < 0.02, on
-    assert on_every_frame > 0.1, on_every_frame
-    assert cmq_err < 3.0 and cmq_err_every_frame > 2 * cmq_err, (cmq_err, cmq_err_every_frame)
+    for settle_s in (3.0, 0.0):
+        on, cmq_err = run(settle_s)
+        assert on < 0.02, (settle_s, on)
+        assert cmq_err < 3.0, (settle_s, cmq_err)
 
 
 def _informing_steps(elevator: Callable[[float], float], level: float = 0.0) -> np.ndarray:

@@ -40,5 +40,7 @@ def test_a_servo_that_holds_each_command_needs_the_previous_hold() -> None:
     held = _moment_errors([], "previous")
     linear = _moment_errors([], "linear")
     assert max(held.values()) < 1.0, held
-    # The ramps smear every step: every moment derivative is biased.
-    assert min(linear.values()) > 5.0 and max(linear.values()) > 15.0, linear
+    # The ramps smear every step: every moment derivative is biased, by 9-14 % since
+    # the gust level weighs each frame by its information (decision 0079; 15 % and more
+    # before, when the manoeuvres' misfit was read as turbulence with a full share).
+    assert min(linear.values()) > 5.0 and max(linear.values()) > 10.0, linear
