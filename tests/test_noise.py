@@ -154,6 +154,9 @@ def test_each_channel_at_its_own_rate_and_jitter_is_read() -> None:
     grid = np.sort(t_q)
     white = [divided_differences(grid, rng.standard_normal(3000)) for _ in range(20)]
     assert abs(float(np.mean(np.square(white))) - 1.0) < 0.03
+    # A clock reset: the fives across it give none, the rest as before.
+    reset = np.concatenate([grid[:1500], grid[:1500] - 0.05])
+    assert divided_differences(reset, np.ones(3000)).shape[0] == 2 * (1500 - 4)
 
 
 def test_each_channels_reading_is_reported_and_config_reads_none(tmp_path: Path) -> None:

@@ -63,23 +63,26 @@ thousand channels."""
 
 
 def divided_differences(t: FloatArray, y: FloatArray) -> FloatArray:
-    """The fourth divided differences of one channel's samples y at strictly increasing
-    times t, each scaled to unit weight length (white noise of sigma s gives differences
-    of sigma s), from every ORDER + 1 consecutive samples whose span is at most GAP_RATIO
-    times the median span."""
+    """The fourth divided differences of one channel's samples y at times t, each scaled
+    to unit weight length (white noise of sigma s gives differences of sigma s), from
+    every ORDER + 1 consecutive samples whose times rise and whose span is at most
+    GAP_RATIO times the median span."""
     k = ORDER + 1
     if t.shape[0] < k:
         return np.empty(0)
     tw = np.lib.stride_tricks.sliding_window_view(t, k)
     yw = np.lib.stride_tricks.sliding_window_view(y, k)
+    rising = np.all(np.diff(tw, axis=1) > 0.0, axis=1)  # none across a clock reset
+    if not rising.any():
+        return np.empty(0)
+    tw, yw = tw[rising], yw[rising]
     gaps = tw[:, :, None] - tw[:, None, :]  # t_i - t_j
     np.einsum("nii->ni", gaps)[:] = 1.0
     w = 1.0 / np.prod(gaps, axis=2)
     w /= np.sqrt(np.sum(w * w, axis=1, keepdims=True))
     span = tw[:, -1] - tw[:, 0]
-    near = span <= GAP_RATIO * float(np.median(span))
     d: FloatArray = np.sum(w * yw, axis=1)
-    return d[near]
+    return d[span <= GAP_RATIO * float(np.median(span))]
 
 
 def noise_from_differences(
