@@ -107,10 +107,12 @@ def test_vehicle_process_to_ground_station_and_replay_matches(tmp_path: Path) ->
     again = replay(config, tmp_path / "live.tlog")
     for kind, beta in again.final().items():
         np.testing.assert_array_equal(beta, live[kind])
-    # Live, the restarts' work went into idle time; the re-runs took over at the same
-    # frames as in the replay (which had none), so every frame's estimate is the same.
+    # Live, some of the restarts' work may go into idle time (how much depends on the
+    # machine's load: none at all on a busy one); the replay has none. The re-runs take
+    # over at frames the data fix, whatever was done ahead, so every frame's estimate is
+    # the same (work_ahead itself: tests/filters/test_restarts.py).
     live_est, again_est = station.session.estimator(1), again.session.estimator(1)
-    assert live_est.restarts.worked_ahead > 100 and again_est.restarts.worked_ahead == 0
+    assert again_est.restarts.worked_ahead == 0
     assert live_est.final_pass_from == again_est.final_pass_from
     live_result, again_result = live_est.result(), again_est.result()
     for kind, f in live_result.filters.items():
