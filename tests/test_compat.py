@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
-from gcs_estimator.ingest.compat import Compatibility, check
+from gcs_estimator.ingest.compat import Compatibility, check, noise_sigma, own_noise
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.model.channels import LEGACY_OBS
@@ -172,3 +172,30 @@ def test_every_data_file_is_checked_before_estimation_as_the_config_says(
     assert any("WARNING: q bias" in n for n in got.notes)
     moved = float(np.mean(q_raw - got.measurements[:, Q]))
     assert abs(moved - (q_bias["value"] if mode == "correct" else 0.0)) < 1e-6
+
+
+def test_a_channel_sampled_at_a_fifth_of_the_frames_reads_its_own_noise() -> None:
+    """A rate logged at 10 Hz among 50 Hz frames (NaN between): its noise is read from
+    its own samples, whatever their spacing, and carried on the grid as the noise whose
+    integral spreads as the channel's own does (sqrt(5) times, on every fifth frame); the
+    signal filled between samples (as the check fills it) would have read about a third."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 300.0, 0.02)
+    sigma = 0.01
+    slow = np.full(t.shape, np.nan)
+    own = np.arange(0, t.size, 5)
+    jitter = t[own] + rng.uniform(-0.004, 0.004, own.size)  # a log's timestamps jitter
+    slow[own] = 0.2 * np.sin(0.5 * jitter) + sigma * rng.standard_normal(own.size)
+    grid = np.where(np.isfinite(slow), t, np.nan)
+    grid[own] = jitter
+    sd, spacing = own_noise(grid, slow)
+    assert abs(sd / sigma - 1.0) < 0.1 and abs(spacing - 0.1) < 0.005
+    assert abs(noise_sigma(t, slow) / (sigma * math.sqrt(5.0)) - 1.0) < 0.1
+    # the even grid, every frame: the channel's own sigma
+    full = 0.2 * np.sin(0.5 * t) + sigma * rng.standard_normal(t.size)
+    assert abs(noise_sigma(t, full) / sigma - 1.0) < 0.1
+    # the filled signal's second differences (the reading before) fall far short
+    filled = np.interp(t, t[own], slow[own])
+    d2 = np.diff(filled, 2)
+    before = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0)
+    assert before < 0.5 * sigma

@@ -40,6 +40,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import AircraftConfig, SensorPlacement
+from gcs_estimator.estimation.noise import MAD_TO_SIGMA, divided_differences
 from gcs_estimator.ingest.flightdata import Recording
 
 G = 9.80665
@@ -534,7 +535,7 @@ class _Signals:
     measured: dict[str, FloatArray]
     """The outputs as measured, NaN where missing: theta, phi, airspeed, alpha, vz, vn..."""
     noise: dict[str, float] = field(default_factory=dict)
-    """The integrated inputs' white noise (1 sigma), read from their second differences."""
+    """The integrated inputs' white noise (1 sigma) on the grid t (noise_sigma)."""
 
     def noisy(self, rng: np.random.Generator) -> _Signals:
         """The rates with their noise drawn anew (added: the change is what counts)."""
@@ -549,15 +550,32 @@ class _Signals:
         return replace(self, q=q, p=draw(self.p, "p"), r=draw(self.r, "r"))
 
 
-def noise_sigma(x: FloatArray) -> float:
-    """A sampled signal's white noise (1 sigma) from its second differences (whose
-    variance is 6 sigma^2 for white noise over a smooth signal), by their median absolute
-    deviation: a manoeuvre's few sharp changes left out (on the simulator's 3-2-1-1 the
-    mean square read the pitch rate's noise 3.4 times too high)."""
-    d2 = np.diff(x, 2)
-    if not len(d2):
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+def own_noise(t: FloatArray, x: FloatArray) -> tuple[float, float]:
+    """A channel's white noise (1 sigma) and median spacing [s] from its own samples (x
+    at times t, NaN where a frame lacks it): the median absolute deviation of their
+    fourth divided differences (noise.divided_differences, at any spacing; a manoeuvre's
+    few sharp changes left out; decision 0078). (0, 0) where it has too few samples."""
+    ok = np.isfinite(x) & np.isfinite(t)
+    t_own, x_own = t[ok], x[ok]
+    later = np.concatenate(([True], np.diff(t_own) > 0.0)) if t_own.size else ok[:0]
+    t_own, x_own = t_own[later], x_own[later]
+    d = divided_differences(t_own, x_own)
+    if not d.size:
+        return 0.0, 0.0
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d))))
+    return sigma, float(np.median(np.diff(t_own)))
+
+
+def noise_sigma(t: FloatArray, x: FloatArray) -> float:
+    """A channel's white noise (1 sigma) as the reconstruction's grid t carries it: its
+    own (own_noise) times sqrt(own median spacing / the grid's), the grid noise whose
+    integral over a second (the attitude and velocity the check integrates) spreads as
+    the channel's own does. A channel sampled at a fifth of the frames and filled between
+    its samples (_filled) has no noise between them: read from the filled signal, its
+    noise was taken a fraction of its size."""
+    own, own_dt = own_noise(t, x)
+    grid_dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    return own * math.sqrt(own_dt / grid_dt) if grid_dt > 0.0 else own
 
 
 ROLL_EXCITED_RAD = 0.1
@@ -806,7 +824,8 @@ def _signals(rec: Recording) -> _Signals | None:
         psi = np.interp(t, t[ok], np.unwrap(psi[ok]))
     segs = segments(t)
     p, r = _filled(t, _aux(rec, "p")), _filled(t, _aux(rec, "r"))
-    noise = {k: noise_sigma(x) for k, x in (("q", q), ("p", p), ("r", r)) if x is not None}
+    raw = {"q": m[:, Q], "p": _aux(rec, "p"), "r": _aux(rec, "r")}
+    noise = {k: noise_sigma(t, x) for k, x in raw.items() if x is not None}
     phi = _filled(t, _aux(rec, "phi"))
     return _Signals(t, segs, _keep(t, segs), q, p, r, phi, psi, measured, noise)
 
@@ -847,7 +866,7 @@ def _excited(s: _Signals, x: FloatArray, walk: float) -> np.ndarray:
         idx = np.nonzero(ok & (s.segs == k))[0]
         if len(idx) >= MIN_SAMPLES:
             span = float(s.t[idx[-1]] - s.t[idx[0]])
-            own = noise_sigma(x[idx])
+            own, _ = own_noise(s.t[idx], x[idx])
             out[k] = float(np.std(x[idx])) > EXCITED * math.hypot(walk * math.sqrt(span), own)
     return out
 
@@ -981,7 +1000,7 @@ def _velocity_stage(
         (sensors.vane_x_m, sensors.vane_z_m),
         (phi, theta, psi),
     )
-    s.noise["a_x"], s.noise["a_z"] = noise_sigma(ax), noise_sigma(az)
+    s.noise["a_x"], s.noise["a_z"] = noise_sigma(s.t, m[:, AX]), noise_sigma(s.t, m[:, AZ])
     par, model, n_local = _velocity_model(s, v)
     speed = s.measured.get("airspeed")
     if speed is None and gps:
