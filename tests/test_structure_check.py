@@ -53,6 +53,13 @@ def test_the_final_pass_replayed_from_the_history_ends_where_the_run_did() -> No
         assert state is not None and other is not None
         np.testing.assert_array_equal(other.x, state.x)
         np.testing.assert_array_equal(other.P, state.P)
+    # one filter alone (a fit that replays one filter's pass many times) ends alike
+    ekf = Estimator(config, keep_history=False)
+    ekf.replay_final_pass(est, *est.frame_history.arrays(), kinds=("EKF",))
+    alone, run = ekf.states["EKF"], est.states["EKF"]
+    assert alone is not None and run is not None and ekf.states["IEKF"] is None
+    np.testing.assert_array_equal(alone.x, run.x)
+    np.testing.assert_array_equal(alone.P, run.P)
 
 
 def test_a_channel_trusted_less_has_its_variance_scaled_in_every_pass() -> None:

@@ -12,7 +12,7 @@ rest of the package uses are exported here.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -130,17 +130,23 @@ class Estimator:
         return self.model.names
 
     def replay_final_pass(
-        self, source: Estimator, t: FloatArray, u: FloatArray, y: FloatArray
+        self,
+        source: Estimator,
+        t: FloatArray,
+        u: FloatArray,
+        y: FloatArray,
+        kinds: Sequence[FilterKind] = FILTER_KINDS,
     ) -> None:
         """The final pass of `source` (the pass that ran to its end) again, over its frames
         (t, u, y as its history holds them), with this estimator's noise_scale on that
         pass's settings: from the same start, the flight states started afresh after every
         gap longer than core.MAX_GAP_S as the run did (Runner.replay). With no
-        noise_scale it ends where source did. Keeps no history of its own."""
+        noise_scale it ends where source did. Keeps no history of its own. Both filters,
+        or only those in `kinds` (the others' states left as they are)."""
         self.runner.starts = dict(source.runner.starts)
         self.tunings = scaled(dict(source.tunings), self.noise_scale)
         self.runner.replay(
-            self.states, t, u, y, self.tunings, core.MAX_GAP_S, source.pieces.fresh_frames
+            self.states, t, u, y, self.tunings, core.MAX_GAP_S, source.pieces.fresh_frames, kinds
         )
         self.frames += len(t)
 

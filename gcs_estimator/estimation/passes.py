@@ -223,8 +223,10 @@ class Runner:
         tunings: Tunings,
         max_gap_s: float,
         fresh: Sequence[int] = (),
+        kinds: Sequence[FilterKind] = FILTER_KINDS,
     ) -> None:
-        """A record (t, u, y as a history holds them) through both filters of a pass,
+        """A record (t, u, y as a history holds them) through the filters of a pass (both,
+        or those in `kinds`),
         the flight states started afresh after every gap longer than max_gap_s as a run
         does, and at each frame in `fresh` as a segment's first frame is (stepped as a
         frame whose input is a guess: afresh, no update; segments.py), each run of frames
@@ -237,7 +239,7 @@ class Runner:
             end = i + 1
             while end < n and t[end] - t[end - 1] <= max_gap_s and end not in starts:
                 end += 1
-            for kind in FILTER_KINDS:
+            for kind in kinds:
                 self._replay_run(
                     kind, lanes, t[i:end], u[i:end], y[i:end], tunings[kind], i in starts
                 )
