@@ -78,9 +78,27 @@ PLAN = (
     Run("turbulence_models", "turbulence_models", ("--seeds", "5", "--noc-seeds", "20"), 2.6),
     # Issue 53's NOC targets: the mission (turns, climb, descent), vane and no vane.
     Run("noc_mission", "noc_mission", ("--seeds", "20"), 60),
+    # Calm air without a vane: Cm0's sigma against the vane's is the climb rate's noise
+    # (decision 0081): the calm mission with a climb rate four times quieter.
+    Run(
+        "noc_mission_climb_rate_noise",
+        "noc_mission",
+        (
+            "--seeds",
+            "6",
+            "--cases",
+            "calm",
+            "--set",
+            "simulation.sensors.noise_sigma.h_dot=0.075",
+            "--set",
+            "filter.measurement_sigma.h_dot=0.075",
+        ),
+        8,
+    ),
     # Why its light turbulence without a vane is not identified: the pass likelihood held
-    # at the estimates and at the truth, passes started at the truth (decision 0075).
-    Run("vertical_wind", "vertical_wind", ("--seeds", "3"), 2),
+    # at the estimates and at the truth, passes started at the truth (decision 0075), and
+    # the whole-record fit over that pass from the EKF's end (decision 0080).
+    Run("vertical_wind", "vertical_wind", ("--seeds", "2", "--fit", "EKF"), 40),
     # Issue 53's JSBSim targets: the mission set, no vane, spec-sheet propellers; turns
     # included against the level legs only (flies the set where out/missions lacks it).
     # Its minutes are an estimate (decision 0061): no whole run has been timed yet.
