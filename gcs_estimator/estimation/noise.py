@@ -99,17 +99,30 @@ def noise_from_differences(
     sigma = fallback.copy()
     used = np.zeros(y.shape[1], dtype=int)
     for c in range(y.shape[1]):
-        present = np.isfinite(y[:, c]) & np.isfinite(t)
-        tc, yc = t[present], y[present, c]
-        later = np.concatenate(([True], np.diff(tc) > 0.0)) if tc.shape[0] else present[:0]
-        d = divided_differences(tc[later], yc[later])
-        d = d[np.isfinite(d)]
+        d, _ = channel_differences(t, y[:, c])
         used[c] = d.shape[0]
         if used[c] < MIN_DIFFERENCES:
             continue
-        mad = float(np.median(np.abs(d - np.median(d))))
-        sigma[c] = max(MAD_TO_SIGMA * mad, FLOOR_RATIO * fallback[c])
+        sigma[c] = max(mad_sigma(d), FLOOR_RATIO * fallback[c])
     return sigma, used
+
+
+def channel_differences(t: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """One channel's divided differences (finite ones) from its own samples, y at times t
+    (NaN where a frame lacks it; a time that does not follow the one before it dropped),
+    and the times of those samples."""
+    present = np.isfinite(y) & np.isfinite(t)
+    tc, yc = t[present], y[present]
+    later = np.concatenate(([True], np.diff(tc) > 0.0)) if tc.shape[0] else present[:0]
+    tc, yc = tc[later], yc[later]
+    d = divided_differences(tc, yc)
+    return d[np.isfinite(d)], tc
+
+
+def mad_sigma(d: FloatArray) -> float:
+    """White noise's sigma from differences d by their median absolute deviation (a few
+    sharp changes, a manoeuvre's, left out)."""
+    return MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d))))
 
 
 def reading_z(sigma: FloatArray, used: np.ndarray, configured: FloatArray) -> FloatArray:

@@ -225,12 +225,11 @@ class Runner:
         fresh: Sequence[int] = (),
         kinds: Sequence[FilterKind] = FILTER_KINDS,
     ) -> None:
-        """A record (t, u, y as a history holds them) through the filters of a pass (both,
-        or those in `kinds`),
-        the flight states started afresh after every gap longer than max_gap_s as a run
-        does, and at each frame in `fresh` as a segment's first frame is (stepped as a
-        frame whose input is a guess: afresh, no update; segments.py), each run of frames
-        in one compiled call per filter where the backend has blocks."""
+        """A record (t, u, y as a history holds them) through both filters of a pass (or
+        those in `kinds`), the flight states started afresh after every gap longer than
+        max_gap_s as a run does, and at each frame in `fresh` as a segment's first frame
+        is (stepped as a frame whose input is a guess: afresh, no update; segments.py),
+        each run of frames in one compiled call per filter where the backend has blocks."""
         starts = set(fresh)
         u = self.model.inputs_of(u)
         y = np.asarray(y, float)

@@ -40,7 +40,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import AircraftConfig, SensorPlacement
-from gcs_estimator.estimation.noise import MAD_TO_SIGMA, divided_differences
+from gcs_estimator.estimation.noise import channel_differences, mad_sigma
 from gcs_estimator.ingest.flightdata import Recording
 
 G = 9.80665
@@ -555,15 +555,10 @@ def own_noise(t: FloatArray, x: FloatArray) -> tuple[float, float]:
     at times t, NaN where a frame lacks it): the median absolute deviation of their
     fourth divided differences (noise.divided_differences, at any spacing; a manoeuvre's
     few sharp changes left out; decision 0078). (0, 0) where it has too few samples."""
-    ok = np.isfinite(x) & np.isfinite(t)
-    t_own, x_own = t[ok], x[ok]
-    later = np.concatenate(([True], np.diff(t_own) > 0.0)) if t_own.size else ok[:0]
-    t_own, x_own = t_own[later], x_own[later]
-    d = divided_differences(t_own, x_own)
+    d, t_own = channel_differences(t, x)
     if not d.size:
         return 0.0, 0.0
-    sigma = MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d))))
-    return sigma, float(np.median(np.diff(t_own)))
+    return mad_sigma(d), float(np.median(np.diff(t_own)))
 
 
 def noise_sigma(t: FloatArray, x: FloatArray) -> float:
