@@ -4,7 +4,7 @@ iterated EKF side by side.
 The folders follow the data, each importing only from those above it (tests/test_layout.py):
 
     arrays, units, frames, stop, schema,   shared types and small utilities
-    blas
+    blas, differences
     model/, config                         the aircraft's equations and its airframe file
     ingest/                                every source: endpoints, MAVLink, tlogs, logs, data files
     estimation/                            the filters, the estimator, restarts, warm start, noise

@@ -14,7 +14,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "gcs_estimator"
 
 FLOW = (
-    ("arrays", "units", "stop", "schema", "blas", "frames"),
+    ("arrays", "units", "stop", "schema", "blas", "frames", "differences"),
     ("model", "config"),  # the model and the airframe file that parameterises it
     ("ingest",),  # every source; ingest/logs (the autopilots' logs) imports flightdata
     ("estimation",),

@@ -12,12 +12,12 @@ import numpy as np
 
 from gcs_estimator.cli import main
 from gcs_estimator.config import load_config
+from gcs_estimator.differences import divided_differences
 from gcs_estimator.estimation.noise import (
     CLEARLY,
     FLOOR_RATIO,
     MIN_DIFFERENCES,
     READING_SPREAD,
-    divided_differences,
     noise_from_differences,
     reading_z,
 )

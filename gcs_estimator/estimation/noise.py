@@ -16,8 +16,9 @@ channel is read from its own samples, five in a row, with the weights of the fou
 divided difference at their times (w_i = 1 / prod_{j != i} (t_i - t_j), which take a
 cubic to zero at any spacing) scaled to unit length, so that white noise of sigma s
 gives s whatever the spacing; on an even grid they are the weights above over sqrt(70).
-Five samples that span more than GAP_RATIO times the channel's usual span (a lost
-stretch, a pause) give none (decision 0078).
+Five samples that span more than differences.GAP_RATIO times the channel's usual span (a
+lost stretch, a pause) give none (decision 0078; gcs_estimator/differences.py, which the
+data compatibility check reads its channels' noise with too).
 
 What it cannot tell from noise is motion that is itself rough at the sample rate:
 turbulence with a short scale length moves pitch acceleration (and so qdot and q) sample
@@ -37,20 +38,14 @@ from typing import NamedTuple
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.differences import channel_differences, mad_sigma
 from gcs_estimator.estimation.filters.core import FilterKind, Tuning
 
 MIN_DIFFERENCES = 30
 """Differences a channel needs for its own estimate (fewer: the fallback)."""
-ORDER = 4
-"""The differences' order: each takes ORDER + 1 samples of one channel."""
-GAP_RATIO = 2.0
-"""Five samples of a channel give a difference only where they span at most this times
-the median span of the channel's fives (a sample lost here and there still does)."""
 FLOOR_RATIO = 0.1
 """An estimate never goes below this share of the fallback (a quantised or constant
 channel would otherwise get no noise at all, and a filter that trusts it without bound)."""
-MAD_TO_SIGMA = 1.4826
-"""sigma over the median absolute deviation, for Gaussian noise."""
 READING_SPREAD = 1.59
 """A reading from m differences of white noise has a relative standard deviation of
 READING_SPREAD / sqrt(m) (the median absolute deviation's, widened by the overlap of
@@ -62,35 +57,12 @@ CLEARLY = 3.0
 thousand channels."""
 
 
-def divided_differences(t: FloatArray, y: FloatArray) -> FloatArray:
-    """The fourth divided differences of one channel's samples y at times t, each scaled
-    to unit weight length (white noise of sigma s gives differences of sigma s), from
-    every ORDER + 1 consecutive samples whose times rise and whose span is at most
-    GAP_RATIO times the median span."""
-    k = ORDER + 1
-    if t.shape[0] < k:
-        return np.empty(0)
-    tw = np.lib.stride_tricks.sliding_window_view(t, k)
-    yw = np.lib.stride_tricks.sliding_window_view(y, k)
-    rising = np.all(np.diff(tw, axis=1) > 0.0, axis=1)  # none across a clock reset
-    if not rising.any():
-        return np.empty(0)
-    tw, yw = tw[rising], yw[rising]
-    gaps = tw[:, :, None] - tw[:, None, :]  # t_i - t_j
-    np.einsum("nii->ni", gaps)[:] = 1.0
-    w = 1.0 / np.prod(gaps, axis=2)
-    w /= np.sqrt(np.sum(w * w, axis=1, keepdims=True))
-    span = tw[:, -1] - tw[:, 0]
-    d: FloatArray = np.sum(w * yw, axis=1)
-    return d[span <= GAP_RATIO * float(np.median(span))]
-
-
 def noise_from_differences(
     t: FloatArray, y: FloatArray, fallback: FloatArray
 ) -> tuple[FloatArray, np.ndarray]:
     """(sigma per channel [c], differences used per channel [c]) of observations y
     [N x c] at times t [N], NaN where missing: each channel from its own samples
-    (divided_differences; a time that does not follow the one before it is dropped). A
+    (differences.channel_differences). A
     channel with fewer than MIN_DIFFERENCES keeps its fallback sigma; none goes below
     FLOOR_RATIO of it."""
     t = np.asarray(t, float)
@@ -105,24 +77,6 @@ def noise_from_differences(
             continue
         sigma[c] = max(mad_sigma(d), FLOOR_RATIO * fallback[c])
     return sigma, used
-
-
-def channel_differences(t: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """One channel's divided differences (finite ones) from its own samples, y at times t
-    (NaN where a frame lacks it; a time that does not follow the one before it dropped),
-    and the times of those samples."""
-    present = np.isfinite(y) & np.isfinite(t)
-    tc, yc = t[present], y[present]
-    later = np.concatenate(([True], np.diff(tc) > 0.0)) if tc.shape[0] else present[:0]
-    tc, yc = tc[later], yc[later]
-    d = divided_differences(tc, yc)
-    return d[np.isfinite(d)], tc
-
-
-def mad_sigma(d: FloatArray) -> float:
-    """White noise's sigma from differences d by their median absolute deviation (a few
-    sharp changes, a manoeuvre's, left out)."""
-    return MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d))))
 
 
 def reading_z(sigma: FloatArray, used: np.ndarray, configured: FloatArray) -> FloatArray:

@@ -40,7 +40,7 @@ import numpy as np
 
 from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import AircraftConfig, SensorPlacement
-from gcs_estimator.estimation.noise import channel_differences, mad_sigma
+from gcs_estimator.differences import channel_differences, mad_sigma
 from gcs_estimator.ingest.flightdata import Recording
 
 G = 9.80665
@@ -553,7 +553,7 @@ class _Signals:
 def own_noise(t: FloatArray, x: FloatArray) -> tuple[float, float]:
     """A channel's white noise (1 sigma) and median spacing [s] from its own samples (x
     at times t, NaN where a frame lacks it): the median absolute deviation of their
-    fourth divided differences (noise.divided_differences, at any spacing; a manoeuvre's
+    fourth divided differences (differences.py, at any spacing; a manoeuvre's
     few sharp changes left out; decision 0078). (0, 0) where it has too few samples."""
     d, t_own = channel_differences(t, x)
     if not d.size:
