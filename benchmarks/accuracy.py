@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
-from scipy.stats import chi2
+from bands import mean_chi2_band
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
@@ -241,7 +241,7 @@ def report(results: list[RunResult], title: str) -> None:
             [[c.sigma_parts.inflation for c in r.summaries[kind].coefficients] for r in results]
         )
         nees = np.array([_num(r.summaries[kind].nees) for r in results])
-        lo, hi = chi2.ppf(0.025, p * runs) / runs, chi2.ppf(0.975, p * runs) / runs
+        lo, hi = mean_chi2_band(p, runs)
         nis = np.array([r.summaries[kind].mean_nis for r in results])
         nis_all = np.array([r.summaries[kind].mean_nis_all for r in results])
         dof = float(np.mean([r.summaries[kind].mean_channels for r in results]))
@@ -250,8 +250,7 @@ def report(results: list[RunResult], title: str) -> None:
             np.mean([r.summaries[kind].steps for r in results])
             * (1 - (restarts[-1] if restarts else 0) / results[0].duration)
         )
-        nlo = chi2.ppf(0.025, dof * steps * runs) / (steps * runs)
-        nhi = chi2.ppf(0.975, dof * steps * runs) / (steps * runs)
+        nlo, nhi = mean_chi2_band(dof, steps * runs)
         well = [names.index(n) for n in WELL_EXCITED if n in names]
         errs = np.array(
             [
@@ -351,7 +350,7 @@ def report_limit(results: list[RunResult]) -> None:
         return
     names = [c.name for c in fits[0].summaries["EKF"].coefficients]
     runs = len(fits)
-    lo, hi = chi2.ppf(0.025, len(names) * runs) / runs, chi2.ppf(0.975, len(names) * runs) / runs
+    lo, hi = mean_chi2_band(len(names), runs)
     nees = float(np.mean([r.limit.nees for r in fits if r.limit is not None]))
     d = TURBULENT_DEADLINE_S
     print(

@@ -99,6 +99,9 @@ PLAN = (
     # at the estimates and at the truth, passes started at the truth (decision 0075), and
     # the whole-record fit over that pass from the EKF's end (decision 0080).
     Run("vertical_wind", "vertical_wind", ("--seeds", "2", "--fit", "EKF"), 40),
+    # Its calm NEES over the seeds noc_mission scores against the output-error fit on the
+    # same flights (the efficient estimator), and over 100 further seeds (decision 0082).
+    Run("calm_nees", "calm_nees", (), 18),
     # Issue 53's JSBSim targets: the mission set, no vane, spec-sheet propellers; turns
     # included against the level legs only (flies the set where out/missions lacks it).
     # Its minutes are an estimate (decision 0061): no whole run has been timed yet.

@@ -40,10 +40,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from bands import mean_chi2_band
 from jsbsim_flights import ROOT, generate  # benchmarks/: the script's dir is on sys.path
 from realdata import NEAR_ZERO, WELL_EXCITED
 from record import add_argument, recorded
-from scipy.stats import chi2
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
@@ -209,17 +209,10 @@ def run(seeds: int, noc_seeds: int, with_refine_noise: bool = False) -> None:
         chosen = ", ".join(f"{m} {c}" for m, c in counts.items() if c)
         print(f"| {group} | {len(rows)} | " + " | ".join(cells) + f" | {chosen} |")
     p = len(load_config("noc_uav").coefficient_names)
-    lo, hi = _nees_band(p, noc_seeds)
+    lo, hi = mean_chi2_band(p, noc_seeds)
     print(
         f"\nNOC NEES 95 % band over {noc_seeds} seeds, dof {p}: {lo:.2f}-{hi:.2f}. "
         f"({time.perf_counter() - start:.1f} s wall)"
-    )
-
-
-def _nees_band(dof: int, runs: int) -> tuple[float, float]:
-    return (
-        float(chi2.ppf(0.025, dof * runs) / runs),
-        float(chi2.ppf(0.975, dof * runs) / runs),
     )
 
 

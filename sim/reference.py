@@ -28,6 +28,9 @@ class OutputErrorFit:
     coefficients: FloatArray
     sigma: FloatArray
     """1-sigma of the coefficients from the Fisher information at the fit (Cramer-Rao)."""
+    covariance: FloatArray
+    """The coefficients' Cramer-Rao covariance [p x p] (the initial state's part of the
+    inverse Fisher information left out)."""
     cost: float
     """Mean squared normalised residual (1 when the fit leaves only the sensor noise)."""
 
@@ -72,5 +75,6 @@ def output_error(
         state0=x[model.flight],
         coefficients=x[model.coefficients],
         sigma=sigma[model.coefficients],
+        covariance=cov[model.coefficients, model.coefficients],
         cost=float(np.mean(sol.fun**2)),
     )

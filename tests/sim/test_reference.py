@@ -40,6 +40,8 @@ def test_both_filters_end_at_the_maximum_likelihood_estimate_with_its_sigma(
     assert abs(fit.cost - 1.0) < 0.03
     z = (fit.coefficients - flight.truth) / fit.sigma
     assert np.all(np.abs(z) < 4.0), z
+    assert np.allclose(np.sqrt(np.diag(fit.covariance)), fit.sigma)
+    fit_corr = fit.covariance / np.outer(fit.sigma, fit.sigma)
 
     # The covariance's sigma alone: no structure check (decision 0066).
     config = load_config(noc_config.source, ["filter.structure_check=off"])
@@ -47,6 +49,9 @@ def test_both_filters_end_at_the_maximum_likelihood_estimate_with_its_sigma(
     for kind, f in res.filters.items():
         gap = (f.coefficients - fit.coefficients) / fit.sigma
         assert np.all(np.abs(gap) < 0.3), (kind, dict(zip(res.names, gap.round(2), strict=True)))
+        # The whole covariance, not only its diagonal: the NEES weighs the correlations.
+        corr = f.covariance / np.outer(f.sigma, f.sigma)
+        assert np.max(np.abs(corr - fit_corr)) < 0.05, (kind, np.abs(corr - fit_corr).max())
         ratio = f.sigma / fit.sigma
         assert np.all(np.abs(ratio - 1.0) < 0.05), (
             kind,
