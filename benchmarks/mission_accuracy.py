@@ -448,7 +448,10 @@ def print_turns_against_level(outcomes: list[Outcome]) -> None:
         "\n## Turns included against the level legs only\n\nper coefficient, the median over "
         f"{len(both)} flights of the sigma shown with the turns over that of the level legs "
         "only, then of the absolute error against the best fit (turns / level; below 1: the "
-        "turns helped); the last columns: mean z² of each case\n"
+        "turns helped); the last columns: mean z² of each case. Then the filter's covariance "
+        "sigma (turns / level), the sigma shown over the flights where neither case's carries "
+        "the prior an uninformed alpha adds (decision 0060; in brackets how many), and in how "
+        "many flights each case's does\n"
     )
     print("| estimator | ratio | " + " | ".join(names) + " | all | z² turns | z² level |")
     print("|---|---|" + "---|" * (len(names) + 3))
@@ -465,6 +468,36 @@ def print_turns_against_level(outcomes: list[Outcome]) -> None:
         for label, r in (("σ", sig), ("abs. error", err)):
             cells = " | ".join(f"{x:.2f}" for x in np.median(r, axis=0))
             print(f"| {k} | {label} | {cells} | {np.median(r):.2f} | {zt:.3g} | {zl:.3g} |")
+        cov = np.array(
+            [np.array(t.parts[k]["covariance"]) / lv.parts[k]["covariance"] for t, lv in got]
+        )
+        cells = " | ".join(f"{x:.2f}" for x in np.median(cov, axis=0))
+        print(f"| {k} | covariance σ | {cells} | {np.median(cov):.2f} | | |")
+        prior_t = np.array([alpha_prior_in_sigma(t, k) for t, _ in got])
+        prior_l = np.array([alpha_prior_in_sigma(lv, k) for _, lv in got])
+        free = ~(prior_t | prior_l)
+        cells = " | ".join(
+            f"{np.median(sig[free[:, i], i]):.2f} ({free[:, i].sum()})" if free[:, i].any() else "-"
+            for i in range(len(names))
+        )
+        print(f"| {k} | σ, neither with alpha's prior (flights) | {cells} | | | |")
+        cells = " | ".join(
+            f"{prior_t[:, i].sum()} / {prior_l[:, i].sum()}" for i in range(len(names))
+        )
+        print(f"| {k} | alpha's prior in σ (flights: turns / level) | {cells} | | | |")
+
+
+def alpha_prior_in_sigma(o: Outcome, k: str) -> np.ndarray:
+    """Per coefficient, whether the sigma estimator k's run showed carries the prior an
+    uninformed alpha adds (decision 0060: no vane, and a climb rate in air that moved, or
+    that the model's misses made look so): its structure part at least the coefficient's
+    prior sigma. Such a sigma is the prior's whatever the flight held."""
+    airframe = Path(o.job.csv).with_name(Path(o.job.csv).stem + ".toml")
+    config = load_config(airframe, list(o.job.overrides))
+    prior = dict(
+        zip(config.coefficient_names, config.filter.initial_sigma.coefficients, strict=True)
+    )
+    return np.array(o.parts[k]["structure"]) >= np.array([prior[n] for n in o.names])
 
 
 def print_parts(outcomes: list[Outcome], k: str = "EKF") -> None:
