@@ -601,6 +601,17 @@ def flights_of(
     return flights, fits
 
 
+def kept_fits(out: Path, args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """The calm flights' best fits as --out keeps them (--again: none is fitted anew)."""
+    calm = [jm.record_name(m, "calm", s) for m in args.models for s in range(1, args.seeds + 1)]
+    paths = [out / f"{name}.best_fit.json" for name in calm]
+    return {
+        name: json.loads(p.read_text(encoding="utf-8"))
+        for name, p in zip(calm, paths, strict=True)
+        if p.exists()
+    }
+
+
 PRIORITY = ("c182", "T37", "t6texan2", "737", "DHC6", "A4")
 """The order the flights are run in, propeller and jet in turn: a run stopped early (its
 outcomes are kept one by one) has covered both kinds of propulsion."""
@@ -641,6 +652,7 @@ def run(args: argparse.Namespace) -> int:
     fits: dict[str, dict[str, Any]] = {}
     if args.again:
         outcomes = [pickle.loads(p.read_bytes()) for p in kept.glob("*.pickle")]
+        fits = kept_fits(Path(args.out), args)
     else:
         with ProcessPoolExecutor(args.jobs) as pool:
             flights, fits = flights_of(args, pool)
@@ -658,6 +670,11 @@ def run(args: argparse.Namespace) -> int:
         f"{' '.join(args.set) or 'none (the defaults)'}; level case: bank limit "
         f"{args.level_bank_deg:g} deg"
     )
+    if args.again:
+        print(
+            "\n(--again: the outcomes an earlier run kept under --out, reported by this "
+            "revision's code; the run's revision is the record's before it)"
+        )
     print_targets(outcomes)
     print_targets(against_reference(outcomes, Path(args.out)), "the reference")
     print_stricter_marks(outcomes)
