@@ -16,6 +16,7 @@ from scipy.optimize import least_squares
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig
+from gcs_estimator.estimation.filters.core import MOTION_INPUTS
 from gcs_estimator.model.aircraft import build_model
 from sim.scenario import scenario_of
 from sim.truth import Flight, integrate
@@ -51,8 +52,17 @@ def output_error(
     dt = 1.0 / (sim.sample_rate_hz * per_sample)
     n = len(flight.t_s) if until_s is None else int(np.searchsorted(flight.t_s, until_s, "right"))
     u_samples = np.ascontiguousarray(flight.inputs[:n], dtype=float)
-    # The manoeuvre switches on sample times: the inputs hold from one sample to the next.
+    # The manoeuvre switches on sample times: the commands hold from one sample to the next.
     u_steps = np.repeat(u_samples[:-1], per_sample, axis=0)
+    if u_samples.shape[1] > MOTION_INPUTS:
+        # The lateral motion (bank, roll and yaw rate) moves between its samples: taken
+        # linearly, at each step's middle, as the filters take it (core.MOTION_INPUTS).
+        # Held, it misplaced the turns' lift and pitch rate, and the fit of a mission
+        # lay several of its sigmas off the truth along combinations it holds well.
+        frac = (np.tile(np.arange(per_sample), n - 1) + 0.5) / per_sample
+        lo = u_steps[:, MOTION_INPUTS:]
+        hi = np.repeat(u_samples[1:, MOTION_INPUTS:], per_sample, axis=0)
+        u_steps[:, MOTION_INPUTS:] = lo + frac[:, None] * (hi - lo)
     no_gust = np.zeros((u_steps.shape[0] + 1, 2))
     weight = 1.0 / np.array(config.filter.measurement_sigma)
     y = flight.measurements[:n]
