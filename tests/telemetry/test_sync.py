@@ -87,6 +87,32 @@ def test_a_lost_input_sample_is_interpolated_and_changes_no_other_frame() -> Non
         np.testing.assert_allclose(elev, [0.0, 0.01, expected, 0.03, 0.04, 0.05], atol=1e-12)
 
 
+def test_inputs_sent_slower_than_the_sensors_are_known_and_a_lost_one_is_a_guess() -> None:
+    """Servo outputs at a quarter of the sensors' rate (an ArduPlane link at its default
+    stream rates): the frames between two servo samples take the input interpolated, and
+    it is the data's own resolution, not a guess; a servo sample lost while the elevator
+    changed makes the frames around it guesses, and only those."""
+    every = 4
+    samples: list[Sample] = []
+    for k in range(60):
+        t = 1.0 + k * DT
+        lost = k == 32
+        if k % every == 0 and not lost:
+            samples.append(_servo(t, 0.01 * k))
+        samples += [_obs(t, 0.0, name, value) for name, value in OBS.items()]
+    sync = Synchronizer(1, LINK)
+    frames = _feed(sync, samples) + sync.finish()
+    assert len(frames) == 60
+    guessed = [k for k, f in enumerate(frames) if not f.inputs_known]
+    # Before three spacings are known every gap counts as a lost sample (frames 1-3 and
+    # 5-7, after the first and the second servo samples); then the frames between the
+    # samples either side of the lost one (28 and 36), the lost one's own frame too.
+    assert guessed == [1, 2, 3, 5, 6, 7, *range(29, 36)]
+    assert sync.stats.inputs_guessed == len(guessed)
+    # Interpolated between the servo samples, the lost one's too.
+    np.testing.assert_allclose([f.inputs[0] for f in frames[:57]], 0.01 * np.arange(57), atol=1e-12)
+
+
 def test_a_lost_observation_leaves_only_its_own_channel_missing() -> None:
     sync = Synchronizer(1, LINK)
     ticks = _flight(20)

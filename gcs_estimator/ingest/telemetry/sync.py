@@ -61,6 +61,12 @@ vehicle's newest time, or when it went from this close below the wrap to this cl
 HOLE_PERIODS = 1.5
 """A frame this many frame periods after the last one processed waits (up to the reorder
 window) for the frame between, whose samples may all be late."""
+LOST_INPUT_SPACINGS = 1.5
+"""Input samples further apart than this many times the input's usual spacing have a
+sample lost between them (InputTrack.read); closer, they are the input's own rate, slower
+than the frames' where the vehicle sends its servo outputs slower than its sensors."""
+INPUT_SPACINGS = 15
+"""Recent spacings of an input's samples whose median is its usual spacing."""
 PERIOD_SPACINGS = 15
 """Recent frame spacings whose median is the frame period."""
 EXPECT_PRESENCE = 0.75
@@ -175,10 +181,14 @@ class InputTrack:
 
     t: list[float] = field(default_factory=list)
     v: list[float] = field(default_factory=list)
+    spacings: deque[float] = field(default_factory=lambda: deque(maxlen=INPUT_SPACINGS))
+    """Recent spacings of samples that came in time order [s]."""
 
     def add(self, t: float, v: float) -> None:
         times = self.t
         if not times or times[-1] < t:  # after every sample: the common case
+            if times:
+                self.spacings.append(t - times[-1])
             times.append(t)
             self.v.append(v)
             return
@@ -198,9 +208,20 @@ class InputTrack:
         it (or the earlier held), else the last before it held; NaN before any."""
         return self.read(t, window, linear)[0]
 
+    def usual_spacing(self) -> float:
+        """The median of the recent spacings [s] (0 until three are known: every gap
+        then counts as a lost sample)."""
+        if len(self.spacings) < 3:
+            return 0.0
+        ordered = sorted(self.spacings)
+        return ordered[len(ordered) // 2]
+
     def uncertain_at(self, t: float, window: float) -> bool:
-        """Whether no sample at t arrived and the samples around it differ (the value at
-        t is then a guess: a step may lie anywhere between them)."""
+        """Whether no sample at t arrived, the samples around it are further apart than
+        LOST_INPUT_SPACINGS times the usual spacing (a sample between them was lost) and
+        they differ (the value at t is then a guess: a step may lie anywhere between
+        them). Between samples at the input's own rate, slower than the frames', the
+        value is the data's own resolution: interpolated or held, not a guess."""
         return self.read(t, window, True)[1]
 
     def read(self, t: float, window: float, linear: bool) -> tuple[float, bool]:
@@ -218,11 +239,12 @@ class InputTrack:
         if i == n:
             return v[i - 1], False
         before, after = v[i - 1], v[i]
-        if not linear:
-            return before, before != after
         t0, t1 = times[i - 1], times[i]
+        guess = before != after and t1 - t0 > LOST_INPUT_SPACINGS * self.usual_spacing()
+        if not linear:
+            return before, guess
         w = (t - t0) / (t1 - t0)
-        return before + w * (after - before), before != after
+        return before + w * (after - before), guess
 
     def prune(self, before: float) -> None:
         """Forget samples before `before` but the last one (the hold needs it)."""
@@ -236,6 +258,7 @@ class InputTrack:
     def clear(self) -> None:
         self.t.clear()
         self.v.clear()
+        self.spacings.clear()
 
 
 @dataclass(slots=True)
