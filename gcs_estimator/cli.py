@@ -875,6 +875,7 @@ def _link_session(
             truths=truths,
             gate=_limits(args, config),
             hold=_hold(args),  # the held-out window, which the gate leaves out
+            check_frames=True,  # a link's frames: no reader checked them (decision 0084)
         )
     link = MavlinkLink(
         config.link,

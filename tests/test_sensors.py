@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from gcs_estimator.config import load_config
+from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.runtime.session import run_recording
+from gcs_estimator.outputs.diagnosis import trust_warnings
+from gcs_estimator.runtime.session import RecordingSource, Session, run_recording
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, WEAK
-from sim.truth import simulate
+from gcs_estimator.uncertainty.result import VehicleResult
+from sim.truth import Flight, simulate
 
 PLACEMENT = [
     "sensors.vane_x_m=1.0",
@@ -118,3 +120,43 @@ def test_an_alpha_rate_term_is_flown_and_identified_apart_from_pitch_damping() -
         # priors (decision 0047) widen its sigma to "not identified" in some runs
         assert mark.identifiability in (WEAK, NOT_IDENTIFIED), mark
         assert mark.correlated_with == "Cmq" and abs(mark.correlation) > 0.9, mark
+
+
+def _checked_run(config: AircraftConfig, flight: Flight) -> VehicleResult:
+    """A run as a link's session makes it: its frames' compatibility checked at the end."""
+    session = Session(config, check_frames=True)
+    session.run(RecordingSource(flight.t_s, flight.inputs, flight.measurements))
+    return session.results()[RecordingSource.SYSTEM_ID]
+
+
+def _gyro_warnings(run: VehicleResult) -> list[str]:
+    return [w for w in trust_warnings(run) if "q bias" in w]
+
+
+def test_a_gyro_bias_the_filters_do_not_carry_is_found_in_a_links_frames_and_named() -> None:
+    """A link's frames through the data compatibility check at the end of the run
+    (compat.of_frames; decision 0084): a gyro bias the filters do not carry is found
+    within 3 of its sigmas of the bias flown, and the warning names the key; told to
+    estimate it, the warning names no key; flown without one, nothing is found."""
+    flying = [f"simulation.sensors.bias.q={GYRO_BIAS}", NO_CHECK]
+    flight = simulate(load_config("noc_uav", flying), seed=2)
+    run = _checked_run(load_config("noc_uav", flying), flight)
+    assert run.compatibility is not None
+    (q_bias,) = [
+        f for f in run.compatibility["findings"] if (f["channel"], f["kind"]) == ("q", "bias")
+    ]
+    assert q_bias["significant"] and abs(q_bias["value"] - GYRO_BIAS) < 3 * q_bias["sigma"]
+    (named,) = _gyro_warnings(run)
+    assert 'bias_states = ["q"]' in named, named
+    told = load_config("noc_uav", [*flying, 'sensors.bias_states=["q"]'])
+    (named,) = _gyro_warnings(_checked_run(told, flight))
+    assert "bias_states" not in named, named
+    plain = load_config("noc_uav", [NO_CHECK])
+    run = _checked_run(plain, simulate(plain, seed=2))
+    assert run.compatibility is not None
+    assert not [f for f in run.compatibility["findings"] if f["significant"]], run.compatibility
+    assert not _gyro_warnings(run)
+    # A recording's session (a log's: checked as it is read) does not check its frames.
+    assert (
+        run_recording(plain, flight.t_s, flight.inputs, flight.measurements).compatibility is None
+    )

@@ -42,6 +42,7 @@ from gcs_estimator.arrays import FloatArray, IntArray
 from gcs_estimator.config import AircraftConfig, SensorPlacement
 from gcs_estimator.differences import channel_differences, mad_sigma
 from gcs_estimator.ingest.flightdata import Recording
+from gcs_estimator.model.channels import Channel
 
 G = 9.80665
 SEGMENT_S = 20.0
@@ -1044,6 +1045,26 @@ def check(
     if found.aux:
         out = replace(out, aux={**out.aux, **found.aux})
     return Compatibility(tuple(found.findings), out, correct, found.rms, tuple(found.notes))
+
+
+def of_frames(
+    t: FloatArray, u: FloatArray, y: FloatArray, sensors: SensorPlacement | None = None
+) -> Compatibility:
+    """The check of a run's frames, reported only: times t [N], inputs u [N x k] (the
+    bank angle and the roll and yaw rates where k reaches them, model.channels), the
+    observations y [N x c] (the climb rate, where present, as vz). What a link or a
+    tlog's replay gives, whose frames no reader checked before the filters took them."""
+    u = np.asarray(u, float)
+    y = np.asarray(y, float)
+    aux: dict[str, FloatArray] = {}
+    for name, channel in (("phi", Channel.PHI), ("p", Channel.ROLL_RATE), ("r", Channel.YAW_RATE)):
+        col = int(channel) - int(Channel.ELEVATOR)
+        if u.shape[1] > col and np.isfinite(u[:, col]).any():
+            aux[name] = u[:, col]
+    if y.shape[1] > Channel.HDOT and np.isfinite(y[:, Channel.HDOT]).any():
+        aux["vz"] = -y[:, Channel.HDOT]
+    rec = Recording(np.asarray(t, float), u[:, :3], y, "throttle", aux=aux)
+    return check(rec, sensors, correct=False)
 
 
 def checked(rec: Recording, config: AircraftConfig) -> Recording:

@@ -6,6 +6,7 @@ what points at the setup (a channel never held, an elevator that never moved).""
 
 from __future__ import annotations
 
+import json
 import math
 from typing import TYPE_CHECKING
 
@@ -105,6 +106,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     out += thrust_warnings(vehicle)
     out += hold_warnings(vehicle)
     out += _noise_warning(vehicle)
+    out += _compatibility_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
         out += _refined_warnings(refined)
@@ -192,6 +194,55 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
         "as rough as noise (gusts of a short scale length, which the filters' process "
         "noise carries); if the sensors are that noisy, set [filter.measurement_sigma] "
         "for them"
+    ]
+
+
+ESTIMABLE_BIASES: dict[tuple[str, str], str] = {
+    ("q", "bias"): "q",
+    ("a_x", "bias"): "a_x",
+    ("a_z", "bias"): "a_z",
+    ("alpha", "bias"): "alpha",
+}
+"""The compatibility check's findings the filters can estimate with the coefficients
+([sensors] bias_states), by the channel they name there."""
+
+
+def _compatibility_warning(vehicle: VehicleResult) -> list[str]:
+    """What the data compatibility check of a link's frames found beyond the noise
+    (VehicleResult.compatibility; docs/decisions/0084), with the setting that carries
+    each bias the filters can estimate and do not."""
+    found = vehicle.compatibility
+    if not found:
+        return []
+    significant = [f for f in found["findings"] if f["significant"]]
+    if not significant:
+        return []
+    told = vehicle.result.config.sensors.bias_states
+    named = ", ".join(
+        f"{f['channel']} {f['kind']} {f['value']:+.3g}{' ' + f['unit'] if f['unit'] else ''} "
+        f"({f['z']:+.1f} σ)"
+        for f in significant
+    )
+    missing = sorted(
+        {
+            ESTIMABLE_BIASES[(f["channel"], f["kind"])]
+            for f in significant
+            if (f["channel"], f["kind"]) in ESTIMABLE_BIASES
+        }
+        - set(told)
+    )
+    fix = (
+        "; the filters estimate a bias with the coefficients where told: [sensors] "
+        f"bias_states = {json.dumps([*told, *missing])}"
+        if missing
+        else ""
+    )
+    return [
+        "the frames' kinematics (the data compatibility check: the rates and accelerations "
+        "integrated against the angles, airspeed and climb rate) find beyond the noise: "
+        + named
+        + ": sensor errors the filters take as motion"
+        + fix
     ]
 
 

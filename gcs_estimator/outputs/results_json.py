@@ -53,6 +53,7 @@ def results_dict(
             "noise_reading": None
             if result.noise_reading is None
             else dict(zip(OBS_NAMES, result.noise_reading.sigma, strict=True)),
+            "compatibility": vehicle.compatibility,
             "structure_check": _structure_dict(vehicle),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},

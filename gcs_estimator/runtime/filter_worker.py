@@ -286,6 +286,7 @@ def _work(job: ShardJob, source: PipeSource, send: Any) -> None:
         keep_history=job.keep_history,
         truths=job.truths,
         truth_for_first=job.index == 0,
+        check_frames=True,  # a link's frames (decision 0084)
     )
     source.busy = session.restart_under_way
     writer = None

@@ -29,6 +29,7 @@ from gcs_estimator.estimation.estimator import (
 )
 from gcs_estimator.estimation.segments import Limits, Plan
 from gcs_estimator.frames import Frame
+from gcs_estimator.ingest import compat
 from gcs_estimator.model.channels import bank_of
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty import weighting
@@ -127,12 +128,15 @@ class Session:
         gate: Limits | None = None,
         hold: Hold | None = None,
         block_frames: int = 0,
+        check_frames: bool = False,
     ) -> None:
         """block_frames: a batch's session (no live view) hands each vehicle's frames to
         its estimator up to this many at a time (Estimator.steps: the same estimates, bit
         for bit), and the sinks see each block's last frame only (on_frame); 0: frame by
-        frame."""
+        frame. check_frames: the results carry the data compatibility check of each
+        vehicle's frames (a link's: no reader checked them; VehicleResult.compatibility)."""
         self.config = config
+        self.check_frames = check_frames
         self.block_frames = block_frames
         self._block: list[Frame] = []
         """Frames given to the session and not yet to the estimator (block_frames)."""
@@ -338,8 +342,21 @@ class Session:
             if not check.skipped:
                 checked += est.history_rows
             summaries = summarise(result, truth, check.sigma if not check.skipped else None)
-            out[sid] = VehicleResult(sid, result, summaries, truth, check)
+            out[sid] = VehicleResult(
+                sid, result, summaries, truth, check, compatibility=self.frames_checked(est)
+            )
         return out
+
+    def frames_checked(self, est: Estimator) -> dict[str, Any] | None:
+        """The data compatibility check of a vehicle's frames, reported only, where the
+        session checks them, keeps their history and [data] compatibility_check is not
+        "off" (decision 0084)."""
+        if not (self.check_frames and est.keep_history and est.history_rows):
+            return None
+        if self.config.data.compatibility_check == "off":
+            return None
+        t, u, y = est.frame_history.arrays()
+        return compat.of_frames(t, u, y, self.config.sensors).as_dict()
 
     def structure_check(self, system_id: int, est: Estimator, checked: int = 0) -> StructureCheck:
         """The structure check of one vehicle's run (weighting.py), or why it was not

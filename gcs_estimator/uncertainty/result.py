@@ -4,6 +4,7 @@ sigma to trust and the marks) and the structure check."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -36,6 +37,10 @@ class VehicleResult:
     """The held-out check (--validate; decision 0051); None: not asked for."""
     holdout_drops: dict[str, str] | None = None
     """The coefficients whose marks the held-out check dropped to weak, each with why."""
+    compatibility: dict[str, Any] | None = None
+    """The data compatibility check of the run's frames (ingest/compat.py of_frames,
+    Compatibility.as_dict: a link's or a tlog's, which no reader checked); None: not made
+    here (a log's is made as it is read, and is in the run's notes)."""
 
     def without_tracks(self) -> VehicleResult:
         """This result without its time histories (what a filter worker sends back: they
