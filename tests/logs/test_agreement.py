@@ -404,3 +404,37 @@ def test_arduplanes_default_4_hz_streams_are_warned_about_and_claim_nothing_fals
         # the pitch damping is the short period's: 4 Hz samples cannot tell it
         for name in ("CLq", "Cmq"):
             assert results["filters"][kind]["estimates"][name]["identifiability"] == NOT_IDENTIFIED
+
+
+def test_servo_outputs_slower_than_the_sensors_are_known_between_their_samples(
+    tmp_path: Path,
+) -> None:
+    """ArduPlane at the asked rates but SERVO_OUTPUT_RAW at a quarter of the sensors'
+    (a station that leaves the servo stream slower than the IMU, as real links come):
+    the frames between two servo samples take the elevator interpolated and their
+    measurements (sync.LOST_INPUT_SPACINGS; decision 0084). Before, each such frame where
+    the elevator moved counted as a lost input sample: its measurements dropped and its
+    flight states restarted. Every coefficient ends within 3 sigma of truth."""
+    argv = ["--speed", "0", "--set", SHORT[0], "--autopilot", "arduplane", "--asked"]
+    argv += ["--msg-rate", "SERVO_OUTPUT_RAW=12.5"]
+    assert sim_main([*argv, "--tlog", str(tmp_path / "servo")]) == 0
+    tlog = tmp_path / "servo_1.tlog"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["replay", str(tlog), "--view", "off", "--out", str(tmp_path / "out")]) == 0
+    results = _results(tmp_path / "out")
+    link = results["link"]
+    channels = link["sources"]["1"]["channels"]
+    assert channels["elevator"]["rate_hz"] == pytest.approx(12.5, rel=0.05)
+    assert channels["q"]["rate_hz"] == pytest.approx(50.0, rel=0.02)
+    vehicle = link["vehicles"]["1"]
+    # Only the frames before three servo spacings are known (each gap then counts).
+    assert vehicle["inputs_guessed"] <= 3 * 4, vehicle
+    assert vehicle["frames"] > 40 * FLIGHT_S, vehicle
+    names = results["coefficients"]
+    truth = load_truths(truth_path(tlog), names)[1]
+    for kind in ("IEKF", "EKF"):
+        summary = results["filters"][kind]
+        assert summary["updates"] >= vehicle["frames"] - vehicle["inputs_guessed"], summary
+        for i, name in enumerate(names):
+            e = summary["estimates"][name]
+            assert abs(e["estimate"] - truth[i]) <= 3 * e["sigma"], (kind, name, e, truth[i])
