@@ -106,6 +106,14 @@ PLAN = (
     # included against the level legs only (flies the set where out/missions lacks it).
     # Its minutes are an estimate (decision 0061): no whole run has been timed yet.
     Run("mission_accuracy", "mission_accuracy", ("--seeds", "5"), 240),
+    # A link whose servo outputs come slower than its sensors, and the real ArduPlane
+    # flight (where ../shared holds it) as given and as its warnings advise (decision 0084).
+    Run(
+        "slow_inputs",
+        "slow_inputs",
+        ("--seeds", "3", "--alfa", "../shared/data/real/alfa_carbonz_t28"),
+        2,
+    ),
     # Speed and the live link: one core's filter steps, a long replay, a station's
     # vehicles over UDP (10, and 50 to load it), its memory, endurance, stop and start.
     Run("speed", "speed", (), 0.4),

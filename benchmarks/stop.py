@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     flight = simulate(config, seed=1)
     warm_up(config)
     source = FleetSource(flight.t_s, flight.inputs, flight.measurements, args.vehicles)
-    session = Session(config)
+    session = Session(config, check_frames=True)  # as listen: its frames checked at the end
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         summaries, written = Clock(), Clock()

@@ -10,7 +10,12 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.outputs.diagnosis import trust_warnings
-from gcs_estimator.runtime.session import RecordingSource, Session, run_recording
+from gcs_estimator.runtime.session import (
+    FRAMES_CHECK_MIN,
+    RecordingSource,
+    Session,
+    run_recording,
+)
 from gcs_estimator.uncertainty.metrics import NOT_IDENTIFIED, WEAK
 from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import Flight, simulate
@@ -156,6 +161,14 @@ def test_a_gyro_bias_the_filters_do_not_carry_is_found_in_a_links_frames_and_nam
     assert run.compatibility is not None
     assert not [f for f in run.compatibility["findings"] if f["significant"]], run.compatibility
     assert not _gyro_warnings(run)
+    # Within its budget of frames (the last ones), and none where the budget is spent.
+    assert run.compatibility["frames_checked"] == run.compatibility["frames"] == len(flight.t_s)
+    session = Session(plain, check_frames=True)
+    session.run(RecordingSource(flight.t_s, flight.inputs, flight.measurements))
+    est = session.estimators[RecordingSource.SYSTEM_ID]
+    found = session.frames_checked(est, budget=1000)
+    assert found is not None and found["frames_checked"] == 1000
+    assert session.frames_checked(est, budget=FRAMES_CHECK_MIN - 1) is None
     # A recording's session (a log's: checked as it is read) does not check its frames.
     assert (
         run_recording(plain, flight.t_s, flight.inputs, flight.measurements).compatibility is None

@@ -114,6 +114,15 @@ def truth_of(
 # Over 200 lines: the one loop (run, its shutdown and idle work) with what it hands each
 # frame to (process, or take and flush where a batch's frames go in blocks) and the run's
 # results; the estimation itself lives in Estimator, the sinks in outputs.
+FRAMES_CHECK_MAX = 15_000
+"""Frames the data compatibility check of a link's frames takes at the end of a run, over
+all its vehicles, each vehicle's last ones (Session.frames_checked): five minutes at
+50 Hz, about 0.7 s on one core (a sensor's bias and scale do not change within a flight),
+so that a station with many vehicles still stops in seconds (benchmarks/stop.py)."""
+FRAMES_CHECK_MIN = 500
+"""Fewest frames the check is made on where the budget is nearly spent."""
+
+
 class Session:
     """Estimators per vehicle between one source and its sinks."""
 
@@ -335,6 +344,7 @@ class Session:
             return self._results
         out = {}
         checked = 0
+        kinematics = FRAMES_CHECK_MAX
         for sid, est in self.estimators.items():
             result = est.result()
             truth = self.truth_of(sid)
@@ -342,21 +352,27 @@ class Session:
             if not check.skipped:
                 checked += est.history_rows
             summaries = summarise(result, truth, check.sigma if not check.skipped else None)
-            out[sid] = VehicleResult(
-                sid, result, summaries, truth, check, compatibility=self.frames_checked(est)
-            )
+            found = self.frames_checked(est, kinematics)
+            if found is not None:
+                kinematics -= found["frames_checked"]
+            out[sid] = VehicleResult(sid, result, summaries, truth, check, compatibility=found)
         return out
 
-    def frames_checked(self, est: Estimator) -> dict[str, Any] | None:
-        """The data compatibility check of a vehicle's frames, reported only, where the
-        session checks them, keeps their history and [data] compatibility_check is not
-        "off" (decision 0084)."""
+    def frames_checked(
+        self, est: Estimator, budget: int = FRAMES_CHECK_MAX
+    ) -> dict[str, Any] | None:
+        """The data compatibility check of a vehicle's last frames (at most `budget`),
+        reported only, where the session checks them, keeps their history, [data]
+        compatibility_check is not "off" and the budget leaves FRAMES_CHECK_MIN
+        (decision 0084). The dict says how many frames it took, of how many."""
         if not (self.check_frames and est.keep_history and est.history_rows):
             return None
-        if self.config.data.compatibility_check == "off":
+        if self.config.data.compatibility_check == "off" or budget < FRAMES_CHECK_MIN:
             return None
         t, u, y = est.frame_history.arrays()
-        return compat.of_frames(t, u, y, self.config.sensors).as_dict()
+        take = slice(max(0, len(t) - budget), len(t))
+        found = compat.of_frames(t[take], u[take], y[take], self.config.sensors).as_dict()
+        return {"frames_checked": len(t[take]), "frames": len(t), **found}
 
     def structure_check(self, system_id: int, est: Estimator, checked: int = 0) -> StructureCheck:
         """The structure check of one vehicle's run (weighting.py), or why it was not
