@@ -113,6 +113,37 @@ def test_inputs_sent_slower_than_the_sensors_are_known_and_a_lost_one_is_a_guess
     np.testing.assert_allclose([f.inputs[0] for f in frames[:57]], 0.01 * np.arange(57), atol=1e-12)
 
 
+def test_a_step_between_slow_input_samples_is_a_guess_a_usual_move_is_not() -> None:
+    """Servo outputs at a quarter of the sensors' rate. An elevator that moves a little at
+    every sample (an autopilot's) is known between them; one that holds and then jumps
+    (a doublet) is a guess between the samples around the jump only (STEP_CHANGES), and
+    so is a move far beyond the elevator's usual one."""
+    every = 4
+
+    def frames_of(elevator: Sequence[float]) -> list[Frame]:
+        samples: list[Sample] = []
+        for k in range(len(elevator) * every):
+            t = 1.0 + k * DT
+            if k % every == 0:
+                samples.append(_servo(t, elevator[k // every]))
+            samples += [_obs(t, 0.0, name, value) for name, value in OBS.items()]
+        sync = Synchronizer(1, LINK)
+        return _feed(sync, samples) + sync.finish()
+
+    early = [1, 2, 3, 5, 6, 7]  # before three spacings and changes are known
+    # An autopilot's elevator: small moves of either sign, one of them ten times as large.
+    moves = [0.001 * (1 + k % 3) * (-1) ** k for k in range(30)]
+    moves[20] = 0.02
+    smooth = frames_of(list(np.cumsum(moves)))
+    guessed = [k for k, f in enumerate(smooth) if not f.inputs_known]
+    assert guessed == [*early, 77, 78, 79], guessed  # between samples 19 and 20
+    # A doublet: the elevator holds, steps at sample 10 and back at sample 20.
+    doublet = [0.0] * 10 + [0.05] * 10 + [0.0] * 10
+    frames = frames_of(doublet)
+    guessed = [k for k, f in enumerate(frames) if not f.inputs_known]
+    assert guessed == [37, 38, 39, 77, 78, 79], guessed  # around samples 10 and 20
+
+
 def test_a_lost_observation_leaves_only_its_own_channel_missing() -> None:
     sync = Synchronizer(1, LINK)
     ticks = _flight(20)

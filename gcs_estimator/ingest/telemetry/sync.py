@@ -66,7 +66,13 @@ LOST_INPUT_SPACINGS = 1.5
 sample lost between them (InputTrack.read); closer, they are the input's own rate, slower
 than the frames' where the vehicle sends its servo outputs slower than its sensors."""
 INPUT_SPACINGS = 15
-"""Recent spacings of an input's samples whose median is its usual spacing."""
+"""Recent spacings of an input's samples whose median is its usual spacing (and recent
+changes whose median is its usual change)."""
+STEP_CHANGES = 4.0
+"""Between samples at the input's usual spacing, a change of more than this many times
+its usual change from sample to sample is a step (InputTrack.read): an autopilot's
+output moves a little at every sample and goes smoothly between them, a pilot's or a
+test's doublet holds and then jumps, at an instant its samples do not give."""
 PERIOD_SPACINGS = 15
 """Recent frame spacings whose median is the frame period."""
 EXPECT_PRESENCE = 0.75
@@ -183,12 +189,15 @@ class InputTrack:
     v: list[float] = field(default_factory=list)
     spacings: deque[float] = field(default_factory=lambda: deque(maxlen=INPUT_SPACINGS))
     """Recent spacings of samples that came in time order [s]."""
+    changes: deque[float] = field(default_factory=lambda: deque(maxlen=INPUT_SPACINGS))
+    """Their changes of value, in magnitude."""
 
     def add(self, t: float, v: float) -> None:
         times = self.t
         if not times or times[-1] < t:  # after every sample: the common case
             if times:
                 self.spacings.append(t - times[-1])
+                self.changes.append(abs(v - self.v[-1]))
             times.append(t)
             self.v.append(v)
             return
@@ -211,17 +220,21 @@ class InputTrack:
     def usual_spacing(self) -> float:
         """The median of the recent spacings [s] (0 until three are known: every gap
         then counts as a lost sample)."""
-        if len(self.spacings) < 3:
-            return 0.0
-        ordered = sorted(self.spacings)
-        return ordered[len(ordered) // 2]
+        return _median(self.spacings)
+
+    def usual_change(self) -> float:
+        """The median of the recent changes (0 until three are known, or where the
+        input mostly holds: every change then counts as a step)."""
+        return _median(self.changes)
 
     def uncertain_at(self, t: float, window: float) -> bool:
-        """Whether no sample at t arrived, the samples around it are further apart than
-        LOST_INPUT_SPACINGS times the usual spacing (a sample between them was lost) and
-        they differ (the value at t is then a guess: a step may lie anywhere between
-        them). Between samples at the input's own rate, slower than the frames', the
-        value is the data's own resolution: interpolated or held, not a guess."""
+        """Whether the value at t is a guess: no sample at t arrived, the samples around
+        it differ, and either they lie further apart than LOST_INPUT_SPACINGS times the
+        usual spacing (a sample between them was lost) or their change is a step
+        (STEP_CHANGES times the usual change): its instant may lie anywhere between them.
+        Between samples at the input's own rate, slower than the frames', an input that
+        moves as it usually does is the data's own resolution: interpolated or held,
+        not a guess (decision 0084)."""
         return self.read(t, window, True)[1]
 
     def read(self, t: float, window: float, linear: bool) -> tuple[float, bool]:
@@ -240,7 +253,10 @@ class InputTrack:
             return v[i - 1], False
         before, after = v[i - 1], v[i]
         t0, t1 = times[i - 1], times[i]
-        guess = before != after and t1 - t0 > LOST_INPUT_SPACINGS * self.usual_spacing()
+        guess = before != after and (
+            t1 - t0 > LOST_INPUT_SPACINGS * self.usual_spacing()
+            or abs(after - before) > STEP_CHANGES * self.usual_change()
+        )
         if not linear:
             return before, guess
         w = (t - t0) / (t1 - t0)
@@ -259,6 +275,15 @@ class InputTrack:
         self.t.clear()
         self.v.clear()
         self.spacings.clear()
+        self.changes.clear()
+
+
+def _median(values: deque[float]) -> float:
+    """The median of at least three values, else 0."""
+    if len(values) < 3:
+        return 0.0
+    ordered = sorted(values)
+    return ordered[len(ordered) // 2]
 
 
 @dataclass(slots=True)
