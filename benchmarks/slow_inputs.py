@@ -40,14 +40,13 @@ from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_truths
 from gcs_estimator.estimation.noise import CLEARLY, reading_z
 from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.outputs.diagnosis import ESTIMABLE_BIASES
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 from sim.cli import main as sim_main
 from sim.formats import truth_path
 
 FLIGHT_S = 60.0
 """Each simulated flight's length [s]: the paper's manoeuvres."""
-BIAS_KEYS = {("q", "bias"): "q", ("a_x", "bias"): "a_x", ("a_z", "bias"): "a_z"}
-"""Findings of the compatibility check the filters estimate where told (bias_states)."""
 
 
 def _quiet(call: Any, argv: list[str]) -> int:
@@ -150,9 +149,9 @@ def _advised(res: dict[str, Any]) -> list[str]:
     found = res["diagnostics"].get("compatibility") or {"findings": []}
     biases = sorted(
         {
-            BIAS_KEYS[(f["channel"], f["kind"])]
+            ESTIMABLE_BIASES[(f["channel"], f["kind"])]
             for f in found["findings"]
-            if f["significant"] and (f["channel"], f["kind"]) in BIAS_KEYS
+            if f["significant"] and (f["channel"], f["kind"]) in ESTIMABLE_BIASES
         }
     )
     sets = ["--set", f"sensors.bias_states={json.dumps(biases)}"]

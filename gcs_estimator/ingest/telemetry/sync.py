@@ -489,8 +489,7 @@ class Synchronizer:
         if math.isfinite(self._last_emitted):
             self._spacings.append(t - self._last_emitted)
             if len(self._spacings) >= 3:
-                ordered = sorted(self._spacings)
-                self._period = ordered[len(ordered) // 2]
+                self._period = _median(self._spacings)
         self._last_emitted = t
         have = list(map(math.isfinite, op.y))
         complete = all([have[c] for c in self._expected])
