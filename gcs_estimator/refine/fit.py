@@ -255,7 +255,10 @@ def refine(
     r = np.where(observed, np.asarray(noise_sigma, float) ** 2, 1.0)
     e0, _, _, ok = prob.run(x, q, r)
     if not ok:
-        raise RefineError("the model, flown from the start values, leaves finite numbers")
+        raise RefineError(
+            "the model, flown from the start values, does not stay finite; fit a shorter "
+            "window (--window FROM:TO), or first the settings the warnings advise"
+        )
     # Parameters the observations do not see (a bias of a channel without data) stay.
     probe = prob.jacobian(x, np.arange(x.shape[0]), q, r, e0)
     free = np.flatnonzero(np.linalg.norm(probe, axis=0) > 0.0)

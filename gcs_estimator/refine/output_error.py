@@ -58,8 +58,8 @@ def gauss_newton(
         e, logdet, _, ok = prob.run(x, q, r)
         if not ok:
             raise RefineError(
-                "the model, flown over the record from its first frame, leaves finite numbers; "
-                "fit a shorter window (--from/--to) or start nearer"
+                "the model, flown over the record from its first frame, does not stay finite; "
+                "fit a shorter window (--window FROM:TO) or start nearer"
             )
         cost = float(np.sum(e * e) + np.sum(logdet)) + prob.prior_cost(x)
         ep, Jp = prob.prior(x, free)
