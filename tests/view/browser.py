@@ -170,8 +170,8 @@ def load_until_steady(
     width: int = 1600,
     visited: str | None = None,
 ) -> tuple[bytes, float]:
-    """Open url and take a screenshot every interval_s until two in a row are the same
-    and drawn (a page still blank while the viewer loads does not count): the viewer
+    """Open url and take a screenshot every interval_s until STEADY_SHOTS in a row are the
+    same and drawn (a page still blank while the viewer loads does not count): the viewer
     has loaded everything and stopped drawing. That screenshot and the seconds it took;
     an AssertionError at the timeout. visited: a page the browser loads the same way
     first, untimed (a browser that has opened the viewer before: its code compiled and
@@ -185,15 +185,23 @@ def load_until_steady(
         browser.close()
 
 
+STEADY_SHOTS = 3
+"""Screenshots in a row that must be the same: on a loaded machine the viewer can draw
+its layout and then wait over a second for the recording's data (two in a row then
+caught a page with empty panels)."""
+
+
 def _steady(browser: Browser, url: str, timeout_s: float, interval_s: float) -> tuple[bytes, float]:
     start = time.monotonic()
     browser.open(url)
     previous = b""
+    same = 1
     while time.monotonic() - start < timeout_s:
         time.sleep(interval_s)  # a polling interval, not a wait for a process
         shot = browser.screenshot()
-        if shot == previous and drawn(shot):
-            return shot, time.monotonic() - start - interval_s
+        same = same + 1 if shot == previous else 1
+        if same >= STEADY_SHOTS and drawn(shot):
+            return shot, time.monotonic() - start - (STEADY_SHOTS - 1) * interval_s
         previous = shot
     raise AssertionError(f"the view never stood still in {timeout_s:.0f} s")
 
