@@ -14,9 +14,11 @@ mean NIS over its channels, the coefficients within 3 of the sigma shown, the la
 With --alfa FOLDER (the public ALFA Carbon-Z T-28 ArduPlane flight: its .tlog and
 carbonz_t28.toml, ../shared/data/real/alfa_carbonz_t28 beside the repository; nothing of it
 is in the repository), the real flight is replayed with its airframe file as given, then
-as its own warnings advise: the biases the frames' compatibility check finds estimated
-([sensors] bias_states) and each channel's measurement sigma set to the noise the run read
-where it read it clearly higher than configured. Per run: each filter's mean NIS and its
+as its own warnings advise (its JSON's diagnostics.advised_settings: the biases the frames'
+compatibility check finds estimated, each channel's measurement sigma set to the noise
+the run read where it read it clearly higher than configured) with the whole-record
+filter-error fit, then with what that run's warnings advise besides (the process noise
+the fit finds: decision 0085). Per run: each filter's mean NIS and its
 channels' innovations' mean square over the predicted (1 expected), the frames counted as
 guesses, what the compatibility check found beyond the noise, and the marks.
 """
@@ -38,9 +40,7 @@ import record  # benchmarks/record.py: the script's directory is on sys.path
 
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_truths
-from gcs_estimator.estimation.noise import CLEARLY, reading_z
-from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.outputs.diagnosis import ESTIMABLE_BIASES
+from gcs_estimator.outputs.diagnosis import set_argv
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 from sim.cli import main as sim_main
 from sim.formats import truth_path
@@ -145,25 +145,8 @@ def _alfa_line(label: str, res: dict[str, Any]) -> None:
 
 
 def _advised(res: dict[str, Any]) -> list[str]:
-    """The settings the run's own warnings advise: the biases found, the sigmas read."""
-    found = res["diagnostics"].get("compatibility") or {"findings": []}
-    biases = sorted(
-        {
-            ESTIMABLE_BIASES[(f["channel"], f["kind"])]
-            for f in found["findings"]
-            if f["significant"] and (f["channel"], f["kind"]) in ESTIMABLE_BIASES
-        }
-    )
-    sets = ["--set", f"sensors.bias_states={json.dumps(biases)}"]
-    diag = res["diagnostics"]
-    configured = np.array([diag["measurement_sigma"][n] for n in OBS_NAMES])
-    reading = np.array([diag["noise_reading"][n] for n in OBS_NAMES])
-    used = np.array([diag["noise_differences"][n] for n in OBS_NAMES])
-    z = reading_z(reading, used, configured)
-    for name, r, zc in zip(OBS_NAMES, reading, z, strict=True):
-        if zc > CLEARLY:
-            sets += ["--set", f"filter.measurement_sigma.{name}={r:.4g}"]
-    return sets
+    """The settings the run's own warnings advise (its JSON's advised_settings)."""
+    return set_argv(res["diagnostics"]["advised_settings"])
 
 
 def alfa(folder: Path, work: Path) -> None:
@@ -176,9 +159,16 @@ def alfa(folder: Path, work: Path) -> None:
     first = _replay(tlogs[0], work / "alfa_defaults", base)
     _alfa_line("its airframe file as given", first)
     advised = _advised(first)
-    second = _replay(tlogs[0], work / "alfa_advised", [*base, *advised])
-    shown = " ".join(a for a in advised if a != "--set")
-    _alfa_line(f"as its warnings advise ({shown})", second)
+    second = _replay(tlogs[0], work / "alfa_advised", [*base, *advised, "--refine", "filter-error"])
+    _alfa_line(f"as its warnings advise ({_shown(advised)}), with --refine filter-error", second)
+    more = _advised(second)
+    third = _replay(tlogs[0], work / "alfa_advised_again", [*base, *advised, *more])
+    _alfa_line(f"as the second run's warnings advise besides ({_shown(more)})", third)
+    print(f"- advised after this run: {_shown(_advised(third)) or 'nothing'}\n")
+
+
+def _shown(argv: list[str]) -> str:
+    return " ".join(a for a in argv if a != "--set")
 
 
 def main() -> None:

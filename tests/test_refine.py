@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,13 @@ from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.ingest.flightdata import Recording
 from gcs_estimator.ingest.telemetry.mavlink import read_tlog
 from gcs_estimator.model.channels import N_OBS, OBS_NAMES
-from gcs_estimator.outputs.diagnosis import trust_warnings
+from gcs_estimator.outputs.diagnosis import (
+    ADVICE_HEAD,
+    CHANNEL_NIS_LIMIT,
+    advised_settings,
+    set_argv,
+    trust_warnings,
+)
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.outputs.sinks import RefineStatus
 from gcs_estimator.refine import (
@@ -582,3 +589,50 @@ def test_auto_with_a_fixed_turbulence_level_goes_by_the_level_applied() -> None:
         assert np.isnan(run.summaries["IEKF"].gust_pass_z)
         method, why = choose_method(run.result)
         assert method == expected and "turbulence level in" in why, why
+
+
+def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_in_band() -> None:
+    """Light turbulence flown, the filters told the air is calm (no adaptive level): a
+    model that misses the gusts. Their innovations come out far larger than they predict,
+    and the warnings name `--refine filter-error`; the filter-error fit finds the process
+    noise on alpha (where the vertical gust acts), the warnings advise it as `--set`
+    arguments (the JSON's diagnostics.advised_settings, the same settings). Run again with
+    them, every channel's innovations are as large as the filters predict, every
+    coefficient lies within 3 of its sigmas of the truth, and nothing is advised again
+    (decision 0085)."""
+    over = [
+        'simulation.turbulence.preset="light"',
+        "simulation.manoeuvre.duration_s=20",
+        "filter.turbulence.adaptive=false",
+    ]
+    config = load_config("noc_uav", over)
+    flight = simulate(config, seed=1)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    for s in run.summaries.values():
+        assert np.nanmax(s.channel_nis) > 10 * CHANNEL_NIS_LIMIT, s.channel_nis
+    assert any("`--refine filter-error`" in w for w in trust_warnings(run))
+    fit = refine_run(run.result, "filter-error")
+    assert fit.method == "filter error" and fit.converged
+    advised = advised_settings(run, fit)
+    assert advised["filter.process_noise.alpha"] == pytest.approx(fit.process_noise[1], rel=1e-3)
+    warnings = trust_warnings(run, fit)
+    assert any(w.startswith("FE finds the flight states driven beyond the model") for w in warnings)
+    (line,) = [w for w in warnings if w.startswith(ADVICE_HEAD)]
+    assert shlex.split(line[len(ADVICE_HEAD) :]) == set_argv(advised)
+    assert results_dict(run, refined=fit)["diagnostics"]["advised_settings"] == advised
+
+    sets = set_argv(advised)[1::2]  # what each --set carries, as the command line reads it
+    again_config = load_config("noc_uav", [*over, *sets])
+    again = run_recording(again_config, flight.t_s, flight.inputs, flight.measurements)
+    for kind, s in again.summaries.items():
+        nis = np.array(s.channel_nis)
+        nis = nis[np.isfinite(nis)]
+        assert np.all((nis > 1 / CHANNEL_NIS_LIMIT) & (nis < CHANNEL_NIS_LIMIT)), (kind, nis)
+        est = np.array([c.estimate for c in s.coefficients])
+        sigma = np.array([c.sigma for c in s.coefficients])
+        assert np.all(np.abs(est - flight.truth) < 3.0 * sigma), (
+            kind,
+            (est - flight.truth) / sigma,
+        )
+    assert advised_settings(again) == {}
+    assert not any("`--refine filter-error`" in w for w in trust_warnings(again))

@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import json
 import math
-from typing import TYPE_CHECKING
+import shlex
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gcs_estimator.config import ProcessNoise
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, FilterKind
 from gcs_estimator.estimation.noise import CLEARLY, reading_z
 from gcs_estimator.estimation.results import EstimatorResult
-from gcs_estimator.model.channels import OBS_NAMES
+from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
 from gcs_estimator.outputs.text import fmt
 from gcs_estimator.refine.result import FACTOR_TOLD
 from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, FilterSummary
@@ -46,6 +48,11 @@ DISAGREE_SIGMAS = 3.0
 """The EKF and the IEKF ending further apart on a coefficient than this many of the larger
 of their sigmas: the data do not settle it (both filters read the same frames, so
 their estimates differ by far less than either sigma where the data fix a value)."""
+PROCESS_NOISE_RATIO = 10.0
+"""A flight state's process noise density the filter-error fit finds at least this many
+times the configured one, where the filters' innovations are larger than they predict:
+the model misses that much, and the density is advised (docs/decisions/0085)."""
+ADVICE_HEAD = "to run again as these warnings advise:"
 
 
 def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> list[str]:
@@ -110,7 +117,126 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     out += _run_warnings(result)
     if refined is not None:
         out += _refined_warnings(refined)
+    out += _process_noise_warning(vehicle, refined)
+    advised = advised_settings(vehicle, refined)
+    if advised:
+        out.append(f"{ADVICE_HEAD} {set_arguments(advised)}")
     return out
+
+
+def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> dict[str, Any]:
+    """The settings the warnings advise, as `--set` keys and their values: the sensor
+    biases the compatibility check finds and the filters do not estimate, each channel's
+    sigma where the data read it clearly noisier than configured, the process noise the
+    filter-error fit finds where the filters' innovations are larger than they predict,
+    and the input delay the fit finds where one value fits every input. Empty: nothing to
+    change. A run with them applied advises none of them again (decision 0085)."""
+    out: dict[str, Any] = {}
+    told = list(vehicle.result.config.sensors.bias_states)
+    missing = _missing_biases(vehicle)
+    if missing:
+        out["sensors.bias_states"] = [*told, *missing]
+    for name, sigma in _noisier_channels(vehicle):
+        out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
+    for name, density in _process_noise_found(vehicle, refined):
+        out[f"filter.process_noise.{name}"] = float(f"{density:.4g}")
+    delay = _delay_advised(refined)
+    if delay is not None:
+        out["data.input_delay_s"] = float(f"{delay:.3f}")
+    return out
+
+
+def set_argv(settings: dict[str, Any]) -> list[str]:
+    """The settings as command-line arguments, `--set KEY=VALUE` each (lists as JSON,
+    which TOML reads too; numbers as they are)."""
+    argv = []
+    for key, value in settings.items():
+        text = json.dumps(value) if isinstance(value, list) else f"{value:g}"
+        argv += ["--set", f"{key}={text}"]
+    return argv
+
+
+def set_arguments(settings: dict[str, Any]) -> str:
+    """set_argv as a shell takes it."""
+    return " ".join(shlex.quote(a) for a in set_argv(settings))
+
+
+def _innovations_high(vehicle: VehicleResult) -> bool:
+    """Whether some channel's innovations are CHANNEL_NIS_LIMIT times larger than a
+    filter predicts (_channel_warnings)."""
+    return any(
+        math.isfinite(v) and v > CHANNEL_NIS_LIMIT
+        for s in vehicle.summaries.values()
+        for v in s.channel_nis
+    )
+
+
+def _process_noise_found(
+    vehicle: VehicleResult, refined: Refined | None
+) -> list[tuple[str, float]]:
+    """The flight states whose process noise density the filter-error fit finds at least
+    PROCESS_NOISE_RATIO times the configured one, with that density, where the filters'
+    innovations are larger than they predict (none otherwise)."""
+    if refined is None or refined.label != "FE" or not _innovations_high(vehicle):
+        return []
+    configured = vehicle.result.config.filter.process_noise.states
+    return [
+        (name, float(found))
+        for name, found, told in zip(FLIGHT_STATES, refined.process_noise, configured, strict=True)
+        if math.isfinite(found) and found >= PROCESS_NOISE_RATIO * told and found > 0.0
+    ]
+
+
+def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> list[str]:
+    """Where the filters' innovations are larger than they predict: the process noise the
+    filter-error fit finds (the model's misses as the motion they leave between samples),
+    or, without that fit and with the process noise as shipped, the command that finds
+    it."""
+    if not _innovations_high(vehicle):
+        return []
+    found = _process_noise_found(vehicle, refined)
+    if found:
+        configured = dict(
+            zip(FLIGHT_STATES, vehicle.result.config.filter.process_noise.states, strict=True)
+        )
+        named = ", ".join(f"{n} {v:.3g} (configured {configured[n]:.3g})" for n, v in found)
+        return [
+            f"{refined.label if refined else 'FE'} finds the flight states driven beyond "
+            f"the model, as process noise densities per second: {named}: the motion the "
+            "model misses between samples (aerodynamics the structure lacks, the turns' "
+            "coupling, turbulence, a thrust the throttle does not give); the filters set so "
+            "([filter.process_noise]) count on it, and their covariance and NIS fit the data"
+        ]
+    told = vehicle.result.config.filter.process_noise.states
+    if (refined is not None and refined.label == "FE") or told != ProcessNoise().states:
+        return []  # the fit found no more than configured, or the user set it already
+    return [
+        "a whole-record fit by filter error (`--refine filter-error`) finds the process "
+        "noise that carries what the filters' model misses, and names the "
+        "[filter.process_noise] densities that would let their covariance count on it"
+    ]
+
+
+def _delay_advised(refined: Refined | None) -> float | None:
+    """The input delay [s] the fit's delay warning advises, where one value fits every
+    input whose delay it saw (within DELAY_WARNING_SIGMA of their sigma); None where no
+    input is late or early, or where they disagree."""
+    if refined is None:
+        return None
+    seen = [
+        (float(d), float(sd))
+        for d, sd in zip(refined.delays_s, refined.delay_sigma_s, strict=True)
+        if math.isfinite(sd) and sd > 0.0
+    ]
+    late = [
+        (d, sd) for d, sd in seen if abs(d - refined.configured_delay_s) > DELAY_WARNING_SIGMA * sd
+    ]
+    if not late:
+        return None
+    value = max(min(late, key=lambda p: p[1])[0], 0.0)
+    if all(abs(d - value) <= DELAY_WARNING_SIGMA * sd for d, sd in seen):
+        return value
+    return None
 
 
 def _channel_warnings(kind: str, s: FilterSummary) -> list[str]:
@@ -174,17 +300,8 @@ def _disagreement_warning(vehicle: VehicleResult) -> list[str]:
 def _noise_warning(vehicle: VehicleResult) -> list[str]:
     """What the measurement noise read from the data says (docs/decisions/0014): which
     channels read clearly noisier than configured (kept at the configured sigma)."""
-    result = vehicle.result
-    if result.noise_reading is None:
-        return []
-    configured = np.array(result.config.filter.measurement_sigma, float)
-    reading = np.array(result.noise_reading.sigma)
-    z = reading_z(reading, np.array(result.noise_reading.differences), configured)
-    above = [
-        f"{n} {r / c:.1f}×"
-        for n, r, c, zc in zip(OBS_NAMES, reading, configured, z, strict=True)
-        if zc > CLEARLY
-    ]
+    configured = dict(zip(OBS_NAMES, vehicle.result.config.filter.measurement_sigma, strict=True))
+    above = [f"{n} {r / configured[n]:.1f}×" for n, r in _noisier_channels(vehicle)]
     if not above:
         return []
     return [
@@ -207,6 +324,35 @@ ESTIMABLE_BIASES: dict[tuple[str, str], str] = {
 ([sensors] bias_states), by the channel they name there."""
 
 
+def _noisier_channels(vehicle: VehicleResult) -> list[tuple[str, float]]:
+    """The channels the data read clearly noisier than configured (reading_z above
+    CLEARLY), with the sigma read."""
+    result = vehicle.result
+    if result.noise_reading is None:
+        return []
+    configured = np.array(result.config.filter.measurement_sigma, float)
+    reading = np.array(result.noise_reading.sigma)
+    z = reading_z(reading, np.array(result.noise_reading.differences), configured)
+    return [(n, float(r)) for n, r, zc in zip(OBS_NAMES, reading, z, strict=True) if zc > CLEARLY]
+
+
+def _missing_biases(vehicle: VehicleResult) -> list[str]:
+    """The bias states the compatibility check's significant findings name that the
+    filters do not estimate ([sensors] bias_states)."""
+    found = vehicle.compatibility
+    if not found:
+        return []
+    told = set(vehicle.result.config.sensors.bias_states)
+    return sorted(
+        {
+            ESTIMABLE_BIASES[(f["channel"], f["kind"])]
+            for f in found["findings"]
+            if f["significant"] and (f["channel"], f["kind"]) in ESTIMABLE_BIASES
+        }
+        - told
+    )
+
+
 def _compatibility_warning(vehicle: VehicleResult) -> list[str]:
     """What the data compatibility check of a link's frames found beyond the noise
     (VehicleResult.compatibility; docs/decisions/0084), with the setting that carries
@@ -223,14 +369,7 @@ def _compatibility_warning(vehicle: VehicleResult) -> list[str]:
         f"({f['z']:+.1f} σ)"
         for f in significant
     )
-    missing = sorted(
-        {
-            ESTIMABLE_BIASES[(f["channel"], f["kind"])]
-            for f in significant
-            if (f["channel"], f["kind"]) in ESTIMABLE_BIASES
-        }
-        - set(told)
-    )
+    missing = _missing_biases(vehicle)
     fix = (
         "; the filters estimate a bias with the coefficients where told: [sensors] "
         f"bias_states = {json.dumps([*told, *missing])}"
