@@ -319,3 +319,18 @@ def test_an_elevator_read_with_its_sign_reversed_is_named() -> None:
             expected.add(f"{kind}: CLde")
     assert {w.split(" came out")[0] for w in named[-1.0]} == expected
     assert all("sign reversed" in w for w in named[-1.0])
+
+
+def test_a_thrust_model_short_of_the_aircrafts_is_named() -> None:
+    """The throttle read at half its value (a PWM range or a propeller guess that gives
+    the model half the thrust): the drag left to explain the acceleration comes out
+    negative, far from zero, and the warnings name CD0 in both filters with the thrust
+    model as the likely cause. The same flight read right names nothing (the test above)."""
+    config = load_config("noc_uav", ["simulation.manoeuvre.duration_s=12"])
+    flight = simulate(config, seed=4)
+    u = flight.inputs.copy()
+    u[:, 1] *= 0.5
+    run = run_recording(config, flight.t_s, u, flight.measurements)
+    named = [w for w in trust_warnings(run) if "of the sign no conventional" in w]
+    assert {w.split(" came out")[0] for w in named} == {"EKF: CD0", "IEKF: CD0"}, named
+    assert all("thrust falls short" in w for w in named)

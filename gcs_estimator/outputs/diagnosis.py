@@ -386,6 +386,12 @@ def _compatibility_warning(vehicle: VehicleResult) -> list[str]:
 
 
 EXPECTED_SIGNS: dict[str, tuple[int, str]] = {
+    "CD0": (
+        1,
+        "drag is positive: the model's thrust falls short of the aircraft's (the "
+        "propeller's guesses in the airframe file, the throttle's PWM range in [link]), or "
+        "alpha's level is off",
+    ),
     "CLa": (1, "lift grows with alpha: is alpha read with its sign reversed?"),
     "Cmq": (-1, "pitch damping opposes the pitch rate: is q read with its sign reversed?"),
     "Cmde": (
@@ -420,7 +426,7 @@ without alpha, and the warning about alpha then says what its absence costs)."""
 def _sign_warnings(kind: str, s: FilterSummary) -> list[str]:
     """Estimates of the sign no conventional aircraft's coefficient has (EXPECTED_SIGNS),
     SIGN_SIGMAS of their sigma from zero: a sensor or the elevator read with its
-    sign reversed, most likely."""
+    sign reversed, most likely; for CD0, a thrust model short of the aircraft's."""
     out = []
     for c in s.coefficients:
         sign, why = EXPECTED_SIGNS.get(c.name, (0, ""))
