@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.config import AircraftConfig
 from gcs_estimator.estimation.filters.core import FilterKind
 from gcs_estimator.estimation.history import Track
 from gcs_estimator.estimation.results import EstimatorResult, FilterResult
@@ -95,9 +96,23 @@ rate sees, and the two are not told apart (decision 0049: with gust states too, 
 NOC mission in light turbulence the estimates missed by up to 26 sigma)."""
 
 
-def _alpha_absent(track: Track) -> bool:
+def told_alpha_level(config: AircraftConfig) -> float:
+    """The vertical gust level [m/s] that the configured process noise on alpha
+    ([filter.process_noise] alpha) is worth, at the turbulence model's density per unit
+    sigma_w^2 at trim: alpha moving in ways the model does not explain, which the filters
+    cannot tell from a vertical wind's (decision 0085). The shipped density is worth
+    about a thousandth of CALM_FOR_CLIMB_MPS."""
+    unit = config.filter.turbulence.unit(config.airframe.trim_airspeed_mps)[1]
+    told = config.filter.process_noise.states[1]
+    return math.sqrt(told / unit) if unit > 0.0 and told > 0.0 else 0.0
+
+
+def _alpha_absent(track: Track, told_level: float = 0.0) -> bool:
     """Whether nothing informs alpha's level: no vane, and no climb rate or a climb rate
-    in air that moved (the pass's gust level above CALM_FOR_CLIMB_MPS)."""
+    in air that moved: the pass's gust level, with told_level (told_alpha_level) beside
+    it, above CALM_FOR_CLIMB_MPS. A process noise on alpha set from a filter-error fit
+    takes up the innovations the gust level would have read, so the gust level alone
+    would call such air calm."""
     y = np.asarray(track.y)
     if not (y.ndim == 2 and y.shape[0] > 0) or np.isfinite(y[:, ALPHA]).any():
         return False
@@ -105,7 +120,7 @@ def _alpha_absent(track: Track) -> bool:
         return True
     gust = np.asarray(track.gust_pass_sigma, float)
     level = float(gust[-1]) if gust.size and np.isfinite(gust[-1]) else 0.0
-    return level > CALM_FOR_CLIMB_MPS
+    return math.hypot(level, told_level) > CALM_FOR_CLIMB_MPS
 
 
 def moves_with_alpha(name: str) -> bool:
@@ -244,7 +259,7 @@ def summarise(
             continue
         struct = None if structure is None else structure.get(kind)
         prior = np.asarray(result.config.filter.initial_sigma.coefficients)
-        absent = _alpha_absent(track)
+        absent = _alpha_absent(track, told_alpha_level(result.config))
         if absent:
             struct = with_alpha_confound(result.names, prior, struct)
         trusted = filter_sigma(

@@ -4,6 +4,7 @@ calm or the gust states carry the vertical wind, and alpha's marks say so honest
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from gcs_estimator.config import load_config
 from gcs_estimator.estimation.filters import core
@@ -12,12 +13,14 @@ from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import (
+    CALM_FOR_CLIMB_MPS,
     NOT_IDENTIFIED,
     moves_with_alpha,
     needs_alpha_level,
+    told_alpha_level,
     with_alpha_confound,
 )
-from sim.scenario import mission
+from sim.scenario import mission, scenario_of
 from sim.truth import simulate
 
 FAST = ['filter.structure_check="off"']
@@ -85,6 +88,38 @@ def test_turbulence_without_a_vane_or_gust_states_leaves_alphas_coefficients_unm
     names = run.result.names
     prior = config.filter.initial_sigma.coefficients
     for s in run.summaries.values():
+        for c in s.coefficients:
+            if needs_alpha_level(c.name):
+                assert c.identifiability == NOT_IDENTIFIED, c
+            if moves_with_alpha(c.name):
+                assert c.sigma >= prior[names.index(c.name)], c
+
+
+def test_process_noise_on_alpha_counts_as_the_vertical_wind_it_may_be() -> None:
+    """The same turbulent flight with the filters' gust level off and the process noise on
+    alpha set to what the gusts are worth (as a filter-error fit's advice sets it:
+    decision 0085): the innovations no longer read as turbulence, but the process noise
+    tells of alpha moving beyond the model, which the climb rate cannot tell from a
+    vertical wind; the intercepts and alpha derivatives stay not identified."""
+    light = load_config("noc_uav", mission("light", 40.0))
+    level = scenario_of(light).turbulence.sigma_w
+    unit = light.filter.turbulence.unit(light.airframe.trim_airspeed_mps)[1]
+    overrides = [
+        *mission("light", 40.0),
+        "simulation.vane=false",
+        *FAST,
+        "filter.turbulence.adaptive=false",
+        f"filter.process_noise.alpha={level**2 * unit}",
+    ]
+    config = load_config("noc_uav", overrides)
+    assert told_alpha_level(config) == pytest.approx(level)
+    assert told_alpha_level(load_config("noc_uav")) < 0.01 * CALM_FOR_CLIMB_MPS
+    flight = simulate(config, seed=6)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    names = run.result.names
+    prior = config.filter.initial_sigma.coefficients
+    for s in run.summaries.values():
+        assert s.gust_pass_sigma == 0.0 or not np.isfinite(s.gust_pass_sigma), s.gust_pass_sigma
         for c in s.coefficients:
             if needs_alpha_level(c.name):
                 assert c.identifiability == NOT_IDENTIFIED, c
