@@ -201,8 +201,8 @@ def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> l
         )
         named = ", ".join(f"{n} {v:.3g} (configured {configured[n]:.3g})" for n, v in found)
         return [
-            f"{refined.label if refined else 'FE'} finds the flight states driven beyond "
-            f"the model, as process noise densities per second: {named}: the motion the "
+            "FE finds the flight states driven beyond the model, as process noise "
+            f"densities per second: {named}: the motion the "
             "model misses between samples (aerodynamics the structure lacks, the turns' "
             "coupling, turbulence, a thrust the throttle does not give); the filters set so "
             "([filter.process_noise]) count on it, and their covariance and NIS fit the data"
