@@ -364,7 +364,11 @@ def _run_jobs(
     stopped = False
     try:
         started = time.perf_counter()
-        config_future = client.scatter(config, broadcast=True, hash=False)
+        # The config as a task's result, not scattered data: the scheduler computes a lost
+        # result again, while scattered data lost with the only worker holding it cancels
+        # every log that needs it (a worker killed early in a batch failed all four logs
+        # of tests/test_fleet.py's killed-worker test, once in three CI runs).
+        config_future = client.submit(_given, config, pure=False)  # a key of its own
         futures = {
             client.submit(
                 run_log,
@@ -408,15 +412,25 @@ def _run_jobs(
     return stopped
 
 
+def _given(value: Any) -> Any:
+    """The value itself: a task whose result the workers share (the batch's config)."""
+    return value
+
+
 def _outcome(future: Any, job: Job) -> LogOutcome:
     """A finished task's outcome; a task that raised (after its retries, or its worker
-    killed too often) is a failed row with the exception."""
+    killed too often) is a failed row with the exception; one the scheduler cancelled,
+    a failed row that says so."""
     if future.status == "finished":
         outcome: LogOutcome = future.result()
         return outcome
     try:
         exc = future.exception()
-        error = f"{type(exc).__name__}: {exc}"
+        error = (
+            f"{type(exc).__name__}: {exc}"
+            if exc is not None
+            else f"the scheduler dropped the task ({future.status})"
+        )
     except Exception as other:
         error = f"{type(other).__name__}: {other}"
     row = failed_row(job.base, error)
