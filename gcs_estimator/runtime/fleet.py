@@ -366,8 +366,8 @@ def _run_jobs(
         started = time.perf_counter()
         # The config as a task's result, not scattered data: the scheduler computes a lost
         # result again, while scattered data lost with the only worker holding it cancels
-        # every log that needs it (a worker killed early in a batch failed all four logs
-        # of tests/test_fleet.py's killed-worker test, once in three CI runs).
+        # every log that needs it (tests/test_fleet.py's killed-worker test once saw all
+        # its logs cancelled so).
         config_future = client.submit(_given, config, pure=False)  # a key of its own
         futures = {
             client.submit(
