@@ -3,11 +3,15 @@ calm or the gust states carry the vertical wind, and alpha's marks say so honest
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from gcs_estimator.config import load_config
+from gcs_estimator.estimation.estimator import FilterKind
 from gcs_estimator.estimation.filters import core
+from gcs_estimator.estimation.results import FilterResult
 from gcs_estimator.estimation.warmstart import alpha_from_climb
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import Channel
@@ -17,6 +21,7 @@ from gcs_estimator.uncertainty.metrics import (
     NOT_IDENTIFIED,
     moves_with_alpha,
     needs_alpha_level,
+    summarise,
     told_alpha_level,
     with_alpha_confound,
 )
@@ -125,3 +130,40 @@ def test_process_noise_on_alpha_counts_as_the_vertical_wind_it_may_be() -> None:
                 assert c.identifiability == NOT_IDENTIFIED, c
             if moves_with_alpha(c.name):
                 assert c.sigma >= prior[names.index(c.name)], c
+
+
+def test_air_one_filter_reads_moving_leaves_both_filters_alpha_coefficients_unmarked() -> None:
+    """The two filters fly one air: where one reads it moving (its pass's gust level above
+    CALM_FOR_CLIMB_MPS), the other's alpha is no better told from the vertical wind, even
+    if that filter read the air calm because its alpha took the wind in. The turbulent
+    flight's summaries made again with the IEKF's gust reading zeroed: both filters'
+    alpha coefficients keep the prior in their sigma; with both readings zeroed, the
+    IEKF's would not (the reading is what decides)."""
+    overrides = [*mission("light", 40.0), "simulation.vane=false", *FAST]
+    config = load_config("noc_uav", overrides)
+    flight = simulate(config, seed=6)
+    run = run_recording(config, flight.t_s, flight.inputs, flight.measurements)
+    result = run.result
+
+    def calm(kind: FilterKind) -> FilterResult:
+        fr = result.filters[kind]
+        assert fr.track is not None
+        track = dataclasses.replace(fr.track, gust_pass_sigma=0.0 * fr.track.gust_pass_sigma)
+        return fr._replace(track=track)
+
+    moving = result.filters["EKF"].track
+    assert moving is not None and moving.gust_pass_sigma[-1] > CALM_FOR_CLIMB_MPS
+    names = result.names
+    prior = config.filter.initial_sigma.coefficients
+    one_calm = result._replace(filters={**result.filters, "IEKF": calm("IEKF")})
+    for s in summarise(one_calm, run.truth).values():
+        for c in s.coefficients:
+            if needs_alpha_level(c.name):
+                assert c.identifiability == NOT_IDENTIFIED, (s.kind, c)
+            if moves_with_alpha(c.name):
+                assert c.sigma >= prior[names.index(c.name)], (s.kind, c)
+    both_calm = result._replace(filters={k: calm(k) for k in result.filters})
+    iekf = summarise(both_calm, run.truth)["IEKF"]
+    assert any(
+        c.sigma < prior[names.index(c.name)] for c in iekf.coefficients if moves_with_alpha(c.name)
+    )
