@@ -3,7 +3,8 @@ logged, airframe files of geometry and a spec-sheet propeller (issue 53's JSBSim
 
     ./run bench mission_accuracy [--seeds 1] [--jobs 2] [--models ...] [--air windy calm]
                                  [--log bin|ulg] [--level-bank-deg 5] [--thrust spec|logged]
-                                 [--refine auto|none|...] [--resume] [--again]
+                                 [--refine auto|none|...] [--cases turns level]
+                                 [--advised] [--resume] [--again]
 
 The flights are benchmarks/jsbsim_missions.py's (flown here where --out lacks them): six
 aircraft, windy and calm, each an 8-minute circuit of legs and turns of 20-35 degrees,
@@ -39,6 +40,11 @@ Targets (issue 53): within 3σ >= 90 %, mean z² <= 2, no identified coefficient
 information. Outcomes are kept in --out/accuracy_spec/ (accuracy_logged/ with --thrust
 logged) as they come; --again reports them, --resume runs only the rest. Decision 0061
 has the figures and what the misses come from.
+
+--advised runs each flight as a user who follows the warnings would: first with the
+filter-error fit, then the filters again with every setting that run advises (the JSON's
+diagnostics.advised_settings, decision 0085), judged as "EKF advised" and "IEKF advised"
+beside the first run's figures; kept in accuracy_spec_advised/.
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ import math
 import pickle
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,11 +78,15 @@ from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import N_FLIGHT, Channel
+from gcs_estimator.outputs.diagnosis import advised_settings, set_arguments, set_argv
 from gcs_estimator.runtime.flights import limits_of, source_of
 from gcs_estimator.runtime.session import Session
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
+from gcs_estimator.uncertainty.result import VehicleResult
 
-ESTIMATORS = (*FILTER_KINDS, "refine")
+ADVISED = tuple(f"{k} advised" for k in FILTER_KINDS)
+"""--advised: each filter of the run made with every setting the first run advised."""
+ESTIMATORS = (*FILTER_KINDS, "refine", *ADVISED)
 CASES = ("turns", "level")
 TARGET_WITHIN = 90.0
 TARGET_MSZ = 2.0
@@ -211,7 +222,7 @@ def jobs_of(flights: list[Flight], args: argparse.Namespace) -> list[Job]:
     """Each flight in each case, as the validation set's Job (condition: AIR_CASE)."""
     out = []
     for f in flights:
-        for case in CASES:
+        for case in args.cases:
             over = list(args.set)
             if args.thrust == "logged":
                 over.append(MEASURED_THRUST)
@@ -225,12 +236,12 @@ def jobs_of(flights: list[Flight], args: argparse.Namespace) -> list[Job]:
     return out
 
 
-def run_job(job: Job) -> Outcome:
-    """The filters and `refine` over one flight's log, its alpha dropped, its segments as
-    the defaults (or the level case's bank limit) find them; judged as validation's."""
-    start, cpu = time.perf_counter(), time.process_time()
+def _estimated(job: Job, extra: list[str]) -> tuple[VehicleResult, str]:
+    """The filters over one flight's log with the job's overrides and `extra`, its alpha
+    dropped, its segments as the defaults (or the level case's bank limit) find them; the
+    vehicle's result and the segment plan's summary."""
     airframe = Path(job.csv).with_name(Path(job.csv).stem + ".toml")
-    config = load_config(airframe, list(job.overrides))
+    config = load_config(airframe, [*job.overrides, *extra])
     _, rec, _ = load_flight(job.csv, config)
     rec.measurements[:, Channel.ALPHA] = np.nan  # no vane: the AHRS's estimate dropped
     if config.propulsion.model == "measured":  # --thrust logged: JSBSim's, as if logged
@@ -239,14 +250,50 @@ def run_job(job: Job) -> Outcome:
     source = source_of([rec], [Path(job.csv).name], limits_of(config))
     session = Session(config)
     session.run(source)
-    vehicle = session.results()[1]
+    plan = source.plan
+    return session.results()[1], "" if plan is None else plan.summary()
+
+
+def run_job(job: Job) -> Outcome:
+    """The filters and `refine` over one flight's log (_estimated); judged as
+    validation's."""
+    start, cpu = time.perf_counter(), time.process_time()
+    vehicle, note = _estimated(job, [])
     names = vehicle.result.names
     assert job.goal is not None
     goal = np.array([job.goal[n] for n in names])
     out, found, _ = scored(job, vehicle, goal)
-    plan = source.plan
-    note = "" if plan is None else plan.summary()
     out.table = note + "\n\n" + _table(names, goal, found)
+    out.seconds = time.perf_counter() - start
+    out.cpu_seconds = time.process_time() - cpu
+    return out
+
+
+def run_advised(job: Job) -> Outcome:
+    """--advised: the flight as run_job runs it with the filter-error fit, then the
+    filters again with every setting that run's warnings advise (its JSON's
+    diagnostics.advised_settings: sensor biases, noisier channels' sigmas, the process
+    noise and input delay the fit finds; decision 0085), judged as "EKF advised" and
+    "IEKF advised" (the first run's figures where nothing is advised)."""
+    start, cpu = time.perf_counter(), time.process_time()
+    first = dataclasses.replace(job, refine="filter-error")
+    vehicle, note = _estimated(first, [])
+    names = vehicle.result.names
+    assert job.goal is not None
+    goal = np.array([job.goal[n] for n in names])
+    out, found, refined = scored(first, vehicle, goal)
+    out.advice = advised_settings(vehicle, refined)
+    again = out
+    if out.advice:
+        vehicle, _ = _estimated(job, set_argv(out.advice)[1::2])
+        again, advised, _ = scored(dataclasses.replace(job, refine="none"), vehicle, goal)
+        found |= {f"{k} advised": advised[k] for k in FILTER_KINDS}
+    for k in FILTER_KINDS:
+        out.z[f"{k} advised"] = again.z[k]
+        out.marks[f"{k} advised"] = again.marks[k]
+        out.parts[f"{k} advised"] = again.parts[k]
+    advice = set_arguments(out.advice) or "nothing"
+    out.table = f"{note}\n\nadvised: {advice}\n\n" + _table(names, goal, found)
     out.seconds = time.perf_counter() - start
     out.cpu_seconds = time.process_time() - cpu
     return out
@@ -410,8 +457,9 @@ def print_stricter_marks(outcomes: list[Outcome]) -> None:
 
 def print_by_aircraft(outcomes: list[Outcome]) -> None:
     print("\n## By aircraft (turns case)\n")
+    present = [k for k in ESTIMATORS if any(k in o.z for o in outcomes)]
     head = ["aircraft", "records"]
-    head += [f"{k} {c}" for k in ESTIMATORS for c in ("within 3σ", "mean z²", "ident. far")]
+    head += [f"{k} {c}" for k in present for c in ("within 3σ", "mean z²", "ident. far")]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for model in jm.MODELS:
@@ -421,7 +469,7 @@ def print_by_aircraft(outcomes: list[Outcome]) -> None:
         if not group:
             continue
         row = [model, str(len(group))]
-        for k in ESTIMATORS:
+        for k in present:
             s = scores(group, k)
             row += [f"{s.within:.0f} %", f"{s.msz:.3g}", f"{s.identified_far}/{s.identified}"]
         print("| " + " | ".join(row) + " |")
@@ -563,6 +611,17 @@ def print_misses(outcomes: list[Outcome]) -> None:
                 )
 
 
+def print_advice(outcomes: list[Outcome]) -> None:
+    """--advised: what each record's first run advised (its `--set` arguments)."""
+    if not any(k in o.z for o in outcomes for k in ADVISED):
+        return
+    print("\n## The settings each flight's first run advised (applied in the second)\n")
+    print("| record | advised |")
+    print("|---|---|")
+    for o in outcomes:
+        print(f"| {o.job.name} | {set_arguments(o.advice) or 'nothing'} |")
+
+
 def print_best_fits(fits: dict[str, dict[str, Any]]) -> None:
     """Each calm flight's best fit against the sample-by-sample reference, and how well
     the structure reproduces the flight (the fit's residual in sensor sigmas)."""
@@ -625,10 +684,15 @@ def _priority(job: Job) -> tuple[int, bool, int, bool]:
 
 
 def estimate(
-    todo: list[Job], pool: ProcessPoolExecutor, kept: Path, resume: bool = False
+    todo: list[Job],
+    pool: ProcessPoolExecutor,
+    kept: Path,
+    resume: bool = False,
+    job_runner: Callable[[Job], Outcome] = run_job,
 ) -> list[Outcome]:
-    """Run the jobs, each outcome kept in `kept` as it comes (the folder emptied first;
-    resume: the outcomes kept there stay, and their jobs are not run again)."""
+    """Run the jobs with job_runner, each outcome kept in `kept` as it comes (the folder
+    emptied first; resume: the outcomes kept there stay, and their jobs are not run
+    again)."""
     kept.mkdir(parents=True, exist_ok=True)
     outcomes = []
     for old in kept.glob("*.pickle"):
@@ -638,7 +702,7 @@ def estimate(
             old.unlink()
     done_names = {o.job.name for o in outcomes}
     todo = [j for j in todo if j.name not in done_names]
-    for done in as_completed([pool.submit(run_job, job) for job in todo]):
+    for done in as_completed([pool.submit(job_runner, job) for job in todo]):
         o = done.result()
         (kept / f"{o.job.name}.pickle").write_bytes(pickle.dumps(o))
         outcomes.append(o)
@@ -648,7 +712,7 @@ def estimate(
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    kept = Path(args.out) / f"accuracy_{args.thrust}"
+    kept = Path(args.out) / f"accuracy_{args.thrust}{'_advised' if args.advised else ''}"
     fits: dict[str, dict[str, Any]] = {}
     if args.again:
         outcomes = [pickle.loads(p.read_bytes()) for p in kept.glob("*.pickle")]
@@ -659,7 +723,8 @@ def run(args: argparse.Namespace) -> int:
             prepared = time.perf_counter() - start
             print(f"({prepared:.0f} s flying or fitting the targets)", file=sys.stderr)
             todo = sorted(jobs_of(flights, args), key=_priority)
-            outcomes = estimate(todo, pool, kept, args.resume)
+            runner = run_advised if args.advised else run_job
+            outcomes = estimate(todo, pool, kept, args.resume, runner)
     outcomes.sort(key=lambda o: o.job.name)
     tables = kept / "tables"
     tables.mkdir(parents=True, exist_ok=True)
@@ -675,6 +740,7 @@ def run(args: argparse.Namespace) -> int:
             "\n(--again: the outcomes an earlier run kept under --out, reported by this "
             "revision's code; the run's revision is the record's before it)"
         )
+    print_advice(outcomes)
     print_targets(outcomes)
     print_targets(against_reference(outcomes, Path(args.out)), "the reference")
     print_stricter_marks(outcomes)
@@ -724,6 +790,15 @@ def main(argv: list[str] | None = None) -> int:
         help="a config override for every record",
     )
     ap.add_argument("--refine", choices=(*REFINE_METHODS, "none"), default="auto")
+    ap.add_argument(
+        "--cases", nargs="+", default=list(CASES), choices=CASES, help="which cases to run"
+    )
+    ap.add_argument(
+        "--advised",
+        action="store_true",
+        help="run each flight with the filter-error fit, then the filters again with what "
+        'its warnings advise ("EKF advised", "IEKF advised"; kept in accuracy_*_advised/)',
+    )
     ap.add_argument("--again", action="store_true", help="report the outcomes kept under --out")
     ap.add_argument(
         "--resume",

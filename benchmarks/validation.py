@@ -43,6 +43,7 @@ from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
@@ -112,6 +113,9 @@ class Outcome:
     hold: tuple[str, float] = ("", math.nan)
     """The run's hold between samples and the structure check's -2 log likelihood change
     with the other (NaN: no check)."""
+    advice: dict[str, Any] = field(default_factory=dict)
+    """The settings the run's warnings advised (diagnosis.advised_settings), where a
+    benchmark asks for them (mission_accuracy --advised)."""
 
 
 Found = dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]]

@@ -86,10 +86,14 @@ def test_identified_beyond_ten_percent_is_counted_and_a_target_near_zero_by_its_
 
 def test_each_flight_is_run_with_its_turns_and_with_its_level_legs_only() -> None:
     flight = ma.Flight("c182_windy_s1", "c182", "windy", 1, "c182_windy_s1.bin", {"CLa": 5.0})
-    args = Namespace(set=["filter.x=1"], thrust="spec", level_bank_deg=4.0, refine="auto")
+    args = Namespace(
+        set=["filter.x=1"], thrust="spec", level_bank_deg=4.0, refine="auto", cases=ma.CASES
+    )
     turns, level = ma.jobs_of([flight], args)
     assert (turns.condition, level.condition) == ("windy_turns", "windy_level")
     assert turns.overrides == ("filter.x=1",)
     assert level.overrides == ("filter.x=1", "filter.bank_limit_deg=4")
     args.thrust = "logged"
     assert all(ma.MEASURED_THRUST in j.overrides for j in ma.jobs_of([flight], args))
+    args.cases = ["turns"]
+    assert [j.condition for j in ma.jobs_of([flight], args)] == ["windy_turns"]
