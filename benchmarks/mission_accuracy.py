@@ -44,7 +44,9 @@ has the figures and what the misses come from.
 --advised runs each flight as a user who follows the warnings would: first with the
 filter-error fit, then the filters again with every setting that run advises (the JSON's
 diagnostics.advised_settings, decision 0085), judged as "EKF advised" and "IEKF advised"
-beside the first run's figures; kept in accuracy_spec_advised/.
+beside the first run's figures, and once more with the process noise the fit found
+whether advised or not ("FE noise": it is advised only where the fit's residuals are
+white, decision 0087); kept in accuracy_spec_advised/.
 """
 
 from __future__ import annotations
@@ -69,7 +71,7 @@ import record
 from best_fit import _outputs
 from realdata import NEAR_ZERO, WELL_EXCITED
 from scipy.optimize import least_squares
-from validation import Job, Outcome, _table, scored
+from validation import Found, Job, Outcome, _table, scored
 
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import REFINE_METHODS, AircraftConfig, load_config
@@ -78,7 +80,13 @@ from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.model import compiled  # noqa: F401  (registers the equations with numba)
 from gcs_estimator.model.aircraft import build_model
 from gcs_estimator.model.channels import N_FLIGHT, Channel
-from gcs_estimator.outputs.diagnosis import advised_settings, set_arguments, set_argv
+from gcs_estimator.outputs.diagnosis import (
+    COLOUR_LIMIT,
+    advised_settings,
+    process_noise_settings,
+    set_arguments,
+    set_argv,
+)
 from gcs_estimator.runtime.flights import limits_of, source_of
 from gcs_estimator.runtime.session import Session
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
@@ -86,7 +94,10 @@ from gcs_estimator.uncertainty.result import VehicleResult
 
 ADVISED = tuple(f"{k} advised" for k in FILTER_KINDS)
 """--advised: each filter of the run made with every setting the first run advised."""
-ESTIMATORS = (*FILTER_KINDS, "refine", *ADVISED)
+FE_NOISE = tuple(f"{k} FE noise" for k in FILTER_KINDS)
+"""--advised: each filter run with the advice and the process noise the filter-error fit
+found, advised or not (diagnosis.process_noise_settings; decision 0087)."""
+ESTIMATORS = (*FILTER_KINDS, "refine", *ADVISED, *FE_NOISE)
 CASES = ("turns", "level")
 TARGET_WITHIN = 90.0
 TARGET_MSZ = 2.0
@@ -274,7 +285,9 @@ def run_advised(job: Job) -> Outcome:
     filters again with every setting that run's warnings advise (its JSON's
     diagnostics.advised_settings: sensor biases, noisier channels' sigmas, the process
     noise and input delay the fit finds; decision 0085), judged as "EKF advised" and
-    "IEKF advised" (the first run's figures where nothing is advised)."""
+    "IEKF advised" (the first run's figures where nothing is advised); and once more with
+    the process noise the fit found added, advised or not ("EKF FE noise", "IEKF FE
+    noise"; decision 0087: it is advised only where the fit's residuals are white)."""
     start, cpu = time.perf_counter(), time.process_time()
     first = dataclasses.replace(job, refine="filter-error")
     vehicle, note = _estimated(first, [])
@@ -283,17 +296,30 @@ def run_advised(job: Job) -> Outcome:
     goal = np.array([job.goal[n] for n in names])
     out, found, refined = scored(first, vehicle, goal)
     out.advice = advised_settings(vehicle, refined)
-    again = out
-    if out.advice:
-        vehicle, _ = _estimated(job, set_argv(out.advice)[1::2])
-        again, advised, _ = scored(dataclasses.replace(job, refine="none"), vehicle, goal)
-        found |= {f"{k} advised": advised[k] for k in FILTER_KINDS}
-    for k in FILTER_KINDS:
-        out.z[f"{k} advised"] = again.z[k]
-        out.marks[f"{k} advised"] = again.marks[k]
-        out.parts[f"{k} advised"] = again.parts[k]
-    advice = set_arguments(out.advice) or "nothing"
-    out.table = f"{note}\n\nadvised: {advice}\n\n" + _table(names, goal, found)
+    noise = out.advice | process_noise_settings(vehicle, refined)
+    out.advice_noise = noise
+    if refined is not None:
+        out.advice_colour = float(np.nanmax(refined.residual_colour))
+    runs = {"advised": out.advice, "FE noise": noise}
+    made: dict[str, tuple[Outcome, Found]] = {}
+    for label, settings in runs.items():
+        same = [m for m, s in runs.items() if m in made and s == settings]
+        if same:  # the same settings: the same run
+            made[label] = made[same[0]]
+        elif settings:
+            vehicle, _ = _estimated(job, set_argv(settings)[1::2])
+            again, advised, _ = scored(dataclasses.replace(job, refine="none"), vehicle, goal)
+            made[label] = again, advised
+        else:
+            made[label] = out, {k: found[k] for k in FILTER_KINDS}
+    for label, (again, advised) in made.items():
+        for k in FILTER_KINDS:
+            out.z[f"{k} {label}"] = again.z[k]
+            out.marks[f"{k} {label}"] = again.marks[k]
+            out.parts[f"{k} {label}"] = again.parts[k]
+            found[f"{k} {label}"] = advised[k]
+    text = "".join(f"{label}: {set_arguments(s) or 'nothing'}\n" for label, s in runs.items())
+    out.table = f"{note}\n\n{text}\n" + _table(names, goal, found)
     out.seconds = time.perf_counter() - start
     out.cpu_seconds = time.process_time() - cpu
     return out
@@ -615,11 +641,21 @@ def print_advice(outcomes: list[Outcome]) -> None:
     """--advised: what each record's first run advised (its `--set` arguments)."""
     if not any(k in o.z for o in outcomes for k in ADVISED):
         return
-    print("\n## The settings each flight's first run advised (applied in the second)\n")
-    print("| record | advised |")
-    print("|---|---|")
+    print(
+        "\n## What each flight's first run advised, and the process noise its filter-error "
+        "fit found\n\nadvised: the settings applied in the advised run; FE noise: the "
+        "densities the fit found (applied with the advice in the FE noise run), advised "
+        "only where the fit's residuals are white, their colour at most "
+        f"{COLOUR_LIMIT:g} on every channel (decision 0087)\n"
+    )
+    print("| record | advised | FE noise | residual colour (largest) |")
+    print("|---|---|---|---|")
     for o in outcomes:
-        print(f"| {o.job.name} | {set_arguments(o.advice) or 'nothing'} |")
+        noise = {k: v for k, v in o.advice_noise.items() if k not in o.advice}
+        print(
+            f"| {o.job.name} | {set_arguments(o.advice) or 'nothing'} | "
+            f"{set_arguments(noise) or '-'} | {o.advice_colour:.3g} |"
+        )
 
 
 def print_best_fits(fits: dict[str, dict[str, Any]]) -> None:

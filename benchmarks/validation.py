@@ -116,6 +116,10 @@ class Outcome:
     advice: dict[str, Any] = field(default_factory=dict)
     """The settings the run's warnings advised (diagnosis.advised_settings), where a
     benchmark asks for them (mission_accuracy --advised)."""
+    advice_noise: dict[str, Any] = field(default_factory=dict)
+    """Those with the process noise the filter-error fit found, advised or not."""
+    advice_colour: float = math.nan
+    """The fit's largest residual colour over the channels (NaN: no fit)."""
 
 
 Found = dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]]

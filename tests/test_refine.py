@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import shlex
@@ -23,6 +24,8 @@ from gcs_estimator.outputs.diagnosis import (
     ADVICE_HEAD,
     CHANNEL_NIS_LIMIT,
     advised_settings,
+    process_noise_settings,
+    residuals_white,
     set_argv,
     trust_warnings,
 )
@@ -620,6 +623,19 @@ def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_
     (line,) = [w for w in warnings if w.startswith(ADVICE_HEAD)]
     assert shlex.split(line[len(ADVICE_HEAD) :]) == set_argv(advised)
     assert results_dict(run, refined=fit)["diagnostics"]["advised_settings"] == advised
+    assert residuals_white(fit)
+    assert process_noise_settings(run, fit) == {
+        k: v for k, v in advised.items() if k.startswith("filter.process_noise.")
+    }
+
+    # The same fit with residuals coloured as a model's systematic miss leaves them (the
+    # JSBSim mission set: decision 0087): the densities are named and not advised.
+    coloured = dataclasses.replace(fit, residual_colour=np.where(fit.residual_colour > 0, 12.0, 0))
+    assert not residuals_white(coloured)
+    kept = advised_settings(run, coloured)
+    assert kept == {k: v for k, v in advised.items() if not k.startswith("filter.process_noise.")}
+    (named,) = [w for w in trust_warnings(run, coloured) if w.startswith("FE finds the flight")]
+    assert "coloured" in named and "not advised" in named
 
     sets = set_argv(advised)[1::2]  # what each --set carries, as the command line reads it
     again_config = load_config("noc_uav", [*over, *sets])

@@ -51,7 +51,8 @@ their estimates differ by far less than either sigma where the data fix a value)
 PROCESS_NOISE_RATIO = 10.0
 """A flight state's process noise density the filter-error fit finds at least this many
 times the configured one, where the filters' innovations are larger than they predict:
-the model misses that much, and the density is advised (docs/decisions/0085)."""
+the model misses that much, and the density is advised (docs/decisions/0085) where the
+fit's residuals are white (none above COLOUR_LIMIT: decision 0087)."""
 ADVICE_HEAD = "to run again as these warnings advise:"
 
 
@@ -138,8 +139,8 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
         out["sensors.bias_states"] = [*told, *missing]
     for name, sigma in _noisier_channels(vehicle):
         out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
-    for name, density in _process_noise_found(vehicle, refined):
-        out[f"filter.process_noise.{name}"] = float(f"{density:.4g}")
+    if refined is not None and residuals_white(refined):
+        out |= process_noise_settings(vehicle, refined)
     delay = _delay_advised(refined)
     if delay is not None:
         out["data.input_delay_s"] = float(f"{delay:.3f}")
@@ -171,6 +172,26 @@ def _innovations_high(vehicle: VehicleResult) -> bool:
     )
 
 
+def residuals_white(refined: Refined) -> bool:
+    """Whether the fit's residuals are white on every channel (colour at most
+    COLOUR_LIMIT): what the fit leaves is random, as process noise is. Coloured
+    residuals are a systematic miss of the model; process noise set for it brings the
+    filters' NIS in line but not their coefficients' sigma, which then falls short of
+    their error (the JSBSim mission set, decision 0087)."""
+    colour = np.asarray(refined.residual_colour, float)
+    colour = colour[np.isfinite(colour)]
+    return bool(colour.size) and float(colour.max()) <= COLOUR_LIMIT
+
+
+def process_noise_settings(vehicle: VehicleResult, refined: Refined | None) -> dict[str, float]:
+    """The process noise densities the filter-error fit finds (_process_noise_found) as
+    `--set` keys, whether or not they are advised (residuals_white)."""
+    return {
+        f"filter.process_noise.{name}": float(f"{density:.4g}")
+        for name, density in _process_noise_found(vehicle, refined)
+    }
+
+
 def _process_noise_found(
     vehicle: VehicleResult, refined: Refined | None
 ) -> list[tuple[str, float]]:
@@ -200,20 +221,35 @@ def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> l
             zip(FLIGHT_STATES, vehicle.result.config.filter.process_noise.states, strict=True)
         )
         named = ", ".join(f"{n} {v:.3g} (configured {configured[n]:.3g})" for n, v in found)
-        return [
+        head = (
             "FE finds the flight states driven beyond the model, as process noise "
             f"densities per second: {named}: the motion the "
             "model misses between samples (aerodynamics the structure lacks, the turns' "
-            "coupling, turbulence, a thrust the throttle does not give); the filters set so "
-            "([filter.process_noise]) count on it, and their covariance and NIS fit the data"
+            "coupling, turbulence, a thrust the throttle does not give)"
+        )
+        assert refined is not None  # found only from a fit
+        if residuals_white(refined):
+            return [
+                f"{head}; the filters set so ([filter.process_noise]) count on it, and their "
+                "covariance and NIS fit the data"
+            ]
+        colour = np.asarray(refined.residual_colour, float)
+        worst = int(np.nanargmax(colour))
+        return [
+            f"{head}; but the fit's residuals are coloured ({OBS_NAMES[worst]} "
+            f"{colour[worst]:.0f} times white): a systematic miss, not random motion, so it "
+            "is not advised: set so, the filters' NIS fits the data while their "
+            "coefficients' σ falls short of their error (docs/decisions/0087); this run's "
+            "σ, widened by its checks, is the one to trust"
         ]
     told = vehicle.result.config.filter.process_noise.states
     if (refined is not None and refined.label == "FE") or told != ProcessNoise().states:
         return []  # the fit found no more than configured, or the user set it already
     return [
         "a whole-record fit by filter error (`--refine filter-error`) finds the process "
-        "noise that carries what the filters' model misses, and names the "
-        "[filter.process_noise] densities that would let their covariance count on it"
+        "noise that carries what the filters' model misses and whether that miss is "
+        "random; where it is, it names the [filter.process_noise] densities that would let "
+        "their covariance count on it"
     ]
 
 
