@@ -18,7 +18,8 @@ as its own warnings advise (its JSON's diagnostics.advised_settings: the biases 
 compatibility check finds estimated, each channel's measurement sigma set to the noise
 the run read where it read it clearly higher than configured) with the whole-record
 filter-error fit, then with what that run's warnings advise besides (the process noise
-the fit finds: decision 0085). Per run: each filter's mean NIS and its
+the fit finds where its residuals are white, decisions 0085 and 0087; the input delay).
+Per run: each filter's mean NIS and its
 channels' innovations' mean square over the predicted (1 expected), the frames counted as
 guesses, what the compatibility check found beyond the noise, and the marks.
 """
