@@ -64,6 +64,7 @@ from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
 from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
 from gcs_estimator.outputs.checks import Checks, live_advice_text
+from gcs_estimator.outputs.diagnosis import set_argv
 from gcs_estimator.outputs.sinks import (
     ProgressSink,
     RefineAsk,
@@ -104,7 +105,7 @@ TLOG_FILE = "telemetry.tlog"
 """The same file names from every command, in the run's own folder."""
 
 
-OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json")
+OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json", "advice.json")
 """What in a folder says a run wrote it."""
 
 
@@ -398,6 +399,18 @@ def _checks_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="at the end, do not work out what to fly next (the manoeuvre that would "
         "identify what the flight has not)",
+    )
+
+
+def _follow_advice_option(p: argparse.ArgumentParser) -> None:
+    """--follow-advice: a recorded flight run again as its warnings advise (follow_advice)."""
+    options.group(p, CHECKS).add_argument(
+        "--follow-advice",
+        action="store_true",
+        help="run again, up to 4 times in all, with the settings each run's warnings advise "
+        "(the JSON's diagnostics.advised_settings, and a filter-error fit where they ask "
+        "for one) until they advise nothing new: each run in OUT/round_N, what each changed "
+        "and its NIS in OUT/advice.json; the last round is the run to read",
     )
 
 
@@ -1281,6 +1294,7 @@ def _add_replay(sub: Any) -> None:
         "cores; with --each, each replay gets the cores over --jobs)",
     )
     _station_options(p)
+    _follow_advice_option(p)
     p.set_defaults(func=cmd_replay)
 
 
@@ -1299,6 +1313,7 @@ def _add_recorded(sub: Any) -> None:
         "a CSV (see README), or a folder holding one; its content says which. Several: "
         "flights of one aircraft, one set of coefficients from all of them",
     )
+    _follow_advice_option(p)
     p.set_defaults(func=cmd_offline)
 
     p = sub.add_parser(
@@ -1322,7 +1337,90 @@ def _add_recorded(sub: Any) -> None:
         "filter-error (turbulence: a steady-state Kalman filter inside the fit, the "
         "process noise estimated too); --refine METHOD, where given, is taken instead",
     )
+    _follow_advice_option(p)
     p.set_defaults(func=cmd_refine)
+
+
+ADVICE_ROUNDS = 4
+"""--follow-advice runs a flight at most this many times (as given, then as advised)."""
+ADVICE_FILE = "advice.json"
+"""--follow-advice's account of its rounds, in the run's folder."""
+
+
+def follow_advice(argv: Sequence[str], args: argparse.Namespace) -> int:
+    """A recorded flight run as given, then again with what its warnings advise (the JSON's
+    diagnostics.advised_settings as `--set` arguments after the user's, and
+    `--refine filter-error` for the one run after a run whose warnings ask for that fit),
+    until a run advises nothing it has not applied, or ADVICE_ROUNDS runs. Each run goes to
+    OUT/round_N; ADVICE_FILE says what each applied and read. The exit status is the last
+    run's (a run that estimated nothing or failed ends the rounds with its own)."""
+    if getattr(args, "each", False):
+        raise ConfigError(
+            "--follow-advice with --each: the advice is each flight's own; follow it on one "
+            "flight at a time"
+        )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    applied: dict[str, Any] = {}
+    fit: str | None = None  # the fit the next round adds, as the last one's warnings ask
+    fitted = False  # one such fit is run at most once
+    rounds: list[dict[str, Any]] = []
+    status = 0
+    for n in range(1, ADVICE_ROUNDS + 1):
+        folder = out / f"round_{n}"
+        extra = set_argv(applied) + ([] if fit is None else ["--refine", fit])
+        shown = " ".join(a for a in extra if a != "--set") or "as given"
+        print(f"follow-advice: round {n} ({shown}) -> {folder}", file=sys.stderr)
+        status = _main([*argv, *extra, "--out", str(folder)], rounds=False)
+        found = sorted(folder.glob("results_sys*.json"))
+        entry: dict[str, Any] = {
+            "round": n,
+            "folder": folder.name,
+            "applied": dict(applied),
+            "refine": fit,
+            "exit_status": status,
+        }
+        rounds.append(entry)
+        if status not in (0, EXIT_REFINE_FAILED) or len(found) != 1:
+            entry["stopped"] = (
+                f"exit status {status}"
+                if status not in (0, EXIT_REFINE_FAILED)
+                else f"{len(found)} vehicles' results: each has advice of its own"
+            )
+            break
+        data = json.loads(found[0].read_text())
+        entry["nis"] = {
+            kind: {"mean_nis": f["mean_nis"], "mean_channels": f["mean_channels"]}
+            for kind, f in data["filters"].items()
+        }
+        advised = data["diagnostics"]["advised_settings"]
+        asked = data["diagnostics"].get("advised_refine")
+        new = {k: v for k, v in advised.items() if applied.get(k) != v}
+        entry["advised"] = advised
+        entry["advised_refine"] = asked
+        fitted = fitted or fit is not None
+        fit = asked if asked is not None and not fitted else None
+        if not new and fit is None:
+            entry["stopped"] = "nothing new advised"
+            break
+        applied |= new
+    else:
+        rounds[-1]["stopped"] = f"{ADVICE_ROUNDS} rounds: the advice had not settled"
+    (out / ADVICE_FILE).write_text(
+        json.dumps({"rounds": rounds, "last": rounds[-1]["folder"]}, indent=1)
+    )
+    for entry in rounds:
+        nis = ", ".join(
+            f"{kind} NIS {v['mean_nis']:.2f} over {v['mean_channels']:.2f} channels"
+            for kind, v in entry.get("nis", {}).items()
+        )
+        print(f"follow-advice: round {entry['round']}: {nis or entry['stopped']}", file=sys.stderr)
+    print(
+        f"follow-advice: {len(rounds)} round(s), {rounds[-1]['stopped']}; the run to read: "
+        f"{out / rounds[-1]['folder']} (each round's settings and NIS: {out / ADVICE_FILE})",
+        file=sys.stderr,
+    )
+    return status
 
 
 BACKEND_VARIABLE = "GCS_ESTIMATOR_BACKEND"
@@ -1346,6 +1444,12 @@ def _cap_check_threads(args: argparse.Namespace) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    return _main(argv, rounds=True)
+
+
+def _main(argv: Sequence[str] | None, rounds: bool) -> int:
+    """One command line's run; with --follow-advice (and `rounds`, False inside its
+    rounds) the rounds of follow_advice."""
     blas.one_thread()
     args = build_parser().parse_args(argv)
     args.argv = None if argv is None else list(argv)
@@ -1359,6 +1463,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if hasattr(args, "out"):
             args.out = str(run_folder(args, started))
             args.started = started
+        if rounds and getattr(args, "follow_advice", False):
+            given = list(sys.argv[1:] if argv is None else argv)
+            return follow_advice(given, args)
         status: int = args.func(args)
     except LogError as exc:  # what the log holds, then why it cannot be used
         print(f"{exc.account}\nerror: {exc}", file=sys.stderr)

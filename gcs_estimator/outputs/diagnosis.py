@@ -242,8 +242,7 @@ def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> l
             "coefficients' σ falls short of their error (docs/decisions/0087); this run's "
             "σ, widened by its checks, is the one to trust"
         ]
-    told = vehicle.result.config.filter.process_noise.states
-    if (refined is not None and refined.label == "FE") or told != ProcessNoise().states:
+    if refine_advised(vehicle, refined) is None:
         return []  # the fit found no more than configured, or the user set it already
     return [
         "a whole-record fit by filter error (`--refine filter-error`) finds the process "
@@ -251,6 +250,18 @@ def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> l
         "random; where it is, it names the [filter.process_noise] densities that would let "
         "their covariance count on it"
     ]
+
+
+def refine_advised(vehicle: VehicleResult, refined: Refined | None = None) -> str | None:
+    """The whole-record fit the warnings advise (`--refine METHOD`), or None: filter error
+    where some channel's innovations are larger than the filters predict, the run had no
+    filter-error fit and the process noise is as shipped (_process_noise_warning)."""
+    if not _innovations_high(vehicle) or _process_noise_found(vehicle, refined):
+        return None
+    told = vehicle.result.config.filter.process_noise.states
+    if (refined is not None and refined.label == "FE") or told != ProcessNoise().states:
+        return None
+    return "filter-error"
 
 
 def _delay_advised(refined: Refined | None) -> float | None:

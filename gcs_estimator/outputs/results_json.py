@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 from gcs_estimator.arrays import FloatArray
 from gcs_estimator.estimation.results import EstimatorResult
 from gcs_estimator.model.channels import FLIGHT_STATES, OBS_NAMES
-from gcs_estimator.outputs.diagnosis import advised_settings, trust_warnings
+from gcs_estimator.outputs.diagnosis import advised_settings, refine_advised, trust_warnings
 from gcs_estimator.uncertainty.metrics import CoefficientSummary, FilterSummary, percent_error
 from gcs_estimator.uncertainty.result import VehicleResult
 from gcs_estimator.uncertainty.weighting import VARIANCE_FACTOR
@@ -55,6 +55,7 @@ def results_dict(
             else dict(zip(OBS_NAMES, result.noise_reading.sigma, strict=True)),
             "compatibility": vehicle.compatibility,
             "advised_settings": advised_settings(vehicle, refined),
+            "advised_refine": refine_advised(vehicle, refined),
             "structure_check": _structure_dict(vehicle),
             "failed_updates": {k: f.health.failed_updates for k, f in result.filters.items()},
             "divergences": {k: f.health.divergences for k, f in result.filters.items()},
