@@ -13,13 +13,13 @@ mean NIS over its channels, the coefficients within 3 of the sigma shown, the la
 
 With --alfa FOLDER (the public ALFA Carbon-Z T-28 ArduPlane flight: its .tlog and
 carbonz_t28.toml, ../shared/data/real/alfa_carbonz_t28 beside the repository; nothing of it
-is in the repository), the real flight is replayed with its airframe file as given, then
-as its own warnings advise (its JSON's diagnostics.advised_settings: the biases the frames'
-compatibility check finds estimated, each channel's measurement sigma set to the noise
-the run read where it read it clearly higher than configured) with the whole-record
-filter-error fit, then with what that run's warnings advise besides (the process noise
-the fit finds where its residuals are white, decisions 0085 and 0087; the input delay).
-Per run: each filter's mean NIS and its
+is in the repository), the real flight is replayed as a user would, with its airframe file
+and `--follow-advice`: as given, then again with what each run's warnings advise (its
+JSON's diagnostics.advised_settings: the biases the frames' compatibility check finds
+estimated, each channel's measurement sigma set to the noise the run read where it read
+it clearly higher than configured; the whole-record filter-error fit where they ask for
+it, then the process noise it finds where its residuals are white, decisions 0085 and
+0087; the input delay), until nothing new is advised. Per round: each filter's mean NIS and its
 channels' innovations' mean square over the predicted (1 expected), the frames counted as
 guesses, what the compatibility check found beyond the noise, and the marks.
 """
@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
 
+from gcs_estimator.cli import ADVICE_FILE
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_truths
 from gcs_estimator.outputs.diagnosis import set_argv
@@ -61,11 +62,11 @@ def _results(out: Path) -> dict[str, Any]:
     return data
 
 
-def _replay(tlog: Path, out: Path, extra: list[str]) -> dict[str, Any]:
+def _replay(tlog: Path, out: Path, extra: list[str], read: bool = True) -> dict[str, Any]:
     status = _quiet(gcs_main, ["replay", str(tlog), "--view", "off", "--out", str(out), *extra])
     if status != 0:
         raise SystemExit(f"replay of {tlog.name} exited {status}")
-    return _results(out)
+    return _results(out) if read else {}
 
 
 def simulated(seeds: int, rates: list[float], folder: Path) -> None:
@@ -145,27 +146,30 @@ def _alfa_line(label: str, res: dict[str, Any]) -> None:
     print()
 
 
-def _advised(res: dict[str, Any]) -> list[str]:
-    """The settings the run's own warnings advise (its JSON's advised_settings)."""
-    return set_argv(res["diagnostics"]["advised_settings"])
-
-
 def alfa(folder: Path, work: Path) -> None:
     tlogs = sorted(folder.glob("*.tlog"))
     airframe = folder / "carbonz_t28.toml"
     if len(tlogs) != 1 or not airframe.is_file():
         raise SystemExit(f"--alfa {folder}: expected one .tlog and carbonz_t28.toml there")
     print("## The ALFA Carbon-Z T-28 ArduPlane flight (tlog)\n")
-    base = ["--config", str(airframe)]
-    first = _replay(tlogs[0], work / "alfa_defaults", base)
-    _alfa_line("its airframe file as given", first)
-    advised = _advised(first)
-    second = _replay(tlogs[0], work / "alfa_advised", [*base, *advised, "--refine", "filter-error"])
-    _alfa_line(f"as its warnings advise ({_shown(advised)}), with --refine filter-error", second)
-    more = _advised(second)
-    third = _replay(tlogs[0], work / "alfa_advised_again", [*base, *advised, *more])
-    _alfa_line(f"as the second run's warnings advise besides ({_shown(more)})", third)
-    print(f"- advised after this run: {_shown(_advised(third)) or 'nothing'}\n")
+    print(
+        f"`gcs-estimator replay {tlogs[0].name} --config {airframe.name} --follow-advice`: "
+        "its rounds, each with the settings the rounds before it were advised\n"
+    )
+    out = work / "alfa"
+    argv = ["--config", str(airframe), "--follow-advice"]
+    _replay(tlogs[0], out, argv, read=False)
+    account = json.loads((out / ADVICE_FILE).read_text(encoding="utf-8"))
+    for entry in account["rounds"]:
+        added = set_argv(entry["applied"]) + (
+            [] if entry["refine"] is None else ["--refine", entry["refine"]]
+        )
+        label = f"round {entry['round']}: " + (
+            "its airframe file as given" if not added else f"with {_shown(added)}"
+        )
+        _alfa_line(label, _results(out / entry["folder"]))
+    last = account["rounds"][-1]
+    print(f"- the rounds stopped: {last['stopped']}; the run to read: round {last['round']}\n")
 
 
 def _shown(argv: list[str]) -> str:
