@@ -301,17 +301,17 @@ def run_advised(job: Job) -> Outcome:
     if refined is not None:
         out.advice_colour = float(np.nanmax(refined.residual_colour))
     runs = {"advised": out.advice, "FE noise": noise}
+    by_settings: dict[str, tuple[Outcome, Found]] = {}  # the same settings: the same run
     made: dict[str, tuple[Outcome, Found]] = {}
     for label, settings in runs.items():
-        same = [m for m, s in runs.items() if m in made and s == settings]
-        if same:  # the same settings: the same run
-            made[label] = made[same[0]]
-        elif settings:
+        key = json.dumps(settings, sort_keys=True)
+        if key not in by_settings and settings:
             vehicle, _ = _estimated(job, set_argv(settings)[1::2])
             again, advised, _ = scored(dataclasses.replace(job, refine="none"), vehicle, goal)
-            made[label] = again, advised
-        else:
-            made[label] = out, {k: found[k] for k in FILTER_KINDS}
+            by_settings[key] = again, advised
+        elif key not in by_settings:
+            by_settings[key] = out, {k: found[k] for k in FILTER_KINDS}
+        made[label] = by_settings[key]
     for label, (again, advised) in made.items():
         for k in FILTER_KINDS:
             out.z[f"{k} {label}"] = again.z[k]
