@@ -9,7 +9,12 @@ import numpy as np
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.estimation.warmstart import equation_error
 from gcs_estimator.model.aircraft import build_model
-from gcs_estimator.outputs.diagnosis import trust_warnings
+from gcs_estimator.outputs.diagnosis import (
+    VELOCITY_STAGE,
+    advised_settings,
+    air_moved,
+    trust_warnings,
+)
 from gcs_estimator.runtime.session import (
     FRAMES_CHECK_MIN,
     RecordingSource,
@@ -173,3 +178,31 @@ def test_a_gyro_bias_the_filters_do_not_carry_is_found_in_a_links_frames_and_nam
     assert (
         run_recording(plain, flight.t_s, flight.inputs, flight.measurements).compatibility is None
     )
+
+
+def test_what_the_velocity_stage_finds_in_moving_air_is_named_and_not_advised() -> None:
+    """The compatibility check's velocity stage takes the wind as steady. In light
+    turbulence, with sensors that have no errors, it finds the airspeed and alpha
+    shifted and alpha biased far beyond its sigma (the gusts). The filters found the air
+    moving: the warning says those findings may be the gusts, and nothing is advised
+    (neither a bias state nor a larger sigma on channels whose innovations the filters
+    predict). In calm air an accelerometer bias it finds is advised (decision 0088)."""
+    short = [NO_CHECK, "simulation.manoeuvre.duration_s=20"]
+    gusts = load_config("noc_uav", [*short, 'simulation.turbulence.preset="light"'])
+    run = _checked_run(gusts, simulate(gusts, seed=1))
+    assert run.compatibility is not None
+    found = [f for f in run.compatibility["findings"] if f["significant"]]
+    assert any(f["channel"] in VELOCITY_STAGE for f in found), found
+    assert air_moved(run)
+    assert advised_settings(run) == {}
+    (named,) = [w for w in trust_warnings(run) if w.startswith("the frames' kinematics")]
+    assert "may be the gusts" in named and "bias_states" not in named, named
+    (noisier,) = [w for w in trust_warnings(run) if w.startswith("the data read noisier")]
+    assert "not advised on" in noisier, noisier
+
+    biased = load_config("noc_uav", [*short, "simulation.sensors.bias.a_z=0.3"])
+    run = _checked_run(biased, simulate(biased, seed=1))
+    assert not air_moved(run)
+    assert advised_settings(run)["sensors.bias_states"] == ["a_z"]
+    (named,) = [w for w in trust_warnings(run) if w.startswith("the frames' kinematics")]
+    assert "may be the gusts" not in named and 'bias_states = ["a_z"]' in named, named

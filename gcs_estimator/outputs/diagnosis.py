@@ -131,14 +131,19 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
     sigma where the data read it clearly noisier than configured, the process noise the
     filter-error fit finds where the filters' innovations are larger than they predict,
     and the input delay the fit finds where one value fits every input. Empty: nothing to
-    change. A run with them applied advises none of them again (decision 0085)."""
+    change. A run with them applied advises none of them again (decision 0085). Not
+    advised: a channel's sigma where its innovations are as large as the filters predict
+    (the roughness read is motion they carry), nor a bias the compatibility check's
+    velocity stage finds in moving air (decision 0088)."""
     out: dict[str, Any] = {}
     told = list(vehicle.result.config.sensors.bias_states)
     missing = _missing_biases(vehicle)
     if missing:
         out["sensors.bias_states"] = [*told, *missing]
+    high = _channels_high(vehicle)
     for name, sigma in _noisier_channels(vehicle):
-        out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
+        if name in high:
+            out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
     if refined is not None and residuals_white(refined):
         out |= process_noise_settings(vehicle, refined)
     delay = _delay_advised(refined)
@@ -160,6 +165,27 @@ def set_argv(settings: dict[str, Any]) -> list[str]:
 def set_arguments(settings: dict[str, Any]) -> str:
     """set_argv as a shell takes it."""
     return " ".join(shlex.quote(a) for a in set_argv(settings))
+
+
+def _channels_high(vehicle: VehicleResult) -> set[str]:
+    """The channels whose innovations some filter finds CHANNEL_NIS_LIMIT times larger
+    than it predicts (_channel_warnings)."""
+    return {
+        n
+        for s in vehicle.summaries.values()
+        for n, v in zip(OBS_NAMES, s.channel_nis, strict=True)
+        if math.isfinite(v) and v > CHANNEL_NIS_LIMIT
+    }
+
+
+def air_moved(vehicle: VehicleResult) -> bool:
+    """Whether some filter found the air moving over its final pass: a turbulence level
+    applied in more than GUST_BURSTS[0] of it, or found over the whole pass."""
+    threshold = vehicle.result.config.filter.turbulence.detection_sigma
+    return any(
+        s.gust_on_share > GUST_BURSTS[0] or s.gust_pass_z >= threshold
+        for s in vehicle.summaries.values()
+    )
 
 
 def _innovations_high(vehicle: VehicleResult) -> bool:
@@ -348,9 +374,12 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
     """What the measurement noise read from the data says (docs/decisions/0014): which
     channels read clearly noisier than configured (kept at the configured sigma)."""
     configured = dict(zip(OBS_NAMES, vehicle.result.config.filter.measurement_sigma, strict=True))
-    above = [f"{n} {r / configured[n]:.1f}×" for n, r in _noisier_channels(vehicle)]
+    noisier = _noisier_channels(vehicle)
+    above = [f"{n} {r / configured[n]:.1f}×" for n, r in noisier]
     if not above:
         return []
+    high = _channels_high(vehicle)
+    fitting = [n for n, _ in noisier if n not in high]
     return [
         "the data read noisier than the configured σ on "
         + ", ".join(above)
@@ -358,6 +387,12 @@ def _noise_warning(vehicle: VehicleResult) -> list[str]:
         "as rough as noise (gusts of a short scale length, which the filters' process "
         "noise carries); if the sensors are that noisy, set [filter.measurement_sigma] "
         "for them"
+        + (
+            f"; not advised on {', '.join(fitting)}, whose innovations are as large as the "
+            "filters predict: the roughness is motion they carry (decision 0088)"
+            if fitting
+            else ""
+        )
     ]
 
 
@@ -383,18 +418,36 @@ def _noisier_channels(vehicle: VehicleResult) -> list[tuple[str, float]]:
     return [(n, float(r)) for n, r, zc in zip(OBS_NAMES, reading, z, strict=True) if zc > CLEARLY]
 
 
+VELOCITY_STAGE = frozenset({"airspeed", "alpha", "vz", "vn", "ve", "vd", "a_x", "a_z"})
+"""The channels whose findings the compatibility check's velocity stage makes
+(ingest/compat.py). It takes the air-relative velocity as the integrated accelerations
+less a steady wind; gusts move it otherwise, and the stage reads them as these channels'
+errors (on the simulator in light turbulence, with sensors that have none: an alpha bias
+of -0.19 rad at 7 sigma; decision 0088)."""
+
+
+def _gust_findings(vehicle: VehicleResult) -> list[dict[str, Any]]:
+    """The significant findings that may be the gusts (VELOCITY_STAGE in moving air)."""
+    found = vehicle.compatibility
+    if not found or not air_moved(vehicle):
+        return []
+    return [f for f in found["findings"] if f["significant"] and f["channel"] in VELOCITY_STAGE]
+
+
 def _missing_biases(vehicle: VehicleResult) -> list[str]:
     """The bias states the compatibility check's significant findings name that the
-    filters do not estimate ([sensors] bias_states)."""
+    filters do not estimate ([sensors] bias_states), but for those that may be the gusts
+    (_gust_findings)."""
     found = vehicle.compatibility
     if not found:
         return []
     told = set(vehicle.result.config.sensors.bias_states)
+    gusts = _gust_findings(vehicle)
     return sorted(
         {
             ESTIMABLE_BIASES[(f["channel"], f["kind"])]
             for f in found["findings"]
-            if f["significant"] and (f["channel"], f["kind"]) in ESTIMABLE_BIASES
+            if f["significant"] and (f["channel"], f["kind"]) in ESTIMABLE_BIASES and f not in gusts
         }
         - told
     )
@@ -423,11 +476,21 @@ def _compatibility_warning(vehicle: VehicleResult) -> list[str]:
         if missing
         else ""
     )
+    gusts = _gust_findings(vehicle)
+    moving = (
+        "; the filters found the air moving, and the check takes the wind as steady, so "
+        "what it finds on "
+        + ", ".join(sorted({f["channel"] for f in gusts}))
+        + " may be the gusts rather than the sensors (not advised: decision 0088)"
+        if gusts
+        else ""
+    )
     return [
         "the frames' kinematics (the data compatibility check: the rates and accelerations "
         "integrated against the angles, airspeed and climb rate) find beyond the noise: "
         + named
         + ": sensor errors the filters take as motion"
+        + moving
         + fix
     ]
 
