@@ -122,6 +122,9 @@ PLAN = (
         ("--seeds", "3", "--alfa", "../shared/data/real/alfa_carbonz_t28"),
         2,
     ),
+    # Following the warnings' advice where the answer is known: the NOC UAV in light
+    # turbulence told calm, in light turbulence as shipped, and in calm air (decision 0088).
+    Run("follow_advice", "follow_advice", ("--seeds", "10"), 15),
     # Speed and the live link: one core's filter steps, a long replay, a station's
     # vehicles over UDP (10, and 50 to load it), its memory, endurance, stop and start.
     Run("speed", "speed", (), 0.4),
