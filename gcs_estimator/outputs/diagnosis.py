@@ -422,8 +422,8 @@ VELOCITY_STAGE = frozenset({"airspeed", "alpha", "vz", "vn", "ve", "vd", "a_x", 
 """The channels whose findings the compatibility check's velocity stage makes
 (ingest/compat.py). It takes the air-relative velocity as the integrated accelerations
 less a steady wind; gusts move it otherwise, and the stage reads them as these channels'
-errors (on the simulator in light turbulence, with sensors that have none: an alpha bias
-of -0.19 rad at 7 sigma; decision 0088)."""
+errors (on the simulator in light turbulence, with sensors that have none, an alpha bias
+of many degrees far beyond its sigma: tests/test_sensors.py, decision 0088)."""
 
 
 def _gust_findings(vehicle: VehicleResult) -> list[dict[str, Any]]:
