@@ -64,9 +64,10 @@ class Round:
     z: list[float] = field(default_factory=list)
     marked: int = 0
     wrong: int = 0
-    advised: list[str] = field(default_factory=list)
+    beyond: list[str] = field(default_factory=list)
+    """Each coefficient marked identified beyond 3 sigma: seed, filter, name, z."""
 
-    def add(self, res: dict[str, Any], truth: np.ndarray) -> None:
+    def add(self, res: dict[str, Any], truth: np.ndarray, seed: int = 0) -> None:
         self.seeds += 1
         names = res["coefficients"]
         for kind in ("EKF", "IEKF"):
@@ -77,7 +78,9 @@ class Round:
                 z = (e["estimate"] - truth[i]) / e["sigma"]
                 self.z.append(z)
                 self.marked += e["identifiability"] == IDENTIFIED
-                self.wrong += e["identifiability"] == IDENTIFIED and abs(z) > 3.0
+                if e["identifiability"] == IDENTIFIED and abs(z) > 3.0:
+                    self.wrong += 1
+                    self.beyond.append(f"seed {seed} {kind} {name} {z:+.1f}")
 
     def row(self, label: str) -> str:
         z = np.abs(np.array(self.z))
@@ -100,6 +103,7 @@ def case(name: str, seeds: int, folder: Path) -> None:
     rounds: dict[str, Round] = {}
     stops: list[str] = []
     advised: list[str] = []
+    applied: list[str] = []
     for seed in range(1, seeds + 1):
         stem = folder / f"{name}_s{seed}"
         argv = ["--speed", "0", "--seed", str(seed), "--tlog", str(stem)]
@@ -121,9 +125,10 @@ def case(name: str, seeds: int, folder: Path) -> None:
             (path,) = sorted((out / entry["folder"]).glob("results_sys*.json"))
             res = json.loads(path.read_text(encoding="utf-8"))
             truth = np.array(load_truths(truth_path(tlog), res["coefficients"])[1])
-            rounds.setdefault(f"round {entry['round']}", Round()).add(res, truth)
+            rounds.setdefault(f"round {entry['round']}", Round()).add(res, truth, seed)
             if entry is account["rounds"][-1]:
-                rounds.setdefault("last", Round()).add(res, truth)
+                rounds.setdefault("last", Round()).add(res, truth, seed)
+                applied.append(f"seed {seed}: {_shown(entry)}")
             advised += [k for k in entry.get("advised", {}) if k not in advised]
         stops.append(f"{len(account['rounds'])} ({account['rounds'][-1]['stopped']})")
     print(f"- rounds per seed: {'; '.join(stops)}")
@@ -136,6 +141,23 @@ def case(name: str, seeds: int, folder: Path) -> None:
     for label in sorted(rounds, key=lambda r: (r == "last", r)):
         print(rounds[label].row(label))
     print()
+    print("Each seed's last round ran with:\n")
+    for line in applied:
+        print(f"- {line}")
+    print(
+        f"\nIdentified beyond 3σ in the last round: {'; '.join(rounds['last'].beyond) or 'none'}\n"
+    )
+
+
+def _shown(entry: dict[str, Any]) -> str:
+    """What a round applied, as the command line takes it."""
+    parts = [
+        f"{k}={json.dumps(v) if isinstance(v, list) else f'{v:g}'}"
+        for k, v in entry["applied"].items()
+    ]
+    if entry["refine"] is not None:
+        parts.append(f"--refine {entry['refine']}")
+    return " ".join(parts) or "as given"
 
 
 def main() -> None:
