@@ -102,10 +102,11 @@ from gcs_estimator.uncertainty.result import VehicleResult
 DEFAULT_CONFIG = "noc_uav"
 VIEW_FILE = "view.rrd"
 TLOG_FILE = "telemetry.tlog"
+ADVICE_FILE = "advice.json"  # --follow-advice's account of its rounds
 """The same file names from every command, in the run's own folder."""
 
 
-OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json", "advice.json")
+OUTPUT_GLOBS = ("results_sys*.json", VIEW_FILE, TLOG_FILE, "replays.json", ADVICE_FILE)
 """What in a folder says a run wrote it."""
 
 
@@ -1343,8 +1344,6 @@ def _add_recorded(sub: Any) -> None:
 
 ADVICE_ROUNDS = 4
 """--follow-advice runs a flight at most this many times (as given, then as advised)."""
-ADVICE_FILE = "advice.json"
-"""--follow-advice's account of its rounds, in the run's folder."""
 
 
 def follow_advice(argv: Sequence[str], args: argparse.Namespace) -> int:
