@@ -191,11 +191,7 @@ def air_moved(vehicle: VehicleResult) -> bool:
 def _innovations_high(vehicle: VehicleResult) -> bool:
     """Whether some channel's innovations are CHANNEL_NIS_LIMIT times larger than a
     filter predicts (_channel_warnings)."""
-    return any(
-        math.isfinite(v) and v > CHANNEL_NIS_LIMIT
-        for s in vehicle.summaries.values()
-        for v in s.channel_nis
-    )
+    return bool(_channels_high(vehicle))
 
 
 def residuals_white(refined: Refined) -> bool:
