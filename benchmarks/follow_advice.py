@@ -23,8 +23,6 @@ largest |error| in sigmas, the coefficients marked identified and those beyond 3
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -34,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import record  # benchmarks/record.py: the script's directory is on sys.path
+from slow_inputs import quiet
 
 from gcs_estimator.cli import ADVICE_FILE
 from gcs_estimator.cli import main as gcs_main
@@ -91,11 +90,6 @@ class Round:
         )
 
 
-def _quiet(call: Any, argv: list[str]) -> int:
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        return int(call(argv))
-
-
 def case(name: str, seeds: int, folder: Path) -> None:
     flown, told = CASES[name]
     print(f"## {name}\n")
@@ -110,14 +104,14 @@ def case(name: str, seeds: int, folder: Path) -> None:
         argv += ["--set", f"simulation.manoeuvre.duration_s={FLIGHT_S:g}"]
         for s in flown:
             argv += ["--set", s]
-        if _quiet(sim_main, argv) != 0:
+        if quiet(sim_main, argv) != 0:
             raise SystemExit(f"the simulator failed: {name}, seed {seed}")
         tlog = stem.parent / f"{stem.name}_1.tlog"
         out = stem.parent / f"{stem.name}_out"
         replay = ["replay", str(tlog), "--view", "off", "--out", str(out), "--follow-advice"]
         for s in told:
             replay += ["--set", s]
-        status = _quiet(gcs_main, replay)
+        status = quiet(gcs_main, replay)
         if status != 0:
             raise SystemExit(f"the replay of {name}, seed {seed} exited {status}")
         account = json.loads((out / ADVICE_FILE).read_text(encoding="utf-8"))

@@ -51,7 +51,8 @@ FLIGHT_S = 60.0
 """Each simulated flight's length [s]: the paper's manoeuvres."""
 
 
-def _quiet(call: Any, argv: list[str]) -> int:
+def quiet(call: Any, argv: list[str]) -> int:
+    """A command's main, its output swallowed: its exit status."""
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         return int(call(argv))
 
@@ -62,11 +63,10 @@ def _results(out: Path) -> dict[str, Any]:
     return data
 
 
-def _replay(tlog: Path, out: Path, extra: list[str], read: bool = True) -> dict[str, Any]:
-    status = _quiet(gcs_main, ["replay", str(tlog), "--view", "off", "--out", str(out), *extra])
+def _replay(tlog: Path, out: Path, extra: list[str]) -> None:
+    status = quiet(gcs_main, ["replay", str(tlog), "--view", "off", "--out", str(out), *extra])
     if status != 0:
         raise SystemExit(f"replay of {tlog.name} exited {status}")
-    return _results(out) if read else {}
 
 
 def simulated(seeds: int, rates: list[float], folder: Path) -> None:
@@ -86,10 +86,12 @@ def simulated(seeds: int, rates: list[float], folder: Path) -> None:
             argv = ["--speed", "0", "--seed", str(seed), "--autopilot", "arduplane", "--asked"]
             argv += ["--set", f"simulation.manoeuvre.duration_s={FLIGHT_S:g}"]
             argv += ["--msg-rate", f"SERVO_OUTPUT_RAW={hz:g}", "--tlog", str(stem)]
-            if _quiet(sim_main, argv) != 0:
+            if quiet(sim_main, argv) != 0:
                 raise SystemExit(f"the simulator failed at {hz:g} Hz, seed {seed}")
             tlog = stem.parent / f"{stem.name}_1.tlog"
-            res = _replay(tlog, stem.parent / f"{stem.name}_out", [])
+            out = stem.parent / f"{stem.name}_out"
+            _replay(tlog, out, [])
+            res = _results(out)
             vehicle = res["link"]["vehicles"]["1"]
             frames += vehicle["frames"]
             guessed += vehicle["inputs_guessed"]
@@ -158,7 +160,7 @@ def alfa(folder: Path, work: Path) -> None:
     )
     out = work / "alfa"
     argv = ["--config", str(airframe), "--follow-advice"]
-    _replay(tlogs[0], out, argv, read=False)
+    _replay(tlogs[0], out, argv)
     account = json.loads((out / ADVICE_FILE).read_text(encoding="utf-8"))
     for entry in account["rounds"]:
         added = set_argv(entry["applied"]) + (
