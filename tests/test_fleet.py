@@ -255,6 +255,51 @@ def test_the_parquet_history_holds_the_csvs_values(tmp_path: Path, logs: list[Pa
     assert size < (tmp_path / "c" / "results_sys1_history.csv").stat().st_size / 4
 
 
+def _estimates(data: dict[str, Any]) -> dict[tuple[str, str], tuple[float, float, str]]:
+    return {
+        (kind, name): (c["estimate"], c["sigma"], c["identifiability"])
+        for kind, f in data["filters"].items()
+        for name, c in f["estimates"].items()
+    }
+
+
+def test_a_logs_frames_left_out_are_those_its_replay_or_offline_leaves_out(
+    tmp_path: Path,
+) -> None:
+    """A batch's log is cut into the segments its `replay` (a .tlog: the live gate) or
+    `offline` (a data file: the plan) would use: here a mission's turns beyond a bank
+    limit of 20 degrees, and a take-off roll slower than half the trim airspeed."""
+    import numpy as np
+
+    from gcs_estimator.ingest.flightdata import write_csv
+    from sim.scenario import mission
+
+    flown = load_config("noc_uav", [*mission("none", 20.0), 'filter.structure_check="off"'])
+    fl = simulate(flown, seed=2)
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    tlog = tmp_path / "turns.tlog"
+    SimulatedVehicle(rec, flown.link, ("127.0.0.1", 9), speed=0.0, tlog=tlog).run()
+    slow = fl.measurements.copy()
+    slow[:100, 0] = 5.0  # the first 2 s: a take-off roll
+    csv = tmp_path / "take_off.csv"
+    write_csv(csv, Recording(fl.t_s, fl.inputs, slow, "throttle"))
+    sets = ["filter.bank_limit_deg=20", 'filter.structure_check="off"']
+    config = load_config("noc_uav", sets)
+    for log, command, reason in ((tlog, "replay", "bank"), (csv, "offline", "airspeed")):
+        batch = estimate_file(log, config, tmp_path / f"batch_{log.stem}")
+        assert batch.error is None, batch.error
+        alone = tmp_path / f"alone_{log.stem}"
+        argv = [command, str(log), "--config", "noc_uav", "--out", str(alone), "--view", "off"]
+        assert cli.main([*argv, *(a for s in sets for a in ("--set", s))]) == 0
+        own = json.loads((alone / "results_sys1.json").read_text())
+        mine = json.loads((tmp_path / f"batch_{log.stem}" / "results_sys1.json").read_text())
+        segments = mine["diagnostics"]["segments"]
+        assert segments["left_out_frames"][reason] > 0, segments
+        assert segments == own["diagnostics"]["segments"]
+        assert _estimates(mine) == _estimates(own)
+        assert np.isfinite(mine["diagnostics"]["frames"])
+
+
 def test_the_autopilots_uid_is_read_from_the_log(logs: list[Path]) -> None:
     facts = tlog_facts(logs[0])
     assert facts.uids == {1: f"{UID:016x}"}

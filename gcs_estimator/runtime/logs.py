@@ -24,6 +24,7 @@ from typing import Any
 
 from gcs_estimator.config import AircraftConfig, ConfigError
 from gcs_estimator.estimation.estimator import FilterKind, StepOutput
+from gcs_estimator.estimation.segments import Plan
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.flightdata import FlightDataError
 from gcs_estimator.ingest.logs import detect
@@ -36,7 +37,8 @@ from gcs_estimator.ingest.telemetry.tlog_fast import read_records, tlog_source_c
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.sinks import ResultsSink, results_stem
 from gcs_estimator.outputs.tables import coefficient_rows, failed_row, summary_row
-from gcs_estimator.runtime.session import BATCH_BLOCK_FRAMES, RecordingSource, Session, Source
+from gcs_estimator.runtime.flights import limits_of, source_of
+from gcs_estimator.runtime.session import BATCH_BLOCK_FRAMES, Session, Source
 from gcs_estimator.stop import Stop
 from gcs_estimator.uncertainty.result import VehicleResult
 
@@ -121,10 +123,14 @@ def version() -> str:
 @dataclass
 class LogFacts:
     """What the log says of itself before any estimation: its flight time (UTC) and the
-    autopilots' unique ids by system id."""
+    autopilots' unique ids by system id; whether its frames come as a link's (a .tlog,
+    gated and checked frame by frame as `replay` does), else the data compatibility check
+    its reader made (ingest/compat.py's findings, as `offline` reports them)."""
 
     flight_time: datetime | None = None
     uids: dict[int, str] = field(default_factory=dict)
+    link: bool = False
+    compatibility: Any = None
 
 
 def _time_of(t_us: int) -> datetime | None:
@@ -202,6 +208,12 @@ class _TimedSource:
     def errors(self) -> list[str]:
         return list(getattr(self.source, "errors", []))
 
+    @property
+    def plan(self) -> Plan | None:
+        """The recording's segments (a data file's), for its results."""
+        plan: Plan | None = getattr(self.source, "plan", None)
+        return plan
+
 
 class _TimedSink:
     """The results writer, timed (write_s)."""
@@ -228,12 +240,15 @@ def _tlog_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[
     link = MavlinkLink(
         config.link, linear_inputs=config.data.input_hold == "linear", ranges=ranges_of(config.data)
     )
-    return tlog_source_class()([path], link, log=log), tlog_facts(path)
+    facts = tlog_facts(path)
+    facts.link = True
+    return tlog_source_class()([path], link, log=log), facts
 
 
 def _data_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[Source, LogFacts]:
     """An autopilot's log (DataFlash, ULog), a CSV or the HFB-320 record, as `offline`
-    reads it (ingest.logs.reader.load_flight: by content)."""
+    reads it (ingest.logs.reader.load_flight: by content), only its segments' frames
+    (a NoSegmentError, a failed row, where it has none)."""
     file, rec, account = load_flight(path, config)
     if account:
         print(account, file=log)
@@ -246,8 +261,10 @@ def _data_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[
             f"in the data, but {file} has {rec.power}"
         )
     mtime = datetime.fromtimestamp(file.stat().st_mtime, UTC)
-    source = RecordingSource(rec.t_s, rec.inputs, rec.measurements, rec.inputs_known)
-    return source, LogFacts(mtime)
+    source = source_of([rec], [file.name], limits_of(config))
+    assert source.plan is not None
+    print(source.plan.summary(), file=log)
+    return source, LogFacts(mtime, compatibility=rec.compatibility or None)
 
 
 Reader = Callable[[Path, AircraftConfig, io.StringIO], tuple[Source, LogFacts]]
@@ -351,7 +368,12 @@ def _estimate(
     source, facts = reader_of(path)(path, config, log)
     read_s = time.perf_counter() - t0  # a data file read whole, a .tlog's uid looked for
     timed = _TimedSource(source)
-    session = Session(config, block_frames=BATCH_BLOCK_FRAMES)  # no view: blocks (0065)
+    session = Session(  # no view: blocks (decision 0065)
+        config,
+        block_frames=BATCH_BLOCK_FRAMES,
+        gate=limits_of(config) if facts.link else None,  # a data file's plan chose its frames
+        check_frames=facts.link,
+    )
     writer = None
     if out_dir is not None:
         sink = ResultsSink(
@@ -362,7 +384,7 @@ def _estimate(
             out=log,
             estimators=lambda: session.estimators,
             history_format=history_format,
-            run=lambda: {"source": str(path), "config": config.source},
+            run=lambda: _run_info(path, config, facts),
         )
         writer = _TimedSink(sink)
         session.add_sink(writer)
@@ -390,3 +412,12 @@ def _estimate(
         "write_s": write_s,
     }
     return results, facts, times
+
+
+def _run_info(path: Path, config: AircraftConfig, facts: LogFacts) -> dict[str, Any]:
+    """The run's part of the results JSON: the log, the config, and the compatibility
+    check its reader made (where one did)."""
+    info: dict[str, Any] = {"source": str(path), "config": config.source}
+    if facts.compatibility is not None:
+        info["compatibility"] = facts.compatibility
+    return info
