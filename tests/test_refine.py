@@ -24,6 +24,7 @@ from gcs_estimator.outputs.diagnosis import (
     ADVICE_HEAD,
     CHANNEL_NIS_LIMIT,
     advised_settings,
+    fitted_noise,
     process_noise_settings,
     residuals_white,
     set_argv,
@@ -633,9 +634,23 @@ def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_
     coloured = dataclasses.replace(fit, residual_colour=np.where(fit.residual_colour > 0, 12.0, 0))
     assert not residuals_white(coloured)
     kept = advised_settings(run, coloured)
-    assert kept == {k: v for k, v in advised.items() if not k.startswith("filter.process_noise.")}
+    assert kept.keys() == {k for k in advised if not k.startswith("filter.process_noise.")}
     (named,) = [w for w in trust_warnings(run, coloured) if w.startswith("FE finds the flight")]
     assert "coloured" in named and "not advised" in named
+
+    # The fit's measurement noise comes with its process noise: where it finds a channel
+    # whose innovations are high noisier than the filters took it (here the gusts' short
+    # scale roughens the pitch rate, its rate and a_z beyond what the data's own reading
+    # says), that sigma is advised; named and not advised where the residuals are coloured
+    # (decision 0089).
+    fitted = fitted_noise(run, fit)
+    assert fitted
+    for name, found in fitted:
+        assert advised[f"filter.measurement_sigma.{name}"] == float(f"{found:.4g}")
+    (said,) = [w for w in trust_warnings(run, fit) if w.startswith("FE finds the measure")]
+    assert "0089" in said and "not advised" not in said
+    (said,) = [w for w in trust_warnings(run, coloured) if w.startswith("FE finds the measure")]
+    assert "not advised" in said
 
     sets = set_argv(advised)[1::2]  # what each --set carries, as the command line reads it
     again_config = load_config("noc_uav", [*over, *sets])

@@ -53,6 +53,11 @@ PROCESS_NOISE_RATIO = 10.0
 times the configured one, where the filters' innovations are larger than they predict:
 the model misses that much, and the density is advised (docs/decisions/0085) where the
 fit's residuals are white (none above COLOUR_LIMIT: decision 0087)."""
+FITTED_NOISE_RATIO = math.sqrt(CHANNEL_NIS_LIMIT)
+"""A channel's measurement sigma the filter-error fit finds at least this many times the
+one the filters used (a variance CHANNEL_NIS_LIMIT times theirs), where that channel's
+innovations are larger than they predict: advised with the fit's process noise, where its
+residuals are white (docs/decisions/0089)."""
 ADVICE_HEAD = "to run again as these warnings advise:"
 
 
@@ -119,6 +124,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     if refined is not None:
         out += _refined_warnings(refined)
     out += _process_noise_warning(vehicle, refined)
+    out += _fitted_noise_warning(vehicle, refined)
     advised = advised_settings(vehicle, refined)
     if advised:
         out.append(f"{ADVICE_HEAD} {set_arguments(advised)}")
@@ -129,8 +135,9 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
     """The settings the warnings advise, as `--set` keys and their values: the sensor
     biases the compatibility check finds and the filters do not estimate, each channel's
     sigma where the data read it clearly noisier than configured, the process noise the
-    filter-error fit finds where the filters' innovations are larger than they predict,
-    and the input delay the fit finds where one value fits every input. Empty: nothing to
+    filter-error fit finds where the filters' innovations are larger than they predict
+    and the measurement sigma it finds with it (where its residuals are white), and the
+    input delay the fit finds where one value fits every input. Empty: nothing to
     change. A run with them applied advises none of them again (decision 0085). Not
     advised: a channel's sigma where its innovations are as large as the filters predict
     (the roughness read is motion they carry), nor a bias the compatibility check's
@@ -146,6 +153,9 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
             out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
     if refined is not None and residuals_white(refined):
         out |= process_noise_settings(vehicle, refined)
+        for name, sigma in fitted_noise(vehicle, refined):
+            key = f"filter.measurement_sigma.{name}"
+            out[key] = max(out.get(key, 0.0), float(f"{sigma:.4g}"))
     delay = _delay_advised(refined)
     if delay is not None:
         out["data.input_delay_s"] = float(f"{delay:.3f}")
@@ -272,6 +282,51 @@ def _process_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> l
         "random; where it is, it names the [filter.process_noise] densities that would let "
         "their covariance count on it"
     ]
+
+
+def fitted_noise(vehicle: VehicleResult, refined: Refined | None) -> list[tuple[str, float]]:
+    """The channels whose innovations are larger than the filters predict where the
+    filter-error fit finds their measurement sigma FITTED_NOISE_RATIO times the one the
+    filters used, with the sigma it finds. The fit estimates the measurement noise and the
+    process noise together: its densities are what the flight states need beside that
+    noise, not beside the filters' smaller one."""
+    if refined is None or refined.label != "FE":
+        return []
+    high = _channels_high(vehicle)
+    used = vehicle.result.measurement_sigma or vehicle.result.config.filter.measurement_sigma
+    return [
+        (name, float(found))
+        for name, found, told in zip(OBS_NAMES, refined.noise_sigma, used, strict=True)
+        if name in high and math.isfinite(found) and found >= FITTED_NOISE_RATIO * told
+    ]
+
+
+def _fitted_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> list[str]:
+    """The measurement noise the filter-error fit finds above the filters' on the channels
+    whose innovations are larger than they predict (fitted_noise), and whether it is
+    advised (with the fit's process noise, where its residuals are white)."""
+    found = fitted_noise(vehicle, refined)
+    if not found:
+        return []
+    assert refined is not None  # found only from a fit
+    used = dict(
+        zip(
+            OBS_NAMES,
+            vehicle.result.measurement_sigma or vehicle.result.config.filter.measurement_sigma,
+            strict=True,
+        )
+    )
+    named = ", ".join(f"{n} {v:.3g} (the filters used {used[n]:.3g})" for n, v in found)
+    head = (
+        f"FE finds the measurement noise larger than the filters took it, as σ: {named}: "
+        "what the model cannot follow from one sample to the next on these channels"
+    )
+    if residuals_white(refined):
+        return [
+            f"{head}; set so ([filter.measurement_sigma]) with the fit's process noise, the "
+            "filters' noise model is the fit's (docs/decisions/0089)"
+        ]
+    return [f"{head}; not advised, as the fit's process noise is not (residuals coloured)"]
 
 
 def refine_advised(vehicle: VehicleResult, refined: Refined | None = None) -> str | None:
