@@ -15,6 +15,7 @@ from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.model import equations as eq
 from gcs_estimator.model.aircraft import STANDARD_GRAVITY_MPS2, Model, build_model
+from gcs_estimator.model.channels import Channel
 
 # Central differences with step 1e-6 relative: truncation ~1e-12, rounding ~1e-10 of the
 # function's scale. Entries are compared relative to the Jacobian's largest entry per row.
@@ -381,6 +382,39 @@ def test_a_clock_reset_takes_the_white_pitch_gust_afresh_with_alpha() -> None:
     assert new.P[4, 1] == pytest.approx(-c * new.x[0] * new.P[1, 1])
     assert new.P[4, 0] == pytest.approx(-c * new.x[1] * new.P[0, 0])
     np.testing.assert_array_equal(new.x[model.coefficients], 1.0)
+
+
+def test_afresh_the_states_a_frame_does_not_measure_start_where_they_were() -> None:
+    """core.rebase at a frame that measures only some flight states (a link's pitch rate
+    between its slower airspeed and attitude samples): those it measures start from the
+    measurement, the others from the belief before (not trim speed and zeros), every
+    flight state with its initial sigma and uncorrelated; without a vane, alpha from the
+    frame's climb rate where it has one."""
+    from gcs_estimator.estimation.filters import core
+
+    config = load_config("noc_uav", ["simulation.vane=false"])
+    model = build_model(config)
+    tuning = core.tuning_of(config, model, "EKF")
+    u = np.array([0.01, 0.35])
+    nan = math.nan
+    y = np.array([19.0, nan, 0.2, 0.1, nan, nan, nan, nan])
+    before = core.initial_state(model, tuning, 0.0, u, y)
+    x = before.x.copy()
+    x[:4] = [19.0, 0.07, 0.2, 0.1]
+    x[model.coefficients] = 1.0
+    old = before._replace(x=x, P=before.P * 0.01)
+    only_q = np.array([nan, nan, nan, 0.05, nan, nan, nan, nan])
+    new = core.rebase(old, model, tuning, 1.0, only_q)
+    np.testing.assert_array_equal(new.x[:4], [19.0, 0.07, 0.2, 0.05])
+    fresh = core.initial_state(model, tuning, 1.0, u, only_q)
+    np.testing.assert_array_equal(new.P[:4, :4], fresh.P[:4, :4])
+    np.testing.assert_array_equal(new.x[model.coefficients], 1.0)
+    climbing = only_q.copy()
+    climbing[Channel.HDOT] = 2.0
+    new = core.rebase(old, model, tuning, 1.0, climbing)
+    assert new.x[1] == pytest.approx(eq.alpha_from_climb(19.0, 0.2, 2.0, 0.0))
+    first = core.initial_state(model, tuning, 1.0, u, only_q)  # a pass's first frame
+    assert first.x[0] == model.k[eq.V0] and first.x[2] == 0.0  # no belief before it
 
 
 def _wings_level_rows(x: FloatArray, u: FloatArray, model: Model) -> FloatArray:

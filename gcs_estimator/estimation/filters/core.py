@@ -347,21 +347,28 @@ def initial_state(
     coefficients: FloatArray | None = None,
     coefficient_sigma: FloatArray | None = None,
     gust_var: float | None = None,
+    guess: FloatArray | None = None,
 ) -> FilterState:
     """The belief at the first frame of a pass: flight states from the measurement where
-    present (else trim speed and zeros), coefficients N(coefficients, sigma^2) (default:
-    the configured prior), the gust level given (default: configured)."""
+    present (else `guess`, the flight states last believed, where given; else trim speed
+    and zeros), coefficients N(coefficients, sigma^2) (default: the configured prior),
+    the gust level given (default: configured)."""
     x = np.zeros(model.n)
     sigma = tuning.prior_sigma.copy()
     flight = model.flight
     state = np.array([model.k[eq.V0], 0.0, 0.0, 0.0])
+    if guess is not None:
+        state = np.where(np.isfinite(guess), guess, state)
     measured = np.isfinite(y[flight])
     state[measured] = y[flight][measured]
     if not measured[1]:  # no vane: alpha from the climb rate (decision 0049)
         phi = eq.bank(np.asarray(u, float))[0]
         climb = float(y[Channel.HDOT]) if y.shape[0] > Channel.HDOT else math.nan
         alpha = eq.alpha_from_climb(state[0], state[2], climb, phi)
-        state[1] = alpha if math.isfinite(alpha) else 0.0
+        if math.isfinite(alpha):
+            state[1] = alpha
+        elif guess is None:
+            state[1] = 0.0
     x[flight] = state
     if coefficients is not None:
         x[model.coefficients] = coefficients
@@ -409,8 +416,10 @@ def rebase(
     """A new time base (the vehicle clock reset): keep what is known of the coefficients,
     take the flight states (and a pitch gust's state tied to alpha) afresh from the
     measurement with their initial uncertainty.
-    The gust estimate's clocks keep their age."""
-    fresh = initial_state(model, tuning, t, state.u, y)
+    The flight states the frame does not measure start from those last believed (the
+    frame's alpha from its climb rate where it has one): nearer than trim and zeros, with
+    the same initial uncertainty. The gust estimate's clocks keep their age."""
+    fresh = initial_state(model, tuning, t, state.u, y, guess=state.x[model.flight])
     # The flight states, and a pitch gust's state tied to alpha (white gust noise).
     afresh = list(range(model.flight.start, model.flight.stop))
     if eq.has_pitch_gust(model.arrays) and not model.has_gust_states:
