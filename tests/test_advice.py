@@ -14,6 +14,7 @@ import pytest
 from gcs_estimator import cli
 from gcs_estimator.config import AircraftConfig, load_config
 from gcs_estimator.model.aircraft import build_model
+from gcs_estimator.model.channels import N_OBS
 from gcs_estimator.outputs.checks import Checks
 from gcs_estimator.refine.holdout import check
 from gcs_estimator.runtime.session import run_recording
@@ -23,11 +24,12 @@ from gcs_estimator.uncertainty.advice import (
     Advice,
     Candidate,
     advice_of,
+    advise,
     candidate_flights,
     in_envelope,
     short_period,
 )
-from gcs_estimator.uncertainty.metrics import IDENTIFIED, WEAK
+from gcs_estimator.uncertainty.metrics import IDENTIFIED, NOT_IDENTIFIED, WEAK
 from gcs_estimator.uncertainty.result import VehicleResult
 from sim.truth import simulate
 
@@ -120,6 +122,29 @@ def test_a_manoeuvre_that_leaves_the_envelope_is_not_advised(flown: Flown) -> No
     for a in flown.advice.advised:
         for f in candidate_flights(model, beta, a.candidate, 50.0, flown.advice.short_period_rad_s):
             assert in_envelope(model, f)
+
+
+def test_an_estimate_that_does_not_hold_its_trim_says_so_and_what_to_fly() -> None:
+    """A run that identified nothing can end on coefficients whose model does not hold its
+    own trim (here the NOC UAV's with Cma's sign turned: statically unstable). No
+    candidate can be predicted from them; the advice says that it is the estimate, not
+    the manoeuvres, and names the manoeuvres that would identify it, where the true
+    model's advice predicts each coefficient's sigma."""
+    config = load_config("noc_uav")
+    names = config.coefficient_names
+    truth = np.array(config.truth, float)
+    unstable = truth.copy()
+    unstable[names.index("Cma")] = -truth[names.index("Cma")]
+    cov = np.diag(np.full(len(names), 100.0))
+    marks = [NOT_IDENTIFIED] * len(names)
+    sigma, seen = config.filter.measurement_sigma, [True] * N_OBS
+    lost = advise(config, unstable, cov, marks, sigma, seen)
+    assert not lost.advised and not lost.predicted
+    assert "does not hold its own trim" in lost.note and "doublets" in lost.note
+    assert lost.lines()[0] == f"what to fly next: {lost.note}"
+    assert lost.as_dict()["note"] == lost.note
+    held = advise(config, truth, cov, marks, sigma, seen)
+    assert not held.note and {a.name for a in held.advised} == set(names)
 
 
 def _step_at(amplitude: float) -> list[str]:

@@ -491,8 +491,7 @@ def advise(
         marks_after[c.label()] = after if ok[ALPHA] else without_alpha(names, after)
         by[c.label()] = c
     if not predicted:
-        note = "every candidate left the envelope about trim or the model's range"
-        return Advice(names, V, omega, (), note=note, slow=slow)
+        return Advice(names, V, omega, (), note=_none_flown(model, beta, V, rate_hz), slow=slow)
     advised = []
     for i, (name, mark) in enumerate(zip(names, marks, strict=True)):
         if mark == IDENTIFIED:
@@ -510,6 +509,33 @@ def advise(
             )
         )
     return Advice(names, V, omega, tuple(advised), predicted, slow=slow)
+
+
+UNFORCED_S = 2.0 * THROTTLE_HOLD_S
+"""How long the model at the estimate is flown from trim with no input to tell whether it
+holds its trim: as long as the longest candidate."""
+UPSET_ALPHA_DEG = 0.5
+"""The angle of attack it starts that far off trim: at exact trim even an unstable model
+stays put."""
+
+
+def _none_flown(model: Model, beta: FloatArray, airspeed: float, rate_hz: float) -> str:
+    """Why no candidate was predicted: the model at the estimate does not hold its own
+    trim (flown with no input from UPSET_ALPHA_DEG off it, it leaves the envelope: its
+    coefficients, not the manoeuvres, are the trouble), or every candidate left the
+    envelope."""
+    x0, u0 = _trimmed(model, beta, airspeed)
+    x0[1] += math.radians(UPSET_ALPHA_DEG)
+    t = np.arange(0.0, UNFORCED_S, 1.0 / rate_hz)
+    if in_envelope(model, Flight(x0, t, np.tile(u0, (t.shape[0], 1)))):
+        return "every candidate left the envelope about trim or the model's range"
+    return (
+        f"the model at the current estimate does not hold its own trim at {airspeed:.0f} "
+        f"m/s (flown with no input it leaves the envelope within {UNFORCED_S:g} s): its "
+        "coefficients are too uncertain to predict a manoeuvre from; fly elevator doublets "
+        "and 3-2-1-1s of a few degrees and throttle steps on wings-level legs, then run "
+        "again, and the advice will predict from what they identify"
+    )
 
 
 SHORT_PERIOD_CHANNELS = ("alpha", "theta", "q", "a_z")
