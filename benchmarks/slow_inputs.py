@@ -145,7 +145,23 @@ def _alfa_line(label: str, res: dict[str, Any]) -> None:
         if f["significant"]
     ]
     print(f"- compatibility check of the frames, beyond the noise: {'; '.join(beyond) or 'none'}")
+    print(f"- what to fly next (IEKF): {_advice_line(res.get('advice'))}")
     print()
+
+
+def _advice_line(advice: dict[str, Any] | None) -> str:
+    """The run's advice in one line: the channels to sample faster, then each manoeuvre
+    advised with the coefficients it is advised for (or why none was)."""
+    if not advice:
+        return "none given"
+    parts = [f"faster data: {n} {r:.1f} Hz" for n, r in advice.get("slow_channels_hz", {}).items()]
+    if advice.get("note"):
+        return "; ".join([*parts, advice["note"]])
+    by: dict[str, list[str]] = {}
+    for a in advice.get("not_identified", []):
+        by.setdefault(a["manoeuvre"]["label"], []).append(a["name"])
+    parts += [f"{label} (for {', '.join(names)})" for label, names in by.items()]
+    return "; ".join(parts) or "nothing: every coefficient is identified"
 
 
 def alfa(folder: Path, work: Path) -> None:
