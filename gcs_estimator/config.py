@@ -470,8 +470,18 @@ QUANTITY_KINDS: dict[str, str] = {
     "pressure_altitude": "length",
     "air_temperature": "temperature",
     "climb_rate": "speed",
+    "phi": "angle",
+    "p": "rate",
+    "r": "rate",
 }
 """The quantities of a flight-data file and the kind of unit each takes (units.UNITS)."""
+LATERAL_QUANTITIES: tuple[str, ...] = ("phi", "p", "r")
+"""Optional columns of the turns (decision 0048): the bank angle, the roll and yaw rates,
+the model's measured inputs."""
+QUATERNION_QUANTITIES: tuple[str, ...] = ("quat_w", "quat_x", "quat_y", "quat_z")
+"""Optional columns of the attitude as a unit quaternion (body to north-east-down, scalar
+first, as PX4's vehicle_attitude.q): the pitch and bank angles where the file has no
+column of their own."""
 ATMOSPHERE_QUANTITIES: tuple[str, ...] = (
     "air_density",
     "static_pressure",
@@ -529,8 +539,26 @@ class Columns:
     climb_rate: str = setting(
         "climb_rate_mps",
         doc="the file's column name (optional: the climb rate h_dot, up positive; "
-        "without it the filters go without that channel)",
+        "without it the filters go without that channel; a down-positive vertical speed "
+        "with [data.scale] climb_rate = -1)",
     )
+    phi: str = setting(
+        "phi_rad",
+        doc="the file's column name (optional: the bank angle, right wing down positive; "
+        "with it the model flies the turns, decision 0048; without it and without the "
+        "quaternion, wings level)",
+    )
+    p: str = setting("p_radps", doc="the file's column name (optional: the roll rate)")
+    r: str = setting("r_radps", doc="the file's column name (optional: the yaw rate)")
+    quat_w: str = setting(
+        "quat_w",
+        doc="the file's column name (optional, with quat_x, quat_y, quat_z: the attitude "
+        "quaternion, body to north-east-down, scalar first; the pitch and bank angles come "
+        "from it where the file has no theta or phi column)",
+    )
+    quat_x: str = setting("quat_x", doc="the file's column name (see quat_w)")
+    quat_y: str = setting("quat_y", doc="the file's column name (see quat_w)")
+    quat_z: str = setting("quat_z", doc="the file's column name (see quat_w)")
 
 
 @dataclass(frozen=True)
@@ -553,6 +581,9 @@ class Units:
     pressure_altitude: str = _unit("pressure_altitude")
     air_temperature: str = _unit("air_temperature")
     climb_rate: str = _unit("climb_rate")
+    phi: str = _unit("phi")
+    p: str = _unit("p")
+    r: str = _unit("r")
 
     def factor(self, quantity: str) -> float:
         """Multiplier from this file's unit of `quantity` to SI (a normalised elevator:
@@ -585,6 +616,10 @@ class Scale:
     elevator: float = _scale()
     throttle: float = _scale()
     thrust: float = _scale()
+    climb_rate: float = _scale()
+    phi: float = _scale()
+    p: float = _scale()
+    r: float = _scale()
 
     def check(self) -> None:
         for key, value in vars(self).items():

@@ -89,6 +89,93 @@ def test_a_climb_rate_column_is_read_in_its_unit_and_written_back(tmp_path: Path
     np.testing.assert_allclose(load_csv(path, data).measurements, rec.measurements, rtol=1e-12)
 
 
+def _quaternion(phi: np.ndarray, theta: np.ndarray, psi: np.ndarray) -> list[np.ndarray]:
+    """The unit quaternion (scalar first) of 3-2-1 Euler angles, body to NED, as PX4 logs
+    vehicle_attitude.q: written out here, not the reader's inverse."""
+    cr, sr = np.cos(phi / 2), np.sin(phi / 2)
+    cp, sp = np.cos(theta / 2), np.sin(theta / 2)
+    cy, sy = np.cos(psi / 2), np.sin(psi / 2)
+    return [
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]
+
+
+def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_path: Path) -> None:
+    """A mission's turns in a CSV: the bank angle, roll and yaw rates as their own columns
+    (write_csv writes them) read back as the model's turn inputs and the segments' bank;
+    or the attitude as PX4's quaternion, with a down-positive vertical speed: theta and
+    phi from it, the climb rate from the speed with [data.scale] climb_rate = -1. A bank
+    column in degrees read as radians is refused naming the unit."""
+    from sim.scenario import mission
+
+    fl = simulate(load_config("noc_uav", mission("none", 20.0)), seed=2)
+    phi = fl.inputs[:, Channel.PHI - Channel.ELEVATOR]
+    assert np.abs(phi).max() > math.radians(20)
+    assert np.isfinite(fl.measurements).all()  # the climb rate too
+    rec = Recording(fl.t_s, fl.inputs, fl.measurements, "throttle")
+    path = tmp_path / "turns.csv"
+    write_csv(path, rec)
+    back = load_csv(path)
+    np.testing.assert_array_equal(back.inputs[:, 3:6], fl.inputs[:, 3:6])
+    np.testing.assert_array_equal(back.aux["phi"], phi)
+    np.testing.assert_array_equal(back.measurements, rec.measurements)
+
+    theta = fl.measurements[:, Channel.THETA]
+    psi = np.linspace(-3.0, 3.0, len(theta))  # any heading: it must not leak into them
+    columns = {
+        "time": fl.t_s,
+        "airspeed": fl.measurements[:, Channel.V],
+        "q": fl.measurements[:, Channel.Q],
+        "a_x": fl.measurements[:, Channel.AX],
+        "a_z": fl.measurements[:, Channel.AZ],
+        "elevator": fl.inputs[:, 0],
+        "throttle": fl.inputs[:, 1],
+        "vz": -fl.measurements[:, Channel.HDOT],
+        "p": fl.inputs[:, 4],
+        "r": fl.inputs[:, 5],
+    }
+    quat = dict(zip(("q0", "q1", "q2", "q3"), _quaternion(phi, theta, psi), strict=True))
+    px4 = tmp_path / "px4.csv"
+    with open(px4, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow([*columns, *quat])
+        for i in range(len(fl.t_s)):
+            w.writerow([repr(float(v[i])) for v in (*columns.values(), *quat.values())])
+    sets = [
+        'data.columns.alpha=""',
+        'data.columns.qdot=""',
+        'data.columns.theta=""',
+        "data.columns.climb_rate=vz",
+        "data.scale.climb_rate=-1",
+        *(f"data.columns.{q}={q}" for q in ("time", "airspeed", "q", "a_x", "a_z", "p", "r")),
+        *(f"data.columns.{q}={q}" for q in ("elevator", "throttle")),
+        *(f"data.columns.quat_{a}=q{i}" for i, a in enumerate("wxyz")),
+    ]
+    read = load_csv(px4, load_config("noc_uav", sets).data)
+    np.testing.assert_allclose(read.measurements[:, Channel.THETA], theta, atol=1e-12)
+    np.testing.assert_allclose(read.inputs[:, 3], phi, atol=1e-12)
+    np.testing.assert_allclose(read.inputs[:, 4:6], fl.inputs[:, 4:6], atol=0)
+    np.testing.assert_allclose(
+        read.measurements[:, Channel.HDOT], fl.measurements[:, Channel.HDOT], atol=1e-15
+    )
+    assert any("the bank angle from the attitude quaternion" in n for n in read.notes)
+
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    col = rows[0].index("phi_rad")
+    for row in rows[1:]:
+        row[col] = repr(math.degrees(float(row[col])))
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    with pytest.raises(FlightDataError, match=r'phi = "deg"'):
+        load_csv(path)
+    in_degrees = load_csv(path, load_config("noc_uav", ['data.units.phi="deg"']).data)
+    np.testing.assert_allclose(in_degrees.inputs[:, 3], phi, rtol=1e-12, atol=1e-15)
+
+
 def test_a_missing_column_names_the_key_to_set(tmp_path: Path, flight: Recording) -> None:
     path = tmp_path / "log.csv"
     _write_foreign(path, flight, drop="q")

@@ -6,7 +6,10 @@ missing):
     time_s, airspeed_mps, alpha_rad, theta_rad, q_radps, qdot_radps2, ax_mps2, az_mps2,
     elevator_rad, and one of throttle (0..1) or thrust_n;
     optionally the air density per sample: air_density_kgpm3, or static_pressure_pa or
-    pressure_altitude_m with air_temperature_k (standard temperature without it)
+    pressure_altitude_m with air_temperature_k (standard temperature without it); the
+    climb rate climb_rate_mps; the turns' bank angle, roll and yaw rates phi_rad, p_radps,
+    r_radps; the attitude quaternion quat_w, quat_x, quat_y, quat_z (body to NED, scalar
+    first), which gives theta and phi where their own columns are absent
 
 Column order is free; extra columns are ignored. Any other CSV is read through the
 config's [data.columns] (which column holds which quantity) and [data.units].
@@ -28,11 +31,13 @@ from gcs_estimator import units
 from gcs_estimator.arrays import BoolArray, FloatArray, IntArray
 from gcs_estimator.config import (
     ATMOSPHERE_QUANTITIES,
+    LATERAL_QUANTITIES,
     NORMALISED,
     PLAUSIBLE_MAX,
     PLAUSIBLE_QUANTITIES,
     POWER_COLUMNS,
     QUANTITY_KINDS,
+    QUATERNION_QUANTITIES,
     Columns,
     DataConfig,
     PowerInput,
@@ -302,6 +307,9 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     notes: list[str] = []
     text, delimiter, reader, header = _open_csv(path, encoding, notes)
     absent = [q for q in OBSERVED if getattr(cols, q) == ""]
+    quaternion = all(getattr(cols, q) in header for q in QUATERNION_QUANTITIES)
+    if quaternion and cols.theta not in header and "theta" not in absent:
+        absent.append("theta")  # from the quaternion (_attitude)
     _require(path, header, [q for q in ("time", *OBSERVED, "elevator") if q not in absent], cols)
     for quantity in absent:
         notes.append(
@@ -314,10 +322,12 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
         notes.append(f'{path}: no thrust column ([data.columns] thrust = ""): a glide, thrust 0')
     air = tuple(q for q in ATMOSPHERE_QUANTITIES if getattr(cols, q) in header)
     climb = ("climb_rate",) if cols.climb_rate in header else ()
-    wanted = ("time", *OBSERVED, "elevator", power, *air, *climb)
+    lateral = tuple(q for q in LATERAL_QUANTITIES if getattr(cols, q) in header)
+    quat = QUATERNION_QUANTITIES if quaternion else ()
+    wanted = ("time", *OBSERVED, "elevator", power, *air, *climb, *lateral, *quat)
     read = [i for i, q in enumerate(wanted) if q not in absent]
-    scale = np.array([_factor(path, data, q, travel_deg) for q in wanted])
-    shift = np.array([units.offset(getattr(data.units, q)) for q in wanted])
+    scale = np.array([1.0 if q in quat else _factor(path, data, q, travel_deg) for q in wanted])
+    shift = np.array([0.0 if q in quat else units.offset(getattr(data.units, q)) for q in wanted])
     names = [getattr(cols, wanted[i]) for i in read]
     rows, lines, unread = _read_rows(path, reader, names, decimal_comma=delimiter != ",")
     _drop_cut_line(path, text, rows, lines, bool(rows), notes)
@@ -334,7 +344,10 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
         arr[:, 9] = 0.0
     arr = arr * scale + shift
     arr = _in_time_order(path, cols.time, arr, np.array(lines), notes)
-    check_units(path, dict(zip(wanted, arr.T, strict=True)), data)
+    by = dict(zip(wanted, arr.T, strict=True))
+    turns = _attitude(path, cols, by, quaternion, notes)
+    arr[:, OBSERVED.index("theta") + 1] = by["theta"]
+    check_units(path, by, data)
     arr, known = hold_inputs(path, arr, (8, 9), (cols.elevator, getattr(cols, power)), data, notes)
     if power == "thrust" and not glide and not np.any(arr[:, 9]):
         notes.append(f"{path}: thrust 0 throughout ({cols.thrust!r}): a glide")
@@ -343,15 +356,85 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     if rho is not None:
         inputs = np.column_stack([inputs, rho])
     # The climb rate (h_dot) where the file has its column; missing otherwise.
-    h_dot = arr[:, -1] if climb else np.full(len(arr), np.nan)
+    h_dot = by["climb_rate"] if climb else np.full(len(arr), np.nan)
     return Recording(
         t_s=arr[:, 0],
-        inputs=inputs,
+        inputs=inputs if turns is None else _with_turns(inputs, turns),
         measurements=np.column_stack([arr[:, 1:8], h_dot]),
         power="thrust" if power == "thrust" else "throttle",
         notes=tuple(notes),
         inputs_known=None if known.all() else known,
+        aux={} if turns is None else {"phi": turns[0]},  # the segments' bank limit
     )
+
+
+def _with_turns(inputs: FloatArray, turns: list[FloatArray]) -> FloatArray:
+    """The inputs with the turns' after the air density (NaN: the airframe's)."""
+    if inputs.shape[1] < 3:
+        inputs = np.column_stack([inputs, np.full(len(inputs), np.nan)])
+    return np.column_stack([inputs, *turns])
+
+
+def attitude_of_quaternion(
+    w: FloatArray, x: FloatArray, y: FloatArray, z: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Bank, pitch and heading [rad] of a unit quaternion body to north-east-down, scalar
+    first (PX4's vehicle_attitude.q): the 3-2-1 Euler angles."""
+    phi = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    theta = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
+    psi = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return phi, theta, psi
+
+
+BANK_MAX_RAD = math.pi + 0.01
+"""A bank angle read beyond this is in another unit."""
+
+
+def _attitude(
+    path: str | Path,
+    cols: Columns,
+    by: dict[str, FloatArray],
+    quaternion: bool,
+    notes: list[str],
+) -> list[FloatArray] | None:
+    """The pitch angle from the quaternion where the file has no theta column (set into
+    `by`), and the turns' inputs [bank, roll rate, yaw rate] from their columns or the
+    quaternion (each NaN where the file has none; a missing cell interpolated between
+    its neighbours, as a link's bank is); None where the file has neither a bank column
+    nor the quaternion (wings level)."""
+    n = len(by["time"])
+    phi = by.get("phi")
+    if quaternion:
+        parts = [by[q] for q in QUATERNION_QUANTITIES]
+        from_q_phi, from_q_theta, _ = attitude_of_quaternion(*parts)
+        if not np.any(np.isfinite(by["theta"])):  # no theta column, or an empty one
+            by["theta"] = from_q_theta
+            notes.append(f"{path}: the pitch angle from the attitude quaternion")
+        if phi is None:
+            phi = from_q_phi
+            notes.append(f"{path}: the bank angle from the attitude quaternion")
+    if phi is None:
+        return None
+    worst = float(np.nanmax(np.abs(phi))) if np.any(np.isfinite(phi)) else 0.0
+    if worst > BANK_MAX_RAD:
+        raise FlightDataError(
+            f"{path}: the bank angle reaches {worst:g} (read as rad), beyond half a turn: if "
+            f'{cols.phi!r} is in degrees, set [data.units] phi = "deg" (or --set '
+            "data.units.phi=deg)"
+        )
+    t = by["time"]
+    out = []
+    for col in (phi, by.get("p"), by.get("r")):
+        if col is None:
+            out.append(np.full(n, np.nan))
+            continue
+        ok = np.isfinite(col)
+        filled = col.copy()
+        if ok.sum() >= 2 and not ok.all():
+            inside = (t >= t[ok][0]) & (t <= t[ok][-1])
+            filled[inside] = np.interp(t[inside], t[ok], col[ok])
+        out.append(filled)
+    return out
 
 
 def _open_csv(
@@ -661,6 +744,9 @@ def write_csv(path: str | Path, rec: Recording) -> None:
     climb = rec.measurements.shape[1] > len(OBSERVED) and np.isfinite(rec.measurements[:, -1]).any()
     if climb:
         head.append(cols.climb_rate)
+    turns = rec.inputs.shape[1] > 3 and bool(np.isfinite(rec.inputs[:, 3:]).any())
+    if turns:
+        head += [getattr(cols, q) for q in LATERAL_QUANTITIES]
 
     def cell(v: float) -> str:
         return "" if not math.isfinite(v) else repr(float(v))
@@ -674,4 +760,5 @@ def write_csv(path: str | Path, rec: Recording) -> None:
                 + [cell(v) for v in rec.measurements[i, : len(OBSERVED)]]
                 + [cell(v) for v in rec.inputs[i, :n_in]]
                 + ([cell(rec.measurements[i, -1])] if climb else [])
+                + ([cell(v) for v in rec.inputs[i, 3:6]] if turns else [])
             )

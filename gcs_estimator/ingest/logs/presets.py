@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gcs_estimator.arrays import FloatArray
+from gcs_estimator.ingest.flightdata import attitude_of_quaternion
 from gcs_estimator.ingest.logs.content import LogContent, Signal, Span
 from gcs_estimator.ingest.logs.dataflash import DataFlashLog
 from gcs_estimator.ingest.logs.ulog import ULogData
@@ -371,10 +372,8 @@ def _px4_attitude(u: ULogData) -> tuple[Signal, Signal, Signal] | None:
     t = u.topic("vehicle_attitude")
     if t is None or "q[0]" not in t:
         return None
-    q0, q1, q2, q3 = (np.asarray(t[f"q[{i}]"], float) for i in range(4))
-    theta = np.arcsin(np.clip(2.0 * (q0 * q2 - q3 * q1), -1.0, 1.0))
-    phi = np.arctan2(2.0 * (q0 * q1 + q2 * q3), 1.0 - 2.0 * (q1 * q1 + q2 * q2))
-    psi = np.unwrap(np.arctan2(2.0 * (q0 * q3 + q1 * q2), 1.0 - 2.0 * (q2 * q2 + q3 * q3)))
+    phi, theta, psi = attitude_of_quaternion(*(np.asarray(t[f"q[{i}]"], float) for i in range(4)))
+    psi = np.unwrap(psi)
     time = _px4_time(t)
     return (
         Signal(time, theta, "vehicle_attitude.q"),
