@@ -162,6 +162,8 @@ def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_pa
         read.measurements[:, Channel.HDOT], fl.measurements[:, Channel.HDOT], atol=1e-15
     )
     assert any("the bank angle from the attitude quaternion" in n for n in read.notes)
+    assert any("the pitch angle from the attitude quaternion" in n for n in read.notes)
+    assert not any("no theta column" in n for n in read.notes)
 
     with open(path, newline="") as fh:
         rows = list(csv.reader(fh))

@@ -312,6 +312,8 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
         absent.append("theta")  # from the quaternion (_attitude)
     _require(path, header, [q for q in ("time", *OBSERVED, "elevator") if q not in absent], cols)
     for quantity in absent:
+        if quantity == "theta" and quaternion:
+            continue  # from the quaternion, noted there
         notes.append(
             f'{path}: no {quantity} column ([data.columns] {quantity} = ""): the filters go '
             "without that channel"
