@@ -137,13 +137,17 @@ def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_pa
         "p": fl.inputs[:, 4],
         "r": fl.inputs[:, 5],
     }
-    quat = dict(zip(("q0", "q1", "q2", "q3"), _quaternion(phi, theta, psi), strict=True))
+    # Its norm a little off 1, as a logger's rounding leaves it; one row's cells empty.
+    parts = [1.02 * c for c in _quaternion(phi, theta, psi)]
+    quat = dict(zip(("q0", "q1", "q2", "q3"), parts, strict=True))
+    lost = 100
     px4 = tmp_path / "px4.csv"
     with open(px4, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow([*columns, *quat])
         for i in range(len(fl.t_s)):
-            w.writerow([repr(float(v[i])) for v in (*columns.values(), *quat.values())])
+            cells = [repr(float(v[i])) for v in (*columns.values(), *quat.values())]
+            w.writerow(cells[: len(columns)] + [""] * 4 if i == lost else cells)
     sets = [
         'data.columns.alpha=""',
         'data.columns.qdot=""',
@@ -155,8 +159,12 @@ def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_pa
         *(f"data.columns.quat_{a}=q{i}" for i, a in enumerate("wxyz")),
     ]
     read = load_csv(px4, load_config("noc_uav", sets).data)
-    np.testing.assert_allclose(read.measurements[:, Channel.THETA], theta, atol=1e-12)
-    np.testing.assert_allclose(read.inputs[:, 3], phi, atol=1e-12)
+    kept = np.arange(len(theta)) != lost
+    assert np.isnan(read.measurements[lost, Channel.THETA])  # missing, as its cells
+    np.testing.assert_allclose(read.measurements[kept, Channel.THETA], theta[kept], atol=1e-12)
+    np.testing.assert_allclose(read.inputs[kept, 3], phi[kept], atol=1e-12)
+    # The bank between its neighbours, as a link's is between its samples.
+    assert read.inputs[lost, 3] == pytest.approx((phi[lost - 1] + phi[lost + 1]) / 2, abs=1e-12)
     np.testing.assert_allclose(read.inputs[:, 4:6], fl.inputs[:, 4:6], atol=0)
     np.testing.assert_allclose(
         read.measurements[:, Channel.HDOT], fl.measurements[:, Channel.HDOT], atol=1e-15

@@ -380,8 +380,13 @@ def _with_turns(inputs: FloatArray, turns: list[FloatArray]) -> FloatArray:
 def attitude_of_quaternion(
     w: FloatArray, x: FloatArray, y: FloatArray, z: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Bank, pitch and heading [rad] of a unit quaternion body to north-east-down, scalar
-    first (PX4's vehicle_attitude.q): the 3-2-1 Euler angles."""
+    """Bank, pitch and heading [rad] of a quaternion body to north-east-down, scalar first
+    (PX4's vehicle_attitude.q), normalised first (a logger's rounding leaves its norm off
+    1): the 3-2-1 Euler angles; NaN where it is zero or missing."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norm = np.sqrt(w * w + x * x + y * y + z * z)
+        norm = np.where(norm > 0.0, norm, np.nan)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
     phi = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     theta = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
     psi = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
