@@ -185,6 +185,26 @@ def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_pa
     in_degrees = load_csv(path, load_config("noc_uav", ['data.units.phi="deg"']).data)
     np.testing.assert_allclose(in_degrees.inputs[:, 3], phi, rtol=1e-12, atol=1e-15)
 
+    # Rows before the first elevator sample are dropped, the turns' and climb rate's too.
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    lead = 3
+    elevator, roll = rows[0].index("elevator_rad"), rows[0].index("p_radps")
+    for row in rows[1 : 1 + lead]:
+        row[elevator] = ""
+    for row in rows[1:]:
+        row[roll] = repr(math.degrees(float(row[roll])))
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    units = ['data.units.phi="deg"', 'data.units.p="deg/s"']
+    late = load_csv(path, load_config("noc_uav", units).data)
+    assert len(late.t_s) == len(fl.t_s) - lead
+    np.testing.assert_allclose(late.inputs[:, 3:5], fl.inputs[lead:, 3:5], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(late.aux["phi"], late.inputs[:, 3])
+    np.testing.assert_array_equal(late.measurements, rec.measurements[lead:])
+    with pytest.raises(FlightDataError, match=r'p = "deg/s"'):  # a roll rate in deg/s
+        load_csv(path, load_config("noc_uav", units[:1]).data)
+
 
 def test_offline_flies_a_csvs_turns(tmp_path: Path) -> None:
     """`offline` on a mission's CSV: with the turn columns the filters' innovations are

@@ -350,7 +350,10 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     turns = _attitude(path, cols, by, quaternion, notes)
     arr[:, OBSERVED.index("theta") + 1] = by["theta"]
     check_units(path, by, data)
+    width = arr.shape[1]  # the turns ride along, so that the rows the hold drops go too
+    arr = arr if turns is None else np.column_stack([arr, *turns])
     arr, known = hold_inputs(path, arr, (8, 9), (cols.elevator, getattr(cols, power)), data, notes)
+    turns = None if turns is None else list(arr[:, width:].T)
     if power == "thrust" and not glide and not np.any(arr[:, 9]):
         notes.append(f"{path}: thrust 0 throughout ({cols.thrust!r}): a glide")
     inputs = arr[:, [8, 9]]
@@ -358,7 +361,7 @@ def _load_csv(path: str | Path, data: DataConfig, travel_deg: float, encoding: s
     if rho is not None:
         inputs = np.column_stack([inputs, rho])
     # The climb rate (h_dot) where the file has its column; missing otherwise.
-    h_dot = by["climb_rate"] if climb else np.full(len(arr), np.nan)
+    h_dot = arr[:, wanted.index("climb_rate")] if climb else np.full(len(arr), np.nan)
     return Recording(
         t_s=arr[:, 0],
         inputs=inputs if turns is None else _with_turns(inputs, turns),
@@ -393,10 +396,6 @@ def attitude_of_quaternion(
     return phi, theta, psi
 
 
-BANK_MAX_RAD = math.pi + 0.01
-"""A bank angle read beyond this is in another unit."""
-
-
 def _attitude(
     path: str | Path,
     cols: Columns,
@@ -406,42 +405,60 @@ def _attitude(
 ) -> list[FloatArray] | None:
     """The pitch angle from the quaternion where the file has no theta column (set into
     `by`), and the turns' inputs [bank, roll rate, yaw rate] from their columns or the
-    quaternion (each NaN where the file has none; a missing cell interpolated between
-    its neighbours, as a link's bank is); None where the file has neither a bank column
-    nor the quaternion (wings level)."""
-    n = len(by["time"])
+    quaternion (each NaN where the file has none, the bank then wings level; a missing
+    cell interpolated between its neighbours, as a link's bank is); None where the file
+    has none of them."""
     phi = by.get("phi")
     if quaternion:
-        parts = [by[q] for q in QUATERNION_QUANTITIES]
-        from_q_phi, from_q_theta, _ = attitude_of_quaternion(*parts)
+        from_q_phi, from_q_theta, _ = attitude_of_quaternion(
+            *(by[q] for q in QUATERNION_QUANTITIES)
+        )
         if not np.any(np.isfinite(by["theta"])):  # no theta column, or an empty one
             by["theta"] = from_q_theta
             notes.append(f"{path}: the pitch angle from the attitude quaternion")
         if phi is None:
             phi = from_q_phi
             notes.append(f"{path}: the bank angle from the attitude quaternion")
-    if phi is None:
+    columns = (phi, by.get("p"), by.get("r"))
+    if all(c is None for c in columns):
         return None
-    worst = float(np.nanmax(np.abs(phi))) if np.any(np.isfinite(phi)) else 0.0
-    if worst > BANK_MAX_RAD:
-        raise FlightDataError(
-            f"{path}: the bank angle reaches {worst:g} (read as rad), beyond half a turn: if "
-            f'{cols.phi!r} is in degrees, set [data.units] phi = "deg" (or --set '
-            "data.units.phi=deg)"
-        )
+    _check_turn_units(path, cols, columns)
     t = by["time"]
     out = []
-    for col in (phi, by.get("p"), by.get("r")):
-        if col is None:
-            out.append(np.full(n, np.nan))
-            continue
-        ok = np.isfinite(col)
-        filled = col.copy()
+    for col in columns:
+        filled = np.full(len(t), np.nan) if col is None else col.copy()
+        ok = np.isfinite(filled)
         if ok.sum() >= 2 and not ok.all():
             inside = (t >= t[ok][0]) & (t <= t[ok][-1])
-            filled[inside] = np.interp(t[inside], t[ok], col[ok])
+            filled[inside] = np.interp(t[inside], t[ok], filled[ok])
         out.append(filled)
     return out
+
+
+TURN_LIMITS: tuple[tuple[str, str, float, str, str], ...] = (
+    ("phi", "bank angle", math.pi + 0.01, "rad", "deg"),
+    ("p", "roll rate", PLAUSIBLE_MAX[PLAUSIBLE_QUANTITIES.index("q")], "rad/s", "deg/s"),
+    ("r", "yaw rate", PLAUSIBLE_MAX[PLAUSIBLE_QUANTITIES.index("q")], "rad/s", "deg/s"),
+)
+"""Each turn column's largest magnitude in SI (half a turn of bank; the pitch rate's
+limit for the rates), its unit and the unit a larger value is likely in."""
+
+
+def _check_turn_units(
+    path: str | Path, cols: Columns, columns: tuple[FloatArray | None, ...]
+) -> None:
+    """Refuse a turn column whose values cannot be in its configured unit, naming the
+    likely one."""
+    for (key, what, limit, si, likely), col in zip(TURN_LIMITS, columns, strict=True):
+        if col is None or not np.any(np.isfinite(col)):
+            continue
+        worst = float(np.nanmax(np.abs(col)))
+        if worst > limit:
+            raise FlightDataError(
+                f"{path}: the {what} reaches {worst:g} (read as {si}): if {getattr(cols, key)!r} "
+                f'is in {likely}, set [data.units] {key} = "{likely}" (or --set '
+                f'data.units.{key}="{likely}")'
+            )
 
 
 def _open_csv(
