@@ -298,6 +298,11 @@ def test_a_logs_frames_left_out_are_those_its_replay_or_offline_leaves_out(
         assert segments == own["diagnostics"]["segments"]
         assert _estimates(mine) == _estimates(own)
         assert np.isfinite(mine["diagnostics"]["frames"])
+    # A config that cannot read a link's power input is refused for a .tlog, as replay
+    # refuses it: a failed row that names the key.
+    measured = load_config("noc_uav", ['propulsion.model="measured"'])
+    refused = estimate_file(tlog, measured, tmp_path / "refused")
+    assert refused.error is not None and "[link] throttle_servo" in refused.error
 
 
 def test_the_autopilots_uid_is_read_from_the_log(logs: list[Path]) -> None:

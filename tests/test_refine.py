@@ -667,3 +667,4 @@ def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_
         )
     assert advised_settings(again) == {}
     assert not any("`--refine filter-error`" in w for w in trust_warnings(again))
+    assert not fitted_noise(again, fit)  # the sigmas set as advised are not advised again

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gcs_estimator.arrays import FloatArray
 from gcs_estimator.config import ProcessNoise
 from gcs_estimator.estimation.filters.core import FILTER_KINDS, FilterKind
 from gcs_estimator.estimation.noise import CLEARLY, reading_z
@@ -293,12 +294,22 @@ def fitted_noise(vehicle: VehicleResult, refined: Refined | None) -> list[tuple[
     if refined is None or refined.label != "FE":
         return []
     high = _channels_high(vehicle)
-    used = vehicle.result.measurement_sigma or vehicle.result.config.filter.measurement_sigma
+    sigmas = _sigma_told(vehicle)
     return [
         (name, float(found))
-        for name, found, told in zip(OBS_NAMES, refined.noise_sigma, used, strict=True)
+        for name, found, told in zip(OBS_NAMES, refined.noise_sigma, sigmas, strict=True)
         if name in high and math.isfinite(found) and found >= FITTED_NOISE_RATIO * told
     ]
+
+
+def _sigma_told(vehicle: VehicleResult) -> FloatArray:
+    """Each channel's measurement sigma the filters were told: the larger of the one the
+    final pass used (the data's reading, where "auto" took it) and the configured one,
+    so that a sigma already set as advised is not advised again."""
+    config = vehicle.result.config.filter.measurement_sigma
+    used = vehicle.result.measurement_sigma or config
+    told: FloatArray = np.maximum(np.asarray(used, float), np.asarray(config, float))
+    return told
 
 
 def _fitted_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> list[str]:
@@ -309,22 +320,16 @@ def _fitted_noise_warning(vehicle: VehicleResult, refined: Refined | None) -> li
     if not found:
         return []
     assert refined is not None  # found only from a fit
-    used = dict(
-        zip(
-            OBS_NAMES,
-            vehicle.result.measurement_sigma or vehicle.result.config.filter.measurement_sigma,
-            strict=True,
-        )
-    )
-    named = ", ".join(f"{n} {v:.3g} (the filters used {used[n]:.3g})" for n, v in found)
+    told = dict(zip(OBS_NAMES, _sigma_told(vehicle), strict=True))
+    named = ", ".join(f"{n} {v:.3g} (the filters were told {told[n]:.3g})" for n, v in found)
     head = (
         f"FE finds the measurement noise larger than the filters took it, as σ: {named}: "
         "what the model cannot follow from one sample to the next on these channels"
     )
     if residuals_white(refined):
         return [
-            f"{head}; set so ([filter.measurement_sigma]) with the fit's process noise, the "
-            "filters' noise model is the fit's (docs/decisions/0089)"
+            f"{head}; set so ([filter.measurement_sigma]), the filters take the noise the fit "
+            "found beside its process noise (docs/decisions/0089)"
         ]
     return [f"{head}; not advised, as the fit's process noise is not (residuals coloured)"]
 

@@ -34,6 +34,7 @@ from gcs_estimator.ingest.telemetry.decode import ranges_of
 from gcs_estimator.ingest.telemetry.link import MavlinkLink
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogError
 from gcs_estimator.ingest.telemetry.tlog_fast import read_records, tlog_source_class
+from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.sinks import ResultsSink, results_stem
 from gcs_estimator.outputs.tables import coefficient_rows, failed_row, summary_row
@@ -237,8 +238,16 @@ class _TimedSink:
 
 
 def _tlog_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[Source, LogFacts]:
+    """A .tlog's link as `replay` decodes it: a config that cannot read a link's power
+    input refused (config.link_problem), the elevator's travel for a servo's PWM."""
+    problem = config.link_problem()
+    if problem:
+        raise ConfigError(problem)
     link = MavlinkLink(
-        config.link, linear_inputs=config.data.input_hold == "linear", ranges=ranges_of(config.data)
+        config.link,
+        linear_inputs=config.data.input_hold == "linear",
+        ranges=ranges_of(config.data),
+        elevator_travel_deg=config.airframe.elevator_travel_deg,
     )
     facts = tlog_facts(path)
     facts.link = True
@@ -367,6 +376,8 @@ def _estimate(
     t0 = time.perf_counter()
     source, facts = reader_of(path)(path, config, log)
     read_s = time.perf_counter() - t0  # a data file read whole, a .tlog's uid looked for
+    if facts.link:
+        config = weigh_alpha(config)  # AOA_SSA weighed as [link] aoa_ssa says, as replay does
     timed = _TimedSource(source)
     session = Session(  # no view: blocks (decision 0065)
         config,
