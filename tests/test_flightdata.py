@@ -14,6 +14,7 @@ from gcs_estimator.ingest.flightdata import FlightDataError, Recording, load_csv
 from gcs_estimator.model.channels import Channel
 from gcs_estimator.units import FOOT, G0, KNOT
 from sim.truth import simulate
+from tests.logs.ulog_files import quaternion
 
 # A logger's own layout: its names, knots, degrees, g, percent throttle, milliseconds.
 FOREIGN = {
@@ -89,20 +90,6 @@ def test_a_climb_rate_column_is_read_in_its_unit_and_written_back(tmp_path: Path
     np.testing.assert_allclose(load_csv(path, data).measurements, rec.measurements, rtol=1e-12)
 
 
-def _quaternion(phi: np.ndarray, theta: np.ndarray, psi: np.ndarray) -> list[np.ndarray]:
-    """The unit quaternion (scalar first) of 3-2-1 Euler angles, body to NED, as PX4 logs
-    vehicle_attitude.q: written out here, not the reader's inverse."""
-    cr, sr = np.cos(phi / 2), np.sin(phi / 2)
-    cp, sp = np.cos(theta / 2), np.sin(theta / 2)
-    cy, sy = np.cos(psi / 2), np.sin(psi / 2)
-    return [
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ]
-
-
 def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_path: Path) -> None:
     """A mission's turns in a CSV: the bank angle, roll and yaw rates as their own columns
     (write_csv writes them) read back as the model's turn inputs and the segments' bank;
@@ -138,7 +125,7 @@ def test_a_csv_carries_the_turns_as_columns_or_as_the_attitude_quaternion(tmp_pa
         "r": fl.inputs[:, 5],
     }
     # Its norm a little off 1, as a logger's rounding leaves it; one row's cells empty.
-    parts = [1.02 * c for c in _quaternion(phi, theta, psi)]
+    parts = [1.02 * c for c in quaternion(phi, theta, psi)]
     quat = dict(zip(("q0", "q1", "q2", "q3"), parts, strict=True))
     lost = 100
     px4 = tmp_path / "px4.csv"

@@ -7,6 +7,7 @@ import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -67,11 +68,13 @@ class ULogWriter:
         return path
 
 
-def _quaternion(phi: float, theta: float, psi: float = 0.3) -> list[float]:
-    """Hamilton quaternion (w, x, y, z) of the 3-2-1 Euler angles, body FRD to NED."""
-    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
-    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
-    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
+def quaternion(phi: Any, theta: Any, psi: Any = 0.3) -> list[Any]:
+    """Hamilton quaternion (w, x, y, z) of the 3-2-1 Euler angles, body FRD to NED, as PX4
+    logs vehicle_attitude.q (numbers or arrays of them): written out here, not the
+    reader's inverse."""
+    cr, sr = np.cos(phi / 2), np.sin(phi / 2)
+    cp, sp = np.cos(theta / 2), np.sin(theta / 2)
+    cy, sy = np.cos(psi / 2), np.sin(psi / 2)
     return [
         cr * cp * cy + sr * sp * sy,
         sr * cp * cy - cr * sp * sy,
@@ -117,7 +120,10 @@ def px4_log(path: Path, fl: Flight, mav_type: int = 1) -> Path:
     travel = math.radians(20.0)
     for i, t in enumerate(fl.t_s):
         us = int(round(t * 1e6)) + 1_000_000
-        w.data("vehicle_attitude", {"timestamp": us, "q": _quaternion(fl.phi[i], fl.theta[i])})
+        w.data(
+            "vehicle_attitude",
+            {"timestamp": us, "q": [float(c) for c in quaternion(fl.phi[i], fl.theta[i])]},
+        )
         w.data(
             "vehicle_angular_velocity",
             {"timestamp": us, "xyz": [0.01, fl.q[i], 0.0], "xyz_derivative": [0.0, 0.3, 0.0]},
