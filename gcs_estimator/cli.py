@@ -59,10 +59,9 @@ from gcs_estimator.ingest.sources import (
     UdpSource,
     open_udp,
 )
-from gcs_estimator.ingest.telemetry.decode import ranges_of
-from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.link import MavlinkLink, link_of
 from gcs_estimator.ingest.telemetry.mavlink import TlogWriter
-from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
+from gcs_estimator.ingest.telemetry.vehicle_setup import link_config
 from gcs_estimator.outputs.checks import Checks, live_advice_text
 from gcs_estimator.outputs.diagnosis import set_argv
 from gcs_estimator.outputs.sinks import (
@@ -860,12 +859,9 @@ def _link_session(
     take in blocks where no view needs every frame (decision 0065). With
     --filter-workers the vehicles' filters run in worker processes (filter_worker.py),
     which write their results. Alpha from AOA_SSA is weighed as
-    [link] aoa_ssa says (vehicle_setup.weigh_alpha)."""
-    config = weigh_alpha(config)
+    [link] aoa_ssa says (vehicle_setup.link_config)."""
+    config = link_config(config)
     workers = getattr(args, "filter_workers", None)
-    problem = config.link_problem()
-    if problem:
-        raise ConfigError(problem)
     truths = _truths(args, config)
     if record is not None:
         _write_flight_file(args, config, record, truths)
@@ -891,13 +887,10 @@ def _link_session(
             hold=_hold(args),  # the held-out window, which the gate leaves out
             check_frames=True,  # a link's frames: no reader checked them (decision 0084)
         )
-    link = MavlinkLink(
-        config.link,
+    link = link_of(
+        config,
         recorder=TlogWriter(record) if record and recorder else None,
-        linear_inputs=config.data.input_hold == "linear",
-        ranges=ranges_of(config.data),
         rejected_path=record.with_name(record.stem + ".rejected.tlog") if record else None,
-        elevator_travel_deg=config.airframe.elevator_travel_deg,
     )
     view = _view_sink(config, args, session, link)
     if status:
@@ -1042,7 +1035,7 @@ def _tlog_flights(args: argparse.Namespace) -> int:
         named = flight_airframe(side_file(log)) if side_file(log).is_file() else None
         flew.append((Path(log).name, None if named is None else f"airframe {named.config}"))
     check_one_aircraft(flew)
-    config = weigh_alpha(_config(args))
+    config = link_config(_config(args))
     recs = [tlog_recording(log, config) for log in args.tlogs]
     names = [Path(log).name for log in args.tlogs]
     return _flights_session(config, args, recs, names, f"{len(recs)} flights", ", ".join(names))

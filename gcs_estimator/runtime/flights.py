@@ -118,16 +118,10 @@ def tlog_recording(path: str, config: AircraftConfig) -> Recording:
     """A .tlog's flight as a Recording: the frames its first vehicle's messages make, as
     a replay would step them (the link decodes and synchronises them; ingest.sources)."""
     from gcs_estimator.ingest.sources import TlogSource
-    from gcs_estimator.ingest.telemetry.decode import ranges_of
-    from gcs_estimator.ingest.telemetry.link import MavlinkLink
+    from gcs_estimator.ingest.telemetry.link import link_of
     from gcs_estimator.stop import Stop
 
-    link = MavlinkLink(
-        config.link,
-        linear_inputs=config.data.input_hold == "linear",
-        ranges=ranges_of(config.data),
-        elevator_travel_deg=config.airframe.elevator_travel_deg,
-    )
+    link = link_of(config)
     source = TlogSource([path], link)
     frames = [f for f in source.frames(Stop()) if f is not None]
     source.close()

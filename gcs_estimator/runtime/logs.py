@@ -30,11 +30,10 @@ from gcs_estimator.ingest.flightdata import FlightDataError
 from gcs_estimator.ingest.logs import detect
 from gcs_estimator.ingest.logs.reader import load_flight
 from gcs_estimator.ingest.sources import SourceError
-from gcs_estimator.ingest.telemetry.decode import ranges_of
-from gcs_estimator.ingest.telemetry.link import MavlinkLink
+from gcs_estimator.ingest.telemetry.link import link_of
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogError
 from gcs_estimator.ingest.telemetry.tlog_fast import read_records, tlog_source_class
-from gcs_estimator.ingest.telemetry.vehicle_setup import weigh_alpha
+from gcs_estimator.ingest.telemetry.vehicle_setup import link_config
 from gcs_estimator.outputs.diagnosis import trust_warnings
 from gcs_estimator.outputs.sinks import ResultsSink, results_stem
 from gcs_estimator.outputs.tables import coefficient_rows, failed_row, summary_row
@@ -238,17 +237,9 @@ class _TimedSink:
 
 
 def _tlog_reader(path: Path, config: AircraftConfig, log: io.StringIO) -> tuple[Source, LogFacts]:
-    """A .tlog's link as `replay` decodes it: a config that cannot read a link's power
-    input refused (config.link_problem), the elevator's travel for a servo's PWM."""
-    problem = config.link_problem()
-    if problem:
-        raise ConfigError(problem)
-    link = MavlinkLink(
-        config.link,
-        linear_inputs=config.data.input_hold == "linear",
-        ranges=ranges_of(config.data),
-        elevator_travel_deg=config.airframe.elevator_travel_deg,
-    )
+    """A .tlog's link as `replay` decodes it (link_of; the config checked as `replay`
+    checks it, link_config)."""
+    link = link_of(link_config(config))
     facts = tlog_facts(path)
     facts.link = True
     return tlog_source_class()([path], link, log=log), facts
@@ -377,7 +368,7 @@ def _estimate(
     source, facts = reader_of(path)(path, config, log)
     read_s = time.perf_counter() - t0  # a data file read whole, a .tlog's uid looked for
     if facts.link:
-        config = weigh_alpha(config)  # AOA_SSA weighed as [link] aoa_ssa says, as replay does
+        config = link_config(config)  # as replay estimates a link's frames
     timed = _TimedSource(source)
     session = Session(  # no view: blocks (decision 0065)
         config,

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
-from gcs_estimator.config import ConfigError, LinkConfig
+from gcs_estimator.config import AircraftConfig, ConfigError, LinkConfig
 from gcs_estimator.frames import Frame
 from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.ingest.telemetry.counters import LinkHealth
@@ -31,6 +31,7 @@ from gcs_estimator.ingest.telemetry.decode import (
     SampleReader,
     Unknown,
     decoded_message,
+    ranges_of,
 )
 from gcs_estimator.ingest.telemetry.mavlink import Codec, TlogWriter
 from gcs_estimator.ingest.telemetry.signing import SigningGate, load_key, sign_outgoing
@@ -464,3 +465,17 @@ class MavlinkLink:
         out["vehicles"] = {str(v.system_id): v.sync.stats.as_dict() for v in self.vehicles.values()}
         out["sources"] = {str(sid): s.report() for sid, s in self.setups.items()}
         return out
+
+
+def link_of(config: AircraftConfig, **options: Any) -> MavlinkLink:
+    """A link that decodes as the airframe file says (its [link] table, [data]
+    input_hold and plausible ranges, the elevator's travel), with the caller's own
+    options (recorder, log, rejected_path): the one place a session, a batch's task and
+    a flight read ahead build it."""
+    return MavlinkLink(
+        config.link,
+        linear_inputs=config.data.input_hold == "linear",
+        ranges=ranges_of(config.data),
+        elevator_travel_deg=config.airframe.elevator_travel_deg,
+        **options,
+    )

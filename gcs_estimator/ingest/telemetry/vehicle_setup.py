@@ -12,7 +12,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
-from gcs_estimator.config import AircraftConfig, LinkConfig
+from gcs_estimator.config import AircraftConfig, ConfigError, LinkConfig
 from gcs_estimator.ingest.telemetry import mavlink
 from gcs_estimator.ingest.telemetry.channel_sources import MIN_RATE_HZ, ChannelSources, low_rate
 from gcs_estimator.ingest.telemetry.decode import ParamValue, Ranges, Sample
@@ -248,6 +248,16 @@ AHRS_NOTE = (
     f"not a vane; weighed with a sigma of at least {AHRS_ALPHA_SIGMA_DEG:g} deg "
     '([link] aoa_ssa = "ahrs"; "vane" where a vane fills it)'
 )
+
+
+def link_config(config: AircraftConfig) -> AircraftConfig:
+    """The configuration a MAVLink link or its recording is estimated with: refused (a
+    ConfigError naming the key) where it cannot read a link's power input
+    (config.link_problem), its alpha weighed as [link] aoa_ssa says (weigh_alpha)."""
+    problem = config.link_problem()
+    if problem:
+        raise ConfigError(problem)
+    return weigh_alpha(config)
 
 
 def weigh_alpha(config: AircraftConfig) -> AircraftConfig:
