@@ -22,7 +22,13 @@ from gcs_estimator.estimation.noise import (
     reading_z,
 )
 from gcs_estimator.model.channels import OBS_NAMES
-from gcs_estimator.outputs.diagnosis import CHANNEL_NIS_LIMIT, trust_warnings
+from gcs_estimator.outputs.diagnosis import (
+    CHANNEL_NIS_LIMIT,
+    advised_settings,
+    contradicted_readings,
+    set_argv,
+    trust_warnings,
+)
 from gcs_estimator.outputs.results_json import results_dict
 from gcs_estimator.runtime.session import run_recording
 from gcs_estimator.uncertainty.metrics import channel_mean_squares
@@ -255,3 +261,74 @@ def test_a_channel_whose_noise_is_set_wrong_is_named_by_its_innovations() -> Non
     s = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0]])
     mean = channel_mean_squares(e, s)
     assert mean[0] == 5.0 and math.isnan(mean[1])
+
+
+def _smoothed(y: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """y through a first-order low-pass of time constant tau [s] at sample interval dt [s],
+    as an autopilot filters its airspeed before it logs or sends it."""
+    a = math.exp(-dt / tau)
+    out = y.copy()
+    for k in range(1, out.shape[0]):
+        out[k] = a * out[k - 1] + (1.0 - a) * y[k]
+    return out
+
+
+def test_a_smoothed_channel_read_below_its_error_is_named_and_the_reading_not_kept() -> None:
+    """An airspeed the autopilot low-passes (time constant 0.1 s at 50 Hz) changes far
+    less from one sample to the next than its error from the aircraft's: "auto" reads its
+    noise far below the configured sigma and takes it, and its innovations come out many
+    times what the filters predict, dragging the estimates. The run names that reading
+    and advises measurement_noise = "config", keeping the readings that held (the
+    accelerometers, three times quieter than configured) as their sigmas. Run again with
+    that advice, the airspeed has its configured sigma, the accelerometers their readings,
+    no channel's innovations are above what the filters predict, every coefficient is
+    within 3 of its sigmas of the truth, the sigmas are widened less, and nothing is
+    advised again (decision 0091)."""
+    over = [
+        "simulation.manoeuvre.duration_s=30",
+        "simulation.sensors.noise_sigma.a_x=0.0667",
+        "simulation.sensors.noise_sigma.a_z=0.0667",
+    ]
+    config = load_config(CONFIGS / "noc_uav.toml", over)
+    flight = simulate(config, seed=2)
+    y = np.array(flight.measurements, float)
+    v = OBS_NAMES.index("V")
+    y[:, v] = _smoothed(y[:, v], float(np.median(np.diff(flight.t_s))), 0.1)
+    run = run_recording(config, flight.t_s, flight.inputs, y)
+    configured = np.array(config.filter.measurement_sigma)
+    used = np.array(run.result.measurement_sigma)
+    assert used[v] < configured[v] / CLEARLY
+    for s in run.summaries.values():
+        assert s.channel_nis[v] > 2 * CHANNEL_NIS_LIMIT
+    assert [name for name, _, _ in contradicted_readings(run)] == ["V"]
+    (said,) = [w for w in trust_warnings(run) if "smoother than their error" in w]
+    assert said.startswith("the noise read from the samples was taken below the configured σ on V")
+    advised = advised_settings(run)
+    quiet = ["a_x", "a_z"]
+    assert advised.keys() == {"filter.measurement_noise"} | {
+        f"filter.measurement_sigma.{n}" for n in quiet
+    }
+    assert advised["filter.measurement_noise"] == "config"
+    for n in quiet:  # each as the run used it, the data's reading
+        c = OBS_NAMES.index(n)
+        assert advised[f"filter.measurement_sigma.{n}"] == float(f"{used[c]:.4g}")
+        assert used[c] < configured[c] / 2
+
+    again_config = load_config(CONFIGS / "noc_uav.toml", [*over, *set_argv(advised)[1::2]])
+    again = run_recording(again_config, flight.t_s, flight.inputs, y)
+    used_again = dict(zip(OBS_NAMES, again.result.measurement_sigma, strict=True))
+    assert used_again["V"] == configured[v]
+    for n in quiet:
+        assert used_again[n] == advised[f"filter.measurement_sigma.{n}"]
+    for kind, s in again.summaries.items():
+        nis = np.array(s.channel_nis)
+        assert np.all(nis[np.isfinite(nis)] < CHANNEL_NIS_LIMIT), (kind, nis)
+        est = np.array([c.estimate for c in s.coefficients])
+        sigma = np.array([c.sigma for c in s.coefficients])
+        z = (est - flight.truth) / sigma
+        assert np.all(np.abs(z) < 3.0), (kind, z)
+        widened = max(c.sigma_parts.inflation for c in s.coefficients)
+        before = max(c.sigma_parts.inflation for c in run.summaries[kind].coefficients)
+        assert widened < before / 2, (kind, widened, before)
+    assert advised_settings(again) == {}
+    assert not contradicted_readings(again)

@@ -634,7 +634,10 @@ def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_
     coloured = dataclasses.replace(fit, residual_colour=np.where(fit.residual_colour > 0, 12.0, 0))
     assert not residuals_white(coloured)
     kept = advised_settings(run, coloured)
-    assert kept.keys() == {k for k in advised if not k.startswith("filter.process_noise.")}
+    fit_only = {"filter.measurement_noise"}  # what holds the fitted sigmas (below)
+    assert kept.keys() == {
+        k for k in advised if not k.startswith("filter.process_noise.") and k not in fit_only
+    }
     (named,) = [w for w in trust_warnings(run, coloured) if w.startswith("FE finds the flight")]
     assert "coloured" in named and "not advised" in named
 
@@ -647,6 +650,9 @@ def test_the_process_noise_filter_error_finds_is_advised_and_brings_the_filters_
     assert fitted
     for name, found in fitted:
         assert advised[f"filter.measurement_sigma.{name}"] == float(f"{found:.4g}")
+    # and "auto" would take a reading below them again: the configured sigmas are held
+    # (decision 0091)
+    assert advised["filter.measurement_noise"] == "config"
     (said,) = [w for w in trust_warnings(run, fit) if w.startswith("FE finds the measure")]
     assert "0089" in said and "not advised" not in said
     (said,) = [w for w in trust_warnings(run, coloured) if w.startswith("FE finds the measure")]

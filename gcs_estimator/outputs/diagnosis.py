@@ -120,6 +120,7 @@ def trust_warnings(vehicle: VehicleResult, refined: Refined | None = None) -> li
     out += thrust_warnings(vehicle)
     out += hold_warnings(vehicle)
     out += _noise_warning(vehicle)
+    out += _contradicted_warning(vehicle)
     out += _compatibility_warning(vehicle)
     out += _run_warnings(result)
     if refined is not None:
@@ -138,7 +139,9 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
     sigma where the data read it clearly noisier than configured, the process noise the
     filter-error fit finds where the filters' innovations are larger than they predict
     and the measurement sigma it finds with it (where its residuals are white), and the
-    input delay the fit finds where one value fits every input. Empty: nothing to
+    input delay the fit finds where one value fits every input; with measurement_noise =
+    "auto", "config" where a reading the innovations contradict or a fitted sigma would
+    otherwise be read below again (_readings_held, decision 0091). Empty: nothing to
     change. A run with them applied advises none of them again (decision 0085). Not
     advised: a channel's sigma where its innovations are as large as the filters predict
     (the roughness read is motion they carry), nor a bias the compatibility check's
@@ -152,23 +155,82 @@ def advised_settings(vehicle: VehicleResult, refined: Refined | None = None) -> 
     for name, sigma in _noisier_channels(vehicle):
         if name in high:
             out[f"filter.measurement_sigma.{name}"] = float(f"{sigma:.4g}")
+    fitted: list[tuple[str, float]] = []
     if refined is not None and residuals_white(refined):
         out |= process_noise_settings(vehicle, refined)
-        for name, sigma in fitted_noise(vehicle, refined):
+        fitted = fitted_noise(vehicle, refined)
+        for name, sigma in fitted:
             key = f"filter.measurement_sigma.{name}"
             out[key] = max(out.get(key, 0.0), float(f"{sigma:.4g}"))
+    if vehicle.result.config.filter.measurement_noise == "auto" and (
+        fitted or contradicted_readings(vehicle)
+    ):
+        out |= _readings_held(vehicle, out)
     delay = _delay_advised(refined)
     if delay is not None:
         out["data.input_delay_s"] = float(f"{delay:.3f}")
     return out
 
 
+def _taken_readings(vehicle: VehicleResult) -> list[tuple[str, float, float]]:
+    """The channels whose final pass took the data's reading of their noise
+    (measurement_noise = "auto": clearly below the configured sigma), with the sigma
+    used and the configured one."""
+    result = vehicle.result
+    configured = result.config.filter.measurement_sigma
+    used = result.measurement_sigma or configured
+    return [
+        (n, float(u), float(c))
+        for n, u, c in zip(OBS_NAMES, used, configured, strict=True)
+        if u < c and not math.isclose(u, c, rel_tol=1e-9)
+    ]
+
+
+def contradicted_readings(vehicle: VehicleResult) -> list[tuple[str, float, float]]:
+    """The taken readings (_taken_readings) whose channel's innovations some filter finds
+    CHANNEL_NIS_LIMIT times larger than it predicts: samples that change less from one
+    to the next than their error does, as an autopilot's filtered airspeed does (decision
+    0091). The reading takes only the noise that is white at the sample rate."""
+    high = _channels_high(vehicle)
+    return [r for r in _taken_readings(vehicle) if r[0] in high]
+
+
+def _readings_held(vehicle: VehicleResult, advised: dict[str, Any]) -> dict[str, Any]:
+    """What keeps a measurement sigma where the advice puts it: with "auto" the next run
+    would take a reading clearly below it again (a contradicted reading, or a fitted
+    sigma on a channel whose samples read smooth). So measurement_noise = "config", each
+    reading that held (its innovations as the filters predict) kept as its channel's
+    sigma, and a contradicted channel at its configured sigma unless advised otherwise."""
+    out: dict[str, Any] = {"filter.measurement_noise": "config"}
+    wrong = {n for n, _, _ in contradicted_readings(vehicle)}
+    for name, used, _ in _taken_readings(vehicle):
+        key = f"filter.measurement_sigma.{name}"
+        if name not in wrong and key not in advised:
+            out[key] = float(f"{used:.4g}")
+    return out
+
+
+def _contradicted_warning(vehicle: VehicleResult) -> list[str]:
+    """The readings the innovations contradict (contradicted_readings), and the advice."""
+    found = contradicted_readings(vehicle)
+    if not found:
+        return []
+    named = ", ".join(f"{n} {u:.3g} (configured {c:.3g})" for n, u, c in found)
+    return [
+        f"the noise read from the samples was taken below the configured σ on {named}, "
+        "and those channels' innovations are larger than the filters predict: their "
+        "samples are smoother than their error (an autopilot's filtered channel, or one "
+        'held between samples); advised: measurement_noise = "config", the configured σ '
+        "there and the other readings kept (docs/decisions/0091)"
+    ]
+
+
 def set_argv(settings: dict[str, Any]) -> list[str]:
-    """The settings as command-line arguments, `--set KEY=VALUE` each (lists as JSON,
-    which TOML reads too; numbers as they are)."""
+    """The settings as command-line arguments, `--set KEY=VALUE` each (lists and strings
+    as JSON, which TOML reads too; numbers as they are)."""
     argv = []
     for key, value in settings.items():
-        text = json.dumps(value) if isinstance(value, list) else f"{value:g}"
+        text = json.dumps(value) if isinstance(value, list | str) else f"{value:g}"
         argv += ["--set", f"{key}={text}"]
     return argv
 
