@@ -37,6 +37,7 @@ from slow_inputs import quiet
 from gcs_estimator.cli import ADVICE_FILE
 from gcs_estimator.cli import main as gcs_main
 from gcs_estimator.config import load_truths
+from gcs_estimator.outputs.diagnosis import set_argv
 from gcs_estimator.uncertainty.metrics import IDENTIFIED
 from sim.cli import main as sim_main
 from sim.formats import truth_path
@@ -145,10 +146,7 @@ def case(name: str, seeds: int, folder: Path) -> None:
 
 def _shown(entry: dict[str, Any]) -> str:
     """What a round applied, as the command line takes it."""
-    parts = [
-        f"{k}={json.dumps(v) if isinstance(v, list) else f'{v:g}'}"
-        for k, v in entry["applied"].items()
-    ]
+    parts = set_argv(entry["applied"])[1::2]
     if entry["refine"] is not None:
         parts.append(f"--refine {entry['refine']}")
     return " ".join(parts) or "as given"
