@@ -177,12 +177,15 @@ def _taken_readings(vehicle: VehicleResult) -> list[tuple[str, float, float]]:
     (measurement_noise = "auto": clearly below the configured sigma), with the sigma
     used and the configured one."""
     result = vehicle.result
+    if result.noise_reading is None or not result.measurement_sigma:
+        return []
     configured = result.config.filter.measurement_sigma
-    used = result.measurement_sigma or configured
     return [
         (n, float(u), float(c))
-        for n, u, c in zip(OBS_NAMES, used, configured, strict=True)
-        if u < c and not math.isclose(u, c, rel_tol=1e-9)
+        for n, u, c, read in zip(
+            OBS_NAMES, result.measurement_sigma, configured, result.noise_reading.sigma, strict=True
+        )
+        if u < c and math.isclose(u, read, rel_tol=1e-9)
     ]
 
 
