@@ -95,6 +95,23 @@ PLAN = (
         ),
         8,
     ),
+    # Its light turbulence with a vane: the NEES above its band, with the vane ten times
+    # quieter (decision 0092).
+    Run(
+        "noc_mission_quiet_vane",
+        "noc_mission",
+        (
+            "--seeds",
+            "5",
+            "--cases",
+            "light",
+            "--set",
+            "simulation.sensors.noise_sigma.alpha_deg=0.03",
+            "--set",
+            "filter.measurement_sigma.alpha_deg=0.03",
+        ),
+        4,
+    ),
     # Why its light turbulence without a vane is not identified: the pass likelihood held
     # at the estimates and at the truth, passes started at the truth (decision 0075), and
     # the whole-record fit over that pass from the EKF's end (decision 0080).
